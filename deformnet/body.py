@@ -1,0 +1,222 @@
+"""Body model: ordered part names, rigid 3D coordinates (mm) in the model frame, name aliases.
+
+Model frame: right-handed, X right, Y forward (towards the nose), Z up; origin at the body's
+reference point (for the default mouse, the paper's Table 1 origin). A pose (r, tau) maps
+model points to global ones, X_g = R(r) X_m + tau (see `deformnet.so3`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BodyModel:
+    """A rigid body model.
+
+    parts: K part names in model order; points: (K, 3) float64 model coordinates in mm;
+    aliases: other names (e.g. a user's DeepLabCut names such as ``snout``) -> part name.
+    """
+
+    parts: tuple[str, ...]
+    points: np.ndarray
+    aliases: Mapping[str, str] = field(default_factory=dict)
+    name: str = "body"
+
+    def __post_init__(self) -> None:
+        parts = tuple(str(p) for p in self.parts)
+        pts = np.asarray(self.points, dtype=np.float64)
+        if pts.shape != (len(parts), 3):
+            raise ValueError(
+                f"body model '{self.name}': points must have shape ({len(parts)}, 3) for parts "
+                f"{list(parts)}, got {pts.shape}"
+            )
+        if len(set(parts)) != len(parts):
+            raise ValueError(f"body model '{self.name}': duplicate part names in {list(parts)}")
+        if not np.all(np.isfinite(pts)):
+            bad = [parts[i] for i in np.flatnonzero(~np.isfinite(pts).all(1))]
+            raise ValueError(f"body model '{self.name}': non-finite coordinates for parts {bad}")
+        aliases = {str(k): str(v) for k, v in dict(self.aliases).items()}
+        for alias, target in aliases.items():
+            if target not in parts:
+                raise ValueError(
+                    f"body model '{self.name}': alias '{alias}' points to unknown part '{target}'"
+                )
+        pts = pts.copy()
+        pts.flags.writeable = False
+        object.__setattr__(self, "parts", parts)
+        object.__setattr__(self, "points", pts)
+        object.__setattr__(self, "aliases", aliases)
+
+    @property
+    def num_parts(self) -> int:
+        return len(self.parts)
+
+    def index(self, name: str) -> int:
+        """Index of a part by its name or one of its aliases (raises KeyError naming the part)."""
+        key = self.aliases.get(name, name)
+        try:
+            return self.parts.index(key)
+        except ValueError:
+            raise KeyError(
+                f"body part '{name}' is not in body model '{self.name}' (parts: "
+                f"{', '.join(self.parts)}; aliases: {', '.join(sorted(self.aliases)) or 'none'})"
+            ) from None
+
+    def resolve(self, name: str) -> str | None:
+        """The model's part name for `name` (a part name or alias), or None if unknown."""
+        key = self.aliases.get(name, name)
+        return key if key in self.parts else None
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """(3,) mean of the model points."""
+        return self.points.mean(axis=0)
+
+    @property
+    def extent(self) -> np.ndarray:
+        """(3,) size of the axis-aligned bounding box of the model points (mm)."""
+        return self.points.max(axis=0) - self.points.min(axis=0)
+
+    # --- config round trip -------------------------------------------------------------
+    @classmethod
+    def from_mapping(
+        cls,
+        parts: Mapping[str, Sequence[float]],
+        aliases: Mapping[str, str] | None = None,
+        name: str = "body",
+    ) -> BodyModel:
+        """From ``{part: [x, y, z]}`` (ordered) as in ``conf/body/*.yaml``."""
+        names = [str(k) for k in parts]
+        pts = np.array([[float(c) for c in parts[k]] for k in parts], dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1:] != (3,):
+            raise ValueError(f"body model '{name}': every part needs [x, y, z] in mm")
+        return cls(tuple(names), pts, dict(aliases or {}), str(name))
+
+    def to_mapping(self) -> dict:
+        """Plain dict that `from_mapping(**d)` turns back into this model."""
+        return {
+            "name": self.name,
+            "parts": {p: [float(c) for c in xyz] for p, xyz in zip(self.parts, self.points)},
+            "aliases": dict(self.aliases),
+        }
+
+    @classmethod
+    def from_config(cls, cfg) -> BodyModel:
+        """From a Hydra/OmegaConf node or dict with keys name, parts, aliases."""
+        try:
+            from omegaconf import OmegaConf
+
+            if OmegaConf.is_config(cfg):
+                cfg = OmegaConf.to_container(cfg, resolve=True)
+        except ImportError:  # pragma: no cover - omegaconf ships with hydra-core
+            pass
+        cfg = dict(cfg)
+        cfg.pop("_target_", None)
+        return cls.from_mapping(cfg["parts"], cfg.get("aliases"), cfg.get("name", "body"))
+
+    # --- estimation ---------------------------------------------------------------------
+    @classmethod
+    def from_observations(
+        cls,
+        points: np.ndarray,
+        parts: Sequence[str] | None = None,
+        min_parts: int | None = None,
+        iterations: int = 20,
+        max_frames: int = 20000,
+        name: str = "auto",
+    ) -> BodyModel:
+        """Estimate a rigid model from 3D observations by generalized Procrustes analysis.
+
+        points: (T, K, 3) in mm with NaN for missing. Frames with at least `min_parts` observed
+        parts (default: max(3, ceil(0.75 K))) are aligned rigidly (no scale) to the evolving
+        mean shape; each part's model position is the mean over the frames that observed it.
+        The model frame: origin at the centroid, axes along the principal directions (largest
+        spread -> Y, smallest -> Z), right-handed.
+        """
+        X = np.asarray(points, dtype=np.float64)
+        if X.ndim != 3 or X.shape[-1] != 3:
+            raise ValueError(f"points must have shape (T, K, 3), got {X.shape}")
+        T, K, _ = X.shape
+        names = tuple(parts) if parts is not None else tuple(f"part{i}" for i in range(K))
+        if len(names) != K:
+            raise ValueError(f"{len(names)} part names for {K} parts")
+        seen = np.isfinite(X).all(-1)
+        need = max(3, int(np.ceil(0.75 * K))) if min_parts is None else int(min_parts)
+        good = np.flatnonzero(seen.sum(1) >= need)
+        if good.size < 2:
+            raise ValueError(
+                f"cannot estimate a body model: only {good.size} frames have >= {need} of the "
+                f"{K} parts observed"
+            )
+        if good.size > max_frames:
+            good = good[np.linspace(0, good.size - 1, max_frames).astype(int)]
+        X, w = X[good], seen[good].astype(np.float64)
+        X = np.where(w[..., None] > 0, X, 0.0)
+        never = w.sum(0) == 0
+        if never.any():
+            raise ValueError(
+                "cannot estimate a body model: parts never observed in the well-observed frames: "
+                + ", ".join(names[i] for i in np.flatnonzero(never))
+            )
+        # initial mean: the frame with the most observed parts, centred
+        ref = int(np.argmax(w.sum(1)))
+        mean = _masked_mean_shape(X[ref : ref + 1], w[ref : ref + 1], fill=np.nanmean(
+            np.where(w[..., None] > 0, X, np.nan), axis=0))
+        aligned = X
+        for _ in range(iterations):
+            aligned = _align_to(X, w, mean)
+            new_mean = _masked_mean_shape(aligned, w, fill=mean)
+            new_mean -= new_mean.mean(0)
+            if np.abs(new_mean - mean).max() < 1e-9:
+                mean = new_mean
+                break
+            mean = new_mean
+        # principal axes: largest spread -> Y (forward), next -> X, smallest -> Z
+        centred = mean - mean.mean(0)
+        _, _, vt = np.linalg.svd(centred, full_matrices=False)
+        y_axis, x_axis = vt[0], vt[1]
+        z_axis = np.cross(x_axis, y_axis)
+        basis = np.stack([x_axis, y_axis, z_axis])  # rows: model axes in old coordinates
+        model = centred @ basis.T
+        spread = np.sqrt(np.mean(np.sum((aligned - mean) ** 2 * w[..., None], -1)))
+        log.info("estimated body model from %d frames; rms deviation %.3f mm", len(good), spread)
+        return cls(names, model, {}, name)
+
+
+def _masked_mean_shape(X: np.ndarray, w: np.ndarray, fill: np.ndarray) -> np.ndarray:
+    """Per-part weighted mean of (F, K, 3) with weights (F, K); `fill` where a part has no weight."""
+    tot = w.sum(0)
+    m = (X * w[..., None]).sum(0) / np.maximum(tot, 1e-12)[:, None]
+    return np.where(tot[:, None] > 0, m, fill)
+
+
+def _align_to(X: np.ndarray, w: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Rigidly align each frame of X (F, K, 3), weights w (F, K), onto ref (K, 3) (Kabsch)."""
+    ws = w.sum(1, keepdims=True)[..., None]
+    cx = (X * w[..., None]).sum(1, keepdims=True) / ws
+    cr = (ref[None] * w[..., None]).sum(1, keepdims=True) / ws
+    A = (X - cx) * w[..., None]
+    H = np.einsum("fki,fkj->fij", A, ref[None] - cr)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("fij,fjk->fik", U, Vt)))
+    D = np.ones((len(X), 3))
+    D[:, 2] = d
+    R = np.einsum("fij,fj,fjk->fik", U, D, Vt)  # maps (X - cx) row vectors: (X - cx) @ R
+    return np.einsum("fki,fij->fkj", X - cx, R) + cr
+
+
+def default_mouse() -> BodyModel:
+    """The default mouse (paper's Table 1 with left/right X negated), read from conf/body/mouse.yaml."""
+    import yaml
+
+    from deformnet.paths import CONF_DIR
+
+    with open(CONF_DIR / "body" / "mouse.yaml", encoding="utf-8") as fh:
+        return BodyModel.from_config(yaml.safe_load(fh))

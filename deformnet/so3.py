@@ -1,0 +1,139 @@
+"""Rotations and rigid poses in torch: pure, batched over leading dims, differentiable.
+
+Conventions (stated once for the whole project): angles in radians; a rotation vector
+(Rodrigues vector) r has angle |r| and axis r/|r|; a pose p = (r, tau) in R^6 maps model
+coordinates to global ones, X_g = R(r) X_m + tau (mm).
+
+Every function is stable (finite value and gradient) near angle 0 and near angle pi.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+_SMALL2 = 1e-8  # squared angle below which Taylor series replace sin/cos ratios
+
+
+def _check_last(x: Tensor, size: int | tuple[int, ...], name: str) -> None:
+    size = (size,) if isinstance(size, int) else size
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if tuple(x.shape[x.dim() - len(size) :]) != size or x.dim() < len(size):
+        raise ValueError(f"{name} must have shape (..., {', '.join(map(str, size))}), got {tuple(x.shape)}")
+
+
+def skew(v: Tensor) -> Tensor:
+    """Cross-product matrix [v]_x with [v]_x w = v x w.  v: (..., 3) -> (..., 3, 3)."""
+    _check_last(v, 3, "v")
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack(
+        (torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), -2
+    )
+
+
+def rodrigues_to_matrix(r: Tensor) -> Tensor:
+    """Rotation matrix from a rotation vector (exponential map).  r: (..., 3) -> (..., 3, 3)."""
+    _check_last(r, 3, "r")
+    theta2 = (r * r).sum(-1)[..., None, None]
+    small = theta2 < _SMALL2
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = t2.sqrt()
+    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, torch.sin(theta) / theta)
+    half = torch.sin(theta / 2.0) / theta
+    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, 2.0 * half * half)
+    k = skew(r)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand(k.shape)
+    return eye + a * k + b * (k @ k)
+
+
+def matrix_to_quaternion(R: Tensor) -> Tensor:
+    """Unit quaternion (w, x, y, z) with w >= 0 from a rotation matrix.  (..., 3, 3) -> (..., 4).
+
+    Shepperd's method: of four algebraically equal formulas it uses the best-conditioned one.
+    """
+    _check_last(R, (3, 3), "R")
+    m = R
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    d = torch.stack(
+        (1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22), -1
+    )
+    cands = torch.stack(
+        (
+            torch.stack((d[..., 0], m21 - m12, m02 - m20, m10 - m01), -1),
+            torch.stack((m21 - m12, d[..., 1], m01 + m10, m02 + m20), -1),
+            torch.stack((m02 - m20, m01 + m10, d[..., 2], m12 + m21), -1),
+            torch.stack((m10 - m01, m02 + m20, m12 + m21, d[..., 3]), -1),
+        ),
+        -2,
+    )  # (..., 4 candidates, 4)
+    best = d.argmax(-1)
+    denom = 2.0 * d.clamp_min(1e-12).sqrt()  # (..., 4)
+    q = cands / denom[..., None]
+    idx = best[..., None, None].expand(*best.shape, 1, 4)
+    q = q.gather(-2, idx).squeeze(-2)
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quaternion_to_rodrigues(q: Tensor) -> Tensor:
+    """Rotation vector of angle in [0, pi] from a unit quaternion (w, x, y, z).  (..., 4) -> (..., 3)."""
+    _check_last(q, 4, "q")
+    q = torch.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., :1], q[..., 1:]
+    s2 = (v * v).sum(-1, keepdim=True)
+    small = s2 < _SMALL2
+    s = torch.where(small, torch.ones_like(s2), s2).sqrt()
+    # angle / s = 2 atan2(s, w) / s; series for small s (w ~ 1): 2/w (1 - s^2 / (3 w^2))
+    w_safe = torch.where(small, w, torch.ones_like(w))
+    factor = torch.where(
+        small, 2.0 / w_safe * (1.0 - s2 / (3.0 * w_safe * w_safe)), 2.0 * torch.atan2(s, w) / s
+    )
+    return factor * v
+
+
+def matrix_to_rodrigues(R: Tensor) -> Tensor:
+    """Rotation vector (angle in [0, pi]) from a rotation matrix (log map).  (..., 3, 3) -> (..., 3)."""
+    return quaternion_to_rodrigues(matrix_to_quaternion(R))
+
+
+def pose_to_matrix(p: Tensor) -> Tensor:
+    """4x4 homogeneous transform of a pose (r, tau).  p: (..., 6) -> (..., 4, 4)."""
+    _check_last(p, 6, "p")
+    R = rodrigues_to_matrix(p[..., :3])
+    top = torch.cat((R, p[..., 3:, None]), -1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom = bottom + torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=p.dtype, device=p.device)
+    return torch.cat((top, bottom), -2)
+
+
+def matrix_to_pose(H: Tensor) -> Tensor:
+    """Pose (r, tau) of a 4x4 (or 3x4) rigid transform.  (..., 4, 4) -> (..., 6)."""
+    if H.shape[-2:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"H must have shape (..., 4, 4) or (..., 3, 4), got {tuple(H.shape)}")
+    return torch.cat((matrix_to_rodrigues(H[..., :3, :3]), H[..., :3, 3]), -1)
+
+
+def transform_points(p: Tensor, X: Tensor) -> Tensor:
+    """Move model points by poses: X_g = R(r) X_m + tau.
+
+    p: (..., 6), X: (..., K, 3) (leading dims broadcast) -> (..., K, 3).
+    """
+    _check_last(p, 6, "p")
+    _check_last(X, 3, "X")
+    R = rodrigues_to_matrix(p[..., :3])
+    return X @ R.transpose(-1, -2) + p[..., None, 3:]
+
+
+def inverse_transform_points(p: Tensor, X: Tensor) -> Tensor:
+    """Global points into the model frame of poses p: X_m = R(r)^T (X_g - tau).
+
+    p: (..., 6), X: (..., K, 3) -> (..., K, 3).
+    """
+    _check_last(p, 6, "p")
+    _check_last(X, 3, "X")
+    R = rodrigues_to_matrix(p[..., :3])
+    return (X - p[..., None, 3:]) @ R
