@@ -1,0 +1,229 @@
+"""anipose ``calibration.toml``: read into and write from `adjust.camera.Camera`.
+
+Layout (as aniposelib's ``CameraGroup.dump`` writes it)::
+
+    [cam_0]
+    name = "A"
+    size = [1280, 1024]                  # width, height (px)
+    matrix = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    distortions = [k1, k2, p1, p2, k3]   # OpenCV order; 1 to 5 entries, padded with zeros
+    rotation = [rx, ry, rz]              # Rodrigues vector, world -> camera
+    translation = [tx, ty, tz]           # world -> camera (mm)
+    [metadata]                           # optional, free-form
+
+Every top-level table other than ``metadata`` is a camera. Cameras come in the order of their
+section names, ``cam_N`` by number (``cam_2`` before ``cam_10``), other names after them in
+file order. ``fisheye = true`` is refused (only the pinhole model is implemented); other keys of
+a camera section are kept in `Camera.extra` and written back. Floats are written with ``repr``,
+so writing then reading gives bit-identical cameras.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from adjust.camera import Camera
+from adjust.io.errors import InputError
+from deformnet.atomic import write_text
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10 with the `tomli` backport
+    import tomli as tomllib
+
+log = logging.getLogger(__name__)
+
+_KNOWN = ("name", "size", "matrix", "distortions", "rotation", "translation")
+_SECTION = re.compile(r"^cam_(\d+)$")
+
+
+def _read_toml(path: Path) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(f"calibration file not found: {path}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{path}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read calibration: {exc}") from None
+
+
+def _camera_sections(path: Path, doc: dict) -> list[str]:
+    tables = [k for k, v in doc.items() if isinstance(v, dict) and k != "metadata"]
+    others = [k for k, v in doc.items() if not isinstance(v, dict)]
+    if others:
+        raise InputError(
+            f"{path}: unexpected top-level keys {others} (expected only [cam_N] sections and "
+            "[metadata])"
+        )
+    if not tables:
+        raise InputError(f"{path}: no camera sections ([cam_0], [cam_1], ...) found")
+    numbered = sorted((int(m.group(1)), k) for k in tables if (m := _SECTION.match(k)))
+    return [k for _, k in numbered] + [k for k in tables if not _SECTION.match(k)]
+
+
+def _array(path: Path, where: str, key: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"{path}: {where}: '{key}' must be numbers with shape {shape}, got {value!r}"
+        ) from None
+    if arr.shape != shape:
+        raise InputError(f"{path}: {where}: '{key}' must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{path}: {where}: '{key}' has non-finite values: {arr.tolist()}")
+    return arr
+
+
+def _camera(path: Path, section: str, item: dict) -> Camera:
+    name = item.get("name", None)
+    where = f"camera [{section}]" + (f" ('{name}')" if name is not None else "")
+    missing = [k for k in _KNOWN if k not in item]
+    if missing:
+        raise InputError(f"{path}: {where}: missing keys {missing} (needs {list(_KNOWN)})")
+    if not isinstance(name, str | int) or isinstance(name, bool) or str(name) == "":
+        raise InputError(f"{path}: {where}: 'name' must be a non-empty string, got {name!r}")
+    name = str(name)
+    if item.get("fisheye", False):
+        raise InputError(
+            f"{path}: {where}: fisheye cameras are not supported (only the pinhole model with "
+            "OpenCV's 5 distortion coefficients); recalibrate without fisheye"
+        )
+    K = _array(path, where, "matrix", item["matrix"], (3, 3))
+    try:
+        dist = np.array(item["distortions"], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"{path}: {where}: 'distortions' must be a list of numbers, got {item['distortions']!r}"
+        ) from None
+    if dist.size > 5:
+        raise InputError(
+            f"{path}: {where}: 'distortions' has {dist.size} entries; at most 5 (k1 k2 p1 p2 k3) "
+            "are supported"
+        )
+    dist = _array(path, where, "distortions", np.pad(dist, (0, 5 - dist.size)), (5,))
+    rvec = _array(path, where, "rotation", item["rotation"], (3,))
+    tvec = _array(path, where, "translation", item["translation"], (3,))
+    size = _array(path, where, "size", item["size"], (2,))
+    if np.any(size < 0) or np.any(size != np.round(size)):
+        raise InputError(
+            f"{path}: {where}: 'size' must be two non-negative integers [width, height], got "
+            f"{item['size']!r}"
+        )
+    extra = {k: v for k, v in item.items() if k not in _KNOWN}
+    try:
+        return Camera(name, K, dist, rvec, tvec, (int(size[0]), int(size[1])), extra)
+    except ValueError as exc:  # Camera's own checks
+        raise InputError(f"{path}: {where}: {exc}") from None
+
+
+def load_calibration(path: str | os.PathLike) -> list[Camera]:
+    """Read an anipose ``calibration.toml`` into cameras (in ``cam_N`` order).
+
+    Raises `InputError` naming the file and camera for missing keys, wrong shapes, non-finite
+    values, fisheye cameras and duplicate names.
+    """
+    path = Path(path)
+    doc = _read_toml(path)
+    cameras = [_camera(path, s, doc[s]) for s in _camera_sections(path, doc)]
+    names = [c.name for c in cameras]
+    dups = sorted({n for n in names if names.count(n) > 1})
+    if dups:
+        raise InputError(f"{path}: duplicate camera names {dups}")
+    log.info("read %d cameras from %s: %s", len(cameras), path, ", ".join(names))
+    return cameras
+
+
+def load_calibration_metadata(path: str | os.PathLike) -> dict:
+    """The ``[metadata]`` table of an anipose calibration ({} if absent)."""
+    path = Path(path)
+    meta = _read_toml(path).get("metadata", {})
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: 'metadata' must be a table, got {meta!r}")
+    return meta
+
+
+# --- writing ------------------------------------------------------------------------------
+
+
+def _key(k) -> str:
+    k = str(k)
+    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k, ensure_ascii=False)
+
+
+def _value(v, where: str) -> str:
+    if isinstance(v, np.ndarray | np.generic):
+        v = v.tolist()
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ValueError(f"{where}: non-finite value {v!r} cannot be written")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)  # JSON string escapes are valid TOML
+    if isinstance(v, Sequence):
+        return "[" + ", ".join(_value(x, where) for x in v) + "]"
+    if isinstance(v, Mapping):
+        return "{" + ", ".join(f"{_key(k)} = {_value(x, where)}" for k, x in v.items()) + "}"
+    raise ValueError(f"{where}: cannot write a {type(v).__name__} to TOML: {v!r}")
+
+
+def _table(name: str, items: Mapping) -> list[str]:
+    lines = [f"[{name}]"]
+    subtables = []
+    for k, v in items.items():
+        if isinstance(v, Mapping):
+            subtables.append((k, v))
+        else:
+            lines.append(f"{_key(k)} = {_value(v, f'[{name}] {k}')}")
+    for k, v in subtables:
+        lines += [""] + _table(f"{name}.{_key(k)}", v)
+    return lines
+
+
+def _camera_dict(cam: Camera) -> dict:
+    d = {
+        "name": cam.name,
+        "size": [int(cam.size[0]), int(cam.size[1])],
+        "matrix": cam.K.tolist(),
+        "distortions": cam.dist.tolist(),
+        "rotation": cam.rvec.tolist(),
+        "translation": cam.tvec.tolist(),
+    }
+    for k, v in cam.extra.items():
+        if k in d:
+            raise ValueError(f"camera '{cam.name}': extra key '{k}' clashes with a standard key")
+        d[k] = v
+    return d
+
+
+def save_calibration(
+    path: str | os.PathLike, cameras: Sequence[Camera], metadata: Mapping | None = None
+) -> Path:
+    """Write cameras (sections ``cam_0``, ``cam_1``, ... in the given order) and an optional
+    ``[metadata]`` table to an anipose ``calibration.toml``, atomically."""
+    if not cameras:
+        raise ValueError("no cameras to write")
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate camera names {names}")
+    lines: list[str] = []
+    for i, cam in enumerate(cameras):
+        lines += _table(f"cam_{i}", _camera_dict(cam)) + [""]
+    lines += _table("metadata", dict(metadata or {})) + [""]
+    text = "\n".join(lines)
+    tomllib.loads(text)  # never write a file we cannot read back
+    return write_text(path, text)

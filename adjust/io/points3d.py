@@ -1,0 +1,137 @@
+"""3D tracks in anipose's ``points3d`` CSV layout.
+
+One row per frame; for each part, in order, the columns ``{part}_x``, ``{part}_y``, ``{part}_z``
+(mm), ``{part}_error`` (mean reprojection error over the views used, px), ``{part}_ncams``
+(number of views used) and ``{part}_score`` (lowest likelihood among those views); then any
+extra columns (e.g. ``pose_rx`` .. ``pose_tz``, ``{part}_sigma``) in the order given; then
+``fnum`` (frame number). Values not estimated are NaN (empty cells, as pandas and anipose write
+them); floats are written exactly.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from adjust.io.errors import InputError
+from deformnet.atomic import atomic_path
+
+log = logging.getLogger(__name__)
+
+FIELDS = ("x", "y", "z", "error", "ncams", "score")
+
+
+def write_points3d(
+    path: str | os.PathLike,
+    parts: Sequence[str],
+    points: np.ndarray,
+    error: np.ndarray,
+    ncams: np.ndarray,
+    score: np.ndarray,
+    extra: Mapping[str, np.ndarray] | None = None,
+    fnum: Sequence[int] | None = None,
+) -> Path:
+    """Write 3D tracks atomically.
+
+    points: (T, K, 3) mm, NaN where not estimated; error, score: (T, K) float; ncams: (T, K)
+    (written as integers when all finite). extra: column name -> (T,) array; a name containing
+    ``{part}`` with a (T, K) array gives one column per part (``"{part}_sigma"``). fnum: (T,)
+    frame numbers (default 0..T-1).
+    """
+    parts = [str(p) for p in parts]
+    pts = np.asarray(points, dtype=np.float64)
+    T, K = (pts.shape[0], len(parts))
+    if pts.shape != (T, K, 3):
+        raise ValueError(f"points must be (T, {K}, 3) for {K} parts, got {pts.shape}")
+    if len(set(parts)) != K:
+        raise ValueError(f"duplicate part names {parts}")
+    per_part = {}
+    for key, arr in (("error", error), ("ncams", ncams), ("score", score)):
+        a = np.asarray(arr)
+        if a.shape != (T, K):
+            raise ValueError(f"{key} must be (T, K) = {(T, K)}, got {a.shape}")
+        per_part[key] = a
+    cols: dict[str, np.ndarray] = {}
+    nc = per_part["ncams"].astype(np.float64)
+    nc_int = bool(np.all(np.isfinite(nc)) and np.all(nc == np.round(nc)))
+    for k, p in enumerate(parts):
+        for a, axis in enumerate("xyz"):
+            cols[f"{p}_{axis}"] = pts[:, k, a]
+        cols[f"{p}_error"] = per_part["error"][:, k].astype(np.float64)
+        cols[f"{p}_ncams"] = nc[:, k].astype(np.int64) if nc_int else nc[:, k]
+        cols[f"{p}_score"] = per_part["score"][:, k].astype(np.float64)
+    for name, arr in (extra or {}).items():
+        a = np.asarray(arr)
+        names = {name: a} if "{part}" not in name else None
+        if names is None:
+            if a.shape != (T, K):
+                raise ValueError(f"extra column '{name}' must be (T, K) = {(T, K)}, got {a.shape}")
+            names = {name.format(part=p): a[:, k] for k, p in enumerate(parts)}
+        for n, v in names.items():
+            v = np.asarray(v)
+            if v.shape != (T,):
+                raise ValueError(f"extra column '{n}' must have shape (T,) = ({T},), got {v.shape}")
+            if n in cols or n == "fnum":
+                raise ValueError(f"extra column '{n}' clashes with another column")
+            cols[n] = v
+    f = np.arange(T) if fnum is None else np.asarray(fnum)
+    if f.shape != (T,):
+        raise ValueError(f"fnum must have shape ({T},), got {f.shape}")
+    cols["fnum"] = f
+    df = pd.DataFrame(cols)
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False)
+    return Path(path)
+
+
+def read_points3d(path: str | os.PathLike) -> dict:
+    """Read a points3d CSV (ours or anipose's).
+
+    Returns a dict: ``parts`` (tuple), ``points`` (T, K, 3), ``error``, ``ncams``, ``score``
+    (T, K) float64 (NaN where a column is absent), ``fnum`` (T,), ``extra`` {column: (T,)} for
+    every other column (anipose's ``M_00``.., ``center_0``.. included), in file order.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"points3d file not found: {path}")
+    try:
+        df = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read CSV: {exc}") from None
+    for col in df.columns:
+        if not pd.api.types.is_numeric_dtype(df[col]):
+            num = pd.to_numeric(df[col], errors="coerce")
+            bad = num.isna() & df[col].notna()
+            r = int(np.flatnonzero(bad.to_numpy())[0])
+            raise InputError(
+                f"{path}: non-numeric value {df[col].iloc[r]!r} in column '{col}' at row {r}"
+            )
+    names = list(df.columns)
+    colset = set(names)
+    parts = [
+        c[:-2]
+        for c in names
+        if c.endswith("_x") and f"{c[:-2]}_y" in colset and f"{c[:-2]}_z" in colset
+    ]
+    T, K = len(df), len(parts)
+    used = set()
+    out: dict = {"parts": tuple(parts), "points": np.full((T, K, 3), np.nan)}
+    for key in ("error", "ncams", "score"):
+        out[key] = np.full((T, K), np.nan)
+    for k, p in enumerate(parts):
+        for a, axis in enumerate("xyz"):
+            out["points"][:, k, a] = df[f"{p}_{axis}"].to_numpy(np.float64)
+            used.add(f"{p}_{axis}")
+        for key in ("error", "ncams", "score"):
+            if f"{p}_{key}" in colset:
+                out[key][:, k] = df[f"{p}_{key}"].to_numpy(np.float64)
+                used.add(f"{p}_{key}")
+    out["fnum"] = df["fnum"].to_numpy() if "fnum" in colset else np.arange(T)
+    used.add("fnum")
+    out["extra"] = {c: df[c].to_numpy() for c in names if c not in used}
+    return out
