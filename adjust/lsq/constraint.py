@@ -1,0 +1,152 @@
+"""Motion-track constraint (paper eq. 10) in two forms, with analytic Jacobians.
+
+For every interior frame t (2 <= t <= T-3) the pose p_t = (R_t, tau_t) is compared with the
+cubic through its neighbours t-2, t-1, t+1, t+2 evaluated at t, i.e. the weighted sum with
+weights w = (-1/6, 2/3, 2/3, -1/6) (a residual proportional to the fourth difference).
+Rotations are interpolated relative to R_t, never as raw Rodrigues vectors: with
+phi_s = log(R_s R_t^T) (small for neighbouring frames), phi_S = sum_s w_s phi_s is the
+interpolated rotation relative to R_t, so R_S = exp(phi_S) R_t and tau_S = sum_s w_s tau_s
+form the interpolated transform S_t. This is exact (zero residual) for translations cubic in t
+and for rotations at a constant rate about a fixed axis, whatever the angle (through pi and
+beyond), as long as the rotation between neighbouring frames stays below pi/2.
+
+- ``spline``: residual (rho (0 - phi_S), tau_t - tau_S), 6 per frame; rho (mm/rad) puts the
+  rotation part into mm at the body's scale.
+- ``grid``: the paper's better option: a g^3 grid of points G around the body's centre (model
+  frame, covering the body) moved by H_t and by S_t; the residual is the root-mean-square of
+  H_t G - S_t G over the grid (= moving the grid S_t G by H_t S_t^-1 and comparing with itself).
+  With A = (I - exp(phi_S)) R_t, b = tau_t - tau_S, grid centre c and M = sum_g o_g o_g^T =
+  diag(m) of the offsets, mean_g |A G_g + b|^2 = |A c + b|^2 + sum_j (m_j / N) |A e_j|^2 exactly,
+  so 12 residuals (A c + b, sqrt(m_j / N) A e_j) carry the whole grid's sum of squares.
+
+Frame boundaries: frames t < 2 and t > T-3 get no residual of their own (a one-sided cubic
+extrapolation residual is a multiple of the first/last interior one, so it would only double
+its weight); they are still constrained through their neighbours' residuals, which is exactly
+the one-sided cubic extrapolation. With T < 5 there is no track constraint.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from adjust.lsq.geometry import left_jacobian, left_jacobian_inverse, so3_exp, so3_log
+from deformnet.so3 import skew
+
+SPLINE_WEIGHTS = (-1.0 / 6.0, 2.0 / 3.0, 2.0 / 3.0, -1.0 / 6.0)
+OFFSETS = (-2, -1, 1, 2)
+SPAN = 5  # frames per residual group (t-2..t+2)
+
+
+def make_grid(body: Tensor, size: int = 3, margin: float = 0.0) -> Tensor:
+    """A size^3 axis-aligned grid (model frame) centred at the body's centroid, spanning the
+    body's bounding box (plus `margin` mm each side).  body (K, 3) -> (size^3, 3)."""
+    if body.dim() != 2 or body.shape[-1] != 3:
+        raise ValueError(f"body must have shape (K, 3), got {tuple(body.shape)}")
+    c = body.mean(0)
+    half = (body.max(0).values - body.min(0).values) / 2 + margin
+    half = torch.where(half > 1e-6, half, torch.full_like(half, 1.0))
+    lin = torch.linspace(-1.0, 1.0, size, dtype=body.dtype, device=body.device)
+    g = torch.stack(torch.meshgrid(lin, lin, lin, indexing="ij"), -1).reshape(-1, 3)
+    return c + g * half
+
+
+def grid_moments(grid: Tensor) -> tuple[Tensor, Tensor]:
+    """Centre c (3,) and sqrt(m_j / N) (3,) of a grid symmetric about its centre.  (N, 3)."""
+    c = grid.mean(0)
+    o = grid - c
+    M = o.T @ o
+    if (M - torch.diag(torch.diagonal(M))).abs().max() > 1e-9 * (1 + M.abs().max()):
+        raise ValueError("grid offsets must be axis-aligned (diagonal second moment)")
+    return c, (torch.diagonal(M) / grid.shape[0]).sqrt()
+
+
+def _relative(poses: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per interior frame: R_t (R, 3, 3), phi_s (4, R, 3), tau_t (R, 3), tau_S (R, 3)."""
+    T = poses.shape[0]
+    Rm = so3_exp(poses[:, :3])
+    n = T - 4
+    Rt = Rm[2 : 2 + n]
+    phi = torch.stack([so3_log(Rm[2 + o : 2 + o + n] @ Rt.transpose(-1, -2)) for o in OFFSETS])
+    w = torch.tensor(SPLINE_WEIGHTS, dtype=poses.dtype, device=poses.device)
+    tau_s = torch.stack([poses[2 + o : 2 + o + n, 3:] for o in OFFSETS])
+    tau_S = (w[:, None, None] * tau_s).sum(0)
+    return Rt, phi, poses[2 : 2 + n, 3:], tau_S
+
+
+def track_residuals(
+    poses: Tensor,
+    kind: str,
+    *,
+    rho: float = 1.0,
+    grid: Tensor | None = None,
+    jacobian: bool = True,
+) -> tuple[Tensor, Tensor | None]:
+    """Track-constraint residuals (mm) of the interior frames and their Jacobian blocks.
+
+    poses: (T, 6). kind: 'spline' (rho: mm per rad) or 'grid' (grid: (N, 3) model-frame points,
+    symmetric and axis-aligned about its centre, e.g. `make_grid`).
+    Returns r (R, m) with R = max(T - 4, 0) groups for frames t = 2..T-3 (m = 6 spline, 12 grid)
+    and, if `jacobian`, J (R, 5, m, 6): J[i, a] = d r[i] / d delta_{i + a} (left increments of
+    the poses of frames i..i+4).
+    """
+    if poses.dim() != 2 or poses.shape[-1] != 6:
+        raise ValueError(f"poses must have shape (T, 6), got {tuple(poses.shape)}")
+    if kind not in ("spline", "grid"):
+        raise ValueError(f"kind must be 'spline' or 'grid', got {kind!r}")
+    T = poses.shape[0]
+    m = 6 if kind == "spline" else 12
+    dt, dev = poses.dtype, poses.device
+    if T < SPAN:
+        return poses.new_zeros((0, m)), (poses.new_zeros((0, SPAN, m, 6)) if jacobian else None)
+    n = T - 4
+    w = torch.tensor(SPLINE_WEIGHTS, dtype=dt, device=dev)
+    Rt, phi, tau_t, tau_S = _relative(poses)
+    phi_S = (w[:, None, None] * phi).sum(0)  # (R, 3)
+    eye = torch.eye(3, dtype=dt, device=dev)
+    if kind == "spline":
+        r = torch.cat((-rho * phi_S, tau_t - tau_S), -1)
+        if not jacobian:
+            return r, None
+        J = poses.new_zeros((n, SPAN, 6, 6))
+        Jl_inv = left_jacobian_inverse(phi)  # (4, R, 3, 3) d phi_s / d delta_s
+        Jr_inv = left_jacobian_inverse(-phi)  # -d phi_s / d delta_t
+        for j, o in enumerate(OFFSETS):
+            J[:, 2 + o, :3, :3] = -rho * w[j] * Jl_inv[j]
+            J[:, 2 + o, 3:, 3:] = -w[j] * eye
+        J[:, 2, :3, :3] = rho * (w[:, None, None, None] * Jr_inv).sum(0)
+        J[:, 2, 3:, 3:] = eye
+        return r, J
+    if grid is None:
+        raise ValueError("kind='grid' needs the grid points")
+    c, sq = grid_moments(grid.to(dt))
+    E = so3_exp(phi_S)  # (R, 3, 3)
+    V = torch.cat((c[None], torch.diag(sq)), 0)  # (4, 3): model vectors c, sqrt(m_j/N) e_j
+    a = torch.einsum("rij,vj->vri", Rt, V)  # (4, R, 3) R_t v
+    Ea = torch.einsum("rij,vrj->vri", E, a)
+    Av = a - Ea  # (4, R, 3)
+    Av[0] = Av[0] + (tau_t - tau_S)
+    r = Av.permute(1, 0, 2).reshape(n, 12)
+    if not jacobian:
+        return r, None
+    Jl_inv = left_jacobian_inverse(phi)  # (4, R, 3, 3)
+    Jr_inv = left_jacobian_inverse(-phi)
+    Q = (w[:, None, None, None] * Jr_inv).sum(0)  # (R, 3, 3): -d phi_S / d delta_t
+    JlS = left_jacobian(phi_S)  # (R, 3, 3)
+    B = skew(Ea) @ JlS  # (4, R, 3, 3): [E a]_x J_l(phi_S)
+    Sa = skew(a)
+    J = poses.new_zeros((n, SPAN, 4, 3, 6))
+    J[:, 2, :, :, :3] = (-Sa + E @ Sa - B @ Q).permute(1, 0, 2, 3)
+    for j, o in enumerate(OFFSETS):
+        J[:, 2 + o, :, :, :3] = (B @ (w[j] * Jl_inv[j])).permute(1, 0, 2, 3)
+        J[:, 2 + o, 0, :, 3:] = -w[j] * eye
+    J[:, 2, 0, :, 3:] = eye
+    return r, J.reshape(n, SPAN, 12, 6)
+
+
+def default_rho(body: Tensor) -> float:
+    """mm per radian for the spline form's rotation residuals: the body's rms radius."""
+    c = body.mean(0)
+    return float(math.sqrt(((body - c) ** 2).sum(-1).mean()))
