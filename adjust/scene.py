@@ -42,6 +42,7 @@ __all__ = [
     "camera_look_at",
     "default_rig",
     "detector_config",
+    "occluded_by_boxes",
     "occluded_by_ellipsoids",
     "rig_from_config",
     "simulate_scene",
@@ -303,6 +304,41 @@ def occluded_by_ellipsoids(
     return hidden
 
 
+def occluded_by_boxes(
+    points: np.ndarray, centers: np.ndarray, boxes: np.ndarray, surface_margin: float = 3.0
+) -> np.ndarray:
+    """Is each point hidden from each camera by one of the fixed axis-aligned boxes (e.g. the
+    lock box)? points (T, K, 3), centers (C, 3), boxes (N, 2, 3) [min corner, max corner] in
+    global mm -> (T, K, C) bool, with the segment's last `surface_margin` mm not tested."""
+    P = np.asarray(points, dtype=np.float64)
+    O = np.asarray(centers, dtype=np.float64)
+    B = np.asarray(boxes, dtype=np.float64).reshape(-1, 2, 3)
+    hidden = np.zeros((P.shape[0], P.shape[1], O.shape[0]), dtype=bool)
+    d = P[:, :, None, :] - O[None, None, :, :]  # (T, K, C, 3), segment O + s d
+    seg_len = np.linalg.norm(d, axis=-1)
+    s_max = 1.0 - surface_margin / np.maximum(seg_len, 1e-9)
+    d = np.where(np.abs(d) < 1e-12, 1e-12, d)
+    for lo, hi in B:  # a handful of boxes
+        t1 = (lo - O) / d
+        t2 = (hi - O) / d
+        s_in = np.minimum(t1, t2).max(-1)
+        s_out = np.maximum(t1, t2).min(-1)
+        hidden |= (s_out >= np.maximum(s_in, 0.0)) & (s_in < s_max) & (s_max > 0.0)
+    return hidden
+
+
+def lockbox_boxes(sim: Any) -> np.ndarray:
+    """(1, 2, 3) axis-aligned bounds of the simulator's lock-box corners, or (0, 2, 3)."""
+    pts = getattr(sim, "lockbox_corners", None)
+    if pts is None:
+        return np.zeros((0, 2, 3))
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(-1)]
+    if len(pts) < 2 or np.any(np.ptp(pts, axis=0) <= 0):
+        return np.zeros((0, 2, 3))
+    return np.stack([pts.min(0), pts.max(0)])[None]
+
+
 def ellipsoids_from_config(occ_cfg: Any) -> list[Ellipsoid]:
     """``{name: {center: [x,y,z], radii: [a,b,c]}}`` (model frame, mm) -> ellipsoids."""
     occ = _plain(occ_cfg) or {}
@@ -348,8 +384,9 @@ class DetectorConfig:
     guess_px: sigma (px) of the offset of a guess from the true projection;
     out_of_image: 'clip' (report a clipped position with out_of_image_likelihood) or 'nan';
     threshold: likelihood at or above which a detection is accepted (for nviews and fractions);
-    occluders: body-proxy ellipsoids in the model frame; surface_margin: mm of the segment
-    ending at the part that is not tested (the part's own surface vicinity).
+    occluders: body-proxy ellipsoids in the model frame; lockbox_occludes: the simulator's
+    lock box (bounds of ``sim.lockbox_corners``) hides what is behind it; surface_margin: mm of
+    the segment ending at the part that is not tested (the part's own surface vicinity).
     """
 
     dropout_rate: float = 0.25
@@ -367,6 +404,7 @@ class DetectorConfig:
     out_of_image_likelihood: tuple[float, float] = (0.0, 0.05)
     threshold: float = 0.5
     occluders: tuple[Ellipsoid, ...] = field(default_factory=lambda: (DEFAULT_TRUNK,))
+    lockbox_occludes: bool = True
     surface_margin: float = 3.0
 
     def __post_init__(self) -> None:
@@ -400,6 +438,11 @@ class DetectorConfig:
             raise ValueError(
                 f"detector.out_of_image must be 'clip' or 'nan', got {self.out_of_image!r}"
             )
+        if not isinstance(self.lockbox_occludes, bool | np.bool_):
+            raise ValueError(
+                f"detector.lockbox_occludes must be true/false, got {self.lockbox_occludes!r}"
+            )
+        object.__setattr__(self, "lockbox_occludes", bool(self.lockbox_occludes))
         occ = self.occluders
         occ = ellipsoids_from_config(occ) if isinstance(occ, Mapping) else tuple(occ or ())
         if not all(isinstance(e, Ellipsoid) for e in occ):
@@ -577,6 +620,8 @@ def simulate_scene(
     in_image = (z > 0) & finite & (uv >= lo).all(-1) & (uv < hi).all(-1)
     centers = np.stack([c.center for c in cams])
     occluded = occluded_by_ellipsoids(X, poses, centers, cfg.occluders, cfg.surface_margin)
+    if cfg.lockbox_occludes:
+        occluded |= occluded_by_boxes(X, centers, lockbox_boxes(sim), cfg.surface_margin)
     occluded &= in_image
     visible = in_image & ~occluded
 

@@ -18,6 +18,7 @@ from adjust.scene import (
     camera_look_at,
     default_rig,
     detector_config,
+    occluded_by_boxes,
     occluded_by_ellipsoids,
     simulate_scene,
 )
@@ -139,15 +140,32 @@ def test_point_in_front_visible_behind_hidden():
     ell = [Ellipsoid("trunk", [0, 0, 0], [10, 20, 5])]
     pose = np.zeros((1, 6))
     cam = np.array([[0.0, 0, 500]])  # above
-    pts = np.array([[[0.0, 0, 8], [0, 0, -8], [15, 0, -8], [0, 5, 5.5]]])
+    pts = np.array([[[0.0, 0, 8], [0, 0, -8], [15, 0, -8], [0, 5, 4.0], [0, 0, 0]]])
     hid = occluded_by_ellipsoids(pts, pose, cam, ell, surface_margin=2.0)[0, :, 0]
-    # above (in front of) it; below (behind) it; beside it; on its own surface vicinity
-    assert hid.tolist() == [False, True, False, False]
+    # above (in front of) it; below (behind) it; beside it; just under its surface (the part's
+    # own surface vicinity); deep inside
+    assert hid.tolist() == [False, True, False, False, True]
+    # the same from the side camera: the point above is seen, one beyond the body is not
+    side = np.array([[500.0, 0, 0]])
+    pts_s = np.array([[[0.0, 0, 8], [-15, 0, 0], [15, 0, 0]]])
+    assert occluded_by_ellipsoids(pts_s, pose, side, ell, 2.0)[0, :, 0].tolist() == [
+        False,
+        True,
+        False,
+    ]
     # moved with the pose: turn the body 90 degrees about Z and shift it
     pose2 = np.array([[0, 0, np.pi / 2, 100, 50, 0]])
     pts2 = np.array([[[100.0 - 15, 50, -8], [100 + 15, 50, -8], [100, 50 + 15, -8]]])
     hid2 = occluded_by_ellipsoids(pts2, pose2, np.array([[100.0, 50, 500]]), ell, 2.0)[0, :, 0]
     assert hid2.tolist() == [True, True, False]
+
+
+def test_box_occlusion():
+    box = np.array([[[0.0, 0, 0], [10, 10, 10]]])
+    cam = np.array([[5.0, -100, 5]])
+    pts = np.array([[[5.0, -5, 5], [5, 20, 5], [5, 1, 5], [30, 20, 5]]])
+    # in front; behind; touching its near face (surface vicinity); beside
+    assert occluded_by_boxes(pts, cam, box, 2.0)[0, :, 0].tolist() == [False, True, False, False]
 
 
 def test_paws_under_trunk_hidden_from_top_more_than_side(rig, sim):
