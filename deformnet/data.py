@@ -1,0 +1,414 @@
+"""Training data for the deformation nets: simulated sequences -> masked token windows.
+
+`DeformDataModule` (a LightningDataModule) simulates sequences with `deformnet.sim` (or loads
+simulator files, or uses the small built-in `toy_sequence` generator), cuts windows of W = 2n + 1
+frames and hides deformed positions in patterns like multi-camera occlusion (`MaskConfig`):
+random dropout, mid-centred gaps (all parts or a subset; the mid frame is always hidden) and
+contiguous per-part gaps elsewhere.
+
+A batch is a dict of float32 / bool tensors:
+    rigid (B, W, K, 3), deformed (B, W, K, 3)  global mm (deformed: the true values; hidden ones
+                                                are zeroed),
+    observed (B, W, K)                          input flags (mid frame false),
+    target (B, K, 3), target_mask (B, K)        the mid frame's deformed positions and whether
+                                                they were observed (the loss uses only those).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset, IterableDataset
+
+from deformnet.body import BodyModel
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "MaskConfig",
+    "SequenceArrays",
+    "toy_sequence",
+    "load_sequences",
+    "make_masks",
+    "gap_masks",
+    "WindowBank",
+    "RandomWindowBatches",
+    "FixedWindowBatches",
+    "DeformDataModule",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# sequences
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SequenceArrays:
+    """The parts of a simulated sequence the nets need: rigid, deformed (T, K, 3) global mm,
+    observed (T, K) bool."""
+
+    rigid: np.ndarray
+    deformed: np.ndarray
+    observed: np.ndarray
+
+    @classmethod
+    def of(cls, seq: Any) -> SequenceArrays:
+        """From a `deformnet.sim.SimData` (or anything with those three attributes)."""
+        rigid = np.asarray(seq.rigid, dtype=np.float32)
+        deformed = np.asarray(seq.deformed, dtype=np.float32)
+        observed = getattr(seq, "observed", None)
+        observed = (
+            np.ones(rigid.shape[:2], dtype=bool) if observed is None else np.asarray(observed, bool)
+        )
+        finite = np.isfinite(deformed).all(-1)
+        observed = observed & finite
+        deformed = np.where(finite[..., None], deformed, rigid)  # truth kept where known
+        if rigid.shape != deformed.shape or rigid.ndim != 3 or rigid.shape[-1] != 3:
+            raise ValueError(
+                f"rigid/deformed must be (T, K, 3), got {rigid.shape}, {deformed.shape}"
+            )
+        return cls(rigid, deformed, observed)
+
+
+def toy_sequence(
+    body: BodyModel, num_frames: int = 600, seed: int = 0, fps: float = 30.0
+) -> SequenceArrays:
+    """A small stand-in for the simulator: the rigid model moved along a smooth curve with a
+    smoothly turning heading, plus smooth sinusoidal per-part offsets in the body frame."""
+    from deformnet.so3 import transform_points
+
+    rng = np.random.default_rng(seed)
+    T, K = int(num_frames), body.num_parts
+    t = np.arange(T) / fps
+    yaw = np.cumsum(0.6 * np.sin(2 * np.pi * 0.13 * t + rng.uniform(0, 6.3)) / fps) + rng.uniform(
+        0, 6.3
+    )
+    speed = 50.0 + 20.0 * np.sin(2 * np.pi * 0.21 * t + rng.uniform(0, 6.3))
+    xy = np.cumsum(speed[:, None] * np.stack((-np.sin(yaw), np.cos(yaw)), -1) / fps, 0)
+    poses = np.zeros((T, 6))
+    poses[:, 2] = yaw
+    poses[:, 0] = 0.1 * np.sin(2 * np.pi * 0.4 * t)  # small pitch wobble
+    poses[:, 3:5] = xy
+    poses[:, 5] = 10.0
+    model = torch.tensor(np.array(body.points))
+    rigid = transform_points(torch.tensor(poses), model.expand(T, K, 3)).numpy()
+    amp = rng.uniform(1.0, 4.0, (K, 3))
+    freq = rng.uniform(0.5, 2.5, (K, 1))
+    phase = rng.uniform(0, 2 * np.pi, (K, 3))
+    off_local = amp * np.sin(2 * np.pi * freq * t[:, None, None] + phase)  # (T, K, 3)
+    off = transform_points(
+        torch.tensor(np.concatenate((poses[:, :3], np.zeros((T, 3))), 1)),
+        torch.tensor(off_local),
+    ).numpy()
+    observed = rng.random((T, K)) > 0.02
+    return SequenceArrays(rigid.astype(np.float32), (rigid + off).astype(np.float32), observed)
+
+
+def simulate_sequences(
+    sim_cfg: Any, body: BodyModel, num_frames: int, seeds: Sequence[int]
+) -> list[SequenceArrays]:
+    """Simulate one sequence per seed with `deformnet.sim.simulate`."""
+    from deformnet import sim
+
+    out = []
+    for s in seeds:
+        data = sim.simulate(sim_cfg, num_frames=int(num_frames), seed=int(s), body=body)
+        out.append(SequenceArrays.of(data))
+    return out
+
+
+def load_sequences(paths: Sequence[str | os.PathLike]) -> list[SequenceArrays]:
+    """Load simulator files with `deformnet.sim.dataset.load_sim`."""
+    from deformnet.sim.dataset import load_sim
+
+    return [SequenceArrays.of(load_sim(p)) for p in paths]
+
+
+# --------------------------------------------------------------------------------------------
+# masks
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MaskConfig:
+    """Missing-data patterns for training windows (rates are probabilities per sample).
+
+    dropout: [min, max] rate of random token dropout, drawn per sample.
+    gap_prob: probability of a gap centred on the mid frame, of length 1..gap_max frames
+    (the mid frame is hidden anyway); it hides all parts with probability gap_all_parts, else a
+    random subset of parts.
+    occlusion_prob: per part, probability of one more contiguous gap of 1..occlusion_max frames at a
+    random place in the window (multi-camera occlusion of a single part).
+    """
+
+    dropout: tuple[float, float] = (0.0, 0.5)
+    gap_prob: float = 0.8
+    gap_max: int = 15
+    gap_all_parts: float = 0.7
+    occlusion_prob: float = 0.2
+    occlusion_max: int = 15
+
+    @classmethod
+    def from_any(cls, cfg: Mapping[str, Any] | MaskConfig | None) -> MaskConfig:
+        if isinstance(cfg, MaskConfig):
+            return cfg
+        d = dict(cfg or {})
+        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown masking options {sorted(unknown)}")
+        if "dropout" in d:
+            lo, hi = (float(x) for x in d["dropout"])
+            d["dropout"] = (lo, hi)
+        return cls(**d)
+
+
+def _runs(start: Tensor, length: Tensor, W: int) -> Tensor:
+    """(..., W) bool: frames start <= f < start + length."""
+    f = torch.arange(W)
+    return (f >= start[..., None]) & (f < (start + length)[..., None])
+
+
+def make_masks(B: int, W: int, K: int, cfg: MaskConfig, gen: torch.Generator) -> Tensor:
+    """(B, W, K) bool: True where a deformed position is hidden (mid frame always hidden)."""
+    mid = W // 2
+    lo, hi = cfg.dropout
+    rate = lo + (hi - lo) * torch.rand(B, 1, 1, generator=gen)
+    hide = torch.rand(B, W, K, generator=gen) < rate
+    # mid-centred gap
+    L = torch.randint(1, max(1, cfg.gap_max) + 1, (B,), generator=gen)
+    shift = torch.randint(0, 2, (B,), generator=gen) * (L % 2 == 0)  # even lengths: either side
+    start = mid - (L - 1) // 2 - shift
+    gap_t = _runs(start, L, W)  # (B, W)
+    all_parts = torch.rand(B, 1, generator=gen) < cfg.gap_all_parts
+    parts = all_parts | (torch.rand(B, K, generator=gen) < 0.5)
+    use = torch.rand(B, 1, 1, generator=gen) < cfg.gap_prob
+    hide |= use & gap_t[:, :, None] & parts[:, None, :]
+    # per-part occlusion gaps anywhere
+    Lo = torch.randint(1, max(1, cfg.occlusion_max) + 1, (B, K), generator=gen)
+    so = torch.randint(-int(cfg.occlusion_max), W, (B, K), generator=gen)
+    occ = _runs(so, Lo, W).transpose(1, 2)  # (B, W, K)
+    hide |= occ & (torch.rand(B, 1, K, generator=gen) < cfg.occlusion_prob)
+    hide[:, mid] = True
+    return hide
+
+
+def gap_masks(B: int, W: int, K: int, gap: int, dropout: float, gen: torch.Generator) -> Tensor:
+    """(B, W, K) bool hidden flags for evaluation: a gap of `gap` frames centred on the mid frame
+    (all parts; even gaps extend one frame further before the mid frame) plus random dropout of
+    the other tokens at rate `dropout`."""
+    mid = W // 2
+    hide = torch.rand(B, W, K, generator=gen) < dropout
+    start = mid - gap // 2
+    hide[:, max(0, start) : min(W, start + gap)] = True
+    hide[:, mid] = True
+    return hide
+
+
+# --------------------------------------------------------------------------------------------
+# windows
+# --------------------------------------------------------------------------------------------
+class WindowBank:
+    """All windows of W frames of a list of sequences, gathered by index without copies."""
+
+    def __init__(self, sequences: Sequence[SequenceArrays], half_window: int) -> None:
+        self.n = int(half_window)
+        self.W = 2 * self.n + 1
+        seqs = [s for s in sequences if s.rigid.shape[0] >= self.W]
+        if not seqs:
+            raise ValueError(f"no sequence has the {self.W} frames a window needs")
+        self.K = seqs[0].rigid.shape[1]
+        self.rigid = torch.from_numpy(np.concatenate([s.rigid for s in seqs]))
+        self.deformed = torch.from_numpy(np.concatenate([s.deformed for s in seqs]))
+        self.observed = torch.from_numpy(np.concatenate([s.observed for s in seqs]))
+        mids, off = [], 0
+        for s in seqs:
+            T = s.rigid.shape[0]
+            mids.append(torch.arange(off + self.n, off + T - self.n))
+            off += T
+        self.mids = torch.cat(mids)  # global frame index of every valid mid frame
+
+    def __len__(self) -> int:
+        return len(self.mids)
+
+    def batch(self, idx: Tensor, hide: Tensor, noise_mm: float = 0.0, gen=None) -> dict:
+        """Windows around mids[idx] with extra hidden flags `hide` (B, W, K)."""
+        frames = self.mids[idx][:, None] + torch.arange(-self.n, self.n + 1)  # (B, W)
+        rigid = self.rigid[frames]
+        truth = self.deformed[frames]
+        seen = self.observed[frames]
+        observed = seen & ~hide
+        deformed = truth
+        if noise_mm > 0:
+            deformed = truth + noise_mm * torch.randn(truth.shape, generator=gen)
+        deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
+        return {
+            "rigid": rigid,
+            "deformed": deformed,
+            "observed": observed,
+            "target": truth[:, self.n],
+            "target_mask": seen[:, self.n],
+        }
+
+
+class RandomWindowBatches(IterableDataset):
+    """`steps` random batches per pass (epoch), freshly masked each time; seeded by
+    (seed, rank, pass)."""
+
+    def __init__(
+        self,
+        bank: WindowBank,
+        batch_size: int,
+        steps: int,
+        masking: MaskConfig,
+        seed: int = 0,
+        noise_mm: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.bank, self.batch_size, self.steps = bank, int(batch_size), int(steps)
+        self.masking, self.seed, self.noise_mm = masking, int(seed), float(noise_mm)
+        self.rank = 0
+        self._pass = 0
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __iter__(self) -> Iterator[dict]:
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + self.rank * 7919 + self._pass)
+        self._pass += 1
+        b = self.bank
+        for _ in range(self.steps):
+            idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
+            hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
+            yield b.batch(idx, hide, self.noise_mm, gen)
+
+
+class FixedWindowBatches(Dataset):
+    """A fixed list of pre-built batches (validation / evaluation); indexable for samplers."""
+
+    def __init__(self, batches: Sequence[dict]) -> None:
+        self.batches = list(batches)
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+    def __getitem__(self, i: int) -> dict:
+        return self.batches[i]
+
+    @classmethod
+    def build(
+        cls,
+        bank: WindowBank,
+        num_windows: int,
+        batch_size: int,
+        seed: int,
+        masking: MaskConfig | None = None,
+        gap: int | None = None,
+        dropout: float = 0.3,
+    ) -> FixedWindowBatches:
+        """Evenly spaced windows, masked with `masking` (training-like) or, with `gap`, by
+        `gap_masks` (evaluation)."""
+        gen = torch.Generator().manual_seed(int(seed))
+        n = min(int(num_windows), len(bank))
+        idx = torch.linspace(0, len(bank) - 1, n).round().long()
+        out = []
+        for chunk in idx.split(int(batch_size)):
+            B = len(chunk)
+            if gap is not None:
+                hide = gap_masks(B, bank.W, bank.K, int(gap), float(dropout), gen)
+            else:
+                hide = make_masks(B, bank.W, bank.K, masking or MaskConfig(), gen)
+            out.append(bank.batch(chunk, hide))
+        return cls(out)
+
+
+def _identity(x):
+    return x
+
+
+# --------------------------------------------------------------------------------------------
+# Lightning data module
+# --------------------------------------------------------------------------------------------
+class DeformDataModule(L.LightningDataModule):
+    """Simulated training / validation windows.
+
+    source: "sim" (simulate with deformnet.sim from `sim` config and seeds), "files" (load
+    `train_files` / `val_files` with deformnet.sim.dataset.load_sim) or "toy" (`toy_sequence`).
+    Train and validation sequences use disjoint seeds (seed + i, seed + 10_000 + i).
+    """
+
+    def __init__(
+        self,
+        body: BodyModel,
+        half_window: int = 12,
+        source: str = "sim",
+        sim: Any = None,
+        train_sequences: int = 4,
+        val_sequences: int = 1,
+        num_frames: int = 3000,
+        train_files: Sequence[str] | None = None,
+        val_files: Sequence[str] | None = None,
+        seed: int = 0,
+        batch_size: int = 256,
+        steps_per_epoch: int = 100,
+        val_windows: int = 2048,
+        noise_mm: float = 0.0,
+        masking: Mapping[str, Any] | MaskConfig | None = None,
+    ) -> None:
+        super().__init__()
+        if source not in ("sim", "files", "toy"):
+            raise ValueError(f"data.source must be 'sim', 'files' or 'toy', got '{source}'")
+        self.body = body
+        self.half_window = int(half_window)
+        self.source = source
+        self.sim_cfg = sim
+        self.train_sequences, self.val_sequences = int(train_sequences), int(val_sequences)
+        self.num_frames = int(num_frames)
+        self.train_files = list(train_files or [])
+        self.val_files = list(val_files or [])
+        self.seed = int(seed)
+        self.batch_size, self.steps_per_epoch = int(batch_size), int(steps_per_epoch)
+        self.val_windows = int(val_windows)
+        self.noise_mm = float(noise_mm)
+        self.masking = MaskConfig.from_any(masking)
+        self.train_set: RandomWindowBatches | None = None
+        self.val_set: FixedWindowBatches | None = None
+
+    def sequences(self, split: str) -> list[SequenceArrays]:
+        count = self.train_sequences if split == "train" else self.val_sequences
+        base = self.seed + (0 if split == "train" else 10_000)
+        seeds = [base + i for i in range(count)]
+        if self.source == "toy":
+            return [toy_sequence(self.body, self.num_frames, s) for s in seeds]
+        if self.source == "files":
+            files = self.train_files if split == "train" else self.val_files
+            if not files:
+                raise ValueError(f"data.source=files needs data.{split}_files")
+            return load_sequences(files)
+        return simulate_sequences(self.sim_cfg, self.body, self.num_frames, seeds)
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is None and stage in (None, "fit"):
+            bank = WindowBank(self.sequences("train"), self.half_window)
+            self.train_set = RandomWindowBatches(
+                bank, self.batch_size, self.steps_per_epoch, self.masking, self.seed, self.noise_mm
+            )
+            log.info("training windows: %d mid frames, %d parts", len(bank), bank.K)
+        if self.val_set is None and stage in (None, "fit", "validate"):
+            bank = WindowBank(self.sequences("val"), self.half_window)
+            self.val_set = FixedWindowBatches.build(
+                bank, self.val_windows, self.batch_size, self.seed + 1, self.masking
+            )
+
+    def train_dataloader(self) -> DataLoader:
+        if self.trainer is not None:
+            self.train_set.rank = self.trainer.global_rank
+        return DataLoader(self.train_set, batch_size=None, collate_fn=_identity)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader(self.val_set, batch_size=None, shuffle=False, collate_fn=_identity)

@@ -1,0 +1,166 @@
+"""`DeformationModel`: a trained net as a differentiable function in global coordinates.
+
+    model = DeformationModel.from_checkpoint("runs/train/.../checkpoints/best.ckpt")
+    pred = model(rigid, deformed, observed)   # (..., W, K, 3) x2, (..., W, K) -> (..., K, 3)
+
+All in global mm. The model canonicalises internally (mid pose by Kabsch of the mid frame's rigid
+points onto its body model), runs the net, and maps the prediction back. It ignores the mid
+frame's deformed input, is differentiable in `rigid` and `deformed` with plain reverse-mode
+autograd over batched independent windows (nn.LSTM does not support torch.func vmap-Jacobians,
+and CPU scaled-dot-product attention has no forward-mode AD), and supports `.double()`.
+
+Lightning is imported lazily (never at module import): only the checkpoint loader may need it to
+unpickle a Lightning checkpoint.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from deformnet.body import BodyModel
+from deformnet.tokens import canonicalize, uncanonicalize
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DeformationModel", "build_net", "CHECKPOINT_KEY"]
+
+CHECKPOINT_KEY = "deformation_model"  # extra entry the Lightning module adds to its checkpoints
+
+
+def build_net(config: Mapping[str, Any]) -> nn.Module:
+    """Instantiate a net from a plain config dict with a `_target_` (no Hydra needed)."""
+    cfg = dict(config)
+    target = cfg.pop("_target_", None)
+    if not target:
+        raise ValueError(f"net config needs a '_target_' (a class path), got keys {sorted(cfg)}")
+    module, _, name = str(target).rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f"cannot import net class '{target}': {exc}") from exc
+    return cls(**cfg)
+
+
+class DeformationModel(nn.Module):
+    """A net plus what is needed to call it in global coordinates.
+
+    net: an nn.Module with forward(rigid_c (B, W, K, 3), deformed_c (B, W, K, 3),
+    observed (B, W, K)) -> (B, K, 3) in canonical coordinates; body: the rigid body model
+    (K parts); half_window: n (W = 2n + 1). Attributes: body, window, half_window, net_config.
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        body: BodyModel,
+        half_window: int,
+        net_config: Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        self.net = net
+        self.body = body
+        self.half_window = int(half_window)
+        self.window = 2 * self.half_window + 1
+        self.net_config = dict(net_config) if net_config is not None else None
+        self.register_buffer(
+            "body_points", torch.tensor(np.array(body.points), dtype=torch.float32)
+        )
+
+    @property
+    def num_parts(self) -> int:
+        return self.body.num_parts
+
+    def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
+        want = (self.window, self.num_parts, 3)
+        if rigid.dim() < 3 or tuple(rigid.shape[-3:]) != want:
+            raise ValueError(
+                f"rigid must have shape (..., {self.window}, {self.num_parts}, 3) (window W = "
+                f"{self.window}, parts {', '.join(self.body.parts)}), got {tuple(rigid.shape)}"
+            )
+        if deformed.shape != rigid.shape:
+            raise ValueError(
+                f"deformed shape {tuple(deformed.shape)} != rigid shape {tuple(rigid.shape)}"
+            )
+        if tuple(observed.shape) != tuple(rigid.shape[:-1]):
+            raise ValueError(
+                f"observed must have shape {tuple(rigid.shape[:-1])}, got {tuple(observed.shape)}"
+            )
+
+    def canonical(
+        self, rigid: Tensor, deformed: Tensor, observed: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Canonical prediction (B, K, 3) and the mid pose R (B, 3, 3), t (B, 3) for flat batches
+        rigid, deformed (B, W, K, 3) global, observed (B, W, K)."""
+        deformed = torch.where(observed[..., None].bool(), deformed, torch.zeros_like(deformed))
+        rigid_c, deformed_c, R, t = canonicalize(
+            rigid, deformed, self.body_points.to(rigid.dtype), self.half_window
+        )
+        return self.net(rigid_c, deformed_c, observed.bool()), R, t
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        """Deformed mid-frame positions (..., K, 3), global mm, from windows (..., W, K, 3)."""
+        self._check(rigid, deformed, observed)
+        lead = rigid.shape[:-3]
+        W, K = self.window, self.num_parts
+        pred_c, R, t = self.canonical(
+            rigid.reshape(-1, W, K, 3), deformed.reshape(-1, W, K, 3), observed.reshape(-1, W, K)
+        )
+        return uncanonicalize(pred_c, R, t).reshape(*lead, K, 3)
+
+    # --- persistence --------------------------------------------------------------------
+    def export(self) -> dict:
+        """What a checkpoint needs to rebuild this model (net config, body, window, weights)."""
+        if self.net_config is None:
+            raise ValueError("cannot export a DeformationModel built without net_config")
+        return {
+            "net_config": dict(self.net_config),
+            "body": self.body.to_mapping(),
+            "half_window": self.half_window,
+            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+        }
+
+    @classmethod
+    def from_export(cls, blob: Mapping[str, Any]) -> DeformationModel:
+        body = BodyModel.from_mapping(
+            blob["body"]["parts"], blob["body"].get("aliases"), blob["body"].get("name", "body")
+        )
+        net = build_net(blob["net_config"])
+        model = cls(net, body, int(blob["half_window"]), blob["net_config"])
+        model.load_state_dict(blob["state_dict"])
+        return model.eval()
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write a minimal checkpoint (atomic) that `from_checkpoint` reads."""
+        from deformnet.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            torch.save({CHECKPOINT_KEY: self.export()}, tmp)
+
+    @classmethod
+    def from_checkpoint(
+        cls, path: str | os.PathLike, map_location: str | torch.device = "cpu"
+    ) -> DeformationModel:
+        """Load from a Lightning checkpoint written by `deformnet-train` (or from `save`).
+
+        Returns the model in eval mode, float32 on `map_location`. Checkpoints are trusted
+        local files (they are unpickled).
+        """
+        try:  # a Lightning checkpoint may hold pickled Lightning objects (hyper-parameters)
+            import lightning  # noqa: F401
+        except ImportError:  # pragma: no cover - lightning is a dependency
+            log.debug("lightning not importable; loading the checkpoint with torch only")
+        ckpt = torch.load(os.fspath(path), map_location=map_location, weights_only=False)
+        if CHECKPOINT_KEY not in ckpt:
+            raise ValueError(
+                f"{path} is not a deformnet checkpoint (no '{CHECKPOINT_KEY}' entry); write it "
+                "with deformnet-train or DeformationModel.save"
+            )
+        return cls.from_export(ckpt[CHECKPOINT_KEY]).to(map_location)

@@ -1,0 +1,141 @@
+"""The one thin LightningModule: trains any deformation net (a plain nn.Module built elsewhere).
+
+Metrics: `train/loss`, `val/loss` (masked MSE, mm^2, canonical = global distances),
+`val/rmse_mm` and `val/rmse_mm/<part>` of the net, and on the same validation windows the rigid
+baseline `val/rmse_mm_rigid` (predict X̄) and the linear-interpolation baseline
+`val/rmse_mm_linear` (`deformnet.tokens.linear_baseline`). RMSE is over the mid frame's observed
+parts (3D point distance). Checkpoints carry a `deformation_model` entry that
+`DeformationModel.from_checkpoint` rebuilds without Lightning.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from deformnet.body import BodyModel
+from deformnet.deformation import CHECKPOINT_KEY, DeformationModel
+from deformnet.tokens import linear_baseline, masked_mse
+
+__all__ = ["DeformLit"]
+
+
+class DeformLit(L.LightningModule):
+    """net: canonical-coordinate predictor (see `deformnet.nets`); body: rigid body model;
+    half_window: n; net_config: the net's `_target_` config (needed to rebuild it from a
+    checkpoint); lr, weight_decay, warmup_steps: AdamW with linear warm-up then cosine decay
+    over the trainer's estimated steps; hparams: extra hyper-parameters to log (e.g. the
+    flattened run config)."""
+
+    def __init__(
+        self,
+        net: nn.Module,
+        body: BodyModel,
+        half_window: int,
+        net_config: Mapping[str, Any] | None = None,
+        lr: float = 2e-3,
+        weight_decay: float = 1e-4,
+        warmup_steps: int = 100,
+        hparams: Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters(ignore=["net", "body"])
+        self.model = DeformationModel(net, body, half_window, net_config)
+        self.parts = tuple(body.parts)
+        self.mid = int(half_window)
+        self._val_sums: dict[str, Tensor] = {}
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        return self.model(rigid, deformed, observed)
+
+    def _canonical_loss(self, batch: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
+        pred_c, R, t = self.model.canonical(batch["rigid"], batch["deformed"], batch["observed"])
+        target_c = (batch["target"] - t[:, None, :]) @ R
+        loss = masked_mse(pred_c, target_c, batch["target_mask"])
+        return loss, pred_c
+
+    def training_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
+        loss, _ = self._canonical_loss(batch)
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch["rigid"].shape[0])
+        return loss
+
+    def on_validation_epoch_start(self) -> None:
+        self._val_sums = {}
+
+    def _accumulate(self, key: str, pred: Tensor, target: Tensor, mask: Tensor) -> None:
+        sq = ((pred - target) ** 2).sum(-1) * mask  # (B, K)
+        s = sq.sum(0).double()
+        if key in self._val_sums:
+            self._val_sums[key] += s
+        else:
+            self._val_sums[key] = s
+
+    def validation_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
+        rigid, deformed, observed = batch["rigid"], batch["deformed"], batch["observed"]
+        target, mask = batch["target"], batch["target_mask"]
+        loss, _ = self._canonical_loss(batch)
+        pred = self.model(rigid, deformed, observed)
+        m = mask.to(pred.dtype)
+        self._accumulate("net", pred, target, m)
+        self._accumulate("rigid", rigid[:, self.mid], target, m)
+        self._accumulate("linear", linear_baseline(rigid, deformed, observed, self.mid), target, m)
+        self._accumulate(
+            "count", torch.ones_like(pred[..., :1]), torch.zeros_like(pred[..., :1]), m
+        )
+        self.log("val/loss", loss, batch_size=rigid.shape[0], sync_dist=True)
+        return loss
+
+    def on_validation_epoch_end(self) -> None:
+        if not self._val_sums:
+            return
+        sums = {
+            k: self.trainer.strategy.reduce(v, reduce_op="sum") for k, v in self._val_sums.items()
+        }
+        count = sums["count"]
+        total = count.sum().clamp_min(1.0)
+
+        def rmse(x: Tensor) -> Tensor:
+            return (x.sum() / total).sqrt().float()
+
+        self.log("val/rmse_mm", rmse(sums["net"]), prog_bar=True)
+        self.log("val/rmse_mm_rigid", rmse(sums["rigid"]))
+        self.log("val/rmse_mm_linear", rmse(sums["linear"]))
+        per_part = (sums["net"] / count.clamp_min(1.0)).sqrt().float()
+        for name, value, c in zip(self.parts, per_part, count):
+            if c > 0:
+                self.log(f"val/rmse_mm/{name}", value)
+        self._val_sums = {}
+
+    def configure_optimizers(self):
+        hp = self.hparams
+        decay, no_decay = [], []
+        for name, p in self.named_parameters():
+            (no_decay if p.ndim < 2 or "embedding" in name else decay).append(p)
+        opt = torch.optim.AdamW(
+            [
+                {"params": decay, "weight_decay": float(hp.weight_decay)},
+                {"params": no_decay, "weight_decay": 0.0},
+            ],
+            lr=float(hp.lr),
+        )
+        total = self.trainer.estimated_stepping_batches if self.trainer is not None else 1000
+        total = int(total) if math.isfinite(total) and total > 0 else 1000
+        warm = max(1, min(int(hp.warmup_steps), total // 5))
+
+        def factor(step: int) -> float:
+            if step < warm:
+                return (step + 1) / warm
+            progress = min(1.0, (step - warm) / max(1, total - warm))
+            return 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self.model.net_config is not None:
+            checkpoint[CHECKPOINT_KEY] = self.model.export()

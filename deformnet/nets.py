@@ -1,0 +1,182 @@
+"""Sequence nets predicting the mid frame's deformed body-part positions from a token window.
+
+Both nets share one forward signature, in canonical coordinates (the mid frame's rigid-model
+frame, see `deformnet.tokens.canonicalize`):
+
+    forward(rigid (B, W, K, 3), deformed (B, W, K, 3), observed (B, W, K) bool) -> (B, K, 3)
+
+They predict the deformation offset relative to the mid rigid point (residual) with a zero-
+initialised output layer, so an untrained net is the rigid baseline. The mid frame's deformed input
+is masked inside (`deformnet.tokens.token_features`) whatever the caller passes.
+
+Plain `nn.Module`s, built by Hydra `_target_` (conf/net/*.yaml); no Lightning here.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from deformnet.tokens import NUM_FEATURES, token_features
+
+__all__ = ["LSTMPredictor", "TransformerPredictor", "sinusoidal_encoding"]
+
+
+class _Base(nn.Module):
+    def __init__(
+        self, num_parts: int, half_window: int, pos_scale: float, offset_scale: float
+    ) -> None:
+        super().__init__()
+        if num_parts < 1 or half_window < 0:
+            raise ValueError(
+                f"need num_parts >= 1 and half_window >= 0, got {num_parts}, {half_window}"
+            )
+        self.num_parts = int(num_parts)
+        self.half_window = int(half_window)
+        self.window = 2 * self.half_window + 1
+        self.pos_scale = float(pos_scale)
+        self.offset_scale = float(offset_scale)
+
+    def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
+        want = (self.window, self.num_parts, 3)
+        if rigid.dim() != 4 or tuple(rigid.shape[1:]) != want:
+            raise ValueError(
+                f"rigid must have shape (B, {', '.join(map(str, want))}), got {tuple(rigid.shape)}"
+            )
+        if deformed.shape != rigid.shape:
+            raise ValueError(
+                f"deformed shape {tuple(deformed.shape)} != rigid shape {tuple(rigid.shape)}"
+            )
+        if tuple(observed.shape) != tuple(rigid.shape[:-1]):
+            raise ValueError(
+                f"observed must have shape {tuple(rigid.shape[:-1])}, got {tuple(observed.shape)}"
+            )
+
+    def _features(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        self._check(rigid, deformed, observed)
+        feats, _ = token_features(
+            rigid, deformed, observed, self.half_window, self.pos_scale, self.offset_scale
+        )
+        return feats
+
+    def _finish(self, offset: Tensor, rigid: Tensor) -> Tensor:
+        return rigid[:, self.half_window] + offset * self.offset_scale
+
+
+class LSTMPredictor(_Base):
+    """Bidirectional LSTM over time; each frame's K tokens are embedded jointly.
+
+    num_parts K, half_window n (W = 2n + 1), hidden size per direction, layers, dropout.
+    """
+
+    def __init__(
+        self,
+        num_parts: int,
+        half_window: int = 12,
+        hidden: int = 128,
+        layers: int = 2,
+        embed: int = 128,
+        dropout: float = 0.0,
+        pos_scale: float = 30.0,
+        offset_scale: float = 5.0,
+    ) -> None:
+        super().__init__(num_parts, half_window, pos_scale, offset_scale)
+        K = self.num_parts
+        self.embed = nn.Sequential(nn.Linear(K * NUM_FEATURES, embed), nn.GELU())
+        self.lstm = nn.LSTM(
+            embed,
+            hidden,
+            num_layers=layers,
+            batch_first=True,
+            bidirectional=True,
+            dropout=dropout if layers > 1 else 0.0,
+        )
+        self.head = nn.Sequential(
+            nn.Linear(2 * hidden + embed, hidden), nn.GELU(), nn.Linear(hidden, K * 3)
+        )
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        feats = self._features(rigid, deformed, observed)  # (B, W, K, F)
+        B, W = feats.shape[:2]
+        e = self.embed(feats.reshape(B, W, -1))
+        h, _ = self.lstm(e)
+        mid = self.half_window
+        out = self.head(torch.cat((h[:, mid], e[:, mid]), -1)).reshape(B, self.num_parts, 3)
+        return self._finish(out, rigid)
+
+
+def sinusoidal_encoding(length: int, dim: int, offset: int = 0) -> Tensor:
+    """(length, dim) sinusoidal positional encoding of positions offset .. offset+length-1."""
+    pos = torch.arange(length, dtype=torch.float64)[:, None] + offset
+    i = torch.arange(0, dim, 2, dtype=torch.float64)
+    freq = torch.exp(-math.log(10000.0) * i / dim)
+    pe = torch.zeros(length, dim, dtype=torch.float64)
+    pe[:, 0::2] = torch.sin(pos * freq)
+    pe[:, 1::2] = torch.cos(pos * freq)[:, : dim // 2]
+    return pe.float()
+
+
+class TransformerPredictor(_Base):
+    """Transformer encoder over time.
+
+    Each token (t, i) is embedded by a shared MLP from its features plus a learned embedding of the
+    part identity i; a frame's K token embeddings are concatenated and projected to one frame
+    vector (W sequence elements, cheap enough for CPU training), to which a sinusoidal positional
+    encoding over time (relative to the mid frame) is added. The encoder output at the mid frame
+    predicts the K deformation offsets.
+    """
+
+    def __init__(
+        self,
+        num_parts: int,
+        half_window: int = 12,
+        d_model: int = 128,
+        heads: int = 4,
+        layers: int = 3,
+        ff: int = 256,
+        d_part: int = 32,
+        dropout: float = 0.0,
+        pos_scale: float = 30.0,
+        offset_scale: float = 5.0,
+        use_pos_enc: bool = True,
+    ) -> None:
+        super().__init__(num_parts, half_window, pos_scale, offset_scale)
+        K = self.num_parts
+        self.use_pos_enc = bool(use_pos_enc)
+        self.part_embedding = nn.Embedding(K, d_part)
+        self.token_embed = nn.Sequential(
+            nn.Linear(NUM_FEATURES + d_part, d_part), nn.GELU(), nn.Linear(d_part, d_part)
+        )
+        self.frame_embed = nn.Linear(K * d_part, d_model)
+        pe = sinusoidal_encoding(self.window, d_model, offset=-self.half_window)
+        self.register_buffer("pos_encoding", pe, persistent=False)
+        layer = nn.TransformerEncoderLayer(
+            d_model,
+            heads,
+            ff,
+            dropout=dropout,
+            batch_first=True,
+            norm_first=True,
+            activation="gelu",
+        )
+        self.encoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(d_model)
+        self.head = nn.Sequential(nn.Linear(d_model, d_model), nn.GELU(), nn.Linear(d_model, K * 3))
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        feats = self._features(rigid, deformed, observed)  # (B, W, K, F)
+        B, W, K, _ = feats.shape
+        part = self.part_embedding.weight.to(feats.dtype).expand(B, W, K, -1)
+        tok = self.token_embed(torch.cat((feats, part), -1))  # (B, W, K, d_part)
+        x = self.frame_embed(tok.reshape(B, W, -1))  # (B, W, d_model)
+        if self.use_pos_enc:
+            x = x + self.pos_encoding.to(feats.dtype)[None]
+        x = self.encoder(x)
+        out = self.head(self.norm(x[:, self.half_window])).reshape(B, K, 3)
+        return self._finish(out, rigid)

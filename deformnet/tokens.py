@@ -1,0 +1,151 @@
+"""Tokens and windows: canonicalisation, token features, masks, baselines.
+
+A token pairs one body part's rigid-model position and its observed deformed position,
+T(t, i) = (X̄(t, i), X̃(t, i)) (paper, eq. "token"). A sample is the window of frames t-n..t+n
+(W = 2n + 1). The deformed half of the mid frame's tokens is masked; the net predicts the mid
+frame's deformed positions. Elsewhere deformed positions that were not observed are masked too
+(the boolean `observed` flags are inputs).
+
+Every window is expressed in the mid frame's rigid-model coordinates ("canonical"): the mid pose
+(R, t) is recovered by Kabsch of the mid frame's rigid points onto the body model (exact for rigid
+points), and X_c = R^T (X - t). The prediction then does not depend on where the mouse is or which
+way it faces.
+
+Shapes: B batch (any leading dims where stated), W window, K parts. Points in mm. All functions
+are pure torch, batched and differentiable (reverse mode) in the point inputs.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "kabsch",
+    "canonicalize",
+    "uncanonicalize",
+    "token_features",
+    "NUM_FEATURES",
+    "masked_mse",
+    "linear_baseline",
+]
+
+NUM_FEATURES = 7  # rigid_c (3), deformation offset in the frame's own body frame (3), observed (1)
+
+
+def kabsch(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor]:
+    """Least-squares rigid transform mapping `dst` onto `src`: src ≈ dst @ R^T + t.
+
+    src: (..., K, 3) points (e.g. a frame's rigid points in global mm); dst: (..., K, 3) or (K, 3)
+    reference points (e.g. the body model). Returns R (..., 3, 3) (proper rotation) and
+    t (..., 3). Differentiable; the SVD gradient is well defined when the reference's principal
+    spreads are distinct (true for a mouse body model).
+    """
+    dst = dst.to(src.dtype).expand_as(src)
+    cs = src.mean(-2, keepdim=True)
+    cd = dst.mean(-2, keepdim=True)
+    H = (src - cs).transpose(-1, -2) @ (dst - cd)  # (..., 3, 3) = sum (s_i)(d_i)^T
+    U, _, Vh = torch.linalg.svd(H)
+    with torch.no_grad():
+        d = torch.sign(torch.linalg.det(U @ Vh))
+        d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.ones(H.shape[:-1], dtype=H.dtype, device=H.device)
+    D = torch.cat((D[..., :2], d[..., None]), -1)
+    R = (U * D[..., None, :]) @ Vh
+    t = cs.squeeze(-2) - (cd.squeeze(-2)[..., None, :] @ R.transpose(-1, -2)).squeeze(-2)
+    return R, t
+
+
+def canonicalize(
+    rigid: Tensor, deformed: Tensor, body_points: Tensor, mid: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Express a window in the mid frame's rigid-model coordinates.
+
+    rigid, deformed: (..., W, K, 3) global mm; body_points: (K, 3) model mm; mid: index of the mid
+    frame. Returns rigid_c, deformed_c (..., W, K, 3) and the mid pose R (..., 3, 3), t (..., 3)
+    (model -> global) recovered by Kabsch of rigid[..., mid, :, :] onto the body model.
+    """
+    R, t = kabsch(rigid[..., mid, :, :], body_points)
+    Rw, tw = R[..., None, :, :], t[..., None, None, :]
+    rigid_c = (rigid - tw) @ Rw
+    deformed_c = (deformed - tw) @ Rw
+    return rigid_c, deformed_c, R, t
+
+
+def uncanonicalize(points_c: Tensor, R: Tensor, t: Tensor) -> Tensor:
+    """Canonical points (..., K, 3) back to global: X = R X_c + t; R (..., 3, 3), t (..., 3)."""
+    return points_c @ R.transpose(-1, -2) + t[..., None, :]
+
+
+def token_features(
+    rigid_c: Tensor,
+    deformed_c: Tensor,
+    observed: Tensor,
+    mid: int,
+    pos_scale: float = 30.0,
+    offset_scale: float = 5.0,
+) -> tuple[Tensor, Tensor]:
+    """Per-token input features for the nets, from a canonical window.
+
+    rigid_c, deformed_c: (B, W, K, 3) canonical mm; observed: (B, W, K) bool.
+    The mid frame's deformed input is always masked here (no leak, whatever the caller passes),
+    and unobserved deformed values are zeroed so their content cannot matter.
+    Features (B, W, K, 7): rigid_c / pos_scale; the deformation offset X̃ - X̄ rotated into that
+    frame's own body frame (rotation by Kabsch of the frame's rigid points onto the mid frame's),
+    / offset_scale, zero where masked; the observed flag. Returns (features, observed_masked).
+    """
+    W = rigid_c.shape[-3]
+    keep = torch.ones(W, dtype=torch.bool, device=observed.device)
+    keep[mid] = False
+    obs = observed.bool() & keep[:, None]
+    # rotation of each frame relative to the mid frame (canonical coords): rigid_f ≈ R_f mid + t_f
+    R_f, _ = kabsch(rigid_c, rigid_c[..., mid : mid + 1, :, :])
+    off = (deformed_c - rigid_c) @ R_f  # offset in the frame's own body frame
+    off = torch.where(obs[..., None], off, torch.zeros_like(off))
+    feats = torch.cat(
+        (rigid_c / pos_scale, off / offset_scale, obs[..., None].to(rigid_c.dtype)), -1
+    )
+    return feats, obs
+
+
+def masked_mse(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Mean squared 3D error over the entries where `mask` is true (pred, target (..., K, 3);
+    mask (..., K) bool). Entries with mask false contribute neither value nor gradient."""
+    m = mask.to(pred.dtype)
+    diff = torch.where(mask[..., None], pred - target, torch.zeros_like(pred))
+    sq = (diff * diff).sum(-1)
+    return (sq * m).sum() / m.sum().clamp_min(1.0)
+
+
+def linear_baseline(rigid: Tensor, deformed: Tensor, observed: Tensor, mid: int) -> Tensor:
+    """Linear-interpolation baseline for the mid frame's deformed positions.
+
+    For each part, the deformed position is interpolated linearly in time between the nearest
+    observed frames before and after the mid frame in the window (the mid frame itself is never
+    used). Where a side has no observation, the rigid mid point is returned (the rigid baseline).
+    rigid, deformed (..., W, K, 3), observed (..., W, K) bool -> (..., K, 3).
+    """
+    W = observed.shape[-2]
+    idx = torch.arange(W, device=observed.device)
+    obs = observed.bool().clone()
+    obs[..., mid, :] = False
+    big = W + 1
+    before = torch.where(
+        obs & (idx < mid)[:, None], idx[:, None], torch.full_like(idx, -big)[:, None]
+    )
+    after = torch.where(
+        obs & (idx > mid)[:, None], idx[:, None], torch.full_like(idx, 2 * big)[:, None]
+    )
+    ib = before.max(-2).values  # (..., K)
+    ia = after.min(-2).values
+    ok = (ib >= 0) & (ia < W)
+    ibc, iac = ib.clamp(0, W - 1), ia.clamp(0, W - 1)
+
+    def gather(i: Tensor) -> Tensor:
+        index = i[..., None, :, None].expand(*i.shape[:-1], 1, i.shape[-1], 3)
+        return deformed.gather(-3, index).squeeze(-3)
+
+    xb, xa = gather(ibc), gather(iac)
+    w = ((mid - ibc).to(deformed.dtype) / (iac - ibc).clamp_min(1).to(deformed.dtype))[..., None]
+    lin = xb + w * (xa - xb)
+    return torch.where(ok[..., None], lin, rigid[..., mid, :, :])
