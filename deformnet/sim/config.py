@@ -1,0 +1,388 @@
+"""Simulator configuration: `SimConfig`, a frozen dataclass tree mirroring ``conf/sim/default.yaml``.
+
+Units: lengths mm, times s, angles deg. `SimConfig()` equals the YAML defaults;
+`SimConfig.from_config(node)` builds one from a Hydra/OmegaConf node or a plain mapping (missing
+keys keep their defaults, unknown keys and bad values raise ValueError naming the key).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+BEHAVIORS: tuple[str, ...] = ("walk", "scan", "rear", "groom", "lever", "splint", "ball", "slider")
+MECHANISMS: tuple[str, ...] = ("lever", "splint", "ball", "slider")
+
+
+@dataclass(frozen=True)
+class ArenaConfig:
+    size: tuple[float, float] = (300.0, 300.0)
+    wall_margin: float = 45.0
+
+
+@dataclass(frozen=True)
+class WalkConfig:
+    speed_mean: float = 60.0
+    speed_sigma: float = 0.4
+    speed_max: float = 200.0
+    speed_tau: float = 0.7
+    curvature_std: float = 0.02
+    curvature_tau: float = 0.6
+    stop_rate: float = 0.15
+    stop_duration: tuple[float, float] = (0.3, 1.5)
+    smooth: float = 0.12
+    approach_speed: float = 70.0
+
+
+@dataclass(frozen=True)
+class GaitConfig:
+    stride: float = 20.0
+    swing_height: float = 2.0
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    yaw: tuple[float, float] = (-15.0, 15.0)
+    pitch: tuple[float, float] = (-10.0, 10.0)
+    roll: tuple[float, float] = (-8.0, 8.0)
+    period: tuple[float, float, float] = (1.6, 1.2, 2.0)
+    blend: float = 0.1
+
+
+@dataclass(frozen=True)
+class ScanConfig:
+    yaw: tuple[float, float] = (-50.0, 50.0)
+    pitch: tuple[float, float] = (-15.0, 30.0)
+    roll: tuple[float, float] = (-15.0, 15.0)
+    period: tuple[float, float, float] = (1.4, 2.2, 1.8)
+
+
+@dataclass(frozen=True)
+class RearConfig:
+    pitch: tuple[float, float] = (35.0, 65.0)
+    tuck: tuple[float, float, float] = (0.0, -4.0, 4.0)
+
+
+@dataclass(frozen=True)
+class GroomConfig:
+    pitch: tuple[float, float] = (10.0, 25.0)
+    paw_offset: tuple[float, float, float] = (3.5, -4.0, -3.0)
+    stroke_amplitude: float = 2.0
+    stroke_frequency: float = 4.0
+
+
+@dataclass(frozen=True)
+class ReachConfig:
+    gap: float = 5.0
+    max_pitch: float = 60.0
+    jitter: float = 0.8
+    ramp: float = 0.3
+
+
+_DEFAULT_DURATIONS: tuple[tuple[float, float], ...] = (
+    (2.0, 6.0),
+    (1.0, 3.0),
+    (1.0, 2.5),
+    (1.5, 4.0),
+    (1.0, 2.5),
+    (1.0, 2.5),
+    (1.0, 2.5),
+    (1.0, 2.5),
+)
+_DEFAULT_TRANSITIONS: tuple[tuple[float, ...], ...] = (
+    (0.0, 0.25, 0.15, 0.12, 0.12, 0.12, 0.12, 0.12),
+    (0.55, 0.0, 0.15, 0.06, 0.06, 0.06, 0.06, 0.06),
+    (0.5, 0.2, 0.0, 0.1, 0.05, 0.05, 0.05, 0.05),
+    (0.6, 0.2, 0.1, 0.0, 0.025, 0.025, 0.025, 0.025),
+    (0.5, 0.1, 0.05, 0.05, 0.0, 0.1, 0.1, 0.1),
+    (0.5, 0.1, 0.05, 0.05, 0.1, 0.0, 0.1, 0.1),
+    (0.5, 0.1, 0.05, 0.05, 0.1, 0.1, 0.0, 0.1),
+    (0.5, 0.1, 0.05, 0.05, 0.1, 0.1, 0.1, 0.0),
+)
+
+
+@dataclass(frozen=True)
+class BehaviorConfig:
+    """durations[i] = (min, max) s and transitions[i] = row i of the Markov matrix, in the order
+    of `BEHAVIORS`."""
+
+    durations: tuple[tuple[float, float], ...] = _DEFAULT_DURATIONS
+    transitions: tuple[tuple[float, ...], ...] = _DEFAULT_TRANSITIONS
+
+
+@dataclass(frozen=True)
+class MechanismConfig:
+    position: tuple[
+        float, float, float
+    ]  # [along x, out of the front face, z] from face bottom centre
+    effector: str
+
+
+_DEFAULT_MECHANISMS: tuple[MechanismConfig, ...] = (
+    MechanismConfig((-60.0, 10.0, 18.0), "right_front_paw"),
+    MechanismConfig((-20.0, 2.0, 12.0), "nose_tip"),
+    MechanismConfig((20.0, 8.0, 10.0), "left_front_paw"),
+    MechanismConfig((60.0, 2.0, 20.0), "nose_tip"),
+)
+
+
+@dataclass(frozen=True)
+class LockboxConfig:
+    """An axis-aligned box; its front face (the -y side) faces the mouse. `mechanisms` in the
+    order of `MECHANISMS`."""
+
+    center: tuple[float, float] = (150.0, 280.0)
+    size: tuple[float, float, float] = (180.0, 40.0, 45.0)
+    mechanisms: tuple[MechanismConfig, ...] = _DEFAULT_MECHANISMS
+
+
+@dataclass(frozen=True)
+class MissingConfig:
+    dropout: float = 0.05
+    occlusion_rate: float = 0.05
+    occlusion_duration: tuple[float, float] = (0.2, 1.5)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """All simulator settings (see ``conf/sim/default.yaml`` for the meaning of each key)."""
+
+    fps: float = 30.0
+    num_frames: int = 9000
+    seed: int = 0
+    arena: ArenaConfig = field(default_factory=ArenaConfig)
+    walk: WalkConfig = field(default_factory=WalkConfig)
+    gait: GaitConfig = field(default_factory=GaitConfig)
+    head: HeadConfig = field(default_factory=HeadConfig)
+    scan: ScanConfig = field(default_factory=ScanConfig)
+    rear: RearConfig = field(default_factory=RearConfig)
+    groom: GroomConfig = field(default_factory=GroomConfig)
+    reach: ReachConfig = field(default_factory=ReachConfig)
+    behaviors: BehaviorConfig = field(default_factory=BehaviorConfig)
+    lockbox: LockboxConfig = field(default_factory=LockboxConfig)
+    missing: MissingConfig = field(default_factory=MissingConfig)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> SimConfig:
+        """From a Hydra/OmegaConf node, a mapping (partial is fine) or a SimConfig."""
+        if isinstance(cfg, SimConfig):
+            return cfg
+        if cfg is None:
+            return cls()
+        data = _to_container(cfg)
+        if not isinstance(data, Mapping):
+            raise ValueError(f"sim: expected a mapping, got {type(data).__name__}")
+        return _build(cls, data, "sim")
+
+    def replace(self, **changes: Any) -> SimConfig:
+        return dataclasses.replace(self, **changes)
+
+
+# --------------------------------------------------------------------------------------------
+def _to_container(cfg: Any) -> Any:
+    try:
+        from omegaconf import OmegaConf
+
+        if OmegaConf.is_config(cfg):
+            return OmegaConf.to_container(cfg, resolve=True)
+    except ImportError:  # pragma: no cover - omegaconf ships with hydra-core
+        pass
+    return cfg
+
+
+def _num(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{key}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{key}: must be finite, got {value!r}")
+    return v
+
+
+def _vec(value: Any, n: int, key: str) -> tuple[float, ...]:
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != n:
+        raise ValueError(f"{key}: expected a list of {n} numbers, got {value!r}")
+    return tuple(_num(v, f"{key}[{i}]") for i, v in enumerate(value))
+
+
+def _per_name(value: Any, names: tuple[str, ...], key: str, default: tuple) -> dict:
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{key}: expected a mapping with keys {list(names)}, got {value!r}")
+    unknown = sorted(set(value) - set(names))
+    if unknown:
+        raise ValueError(f"{key}: unknown name(s) {unknown}; expected some of {list(names)}")
+    return {n: value.get(n, d) for n, d in zip(names, default)}
+
+
+def _build(cls: type, data: Mapping, key: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ValueError(f"{key}: unknown key(s) {unknown}; known: {sorted(fields)}")
+    defaults = cls() if cls is not MechanismConfig else None
+    kwargs: dict[str, Any] = {}
+    for name, value in data.items():
+        sub = f"{key}.{name}"
+        default = getattr(defaults, name)
+        if dataclasses.is_dataclass(default) and not isinstance(default, type):
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{sub}: expected a mapping, got {value!r}")
+            kwargs[name] = _build(type(default), value, sub)
+        elif cls is BehaviorConfig:
+            rows = _per_name(value, BEHAVIORS, sub, default)
+            width = 2 if name == "durations" else len(BEHAVIORS)
+            kwargs[name] = tuple(_vec(rows[b], width, f"{sub}.{b}") for b in BEHAVIORS)
+        elif cls is LockboxConfig and name == "mechanisms":
+            mech = _per_name(value, MECHANISMS, sub, default)
+            out = []
+            for m in MECHANISMS:
+                v = mech[m]
+                if isinstance(v, MechanismConfig):
+                    out.append(v)
+                    continue
+                if not isinstance(v, Mapping) or set(v) - {"position", "effector"}:
+                    raise ValueError(f"{sub}.{m}: expected {{position: [x, out, z], effector}}")
+                d = default[MECHANISMS.index(m)]
+                out.append(
+                    MechanismConfig(
+                        _vec(v.get("position", d.position), 3, f"{sub}.{m}.position"),
+                        str(v.get("effector", d.effector)),
+                    )
+                )
+            kwargs[name] = tuple(out)
+        elif isinstance(default, tuple):
+            kwargs[name] = _vec(value, len(default), sub)
+        elif isinstance(default, bool):
+            kwargs[name] = bool(value)
+        elif isinstance(default, int):
+            v = _num(value, sub)
+            if v != int(v):
+                raise ValueError(f"{sub}: expected an integer, got {value!r}")
+            kwargs[name] = int(v)
+        else:
+            kwargs[name] = _num(value, sub)
+    if cls is SimConfig:
+        # validate once, with full key names, after the whole tree is built
+        obj = object.__new__(cls)
+        for f in dataclasses.fields(cls):
+            object.__setattr__(obj, f.name, kwargs.get(f.name, getattr(defaults, f.name)))
+        validate(obj)
+        return obj
+    return cls(**kwargs)
+
+
+def _check(cond: bool, key: str, msg: str, value: Any) -> None:
+    if not cond:
+        raise ValueError(f"sim.{key}: {msg} (got {value!r})")
+
+
+def _interval(v: tuple, key: str, lo: float = -math.inf, hi: float = math.inf) -> None:
+    _check(len(v) == 2 and v[0] <= v[1], key, "expected [min, max] with min <= max", v)
+    _check(lo <= v[0] and v[1] <= hi, key, f"values must lie in [{lo}, {hi}]", v)
+
+
+def validate(c: SimConfig) -> None:
+    """Raise ValueError naming the offending key if a setting is out of range."""
+    _check(c.fps > 0, "fps", "must be > 0", c.fps)
+    _check(c.num_frames >= 2, "num_frames", "must be >= 2", c.num_frames)
+    _check(c.seed >= 0, "seed", "must be >= 0", c.seed)
+    a = c.arena
+    _check(min(a.size) > 0, "arena.size", "must be > 0", a.size)
+    _check(a.wall_margin >= 0, "arena.wall_margin", "must be >= 0", a.wall_margin)
+    w = c.walk
+    for k in ("speed_mean", "speed_max", "speed_tau", "curvature_tau", "approach_speed"):
+        _check(getattr(w, k) > 0, f"walk.{k}", "must be > 0", getattr(w, k))
+    for k in ("speed_sigma", "curvature_std", "stop_rate", "smooth"):
+        _check(getattr(w, k) >= 0, f"walk.{k}", "must be >= 0", getattr(w, k))
+    _check(w.speed_max >= w.speed_mean, "walk.speed_max", "must be >= walk.speed_mean", w.speed_max)
+    _interval(w.stop_duration, "walk.stop_duration", 0.0)
+    _check(c.gait.stride > 0, "gait.stride", "must be > 0", c.gait.stride)
+    _check(c.gait.swing_height >= 0, "gait.swing_height", "must be >= 0", c.gait.swing_height)
+    for grp in ("head", "scan"):
+        h = getattr(c, grp)
+        for k in ("yaw", "pitch", "roll"):
+            _interval(getattr(h, k), f"{grp}.{k}", -90.0, 90.0)
+            iv = getattr(h, k)
+            _check(iv[0] <= 0.0 <= iv[1], f"{grp}.{k}", "the interval must contain 0", iv)
+        _check(min(h.period) > 0, f"{grp}.period", "periods must be > 0", h.period)
+    _check(c.head.blend >= 0, "head.blend", "must be >= 0", c.head.blend)
+    _interval(c.rear.pitch, "rear.pitch", 0.0, 89.0)
+    _interval(c.groom.pitch, "groom.pitch", 0.0, 89.0)
+    _check(
+        c.groom.stroke_amplitude >= 0,
+        "groom.stroke_amplitude",
+        "must be >= 0",
+        c.groom.stroke_amplitude,
+    )
+    _check(
+        c.groom.stroke_frequency >= 0,
+        "groom.stroke_frequency",
+        "must be >= 0",
+        c.groom.stroke_frequency,
+    )
+    r = c.reach
+    _check(r.gap >= 0, "reach.gap", "must be >= 0", r.gap)
+    _check(0 <= r.max_pitch < 89, "reach.max_pitch", "must be in [0, 89)", r.max_pitch)
+    _check(r.jitter >= 0, "reach.jitter", "must be >= 0", r.jitter)
+    _check(r.ramp > 0, "reach.ramp", "must be > 0", r.ramp)
+    b = c.behaviors
+    _check(
+        len(b.durations) == len(BEHAVIORS),
+        "behaviors.durations",
+        f"need one [min, max] per behavior {list(BEHAVIORS)}",
+        b.durations,
+    )
+    for name, d in zip(BEHAVIORS, b.durations):
+        _interval(d, f"behaviors.durations.{name}", 0.0)
+        _check(d[1] > 0, f"behaviors.durations.{name}", "max must be > 0", d)
+    _check(
+        len(b.transitions) == len(BEHAVIORS),
+        "behaviors.transitions",
+        f"need one row per behavior {list(BEHAVIORS)}",
+        b.transitions,
+    )
+    for name, row in zip(BEHAVIORS, b.transitions):
+        key = f"behaviors.transitions.{name}"
+        _check(len(row) == len(BEHAVIORS), key, f"need {len(BEHAVIORS)} probabilities", row)
+        _check(min(row) >= 0, key, "probabilities must be >= 0", row)
+        _check(abs(sum(row) - 1.0) < 1e-6, key, "the row must sum to 1", row)
+    lb = c.lockbox
+    _check(min(lb.size) > 0, "lockbox.size", "must be > 0", lb.size)
+    _check(
+        len(lb.mechanisms) == len(MECHANISMS),
+        "lockbox.mechanisms",
+        f"need the mechanisms {list(MECHANISMS)}",
+        lb.mechanisms,
+    )
+    x0, x1 = lb.center[0] - lb.size[0] / 2, lb.center[0] + lb.size[0] / 2
+    y0, y1 = lb.center[1] - lb.size[1] / 2, lb.center[1] + lb.size[1] / 2
+    _check(
+        x0 >= 0 and x1 <= a.size[0] and y0 >= 0 and y1 <= a.size[1],
+        "lockbox.center",
+        f"the box must lie inside the arena [0, {a.size[0]}] x [0, {a.size[1]}]",
+        lb.center,
+    )
+    for name, m in zip(MECHANISMS, lb.mechanisms):
+        key = f"lockbox.mechanisms.{name}.position"
+        _check(
+            abs(m.position[0]) <= lb.size[0] / 2,
+            key,
+            "x offset must be on the box face",
+            m.position,
+        )
+        _check(
+            m.position[1] >= 0 and m.position[2] >= 0,
+            key,
+            "out-of-face offset and height must be >= 0",
+            m.position,
+        )
+    mi = c.missing
+    _check(0 <= mi.dropout < 1, "missing.dropout", "must be in [0, 1)", mi.dropout)
+    _check(mi.occlusion_rate >= 0, "missing.occlusion_rate", "must be >= 0", mi.occlusion_rate)
+    _interval(mi.occlusion_duration, "missing.occlusion_duration", 0.0)

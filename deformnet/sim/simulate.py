@@ -1,0 +1,276 @@
+"""`simulate`: the deformable-mouse simulator (the paper's "Simulated Data", extended with
+behaviors). Everything per frame is vectorised with NumPy; see the package docstring."""
+
+from __future__ import annotations
+
+import logging
+import time as _time
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial.transform import Rotation
+
+from deformnet.body import BodyModel, default_mouse
+from deformnet.sim.config import BEHAVIORS, MECHANISMS, SimConfig
+from deformnet.sim.dataset import SimData
+from deformnet.sim.scene import Scene, build_scene
+from deformnet.sim.trajectory import (
+    FIRST_MECH,
+    GROOM,
+    REAR,
+    SCAN,
+    WALK,
+    make_plan,
+    ou_noise,
+    smoothstep,
+)
+
+log = logging.getLogger(__name__)
+
+TAIL_FLOOR = 1.0  # mm: the deformed tail root never goes below this height
+
+
+def _resolve(cfg: Any, num_frames: int | None, seed: int | None, body: BodyModel | None):
+    """Accept a SimConfig, a sim node/mapping, or a whole app config with a `sim` key."""
+    top = None
+    if not isinstance(cfg, SimConfig) and cfg is not None:
+        try:
+            has_sim = "sim" in cfg
+        except TypeError:
+            has_sim = False
+        if has_sim:
+            top, cfg = cfg, cfg["sim"]
+    sim = SimConfig.from_config(cfg)
+    if top is not None:
+        if num_frames is None and top.get("num_frames") is not None:
+            num_frames = top.get("num_frames")
+        if seed is None and top.get("seed") is not None:
+            seed = top.get("seed")
+        if body is None and top.get("body") is not None:
+            body = BodyModel.from_config(top.get("body"))
+    changes = {}
+    if num_frames is not None:
+        changes["num_frames"] = num_frames
+    if seed is not None:
+        changes["seed"] = seed
+    if changes:
+        for k, v in changes.items():
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise ValueError(f"{k}: expected an integer, got {v!r}")
+        sim = sim.replace(**{k: int(v) for k, v in changes.items()})
+    return sim, (body if body is not None else default_mouse())
+
+
+def _envelopes(plan, T: int, fps: float, ramp_s: float):
+    """Per frame: episode id, local frame index, and the rise-hold-fall envelope of its episode
+    (0 at the episode's first and last frame)."""
+    ep = np.repeat(np.arange(len(plan.ep_start)), plan.ep_len)[:T]
+    u = np.arange(T) - plan.ep_start[ep]
+    n = plan.ep_len[ep]
+    r = np.maximum(1.0, np.minimum(ramp_s * fps, (n - 1) / 3.0))
+    env = np.minimum(smoothstep(u / r), smoothstep((n - 1 - u) / r))
+    return ep, u, env
+
+
+def _tri(x: np.ndarray) -> np.ndarray:
+    """Triangle wave 0 -> 1 -> 0 with period 1."""
+    return 1.0 - np.abs(2.0 * np.mod(x, 1.0) - 1.0)
+
+
+def _rot_body(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """R = Rz(yaw) Rx(pitch), (T, 3, 3)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    ct, st = np.cos(pitch), np.sin(pitch)
+    R = np.empty(yaw.shape + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = c, -s * ct, s * st
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = s, c * ct, -c * st
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = 0.0, st, ct
+    return R
+
+
+def _gait(scene: Scene, cfg: SimConfig, xy, yaw, s):
+    """Ground/swing positions (T, 4, 3) of the paws in PAWS order (the paper's pace: pair A =
+    right front + left hind in stance on even half cycles, pair B on odd ones)."""
+    L = cfg.gait.stride
+    T = len(s)
+    k = np.floor(s / L).astype(np.int64)
+    kmin, kmax = int(k.min()) - 1, int(k.max()) + 1
+    ks = np.arange(kmin, kmax + 1)
+    sm = (ks + 0.5) * L  # arc length at mid-stance of each half cycle
+    j = np.clip(np.searchsorted(s, sm, side="left"), 0, T - 1)
+    i = np.clip(j - 1, 0, T - 1)
+    den = s[j] - s[i]
+    f = np.where(den > 0, np.clip((sm - s[i]) / np.where(den > 0, den, 1.0), 0.0, 1.0), 0.0)
+    base = xy[i] + f[:, None] * (xy[j] - xy[i])
+    yb = yaw[i] + f * (yaw[j] - yaw[i])
+    extra = sm - (s[i] + f * den)  # beyond the track's ends: continue straight
+    base = base + extra[:, None] * np.stack([np.cos(yb + np.pi / 2), np.sin(yb + np.pi / 2)], -1)
+    pm = scene.model[scene.paws]  # (4, 3)
+    c, sn = np.cos(yb), np.sin(yb)
+    G = np.empty((len(ks), 4, 3))
+    G[..., 0] = c[:, None] * pm[:, 0] - sn[:, None] * pm[:, 1] + base[:, :1]
+    G[..., 1] = sn[:, None] * pm[:, 0] + c[:, None] * pm[:, 1] + base[:, 1:]
+    G[..., 2] = pm[:, 2] + scene.ground
+    kk = k - kmin  # index of the current half cycle in G
+    frac = s / L - k
+    parity = np.array([0, 0, 1, 1])
+    stance = (k[:, None] + parity[None]) % 2 == 0  # (T, 4)
+    paw = np.arange(4)[None]
+    stance_pos = G[kk[:, None], paw]
+    prev = G[np.maximum(kk - 1, 0)[:, None], paw]
+    nxt = G[np.minimum(kk + 1, len(ks) - 1)[:, None], paw]
+    swing_pos = prev + frac[:, None, None] * (nxt - prev)
+    swing_pos[..., 2] += cfg.gait.swing_height * np.sin(np.pi * frac)[:, None]
+    return np.where(stance[..., None], stance_pos, swing_pos), stance
+
+
+def _masks(cfg: SimConfig, T: int, K: int, rng: np.random.Generator) -> np.ndarray:
+    m = cfg.missing
+    missing = rng.random((T, K)) < m.dropout
+    n_ep = rng.poisson(m.occlusion_rate * T / cfg.fps, K)
+    if n_ep.sum():
+        part = np.repeat(np.arange(K), n_ep)
+        start = rng.integers(0, T, part.size)
+        length = np.maximum(1, np.round(rng.uniform(*m.occlusion_duration, part.size) * cfg.fps))
+        stop = np.minimum(start + length.astype(np.int64), T)
+        delta = np.zeros((K, T + 1), dtype=np.int64)
+        np.add.at(delta, (part, start), 1)
+        np.add.at(delta, (part, stop), -1)
+        missing |= (np.cumsum(delta[:, :T], axis=1) > 0).T
+    return ~missing
+
+
+def simulate(
+    cfg: Any = None,
+    num_frames: int | None = None,
+    seed: int | None = None,
+    body: BodyModel | None = None,
+) -> SimData:
+    """Simulate a deformable mouse in the lock-box arena.
+
+    cfg: a `SimConfig`, a sim config node/mapping (``conf/sim/*.yaml``), a whole app config with
+    keys ``sim`` (and optionally ``num_frames``, ``seed``, ``body``), or None for the defaults.
+    num_frames, seed: override the config's. body: the rigid body model (default: the app
+    config's ``body``, else `default_mouse()`); it must have the mouse's 8 parts (aliases ok).
+    Deterministic for a seed.
+    """
+    t_start = _time.perf_counter()
+    cfg, body = _resolve(cfg, num_frames, seed, body)
+    scene = build_scene(cfg, body)
+    T, fps, K = cfg.num_frames, cfg.fps, body.num_parts
+    ss = np.random.SeedSequence(cfg.seed)
+    rng_plan, rng_head, rng_jit, rng_mask, rng_gait = (
+        np.random.default_rng(s) for s in ss.spawn(5)
+    )
+
+    plan = make_plan(cfg, scene, T, rng_plan)
+    xy, heading, labels = plan.xy, plan.heading, plan.labels
+    ep, u, env = _envelopes(plan, T, fps, cfg.reach.ramp)
+    lab_ep = plan.ep_label[ep]
+    env = np.where(np.isin(lab_ep, [WALK, SCAN]), 0.0, env)
+    pitch = plan.ep_pitch[ep] * env
+
+    # --- rigid pose: yaw about the origin, pitch about the hind paws' midpoint -----------------
+    yaw = heading - np.pi / 2  # model +Y (forward) along the heading
+    R = _rot_body(yaw, pitch)
+    Rz = _rot_body(yaw, np.zeros_like(yaw))
+    P = scene.pitch_pivot
+    ct, st = np.cos(pitch), np.sin(pitch)
+    RxP = np.stack([np.full(T, P[0]), ct * P[1] - st * P[2], st * P[1] + ct * P[2]], -1)
+    tau = np.einsum("tij,tj->ti", Rz, P - RxP)
+    tau[:, :2] += xy
+    tau[:, 2] += scene.ground
+    rvec = Rotation.from_matrix(R).as_rotvec()
+    poses = np.concatenate([rvec, tau], -1)
+    model = scene.model
+    rigid = np.einsum("tij,kj->tki", R, model) + tau[:, None]
+    deformed = rigid.copy()
+
+    # --- paws: pace gait (ground contact), expressed as offsets from the unpitched rigid paws ---
+    d = np.hypot(*np.diff(xy, axis=0).T)
+    s = rng_gait.uniform(0.0, 2.0 * cfg.gait.stride) + np.concatenate([[0.0], np.cumsum(d)])
+    gait, _ = _gait(scene, cfg, xy, yaw, s)
+    flat = np.einsum("tij,kj->tki", Rz, model[scene.paws])
+    flat[..., :2] += xy[:, None]
+    flat[..., 2] += scene.ground
+    deformed[:, scene.paws] += gait - flat
+
+    # --- head triangle: rotation about the ear midpoint, linear back and forth -----------------
+    t = np.arange(T) / fps
+    walk_w = (labels == WALK).astype(np.float64)
+    scan_w = (labels == SCAN).astype(np.float64)
+    if cfg.head.blend > 0:
+        walk_w = gaussian_filter1d(walk_w, cfg.head.blend * fps, mode="nearest")
+        scan_w = gaussian_filter1d(scan_w, cfg.head.blend * fps, mode="nearest")
+    angles = np.zeros((T, 3))  # yaw, pitch, roll in deg
+    for grp, wgt in ((cfg.head, walk_w), (cfg.scan, scan_w)):
+        phase = rng_head.random(3)
+        for a, key in enumerate(("yaw", "pitch", "roll")):
+            lo, hi = getattr(grp, key)
+            angles[:, a] += wgt * (lo + (hi - lo) * _tri(t / grp.period[a] + phase[a]))
+    # yaw about model Z, pitch about model X, roll about model Y: R_h = Rz(yaw) Rx(pitch) Ry(roll)
+    Rh = Rotation.from_euler("ZXY", angles, degrees=True).as_matrix()
+    hp = scene.head_pivot
+    head_m = np.einsum("tij,kj->tki", Rh, model[scene.head] - hp) + hp
+    deformed[:, scene.head] = np.einsum("tij,tkj->tki", R, head_m) + tau[:, None]
+
+    # --- rear: front paws tucked to the chest (the body pitch is in the pose) ------------------
+    rear = np.where(labels == REAR, env, 0.0)
+    tuck = np.einsum("tij,j->ti", R, np.asarray(cfg.rear.tuck))
+    deformed[:, scene.front] += (rear[:, None] * tuck)[:, None]
+
+    # --- groom: front paws at the snout, stroking ----------------------------------------------
+    g = np.where(labels == GROOM, env, 0.0)
+    if np.any(g > 0):
+        off = np.asarray(cfg.groom.paw_offset, dtype=np.float64)
+        stroke = cfg.groom.stroke_amplitude * np.sin(
+            2 * np.pi * cfg.groom.stroke_frequency * u / fps
+        )
+        nose = deformed[:, scene.head[0]]
+        for paw, sign in zip(scene.front, (-1.0, 1.0)):  # left paw mirrored to -X
+            o = np.broadcast_to(off * np.array([sign, 1.0, 1.0]), (T, 3)).copy()
+            o[:, 2] += stroke
+            target = nose + np.einsum("tij,tj->ti", R, o)
+            deformed[:, paw] = (1 - g)[:, None] * deformed[:, paw] + g[:, None] * target
+
+    # --- reach: effector brought to the mechanism (a nose reach moves the whole head) ----------
+    mech = labels - FIRST_MECH
+    reach = np.where(mech >= 0, env, 0.0)
+    if np.any(reach > 0):
+        jit = cfg.reach.jitter * np.stack([ou_noise(rng_jit, T, 0.2 * fps) for _ in range(3)], -1)
+        mi = np.clip(mech, 0, 3)
+        target = scene.mech_pos[mi] + jit
+        eff = scene.mech_part[mi]
+        rows = np.flatnonzero(reach > 0)
+        before = deformed[rows, eff[rows]]
+        after = (1 - reach[rows, None]) * before + reach[rows, None] * target[rows]
+        delta = after - before
+        deformed[rows, eff[rows]] = after
+        head_eff = np.isin(eff[rows], scene.head)
+        for h in scene.head:  # keep the head triangle rigid: the other head points move along
+            sel = head_eff & (eff[rows] != h)
+            deformed[rows[sel], h] += delta[sel]
+
+    if scene.tail >= 0:
+        np.maximum(deformed[:, scene.tail, 2], TAIL_FLOOR, out=deformed[:, scene.tail, 2])
+
+    observed = _masks(cfg, T, K, rng_mask)
+    data = SimData(
+        time=t,
+        poses=poses,
+        rigid=rigid,
+        deformed=deformed,
+        labels=labels,
+        behaviors=BEHAVIORS,
+        observed=observed,
+        parts=body.parts,
+        model=model,
+        fps=fps,
+        seed=cfg.seed,
+        lockbox_corners=scene.corners,
+        mechanisms=(MECHANISMS, scene.mech_pos),
+        arena_size=scene.arena,
+    )
+    log.info("simulated %d frames (%.1f s) in %.2f s", T, T / fps, _time.perf_counter() - t_start)
+    return data
