@@ -1,0 +1,181 @@
+"""`adjust-triangulate`: triangulate a calibration plus a folder of DeepLabCut files.
+
+    adjust-triangulate input.calibration=calibration.toml input.detections=trial_000 \
+        output.dir=out [body=mouse] [input.likelihood_threshold=0.6] [triangulate.robust=true]
+
+Writes ``points3d.csv`` (anipose's 3D CSV layout, `adjust.io.points3d`) and ``summary.json``
+(completeness, reprojection error statistics, counts) into the output folder. Without ``body=``
+the files' own part names are used; ``body=mouse`` maps them through the model's aliases.
+
+`run(cfg) -> dict` is the plain function behind the Hydra app (tests call it through Hydra's
+compose API); it returns the summary.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from adjust.camera import CameraTensors
+from adjust.io import load_scene, write_points3d
+from deformnet.atomic import write_text
+from deformnet.body import BodyModel
+from deformnet.paths import CONF_DIR, output_dir
+
+log = logging.getLogger(__name__)
+
+WEIGHTS = ("likelihood", "uniform")
+
+
+def _required(cfg: DictConfig, key: str) -> str:
+    value = OmegaConf.select(cfg, key, throw_on_missing=False)
+    if value is None or OmegaConf.is_missing(cfg, key) or str(value) == "":
+        raise ValueError(f"set {key}=... (see conf/triangulate.yaml)")
+    return str(value)
+
+
+def _stats(values: np.ndarray) -> dict:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
+    return {
+        "count": int(v.size),
+        "median": float(np.median(v)),
+        "mean": float(v.mean()),
+        "p90": float(np.percentile(v, 90)),
+        "max": float(v.max()),
+    }
+
+
+def _finite_or_none(x):
+    """JSON has no NaN: replace non-finite floats (recursively) by None."""
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def run(cfg: DictConfig) -> dict:
+    """Load, triangulate, write points3d.csv and summary.json; returns the summary."""
+    from adjust.triangulate import triangulate
+
+    calibration = _required(cfg, "input.calibration")
+    detections = _required(cfg, "input.detections")
+    inp = cfg.input
+    tri = cfg.triangulate
+    weight_mode = str(tri.get("weight", "likelihood"))
+    if weight_mode not in WEIGHTS:
+        raise ValueError(f"triangulate.weight must be one of {WEIGHTS}, got {weight_mode!r}")
+    body_cfg = cfg.get("body")
+    body = BodyModel.from_config(body_cfg) if body_cfg else None
+    cameras, det = load_scene(
+        calibration,
+        detections,
+        body,
+        likelihood_threshold=float(inp.get("likelihood_threshold", 0.5)),
+        individual=inp.get("individual"),
+        pattern=inp.get("pattern"),
+        ignore_unknown_parts=bool(inp.get("ignore_unknown_parts", False)),
+        allow_missing_parts=bool(inp.get("allow_missing_parts", False)),
+    )
+    weight = det.weight() if weight_mode == "likelihood" else det.observed.astype(np.float64)
+    cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
+    with torch.no_grad():
+        res = triangulate(
+            torch.as_tensor(det.xy),
+            torch.as_tensor(weight),
+            cams,
+            robust=bool(tri.get("robust", False)),
+            max_error_px=float(tri.get("max_error_px", 20.0)),
+            min_views=int(tri.get("min_views", 2)),
+        )
+    points = res.points.numpy()
+    error = res.error.numpy()
+    ncams = res.ncams.numpy()
+    used = res.used.numpy()
+    done = np.isfinite(points).all(-1)
+    score = np.where(used, det.likelihood, np.inf).min(-1)
+    score = np.where(done & np.isfinite(score), score, np.nan)
+
+    out = output_dir(cfg)
+    points_path = write_points3d(out / "points3d.csv", det.parts, points, error, ncams, score)
+    T, K, C = det.num_frames, det.num_parts, det.num_cameras
+    observed = det.observed
+    nviews = observed.sum(-1)
+    summary = {
+        "inputs": {
+            "calibration": str(Path(calibration).resolve()),
+            "detections": str(Path(detections).resolve()),
+            "files": {c: str(f) for c, f in zip(det.cameras, det.files)},
+        },
+        "body": body.name if body is not None else "files",
+        "cameras": list(det.cameras),
+        "parts": list(det.parts),
+        "num_frames": T,
+        "likelihood_threshold": det.threshold,
+        "individual": inp.get("individual"),
+        "triangulate": {
+            "robust": bool(tri.get("robust", False)),
+            "max_error_px": float(tri.get("max_error_px", 20.0)),
+            "min_views": int(tri.get("min_views", 2)),
+            "weight": weight_mode,
+        },
+        # fraction of keypoint-frames with a 3D point
+        "completeness": float(done.mean()) if done.size else 0.0,
+        "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},
+        # mean reprojection error (px) over each point's used views, over all 3D points
+        "reprojection_error_px": _stats(error[done]),
+        "reprojection_error_px_per_part": {
+            p: _stats(error[:, k][done[:, k]])["median"] for k, p in enumerate(det.parts)
+        },
+        "counts": {
+            "keypoint_frames": int(T * K),
+            "triangulated": int(done.sum()),
+            "detections": int(observed.sum()),
+            "detections_per_camera": {
+                c: int(observed[..., i].sum()) for i, c in enumerate(det.cameras)
+            },
+            "views_used": int(used.sum()),
+            "views_dropped": int((observed & done[..., None]).sum() - used.sum()),
+            "observed_views_histogram": np.bincount(nviews.reshape(-1), minlength=C + 1).tolist(),
+            "used_views_histogram": np.bincount(ncams.reshape(-1), minlength=C + 1).tolist(),
+        },
+        "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
+    }
+    summary = _finite_or_none(summary)
+    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    err = summary["reprojection_error_px"]
+    log.info(
+        "triangulated %d of %d keypoint-frames (%.1f%%); reprojection error median %s px, "
+        "p90 %s px; wrote %s",
+        summary["counts"]["triangulated"],
+        T * K,
+        100 * summary["completeness"],
+        f"{err['median']:.2f}" if err["median"] is not None else "n/a",
+        f"{err['p90']:.2f}" if err["p90"] is not None else "n/a",
+        out,
+    )
+    return summary
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="triangulate", version_base=None)
+def main(cfg: DictConfig) -> None:
+    try:
+        run(cfg)
+    except ValueError as exc:  # bad input or config: the message says what and where
+        log.error("%s", exc)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
