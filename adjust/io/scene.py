@@ -225,6 +225,8 @@ def load_detections(
             + ", ".join(f"{f}: {n}" for f, n in counts.items())
         )
     T = tables[0].num_frames
+    if T == 0:
+        raise InputError(f"{Path(folder)}: the files have no frames (header rows only)")
     frames = tables[0].frames
     for t in tables[1:]:
         if (
