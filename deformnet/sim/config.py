@@ -1,4 +1,4 @@
-"""Simulator configuration: `SimConfig`, a frozen dataclass tree mirroring ``conf/sim/default.yaml``.
+"""Simulator configuration: `SimConfig`, a frozen dataclass tree like ``conf/sim/default.yaml``.
 
 Units: lengths mm, times s, angles deg. `SimConfig()` equals the YAML defaults;
 `SimConfig.from_config(node)` builds one from a Hydra/OmegaConf node or a plain mapping (missing
@@ -290,7 +290,7 @@ def _interval(v: tuple, key: str, lo: float = -math.inf, hi: float = math.inf) -
 def validate(c: SimConfig) -> None:
     """Raise ValueError naming the offending key if a setting is out of range."""
     _check(c.fps > 0, "fps", "must be > 0", c.fps)
-    _check(c.num_frames >= 2, "num_frames", "must be >= 2", c.num_frames)
+    _check(c.num_frames >= 1, "num_frames", "must be >= 1", c.num_frames)
     _check(c.seed >= 0, "seed", "must be >= 0", c.seed)
     a = c.arena
     _check(min(a.size) > 0, "arena.size", "must be > 0", a.size)
