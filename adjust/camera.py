@@ -279,38 +279,31 @@ def normalized_to_pixels(xy: Tensor, K: Tensor) -> Tensor:
     return torch.stack((u, v), -1)
 
 
-def _distortion_and_jacobian(xy: Tensor, dist: Tensor) -> tuple[Tensor, Tensor]:
-    """distort_normalized(xy, dist) (..., 2) and its Jacobian d xd / d xy (..., 2, 2)."""
-    x, y = xy.unbind(-1)
-    k1, k2, p1, p2, k3 = dist.unbind(-1)
+def _newton_step(
+    x: Tensor, y: Tensor, xd: Tensor, yd: Tensor, k: tuple[Tensor, ...]
+) -> tuple[Tensor, Tensor]:
+    """One Newton step for distort(x, y) = (xd, yd), on planar components (no stacking)."""
+    k1, k2, p1, p2, k3 = k
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     dradial = k1 + r2 * (2 * k2 + 3 * r2 * k3)  # d radial / d r2
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    cross = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-    j00 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-    j11 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-    J = torch.stack((torch.stack((j00, cross), -1), torch.stack((cross, j11), -1)), -2)
-    return torch.stack((xd, yd), -1), J
-
-
-def _newton_step(x: Tensor, xd: Tensor, dist: Tensor) -> Tensor:
-    f, J = _distortion_and_jacobian(x, dist)
-    r = f - xd
-    a, b, c, d = J[..., 0, 0], J[..., 0, 1], J[..., 1, 0], J[..., 1, 1]
-    det = a * d - b * c
+    xy2 = 2 * x * y
+    fx = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) - xd
+    fy = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 - yd
+    cross = xy2 * dradial + 2 * (p1 * x + p2 * y)  # Jacobian [[a, cross], [cross, d]]
+    a = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+    d = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+    det = a * d - cross * cross
     det = torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
-    dx = (d * r[..., 0] - b * r[..., 1]) / det
-    dy = (a * r[..., 1] - c * r[..., 0]) / det
-    return x - torch.stack((dx, dy), -1)
+    return x - (d * fx - cross * fy) / det, y - (a * fy - cross * fx) / det
 
 
 def undistort_normalized(xyd: Tensor, dist: Tensor, iters: int = 10) -> Tensor:
     """Invert OpenCV distortion: distorted normalized points -> ideal normalized points.
 
-    xyd: (..., 2); dist: (..., 5) (broadcast) -> (..., 2). Newton's method from xd (``iters``
-    steps, no graph), then one more step with the graph, so gradients w.r.t. xyd and dist are
+    xyd: (..., 2); dist: (..., 5) (broadcast) -> (..., 2). Newton's method from xd (at most
+    ``iters`` steps, stopping once converged to machine precision; no graph), then one more
+    step with the graph, so gradients w.r.t. xyd and dist are
     the exact implicit-function derivatives at the solution. Valid where the distortion is
     invertible (inside the lens's calibrated field); NaN inputs give NaN outputs.
     """
@@ -321,12 +314,20 @@ def undistort_normalized(xyd: Tensor, dist: Tensor, iters: int = 10) -> Tensor:
         )
     if iters < 0:
         raise ValueError(f"iters must be >= 0, got {iters}")
+    xd, yd = xyd.unbind(-1)
+    k = dist.unbind(-1)
     with torch.no_grad():
-        x = xyd.detach().clone()
-        dd = dist.detach()
+        x, y = xd.detach(), yd.detach()
+        kd = tuple(c.detach() for c in k)
+        tol = 4 * torch.finfo(x.dtype).eps
         for _ in range(iters):
-            x = _newton_step(x, xyd.detach(), dd)
-    return _newton_step(x, xyd, dist)
+            x_new, y_new = _newton_step(x, y, xd.detach(), yd.detach(), kd)
+            step = torch.maximum((x_new - x).abs(), (y_new - y).abs()).nan_to_num(0.0, 0.0, 0.0)
+            x, y = x_new, y_new
+            size = 1 + torch.maximum(x.abs(), y.abs()).nan_to_num(0.0, 0.0, 0.0)
+            if x.numel() == 0 or bool((step <= tol * size).all()):
+                break
+    return torch.stack(_newton_step(x, y, xd, yd, k), -1)
 
 
 def undistort_points(
