@@ -1,0 +1,444 @@
+"""`adjust-track`: complete 3D tracks from a calibration and a folder of DeepLabCut files.
+
+    adjust-track input.calibration=calibration.toml input.detections=trial_000 output.dir=out \
+        [body=mouse|auto] [deformation=runs/train/.../checkpoints/best.ckpt] \
+        [solver.constraint=spline|grid] [input.likelihood_threshold=0.6]
+
+Pipeline: load the anipose calibration and one DeepLabCut file per camera (`adjust.io`), get
+the rigid body model (a config from ``conf/body/``, or with ``body=auto`` estimated from the
+data: robust triangulation, then `BodyModel.from_observations`), then the pose-track
+adjustment (`adjust.lsq.adjust_poses`: initialisation, banded Levenberg-Marquardt with the
+motion-track constraint; rigid observation, or the learned deformation with ``deformation=``),
+then each part's position fused from its own detections and the (deformed) model.
+
+Writes into ``output.dir``:
+
+- ``points3d.csv``: anipose's layout. Per part ``{part}_x,_y,_z`` (mm; never empty: a part no
+  camera saw comes from the model moved along the track), ``{part}_error`` (mean reprojection
+  error, px, of the reported point over the cameras with an accepted detection of it; NaN when
+  none), ``{part}_ncams`` (cameras with an accepted detection, likelihood >= threshold; 0
+  allowed), ``{part}_score`` (lowest likelihood among those detections; NaN when ``_ncams`` is
+  0); then ``pose_rx, pose_ry, pose_rz`` (Rodrigues vector, rad) and ``pose_tx, pose_ty,
+  pose_tz`` (mm) of the body model (model -> global), ``pose_sigma_r`` (rad) and
+  ``pose_sigma_t`` (mm) (root of the trace of the rotation / translation block of the pose
+  covariance), ``{part}_sigma`` (mm, root of the trace of the part's 3x3 covariance: its 3D
+  standard error), and ``fnum``.
+- ``summary.json``: settings, iterations, costs, convergence, reprojection error statistics
+  (all, per camera, per part), completeness, uncertainty, timings.
+
+`run(cfg) -> dict` is the plain function behind the Hydra app (tests call it through Hydra's
+compose API); it returns the summary.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+import warnings
+from dataclasses import asdict
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from adjust.camera import CameraTensors, project_cameras
+from adjust.io import Detections, InputError, load_scene, write_points3d
+from deformnet.atomic import write_text
+from deformnet.body import BodyModel
+from deformnet.paths import CONF_DIR, output_dir
+
+log = logging.getLogger(__name__)
+
+POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+def _required(cfg: DictConfig, key: str) -> str:
+    value = OmegaConf.select(cfg, key, throw_on_missing=False)
+    if value is None or OmegaConf.is_missing(cfg, key) or str(value) == "":
+        raise ValueError(f"set {key}=... (see conf/track.yaml)")
+    return str(value)
+
+
+def _stats(values: np.ndarray) -> dict:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
+    return {
+        "count": int(v.size),
+        "median": float(np.median(v)),
+        "mean": float(v.mean()),
+        "p90": float(np.percentile(v, 90)),
+        "max": float(v.max()),
+    }
+
+
+def _finite_or_none(x):
+    """JSON has no NaN: replace non-finite floats (recursively) by None."""
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _plain(node):
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+
+
+def _load_kwargs(inp: DictConfig) -> dict:
+    return {
+        "likelihood_threshold": float(inp.get("likelihood_threshold", 0.5)),
+        "individual": inp.get("individual"),
+        "pattern": inp.get("pattern"),
+        "ignore_unknown_parts": bool(inp.get("ignore_unknown_parts", False)),
+        "allow_missing_parts": bool(inp.get("allow_missing_parts", False)),
+    }
+
+
+def _triangulate(det: Detections, cams: CameraTensors, robust: bool, max_error_px: float):
+    from adjust.triangulate import triangulate
+
+    with torch.no_grad():
+        return triangulate(
+            torch.as_tensor(det.xy),
+            torch.as_tensor(det.weight()),
+            cams,
+            robust=robust,
+            max_error_px=max_error_px,
+        )
+
+
+def reprojection_errors(points: np.ndarray, det: Detections, cams: CameraTensors) -> np.ndarray:
+    """(T, K, C) pixel distance between each accepted detection and the projection of the
+    reported point (T, K, 3); NaN where the camera has no accepted detection."""
+    with torch.no_grad():
+        uv = project_cameras(torch.as_tensor(points, dtype=torch.float64), cams).numpy()
+    err = np.linalg.norm(uv - det.xy, axis=-1)
+    return np.where(det.observed, err, np.nan)
+
+
+# --------------------------------------------------------------------------------------------
+# body model
+# --------------------------------------------------------------------------------------------
+def _is_auto(body_cfg) -> bool:
+    return body_cfg is not None and bool(body_cfg.get("auto", False))
+
+
+def estimate_body(
+    det: Detections, cams: CameraTensors, body_cfg, name: str = "auto"
+) -> tuple[BodyModel, dict]:
+    """``body=auto``: robust triangulation, then a rigid model by generalized Procrustes
+    (`BodyModel.from_observations`). Returns the model and facts about the estimate, among them
+    ``rms_deviation_mm`` (per-coordinate rms distance of the triangulated parts from the model
+    fitted per frame: how far the data is from rigid)."""
+    from adjust.lsq.geometry import rigid_points
+    from adjust.lsq.init import kabsch_poses
+
+    tri = _triangulate(
+        det, cams, bool(body_cfg.get("robust", True)), float(body_cfg.get("max_error_px", 20.0))
+    )
+    X = tri.points.numpy()
+    min_parts = body_cfg.get("min_parts")
+    try:
+        body = BodyModel.from_observations(
+            X, parts=det.parts, min_parts=None if min_parts is None else int(min_parts), name=name
+        )
+    except ValueError as exc:
+        raise InputError(f"body=auto: {exc}") from None
+    # the data's spread around the model (trimmed: the worst 5% are mostly mis-detections)
+    seen = np.isfinite(X).all(-1)
+    Xt = torch.as_tensor(np.nan_to_num(X))
+    B = torch.tensor(body.points)
+    poses, ok = kabsch_poses(B, Xt, torch.as_tensor(seen), min_parts=max(3, body.num_parts // 2))
+    Xm, _ = rigid_points(poses, B)
+    d = np.linalg.norm(Xm.numpy() - X, axis=-1)[ok.numpy()[:, None] & seen]
+    d = np.sort(d[np.isfinite(d)])
+    d = d[: max(1, int(math.ceil(0.95 * d.size)))] if d.size else d
+    rms = float(np.sqrt(np.mean(d**2) / 3.0)) if d.size else float("nan")
+    facts = {
+        "frames_used": int((seen.sum(1) >= max(3, math.ceil(0.75 * body.num_parts))).sum()),
+        "triangulated_fraction": float(seen.mean()) if seen.size else 0.0,
+        "rms_deviation_mm": rms,
+        "points": {p: [float(c) for c in xyz] for p, xyz in zip(body.parts, body.points)},
+    }
+    log.info(
+        "body=auto: rigid model of %d parts from %d frames; the data deviate %.2f mm rms per "
+        "coordinate from it",
+        body.num_parts,
+        facts["frames_used"],
+        rms,
+    )
+    return body, facts
+
+
+# --------------------------------------------------------------------------------------------
+# deformation
+# --------------------------------------------------------------------------------------------
+def load_deformation(path: str):
+    """`DeformationModel.from_checkpoint`, with a clear error for a missing/unreadable file."""
+    from deformnet.deformation import DeformationModel
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"deformation checkpoint not found: {p}")
+    try:
+        return DeformationModel.from_checkpoint(p)
+    except InputError:
+        raise
+    except (ValueError, KeyError, RuntimeError, OSError, EOFError) as exc:
+        raise InputError(f"{p}: cannot load a deformation model: {exc}") from None
+
+
+def make_deformable_observation(model, body_points: np.ndarray, det: Detections, cams, cfg_def):
+    """The solver's deformable observation for this data.
+
+    The net's ``deformed`` inputs for observed tokens are the data: parts triangulated
+    (robustly) from >= ``min_views`` cameras; the others are marked unobserved.
+    """
+    from adjust.lsq.observation import DeformableObservation
+
+    tri = _triangulate(
+        det, cams, True, float(cfg_def.get("max_error_px", 20.0)) if cfg_def else 20.0
+    )
+    X = tri.points.numpy()
+    observed = np.isfinite(X).all(-1)
+    net = model.double().eval()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    obs = DeformableObservation(
+        net,
+        torch.as_tensor(body_points, dtype=torch.float64),
+        int(model.window),
+        observed=torch.as_tensor(observed),
+        batch_size=int(cfg_def.get("batch_size", 4096)) if cfg_def else 4096,
+    )
+    data = torch.as_tensor(np.nan_to_num(X), dtype=torch.float64)
+    if hasattr(obs, "set_data"):  # solver-side support for measured deformed inputs
+        obs.set_data(data, torch.as_tensor(observed))
+    return obs, {"observed_fraction": float(observed.mean()) if observed.size else 0.0}
+
+
+# --------------------------------------------------------------------------------------------
+# the app
+# --------------------------------------------------------------------------------------------
+def run(cfg: DictConfig) -> dict:
+    """Load, adjust, write points3d.csv and summary.json; returns the summary."""
+    from adjust.lsq.config import SolverConfig
+    from adjust.lsq.solver import adjust_poses
+
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    calibration = _required(cfg, "input.calibration")
+    detections = _required(cfg, "input.detections")
+    if not Path(calibration).is_file():
+        raise InputError(f"calibration file not found: {calibration}")
+    kwargs = _load_kwargs(cfg.input)
+    body_cfg = cfg.get("body")
+    deformation = cfg.get("deformation")
+    solver_cfg = SolverConfig.from_config(cfg.get("solver"))
+    if body_cfg is None:
+        raise ValueError(
+            "adjust-track needs a body model: body=mouse, body=auto (estimated from the data) or "
+            "your own conf/body/<name>.yaml"
+        )
+    auto = _is_auto(body_cfg)
+    model = None
+    body_facts: dict = {}
+
+    # --- inputs and body model ----------------------------------------------------------
+    t0 = time.perf_counter()
+    if deformation:
+        model = load_deformation(str(deformation))
+        if auto:
+            raise ValueError(
+                "deformation= needs the body model the net was trained with; drop body=auto "
+                f"(the checkpoint's model: '{model.body.name}', parts {list(model.body.parts)})"
+            )
+        given = BodyModel.from_config(body_cfg)
+        body = model.body
+        if given.parts != body.parts or not np.allclose(given.points, body.points):
+            log.warning(
+                "deformation: using the checkpoint's body model '%s' (the net was trained with "
+                "it), not body=%s",
+                body.name,
+                given.name,
+            )
+        # the checkpoint's model may lack the config's aliases: merge them
+        aliases = {k: v for k, v in given.aliases.items() if v in body.parts}
+        body = BodyModel(body.parts, body.points, {**aliases, **body.aliases}, body.name)
+        cameras, det = load_scene(calibration, detections, body, **kwargs)
+    elif auto:
+        cameras, det = load_scene(calibration, detections, None, **kwargs)
+    else:
+        body = BodyModel.from_config(body_cfg)
+        cameras, det = load_scene(calibration, detections, body, **kwargs)
+    cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
+    timings["load_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if auto:
+        body, body_facts = estimate_body(det, cams, body_cfg, str(body_cfg.get("name", "auto")))
+        sig = body_cfg.get("sigma_def_mm")
+        if sig == "auto" and math.isfinite(body_facts["rms_deviation_mm"]):
+            value = max(float(body_facts["rms_deviation_mm"]), 0.5)
+            solver_cfg = solver_cfg.replace(sigma_def_mm=value)
+            log.info("body=auto: solver.sigma_def_mm = %.2f mm (the data's rms deviation)", value)
+        elif sig not in (None, "auto"):
+            solver_cfg = solver_cfg.replace(sigma_def_mm=float(sig))
+    if tuple(body.parts) != tuple(det.parts):  # load_scene orders parts as the model does
+        raise InputError(f"parts {list(det.parts)} do not match the body model {list(body.parts)}")
+    timings["body_s"] = time.perf_counter() - t0
+
+    # --- adjustment ---------------------------------------------------------------------
+    t0 = time.perf_counter()
+    observation = None
+    def_facts: dict | None = None
+    if model is not None:
+        observation, def_facts = make_deformable_observation(
+            model, body.points, det, cams, cfg.get("deform")
+        )
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    res = adjust_poses(
+        det.xy,
+        det.weight(),
+        cams,
+        body.points,
+        solver_cfg,
+        observation=observation,
+        progress=bool(cfg.get("progress", True)),
+    )
+    timings["adjust_s"] = time.perf_counter() - t0
+
+    # --- outputs ------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    T, K, C = det.num_frames, det.num_parts, det.num_cameras
+    points = res.points
+    observed = det.observed
+    ncams = observed.sum(-1)
+    view_err = reprojection_errors(points, det, cams)
+    with warnings.catch_warnings():  # all-NaN rows (no detection) are expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        error = np.nanmean(view_err, axis=-1) if C else np.full((T, K), np.nan)
+    score = np.where(observed, det.likelihood, np.inf).min(-1)
+    score = np.where((ncams > 0) & np.isfinite(score), score, np.nan)
+    sigma = np.sqrt(np.clip(np.trace(res.point_cov, axis1=-2, axis2=-1), 0, None))
+    pc = res.pose_cov
+    extra: dict[str, np.ndarray] = {n: res.poses[:, i] for i, n in enumerate(POSE_COLUMNS)}
+    extra["pose_sigma_r"] = np.sqrt(np.clip(np.trace(pc[:, :3, :3], axis1=-2, axis2=-1), 0, None))
+    extra["pose_sigma_t"] = np.sqrt(np.clip(np.trace(pc[:, 3:, 3:], axis1=-2, axis2=-1), 0, None))
+    extra["{part}_sigma"] = sigma
+    fnum = det.frames if det.frames is not None else None
+    out = output_dir(cfg)
+    points_path = write_points3d(
+        out / "points3d.csv", det.parts, points, error, ncams, score, extra=extra, fnum=fnum
+    )
+    done = np.isfinite(points).all(-1)
+    seen2 = ncams >= 2
+    costs = [c for chunk in res.cost_history for c in chunk[-1:]]
+    history = res.cost_history[0] if len(res.cost_history) == 1 else res.cost_history
+    summary = {
+        "inputs": {
+            "calibration": str(Path(calibration).resolve()),
+            "detections": str(Path(detections).resolve()),
+            "files": {c: str(f) for c, f in zip(det.cameras, det.files)},
+        },
+        "body": {
+            "name": body.name,
+            "source": "auto" if auto else ("checkpoint" if model is not None else "config"),
+            **body_facts,
+        },
+        "deformation": None
+        if model is None
+        else {
+            "checkpoint": str(Path(str(deformation)).resolve()),
+            "window": int(model.window),
+            **(def_facts or {}),
+        },
+        "cameras": list(det.cameras),
+        "parts": list(det.parts),
+        "num_frames": T,
+        "settings": {
+            "likelihood_threshold": det.threshold,
+            "individual": kwargs["individual"],
+            "solver": asdict(solver_cfg),
+        },
+        "iterations": int(res.iterations),
+        "converged": bool(res.converged),
+        "chunks": int(res.chunks),
+        "initial_cost": float(res.cost_history[0][0]) if res.cost_history else None,
+        "final_cost": float(sum(costs)) if costs else None,
+        "cost_history": history,
+        "mixture_share": float(res.mixture_share),
+        "initial_fit_frames": int(np.asarray(res.fitted).sum()),
+        "frames_without_detections": int((ncams.sum(-1) == 0).sum()),
+        # fraction of part-frames with a finite 3D point
+        "completeness": float(done.mean()) if done.size else 0.0,
+        "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},
+        # reprojection error (px) of the reported points: per point (mean over its accepted
+        # detections), per camera and per part (over single detections)
+        "reprojection_error_px": _stats(error),
+        "reprojection_error_px_per_camera": {
+            c: _stats(view_err[..., i]) for i, c in enumerate(det.cameras)
+        },
+        "reprojection_error_px_per_part": {
+            p: _stats(view_err[:, k]) for k, p in enumerate(det.parts)
+        },
+        "sigma_mm": {
+            "seen_ge2": _stats(sigma[seen2]),
+            "seen_1": _stats(sigma[ncams == 1]),
+            "unseen": _stats(sigma[ncams == 0]),
+        },
+        "counts": {
+            "part_frames": int(T * K),
+            "detections": int(observed.sum()),
+            "detections_per_camera": {
+                c: int(observed[..., i].sum()) for i, c in enumerate(det.cameras)
+            },
+            "downweighted_detections": int(((res.weights < 0.1) & observed).sum()),
+            "ncams_histogram": np.bincount(ncams.reshape(-1), minlength=C + 1).tolist(),
+        },
+        "time_s": {},
+        "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
+    }
+    timings["write_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
+    summary = _finite_or_none(summary)
+    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    err = summary["reprojection_error_px"]
+    log.info(
+        "tracked %d frames x %d parts (completeness %.1f%%) in %d iterations (%.1f s); "
+        "reprojection error median %s px, p90 %s px; wrote %s",
+        T,
+        K,
+        100 * summary["completeness"],
+        summary["iterations"],
+        timings["total_s"],
+        f"{err['median']:.2f}" if err["median"] is not None else "n/a",
+        f"{err['p90']:.2f}" if err["p90"] is not None else "n/a",
+        out,
+    )
+    return summary
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="track", version_base=None)
+def main(cfg: DictConfig) -> None:
+    try:
+        run(cfg)
+    except ValueError as exc:  # bad input or config: the message says what and where
+        log.error("%s", exc)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
