@@ -11,6 +11,7 @@ parts (3D point distance). Checkpoints carry a `deformation_model` entry that
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -29,7 +30,9 @@ class DeformLit(L.LightningModule):
     """net: canonical-coordinate predictor (see `deformnet.nets`); body: rigid body model;
     half_window: n; net_config: the net's `_target_` config (needed to rebuild it from a
     checkpoint); lr, weight_decay, warmup_steps: AdamW with linear warm-up then cosine decay
-    over the trainer's estimated steps; hparams: extra hyper-parameters to log (e.g. the
+    over the trainer's estimated steps, or over `time_budget_s` seconds of training when that comes
+    first (set it to the trainer's max_time, so a slow shared machine still finishes the schedule);
+    hparams: extra hyper-parameters to log (e.g. the
     flattened run config)."""
 
     def __init__(
@@ -41,6 +44,7 @@ class DeformLit(L.LightningModule):
         lr: float = 2e-3,
         weight_decay: float = 1e-4,
         warmup_steps: int = 100,
+        time_budget_s: float | None = None,
         hparams: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
@@ -49,6 +53,17 @@ class DeformLit(L.LightningModule):
         self.parts = tuple(body.parts)
         self.mid = int(half_window)
         self._val_sums: dict[str, Tensor] = {}
+        self._t_start: float | None = None
+
+    def on_train_start(self) -> None:
+        self._t_start = time.monotonic()
+
+    def _progress(self, step: int, warm: int, total: int) -> float:
+        p = (step - warm) / max(1, total - warm)
+        budget = self.hparams.get("time_budget_s")
+        if budget and self._t_start is not None:
+            p = max(p, (time.monotonic() - self._t_start) / float(budget))
+        return min(1.0, max(0.0, p))
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
         return self.model(rigid, deformed, observed)
@@ -130,7 +145,7 @@ class DeformLit(L.LightningModule):
         def factor(step: int) -> float:
             if step < warm:
                 return (step + 1) / warm
-            progress = min(1.0, (step - warm) / max(1, total - warm))
+            progress = self._progress(step, warm, total)
             return 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * progress))
 
         sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)

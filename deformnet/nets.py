@@ -19,7 +19,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from deformnet.tokens import NUM_FEATURES, token_features
+from deformnet.tokens import NUM_FEATURES, PRIOR_FEATURES, token_features
 
 __all__ = ["LSTMPredictor", "TransformerPredictor", "sinusoidal_encoding"]
 
@@ -54,19 +54,21 @@ class _Base(nn.Module):
                 f"observed must have shape {tuple(rigid.shape[:-1])}, got {tuple(observed.shape)}"
             )
 
-    def _features(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+    def _features(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
+        """Token features (B, W, K, F) and the flattened interpolation prior (B, K * P)."""
         self._check(rigid, deformed, observed)
-        feats, _ = token_features(
+        feats, prior, _ = token_features(
             rigid, deformed, observed, self.half_window, self.pos_scale, self.offset_scale
         )
-        return feats
+        return feats, prior.flatten(1)
 
     def _finish(self, offset: Tensor, rigid: Tensor) -> Tensor:
         return rigid[:, self.half_window] + offset * self.offset_scale
 
 
 class LSTMPredictor(_Base):
-    """Bidirectional LSTM over time; each frame's K tokens are embedded jointly.
+    """Bidirectional LSTM over time; each frame's K tokens are embedded jointly; the output at the
+    mid frame, with the interpolation prior of `token_features`, predicts the K offsets.
 
     num_parts K, half_window n (W = 2n + 1), hidden size per direction, layers, dropout.
     """
@@ -75,12 +77,12 @@ class LSTMPredictor(_Base):
         self,
         num_parts: int,
         half_window: int = 12,
-        hidden: int = 128,
+        hidden: int = 64,
         layers: int = 2,
-        embed: int = 128,
+        embed: int = 64,
         dropout: float = 0.0,
         pos_scale: float = 30.0,
-        offset_scale: float = 5.0,
+        offset_scale: float = 10.0,
     ) -> None:
         super().__init__(num_parts, half_window, pos_scale, offset_scale)
         K = self.num_parts
@@ -93,19 +95,21 @@ class LSTMPredictor(_Base):
             bidirectional=True,
             dropout=dropout if layers > 1 else 0.0,
         )
+        head_in = 2 * hidden + embed + K * PRIOR_FEATURES
         self.head = nn.Sequential(
-            nn.Linear(2 * hidden + embed, hidden), nn.GELU(), nn.Linear(hidden, K * 3)
+            nn.Linear(head_in, 2 * hidden), nn.GELU(), nn.Linear(2 * hidden, K * 3)
         )
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        feats = self._features(rigid, deformed, observed)  # (B, W, K, F)
+        feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K * P)
         B, W = feats.shape[:2]
         e = self.embed(feats.reshape(B, W, -1))
         h, _ = self.lstm(e)
         mid = self.half_window
-        out = self.head(torch.cat((h[:, mid], e[:, mid]), -1)).reshape(B, self.num_parts, 3)
+        out = self.head(torch.cat((h[:, mid], e[:, mid], prior), -1))
+        out = out.reshape(B, self.num_parts, 3)
         return self._finish(out, rigid)
 
 
@@ -134,14 +138,14 @@ class TransformerPredictor(_Base):
         self,
         num_parts: int,
         half_window: int = 12,
-        d_model: int = 128,
+        d_model: int = 64,
         heads: int = 4,
-        layers: int = 3,
-        ff: int = 256,
-        d_part: int = 32,
+        layers: int = 2,
+        ff: int = 128,
+        d_part: int = 16,
         dropout: float = 0.0,
         pos_scale: float = 30.0,
-        offset_scale: float = 5.0,
+        offset_scale: float = 10.0,
         use_pos_enc: bool = True,
     ) -> None:
         super().__init__(num_parts, half_window, pos_scale, offset_scale)
@@ -165,12 +169,16 @@ class TransformerPredictor(_Base):
         )
         self.encoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(d_model)
-        self.head = nn.Sequential(nn.Linear(d_model, d_model), nn.GELU(), nn.Linear(d_model, K * 3))
+        self.head = nn.Sequential(
+            nn.Linear(d_model + K * PRIOR_FEATURES, 2 * d_model),
+            nn.GELU(),
+            nn.Linear(2 * d_model, K * 3),
+        )
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        feats = self._features(rigid, deformed, observed)  # (B, W, K, F)
+        feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K * P)
         B, W, K, _ = feats.shape
         part = self.part_embedding.weight.to(feats.dtype).expand(B, W, K, -1)
         tok = self.token_embed(torch.cat((feats, part), -1))  # (B, W, K, d_part)
@@ -178,5 +186,6 @@ class TransformerPredictor(_Base):
         if self.use_pos_enc:
             x = x + self.pos_encoding.to(feats.dtype)[None]
         x = self.encoder(x)
-        out = self.head(self.norm(x[:, self.half_window])).reshape(B, K, 3)
+        out = self.head(torch.cat((self.norm(x[:, self.half_window]), prior), -1))
+        out = out.reshape(B, K, 3)
         return self._finish(out, rigid)

@@ -26,6 +26,7 @@ __all__ = [
     "uncanonicalize",
     "token_features",
     "NUM_FEATURES",
+    "PRIOR_FEATURES",
     "masked_mse",
     "linear_baseline",
 ]
@@ -83,16 +84,26 @@ def token_features(
     observed: Tensor,
     mid: int,
     pos_scale: float = 30.0,
-    offset_scale: float = 5.0,
-) -> tuple[Tensor, Tensor]:
-    """Per-token input features for the nets, from a canonical window.
+    offset_scale: float = 10.0,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-token and per-part input features for the nets, from a canonical window.
 
     rigid_c, deformed_c: (B, W, K, 3) canonical mm; observed: (B, W, K) bool.
     The mid frame's deformed input is always masked here (no leak, whatever the caller passes),
     and unobserved deformed values are zeroed so their content cannot matter.
-    Features (B, W, K, 7): rigid_c / pos_scale; the deformation offset X̃ - X̄ rotated into that
-    frame's own body frame (rotation by Kabsch of the frame's rigid points onto the mid frame's),
-    / offset_scale, zero where masked; the observed flag. Returns (features, observed_masked).
+
+    Token features (B, W, K, 7): rigid_c / pos_scale; the deformation offset X̃ - X̄ rotated into
+    that frame's own body frame (rotation by Kabsch of the frame's rigid points onto the mid
+    frame's), / offset_scale, zero where masked; the observed flag.
+
+    Part features (B, K, PRIOR_FEATURES), an interpolation prior for the mid frame built from the
+    nearest observed frames before and after it: the body-frame offset interpolated linearly (held
+    from the one side that has an observation, zero with none) and the canonical deformed position
+    interpolated linearly, minus the mid rigid point (the body-frame value where a side is
+    missing), both / offset_scale; the distances to those frames / (W // 2) (2 when missing); and
+    flags for each side.
+
+    Returns (token features, part features, observed with the mid frame masked).
     """
     W = rigid_c.shape[-3]
     keep = torch.ones(W, dtype=torch.bool, device=observed.device)
@@ -105,7 +116,56 @@ def token_features(
     feats = torch.cat(
         (rigid_c / pos_scale, off / offset_scale, obs[..., None].to(rigid_c.dtype)), -1
     )
-    return feats, obs
+    ib, ia, has_b, has_a = _nearest_observed(obs, mid)
+    w = _lerp_weight(ib, ia, mid, rigid_c.dtype)
+    ob, oa = _gather_frames(off, ib), _gather_frames(off, ia)
+    both = (has_b & has_a)[..., None]
+    local = torch.where(both, ob + w * (oa - ob), torch.where(has_b[..., None], ob, oa))
+    db, da = _gather_frames(deformed_c, ib), _gather_frames(deformed_c, ia)
+    glob = torch.where(both, db + w * (da - db) - rigid_c[..., mid, :, :], local)
+    half = max(1, W // 2)
+    dist_b = torch.where(has_b, (mid - ib).to(rigid_c.dtype) / half, torch.full_like(w[..., 0], 2))
+    dist_a = torch.where(has_a, (ia - mid).to(rigid_c.dtype) / half, torch.full_like(w[..., 0], 2))
+    prior = torch.cat(
+        (
+            local / offset_scale,
+            glob / offset_scale,
+            dist_b[..., None],
+            dist_a[..., None],
+            has_b[..., None].to(rigid_c.dtype),
+            has_a[..., None].to(rigid_c.dtype),
+        ),
+        -1,
+    )
+    return feats, prior, obs
+
+
+PRIOR_FEATURES = 10
+
+
+def _nearest_observed(obs: Tensor, mid: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Nearest observed frame before / after `mid` per part (obs (..., W, K), mid excluded):
+    indices clamped into the window (..., K) and whether they exist."""
+    W = obs.shape[-2]
+    idx = torch.arange(W, device=obs.device)
+    obs = obs & (idx != mid)[:, None]
+    before = torch.where(
+        obs & (idx < mid)[:, None], idx[:, None], torch.full_like(idx, -1)[:, None]
+    )
+    after = torch.where(obs & (idx > mid)[:, None], idx[:, None], torch.full_like(idx, W)[:, None])
+    ib = before.max(-2).values
+    ia = after.min(-2).values
+    return ib.clamp(0, W - 1), ia.clamp(0, W - 1), ib >= 0, ia < W
+
+
+def _lerp_weight(ib: Tensor, ia: Tensor, mid: int, dtype: torch.dtype) -> Tensor:
+    return ((mid - ib).to(dtype) / (ia - ib).clamp_min(1).to(dtype))[..., None]
+
+
+def _gather_frames(x: Tensor, i: Tensor) -> Tensor:
+    """x (..., W, K, 3), i (..., K) frame indices -> (..., K, 3)."""
+    index = i[..., None, :, None].expand(*i.shape[:-1], 1, i.shape[-1], x.shape[-1])
+    return x.gather(-3, index).squeeze(-3)
 
 
 def masked_mse(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
@@ -125,27 +185,7 @@ def linear_baseline(rigid: Tensor, deformed: Tensor, observed: Tensor, mid: int)
     used). Where a side has no observation, the rigid mid point is returned (the rigid baseline).
     rigid, deformed (..., W, K, 3), observed (..., W, K) bool -> (..., K, 3).
     """
-    W = observed.shape[-2]
-    idx = torch.arange(W, device=observed.device)
-    obs = observed.bool().clone()
-    obs[..., mid, :] = False
-    big = W + 1
-    before = torch.where(
-        obs & (idx < mid)[:, None], idx[:, None], torch.full_like(idx, -big)[:, None]
-    )
-    after = torch.where(
-        obs & (idx > mid)[:, None], idx[:, None], torch.full_like(idx, 2 * big)[:, None]
-    )
-    ib = before.max(-2).values  # (..., K)
-    ia = after.min(-2).values
-    ok = (ib >= 0) & (ia < W)
-    ibc, iac = ib.clamp(0, W - 1), ia.clamp(0, W - 1)
-
-    def gather(i: Tensor) -> Tensor:
-        index = i[..., None, :, None].expand(*i.shape[:-1], 1, i.shape[-1], 3)
-        return deformed.gather(-3, index).squeeze(-3)
-
-    xb, xa = gather(ibc), gather(iac)
-    w = ((mid - ibc).to(deformed.dtype) / (iac - ibc).clamp_min(1).to(deformed.dtype))[..., None]
-    lin = xb + w * (xa - xb)
-    return torch.where(ok[..., None], lin, rigid[..., mid, :, :])
+    ib, ia, has_b, has_a = _nearest_observed(observed.bool(), mid)
+    xb, xa = _gather_frames(deformed, ib), _gather_frames(deformed, ia)
+    lin = xb + _lerp_weight(ib, ia, mid, deformed.dtype) * (xa - xb)
+    return torch.where((has_b & has_a)[..., None], lin, rigid[..., mid, :, :])

@@ -43,6 +43,20 @@ def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _seconds(max_time: Any) -> float | None:
+    """Seconds of a Lightning max_time ("DD:HH:MM:SS" or a mapping of days/hours/...)."""
+    if not max_time:
+        return None
+    if isinstance(max_time, str):
+        d, h, m, s = (float(x) for x in max_time.split(":"))
+        return ((d * 24 + h) * 60 + m) * 60 + s
+    if OmegaConf.is_config(max_time) or isinstance(max_time, dict):
+        import datetime
+
+        return datetime.timedelta(**dict(_container(max_time))).total_seconds()
+    return None
+
+
 def net_config(cfg: DictConfig, num_parts: int) -> tuple[str, dict]:
     """(net name, `_target_` config with num_parts and half_window filled in)."""
     net = dict(_container(cfg.net))
@@ -69,6 +83,7 @@ def build_model(cfg: DictConfig):
         lr=float(cfg.optim.lr),
         weight_decay=float(cfg.optim.weight_decay),
         warmup_steps=int(cfg.optim.warmup_steps),
+        time_budget_s=_seconds(cfg.trainer.get("max_time")),
         hparams=hp,
     )
     return lit, body, name
