@@ -29,7 +29,7 @@ class WalkConfig:
     speed_sigma: float = 0.4
     speed_max: float = 200.0
     speed_tau: float = 0.7
-    curvature_std: float = 0.02
+    curvature_std: float = 0.012
     curvature_tau: float = 0.6
     stop_rate: float = 0.15
     stop_duration: tuple[float, float] = (0.3, 1.5)

@@ -51,7 +51,8 @@ VERSION = 1
 
 @dataclass(frozen=True, eq=False)
 class SimData:
-    """One simulated sequence. Arrays are read-only; see the module docstring for units."""
+    """One simulated sequence (see the module docstring for units). The fields cannot be
+    reassigned; the arrays are ordinary (writable) NumPy arrays, not copied on construction."""
 
     time: np.ndarray  # (T,) float64 s
     poses: np.ndarray  # (T, 6) float64: Rodrigues vector, translation (model -> global)
@@ -84,15 +85,13 @@ class SimData:
             arr = np.asarray(getattr(self, name))
             if arr.dtype != dtype:
                 arr = arr.astype(dtype)
-            arr.flags.writeable = False
             object.__setattr__(self, name, arr)
         object.__setattr__(self, "behaviors", tuple(str(b) for b in self.behaviors))
         object.__setattr__(self, "parts", tuple(str(p) for p in self.parts))
         object.__setattr__(self, "fps", float(self.fps))
         object.__setattr__(self, "seed", int(self.seed))
         names, pos = self.mechanisms
-        pos = np.asarray(pos, dtype=np.float64).copy()
-        pos.flags.writeable = False
+        pos = np.asarray(pos, dtype=np.float64)
         object.__setattr__(self, "mechanisms", (tuple(str(n) for n in names), pos))
         self._check()
 

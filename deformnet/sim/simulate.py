@@ -29,6 +29,7 @@ from deformnet.sim.trajectory import (
 log = logging.getLogger(__name__)
 
 TAIL_FLOOR = 1.0  # mm: the deformed tail root never goes below this height
+LIFT_SPEED = 20.0  # mm/s: below this gait speed the swing paws are lifted proportionally less
 
 
 def _resolve(cfg: Any, num_frames: int | None, seed: int | None, body: BodyModel | None):
@@ -89,39 +90,99 @@ def _rot_body(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
     return R
 
 
-def _gait(scene: Scene, cfg: SimConfig, xy, yaw, s):
-    """Ground/swing positions (T, 4, 3) of the paws in PAWS order (the paper's pace: pair A =
-    right front + left hind in stance on even half cycles, pair B on odd ones)."""
-    L = cfg.gait.stride
+def _half_cycles(d: np.ndarray, ep: np.ndarray, stride: float):
+    """Gait distance s (T,), the half-cycle boundaries (H + 1,) on it, and (H + 1,) flags for
+    the boundaries that start a moving episode.
+
+    d: (T,) gait distance covered from frame t-1 to t (d[0] = 0); ep: (T,) episode per frame.
+    Each episode that moves is split into a whole number of half cycles of at most `stride`, so a
+    mouse that stops at an episode's end has just put its swinging paws down.
+    """
+    s = np.cumsum(d)
+    n_ep = int(ep.max()) + 1 if ep.size else 0
+    total = np.bincount(ep, weights=d, minlength=n_ep)
+    first = np.searchsorted(ep, np.arange(n_ep), side="left")
+    last = np.searchsorted(ep, np.arange(n_ep), side="right") - 1
+    bounds, starts = [np.zeros(1)], [np.zeros(1, dtype=bool)]
+    for e in np.flatnonzero(total > 1e-9):
+        start = s[first[e] - 1] if first[e] > 0 else 0.0
+        n = max(1, int(np.ceil(total[e] / stride - 1e-9)))
+        bounds.append(np.linspace(start, s[last[e]], n + 1)[1:])
+        starts.append(np.arange(n) == n - 1)  # the boundary after this one starts an episode
+    bounds = np.concatenate(bounds)
+    starts = np.concatenate(starts)
+    starts[0] = True
+    keep = np.concatenate([[True], np.diff(bounds) > 1e-12])
+    # starts[i]: the half cycle beginning at bounds[i] is the first of a moving episode
+    return s, bounds[keep], starts[keep]
+
+
+def _pose_at(s: np.ndarray, xy: np.ndarray, yaw: np.ndarray, values: np.ndarray):
+    """Body origin (n, 2) and yaw (n,) where the gait distance first reaches `values`."""
     T = len(s)
-    k = np.floor(s / L).astype(np.int64)
-    kmin, kmax = int(k.min()) - 1, int(k.max()) + 1
-    ks = np.arange(kmin, kmax + 1)
-    sm = (ks + 0.5) * L  # arc length at mid-stance of each half cycle
-    j = np.clip(np.searchsorted(s, sm, side="left"), 0, T - 1)
+    j = np.clip(np.searchsorted(s, values, side="left"), 0, T - 1)
     i = np.clip(j - 1, 0, T - 1)
     den = s[j] - s[i]
-    f = np.where(den > 0, np.clip((sm - s[i]) / np.where(den > 0, den, 1.0), 0.0, 1.0), 0.0)
-    base = xy[i] + f[:, None] * (xy[j] - xy[i])
-    yb = yaw[i] + f * (yaw[j] - yaw[i])
-    extra = sm - (s[i] + f * den)  # beyond the track's ends: continue straight
-    base = base + extra[:, None] * np.stack([np.cos(yb + np.pi / 2), np.sin(yb + np.pi / 2)], -1)
+    f = np.where(den > 0, np.clip((values - s[i]) / np.where(den > 0, den, 1.0), 0.0, 1.0), 0.0)
+    return xy[i] + f[:, None] * (xy[j] - xy[i]), yaw[i] + f * (yaw[j] - yaw[i])
+
+
+def _gait(scene: Scene, cfg: SimConfig, xy, yaw, d, ep, parity0: int, flat):
+    """Paw positions (T, 4, 3) in PAWS order for the paper's pace: pair A (right front + left
+    hind) stands on even half cycles while pair B swings, then they swap.
+
+    A stance paw stays where it was put down: in half cycle k (gait distance b_k .. b_{k+1},
+    stride L_k) at G_k = P((b_k + b_{k+1}) / 2), P = the paw's rigid ground position, so it goes
+    from half a stride ahead of its rigid position to half a stride behind. In the first half
+    cycle of a walk (after a rest) G_k = P(b_k) + L_k / 2 * forward instead, which needs no
+    look-ahead past the rest. A swing paw goes from G_{k-1} to G_{k+1}, two strides while the
+    body covers one: it moves by twice its rigid position's displacement (twice the body's
+    speed), plus a correction linear in gait distance that is zero on straight stretches.
+    flat: (T, 4, 3) rigid paw ground positions (pose without pitch).
+    """
+    s, b, first = _half_cycles(d, ep, cfg.gait.stride)
+    T, H = len(s), len(b) - 1
     pm = scene.model[scene.paws]  # (4, 3)
-    c, sn = np.cos(yb), np.sin(yb)
-    G = np.empty((len(ks), 4, 3))
-    G[..., 0] = c[:, None] * pm[:, 0] - sn[:, None] * pm[:, 1] + base[:, :1]
-    G[..., 1] = sn[:, None] * pm[:, 0] + c[:, None] * pm[:, 1] + base[:, 1:]
-    G[..., 2] = pm[:, 2] + scene.ground
-    kk = k - kmin  # index of the current half cycle in G
-    frac = s / L - k
-    parity = np.array([0, 0, 1, 1])
+
+    def place(values: np.ndarray, ahead: np.ndarray) -> np.ndarray:
+        base, yb = _pose_at(s, xy, yaw, values)
+        c, sn = np.cos(yb), np.sin(yb)
+        G = np.empty((len(values), 4, 3))
+        G[..., 0] = c[:, None] * pm[:, 0] - sn[:, None] * pm[:, 1] + base[:, :1]
+        G[..., 1] = sn[:, None] * pm[:, 0] + c[:, None] * pm[:, 1] + base[:, 1:]
+        G[..., 2] = pm[:, 2] + scene.ground
+        fwd = np.stack([-sn, c], -1)  # model +Y in the plane
+        G[..., :2] += (ahead[:, None] * fwd)[:, None]
+        return G
+
+    if H < 1:  # never moves: all paws where the rigid model has them
+        G = place(np.zeros(T) + s[0], np.zeros(T))
+        return G, np.ones((T, 4), dtype=bool)
+    L = np.diff(b)  # (H,)
+    # G[k + 1] for k = -1 .. H: before the first and after the last half cycle, same stride
+    fh = first[:H]
+    values = np.concatenate([[b[0]], np.where(fh, b[:H], b[:H] + 0.5 * L), [b[H]]])
+    ahead = 0.5 * np.concatenate([[-L[0]], np.where(fh, L, 0.0), [L[-1]]])
+    G = place(values, ahead)
+    k = np.clip(np.searchsorted(b, s, side="right") - 1, 0, H - 1)
+    frac = np.clip((s - b[k]) / L[k], 0.0, 1.0)
+    parity = np.array([0, 0, 1, 1]) + parity0
     stance = (k[:, None] + parity[None]) % 2 == 0  # (T, 4)
     paw = np.arange(4)[None]
-    stance_pos = G[kk[:, None], paw]
-    prev = G[np.maximum(kk - 1, 0)[:, None], paw]
-    nxt = G[np.minimum(kk + 1, len(ks) - 1)[:, None], paw]
-    swing_pos = prev + frac[:, None, None] * (nxt - prev)
-    swing_pos[..., 2] += cfg.gait.swing_height * np.sin(np.pi * frac)[:, None]
+    stance_pos = G[(k + 1)[:, None], paw]
+    prev = G[k[:, None], paw]
+    nxt = G[(k + 2)[:, None], paw]
+    # swing: twice the rigid paw's own displacement since lift-off, plus a share (linear in
+    # gait distance) of what is left to reach G_{k+1}; zero on straight stretches
+    Pb = place(b, np.zeros(H + 1))  # rigid paw ground positions at the boundaries
+    p0, p1 = Pb[k[:, None], paw], Pb[(k + 1)[:, None], paw]
+    rest = nxt - prev - 2.0 * (p1 - p0)
+    swing_pos = prev + 2.0 * (flat - p0) + frac[:, None, None] * rest
+    swing_pos[..., 2] = prev[..., 2]
+    # lift the swinging paws only while stepping: at rest all four paws stand on the ground
+    speed = np.concatenate([d[1:2], d[1:]]) * cfg.fps if T > 1 else np.zeros(T)
+    lift = np.sin(np.pi * frac) * np.clip(speed / LIFT_SPEED, 0.0, 1.0)
+    swing_pos[..., 2] += cfg.gait.swing_height * lift[:, None]
     return np.where(stance[..., None], stance_pos, swing_pos), stance
 
 
@@ -188,12 +249,14 @@ def simulate(
     deformed = rigid.copy()
 
     # --- paws: pace gait (ground contact), expressed as offsets from the unpitched rigid paws ---
-    d = np.hypot(*np.diff(xy, axis=0).T)
-    s = rng_gait.uniform(0.0, 2.0 * cfg.gait.stride) + np.concatenate([[0.0], np.cumsum(d)])
-    gait, _ = _gait(scene, cfg, xy, yaw, s)
+    # gait distance: path length plus turning (a mouse turning on the spot steps too)
+    turn_r = float(np.linalg.norm(model[scene.paws, :2], axis=1).mean())
+    d = np.zeros(T)
+    d[1:] = np.hypot(*np.diff(xy, axis=0).T) + turn_r * np.abs(np.diff(yaw))
     flat = np.einsum("tij,kj->tki", Rz, model[scene.paws])
     flat[..., :2] += xy[:, None]
     flat[..., 2] += scene.ground
+    gait, _ = _gait(scene, cfg, xy, yaw, d, ep, int(rng_gait.integers(2)), flat)
     deformed[:, scene.paws] += gait - flat
 
     # --- head triangle: rotation about the ear midpoint, linear back and forth -----------------
@@ -239,6 +302,7 @@ def simulate(
     reach = np.where(mech >= 0, env, 0.0)
     if np.any(reach > 0):
         jit = cfg.reach.jitter * np.stack([ou_noise(rng_jit, T, 0.2 * fps) for _ in range(3)], -1)
+        jit[:, 1] = -np.abs(jit[:, 1])  # never into the box
         mi = np.clip(mech, 0, 3)
         target = scene.mech_pos[mi] + jit
         eff = scene.mech_part[mi]
