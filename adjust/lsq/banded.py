@@ -52,7 +52,9 @@ def add_block_products(
     if R == 0:
         return blocks
     if first < 0 or first + R - 1 + span - 1 >= T:
-        raise ValueError(f"residual groups {first}..{first + R - 1} spanning {span} frames exceed T={T}")
+        raise ValueError(
+            f"residual groups {first}..{first + R - 1} spanning {span} frames exceed T={T}"
+        )
     Jw = J if w is None else J * torch.as_tensor(w, dtype=torch.float64)[:, None, :, None]
     Jw = Jw.transpose(2, 3).contiguous()  # (R, span, n, m)
     bt = torch.from_numpy(blocks)  # shares memory

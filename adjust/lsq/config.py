@@ -34,7 +34,7 @@ class SolverConfig:
     min_weight: float = 0.0  # detections with weight (e.g. DLC likelihood) <= this are ignored
     max_iterations: int = 30
     min_iterations: int = 2
-    ftol: float = 1e-8  # stop when the relative cost decrease of an accepted step is below
+    ftol: float = 1e-7  # stop when the relative cost decrease of an accepted step is below
     xtol: float = 1e-10  # ... or the step is below this (relative to pose scale)
     lm_lambda: float = 1e-6  # initial Levenberg-Marquardt damping (relative to diag)
     lm_up: float = 10.0
@@ -46,11 +46,15 @@ class SolverConfig:
     overlap: int = 64  # frames of overlap on each side of a chunk
     fuse_iterations: int = 2  # Gauss-Newton steps of the per-part fusion
     ridge: float = 1e-9  # relative ridge keeping the normal matrix definite
+    wtol: float = 1e-4  # ... or the cost changes by less than this between iterations (IRLS)
+    num_threads: int = 0  # torch threads while solving (0: leave torch's setting)
     dtype: str = "float64"
 
     def __post_init__(self) -> None:
         if self.constraint not in _CONSTRAINTS:
-            raise ValueError(f"solver.constraint must be one of {_CONSTRAINTS}, got {self.constraint!r}")
+            raise ValueError(
+                f"solver.constraint must be one of {_CONSTRAINTS}, got {self.constraint!r}"
+            )
         if self.robust not in _KERNELS:
             raise ValueError(f"solver.robust must be one of {_KERNELS}, got {self.robust!r}")
         if self.init not in _INITS:
@@ -65,8 +69,8 @@ class SolverConfig:
         for key in ("track_weight", "sigma_def_mm", "ridge", "lm_lambda"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"solver.{key} must be >= 0, got {getattr(self, key)}")
-        if not 0 < self.mixture_prior <= 1:
-            raise ValueError(f"solver.mixture_prior must be in (0, 1], got {self.mixture_prior}")
+        if not 0 < self.mixture_prior < 1:
+            raise ValueError(f"solver.mixture_prior must be in (0, 1), got {self.mixture_prior}")
         if self.chunk_size and self.chunk_size < 5:
             raise ValueError(f"solver.chunk_size must be 0 or >= 5, got {self.chunk_size}")
         if self.overlap < 0:

@@ -29,10 +29,19 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.lsq.geometry import left_jacobian, left_jacobian_inverse, so3_exp, so3_log
+from adjust.lsq.geometry import (
+    left_jacobian,
+    left_jacobian_inverse,
+    quat_conj,
+    quat_from_rotvec,
+    quat_mul,
+    rotvec_from_quat,
+    so3_exp,
+)
 from deformnet.so3 import skew
 
 SPLINE_WEIGHTS = (-1.0 / 6.0, 2.0 / 3.0, 2.0 / 3.0, -1.0 / 6.0)
@@ -66,10 +75,11 @@ def grid_moments(grid: Tensor) -> tuple[Tensor, Tensor]:
 def _relative(poses: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Per interior frame: R_t (R, 3, 3), phi_s (4, R, 3), tau_t (R, 3), tau_S (R, 3)."""
     T = poses.shape[0]
-    Rm = so3_exp(poses[:, :3])
     n = T - 4
-    Rt = Rm[2 : 2 + n]
-    phi = torch.stack([so3_log(Rm[2 + o : 2 + o + n] @ Rt.transpose(-1, -2)) for o in OFFSETS])
+    q = quat_from_rotvec(poses[:, :3])
+    qt_inv = quat_conj(q[2 : 2 + n])
+    Rt = so3_exp(poses[2 : 2 + n, :3])
+    phi = torch.stack([rotvec_from_quat(quat_mul(q[2 + o : 2 + o + n], qt_inv)) for o in OFFSETS])
     w = torch.tensor(SPLINE_WEIGHTS, dtype=poses.dtype, device=poses.device)
     tau_s = torch.stack([poses[2 + o : 2 + o + n, 3:] for o in OFFSETS])
     tau_S = (w[:, None, None] * tau_s).sum(0)
@@ -131,16 +141,23 @@ def track_residuals(
     r = Av.permute(1, 0, 2).reshape(n, 12)
     if not jacobian:
         return r, None
-    Jl_inv = left_jacobian_inverse(phi)  # (4, R, 3, 3)
-    Jr_inv = left_jacobian_inverse(-phi)
-    Q = (w[:, None, None, None] * Jr_inv).sum(0)  # (R, 3, 3): -d phi_S / d delta_t
-    JlS = left_jacobian(phi_S)  # (R, 3, 3)
-    B = skew(Ea) @ JlS  # (4, R, 3, 3): [E a]_x J_l(phi_S)
-    Sa = skew(a)
-    J = poses.new_zeros((n, SPAN, 4, 3, 6))
-    J[:, 2, :, :, :3] = (-Sa + E @ Sa - B @ Q).permute(1, 0, 2, 3)
+    Jl_inv = left_jacobian_inverse(phi)  # (4, R, 3, 3): d phi_s / d delta_s
+    Jr_inv = left_jacobian_inverse(-phi)  # -d phi_s / d delta_t
+    # d phi_S / d delta for the five frames (rotation columns), premultiplied by J_l(phi_S)
+    Dphi = poses.new_zeros((n, SPAN, 3, 3))
+    Dphi[:, 2] = -(w[:, None, None, None] * Jr_inv).sum(0)
     for j, o in enumerate(OFFSETS):
-        J[:, 2 + o, :, :, :3] = (B @ (w[j] * Jl_inv[j])).permute(1, 0, 2, 3)
+        Dphi[:, 2 + o] = w[j] * Jl_inv[j]
+    GD = left_jacobian(phi_S)[:, None] @ Dphi  # (R, 5, 3, 3)
+    # d(A v) = [E a]_x J_l(phi_S) d phi_S + (E - I) [a]_x delta_t, for the 4 model vectors v
+    Ea_b = Ea.permute(1, 0, 2)[:, None, :, :, None].expand(n, SPAN, 4, 3, 3)
+    GD_b = GD[:, :, None].expand(n, SPAN, 4, 3, 3)
+    Jrot = torch.linalg.cross(Ea_b, GD_b, dim=-2)  # (R, 5, 4, 3, 3)
+    Sa = skew(a)  # (4, R, 3, 3)
+    Jrot[:, 2] += (E @ Sa - Sa).permute(1, 0, 2, 3)
+    J = poses.new_zeros((n, SPAN, 4, 3, 6))
+    J[..., :3] = Jrot
+    for j, o in enumerate(OFFSETS):
         J[:, 2 + o, 0, :, 3:] = -w[j] * eye
     J[:, 2, 0, :, 3:] = eye
     return r, J.reshape(n, SPAN, 12, 6)
@@ -150,3 +167,114 @@ def default_rho(body: Tensor) -> float:
     """mm per radian for the spline form's rotation residuals: the body's rms radius."""
     c = body.mean(0)
     return float(math.sqrt(((body - c) ** 2).sum(-1).mean()))
+
+
+def _skew_cols(u: Tensor, M: Tensor) -> Tensor:
+    """[u]_x M without building [u]_x.  u (..., 3), M (..., 3, n) -> (..., 3, n)."""
+    u0, u1, u2 = (u[..., i, None] for i in range(3))
+    m0, m1, m2 = M[..., 0, :], M[..., 1, :], M[..., 2, :]
+    return torch.stack((u1 * m2 - u2 * m1, u2 * m0 - u0 * m2, u0 * m1 - u1 * m0), -2)
+
+
+def add_track_normal(
+    blocks: np.ndarray,
+    g: np.ndarray,
+    poses: Tensor,
+    kind: str,
+    weight: float,
+    *,
+    rho: float = 1.0,
+    grid: Tensor | None = None,
+) -> Tensor:
+    """Add the track constraint's weighted normal matrix and gradient, exploiting its structure.
+
+    Same result as assembling J^T (weight I) J and -weight J^T r from `track_residuals`, but the
+    rotation columns are handled through the 3-row rotation Jacobian d phi_S / d delta and the
+    translation columns through their constant coefficients, so nothing of size (R, 30, 30) is
+    ever formed. blocks: (5, T, 6, 6) band (in place); g: (T, 6) right-hand side (in place);
+    poses (T, 6). Returns the residuals r (R, m).
+    """
+    T = poses.shape[0]
+    if T < SPAN or weight == 0:
+        r, _ = track_residuals(poses, kind, rho=rho, grid=grid, jacobian=False)
+        return r
+    dt, dev = poses.dtype, poses.device
+    n = T - 4
+    w = torch.tensor(SPLINE_WEIGHTS, dtype=dt, device=dev)
+    ct = (1.0 / 6.0, -2.0 / 3.0, 1.0, -2.0 / 3.0, 1.0 / 6.0)  # d tau-residual / d tau_b
+    Rt, phi, tau_t, tau_S = _relative(poses)
+    phi_S = (w[:, None, None] * phi).sum(0)
+    Jl_inv = left_jacobian_inverse(phi)
+    Jr_inv = left_jacobian_inverse(-phi)
+    D = torch.stack(
+        (
+            w[0] * Jl_inv[0],
+            w[1] * Jl_inv[1],
+            -(w[:, None, None, None] * Jr_inv).sum(0),
+            w[2] * Jl_inv[2],
+            w[3] * Jl_inv[3],
+        ),
+        1,
+    )  # (R, 5, 3, 3): d phi_S / d delta_b
+    eye = torch.eye(3, dtype=dt, device=dev)
+    N = Cc = Jc = None
+    if kind == "spline":
+        r_rot = -rho * phi_S
+        r_tr = tau_t - tau_S
+        r = torch.cat((r_rot, r_tr), -1)
+        P = D
+        S = (rho * rho) * eye.expand(n, 3, 3)
+        grad_rot = P.transpose(-1, -2) @ (-rho * r_rot)[:, None, :, None]  # J_rot^T r, (R,5,3,1)
+        r_c = r_tr
+    elif kind == "grid":
+        if grid is None:
+            raise ValueError("kind='grid' needs the grid points")
+        c, sq = grid_moments(grid.to(dt))
+        E = so3_exp(phi_S)
+        V = torch.cat((c[None], torch.diag(sq)), 0)  # (4, 3)
+        a = torch.einsum("rij,vj->rvi", Rt, V)  # (R, 4, 3)
+        Ea = torch.einsum("rij,rvj->rvi", E, a)
+        Av = a - Ea
+        Av[:, 0] = Av[:, 0] + (tau_t - tau_S)
+        r = Av.reshape(n, 12)
+        P = left_jacobian(phi_S)[:, None] @ D  # (R, 5, 3, 3)
+        B = skew(Ea)  # (R, 4, 3, 3)
+        corr = E[:, None] @ skew(a) - skew(a)  # (R, 4, 3, 3): frame-t extra term
+        Bt = B.transpose(-1, -2)
+        S = (Bt @ B).sum(1)
+        N = (Bt @ corr).sum(1)
+        Cc = (corr.transpose(-1, -2) @ corr).sum(1)
+        Btr = (Bt @ Av[..., None]).sum(1)  # (R, 3, 1)
+        grad_rot = P.transpose(-1, -2) @ Btr[:, None]  # (R, 5, 3, 1)
+        grad_rot[:, 2] += (corr.transpose(-1, -2) @ Av[..., None]).sum(1)
+        Jc = B[:, 0, None] @ P  # (R, 5, 3, 3): rotation Jacobian of the first 3 rows per frame
+        Jc[:, 2] += corr[:, 0]
+        r_c = Av[:, 0]
+    else:
+        raise ValueError(f"kind must be 'spline' or 'grid', got {kind!r}")
+    wt = float(weight)
+    Pc = P.permute(0, 2, 1, 3).reshape(n, 3, 15)  # rotation Jacobian columns of the 5 frames
+    RR = Pc.transpose(1, 2) @ (S @ Pc)  # (R, 15, 15)
+    if N is not None:
+        RR[:, 6:9, :] += N.transpose(-1, -2) @ Pc
+        RR[:, :, 6:9] += Pc.transpose(1, 2) @ N
+        RR[:, 6:9, 6:9] += Cc
+    ctt = torch.tensor(ct, dtype=dt, device=dev)
+    bt = torch.from_numpy(blocks)
+    RRv = RR.view(n, SPAN, 3, SPAN, 3)
+    if Jc is not None:
+        JcT = Jc.transpose(-1, -2).permute(1, 0, 2, 3)  # (5, R, 3 rot, 3 row)
+    tt = torch.diag_embed((wt * ctt[:, None] * ctt[None, :])[..., None].expand(SPAN, SPAN, 3))
+    for ic in range(SPAN):  # column frame ic, row frames ia = ic..4 -> offsets 0..4-ic
+        sl = slice(ic, ic + n)
+        band = bt[: SPAN - ic, sl]  # (5 - ic, R, 6, 6) view
+        band[..., :3, :3] += wt * RRv[:, ic:, :, ic, :].permute(1, 0, 2, 3)
+        if Jc is not None:  # rot(ia) x trans(ic): ct_ic Jc_ia^T; trans(ia) x rot(ic): ct_ia Jc_ic
+            band[..., :3, 3:] += (wt * ct[ic]) * JcT[ic:]
+            band[..., 3:, :3] += (wt * ctt[ic:, None, None, None]) * Jc[None, :, ic]
+        band[..., 3:, 3:] += tt[ic:, ic, None]
+    gt = torch.from_numpy(g)
+    for ia in range(SPAN):
+        gt[ia : ia + n, :3] -= wt * grad_rot[:, ia, :, 0]
+        gt[ia : ia + n, 3:] -= (wt * ct[ia]) * r_c
+    return r

@@ -21,7 +21,9 @@ def _check(x: Tensor, tail: tuple[int, ...], name: str) -> None:
     if not isinstance(x, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if x.dim() < len(tail) or tuple(x.shape[x.dim() - len(tail) :]) != tail:
-        raise ValueError(f"{name} must have shape (..., {', '.join(map(str, tail))}), got {tuple(x.shape)}")
+        raise ValueError(
+            f"{name} must have shape (..., {', '.join(map(str, tail))}), got {tuple(x.shape)}"
+        )
 
 
 def so3_log(R: Tensor) -> Tensor:
@@ -51,17 +53,60 @@ def left_jacobian_inverse(phi: Tensor) -> Tensor:
         1.0 / 12.0 + th2 / 720.0,
         1.0 / t2 - (1.0 + torch.cos(th)) / (2.0 * th * torch.sin(th)),
     )
-    K = skew(phi)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(K.shape)
-    return eye - 0.5 * K + coef * (K @ K)
+    # [phi]^2 = phi phi^T - theta^2 I
+    out = coef * (phi[..., :, None] * phi[..., None, :]) - 0.5 * skew(phi)
+    d = (1.0 - coef * th2)[..., 0]  # (..., 1)
+    out = out + torch.diag_embed(d.expand(*d.shape[:-1], 3))
+    return out
+
+
+def quat_from_rotvec(r: Tensor) -> Tensor:
+    """Unit quaternion (w, x, y, z) of rotation vectors.  (..., 3) -> (..., 4)."""
+    th2 = (r * r).sum(-1, keepdim=True)
+    small = th2 < _SMALL2
+    th = torch.where(small, torch.ones_like(th2), th2).sqrt()
+    s = torch.where(small, 0.5 - th2 / 48.0, torch.sin(0.5 * th) / th)
+    c = torch.where(small, 1.0 - th2 / 8.0, torch.cos(0.5 * th))
+    return torch.cat((c, s * r), -1)
+
+
+def quat_mul(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product a b (rotation b first, then a).  (..., 4), (..., 4) -> (..., 4)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ),
+        -1,
+    )
+
+
+def quat_conj(q: Tensor) -> Tensor:
+    return torch.cat((q[..., :1], -q[..., 1:]), -1)
+
+
+def rotvec_from_quat(q: Tensor) -> Tensor:
+    """Rotation vector (angle in [0, pi]) of (not necessarily unit) quaternions.  (..., 4) -> (..., 3)."""
+    q = torch.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., :1], q[..., 1:]
+    s2 = (v * v).sum(-1, keepdim=True)
+    small = s2 < 1e-12 * (w * w)
+    s = torch.where(small, torch.ones_like(s2), s2).sqrt()
+    ws = torch.where(small, w, torch.ones_like(w))
+    f = torch.where(small, 2.0 / ws * (1.0 - s2 / (3.0 * ws * ws)), 2.0 * torch.atan2(s, w) / s)
+    return f * v
 
 
 def retract(poses: Tensor, delta: Tensor) -> Tensor:
     """Apply left increments.  poses (..., 6), delta (..., 6) -> (..., 6): R <- exp(d_r) R."""
     _check(poses, (6,), "poses")
     _check(delta, (6,), "delta")
-    R = so3_exp(delta[..., :3]) @ so3_exp(poses[..., :3])
-    return torch.cat((so3_log(R), poses[..., 3:] + delta[..., 3:]), -1)
+    q = quat_mul(quat_from_rotvec(delta[..., :3]), quat_from_rotvec(poses[..., :3]))
+    return torch.cat((rotvec_from_quat(q), poses[..., 3:] + delta[..., 3:]), -1)
 
 
 def pose_difference(a: Tensor, b: Tensor) -> Tensor:
@@ -142,3 +187,57 @@ def left_jacobian(phi: Tensor) -> Tensor:
     K = skew(phi)
     eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(K.shape)
     return eye + a * K + b * (K @ K)
+
+
+def project_components(
+    X: Tensor, cams: CameraTensors, jacobian: bool = True
+) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, ...] | None]:
+    """Fast projection for the solver: components instead of stacked tensors.
+
+    X: (..., 3) -> u, v, z (..., C) and, if `jacobian`, the six entries (A00, A01, A02, A10, A11,
+    A12) of d(u, v)/d(X_cam) (..., C) each, the derivative w.r.t. *camera* coordinates (chain
+    with the camera rotation: d(u, v)/dX = A R_c). Skips the distortion terms for cameras
+    without distortion. Same model as `adjust.camera.project_points`.
+    """
+    Rc, tc, Kc, dist = cams.R, cams.t, cams.K, cams.dist
+    Xc = torch.einsum("...j,cij->...ci", X, Rc) + tc  # (..., C, 3)
+    z = Xc[..., 2]
+    z = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
+    iz = 1.0 / z
+    x, y = Xc[..., 0] * iz, Xc[..., 1] * iz
+    fx, s, cx = Kc[:, 0, 0], Kc[:, 0, 1], Kc[:, 0, 2]
+    fy, cy = Kc[:, 1, 1], Kc[:, 1, 2]
+    skewed = bool((s != 0).any())
+    if bool((dist != 0).any()):
+        k1, k2, p1, p2, k3 = dist.unbind(-1)
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy2 = 2 * x * y
+        xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
+        if jacobian:
+            dr = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+            cross = xy2 * 0.5 * dr + 2 * p1 * x + 2 * p2 * y
+            dxd_dx = radial + x * x * dr + 2 * p1 * y + 6 * p2 * x
+            dyd_dy = radial + y * y * dr + 6 * p1 * y + 2 * p2 * x
+            du_dx, du_dy = fx * dxd_dx, fx * cross
+            dv_dx, dv_dy = fy * cross, fy * dyd_dy
+            if skewed:
+                du_dx = du_dx + s * cross
+                du_dy = du_dy + s * dyd_dy
+    else:
+        xd, yd = x, y
+        if jacobian:
+            du_dx, du_dy = fx.expand_as(x), s.expand_as(x)
+            dv_dx, dv_dy = torch.zeros_like(x), fy.expand_as(x)
+    u = fx * xd + cx
+    if skewed:
+        u = u + s * yd
+    v = fy * yd + cy
+    if not jacobian:
+        return u, v, Xc[..., 2], None
+    a00, a01 = du_dx * iz, du_dy * iz
+    a10, a11 = dv_dx * iz, dv_dy * iz
+    a02 = -(a00 * x + a01 * y)
+    a12 = -(a10 * x + a11 * y)
+    return u, v, Xc[..., 2], (a00, a01, a02, a10, a11, a12)

@@ -1,0 +1,304 @@
+"""Initial poses: per-frame fits (Kabsch on triangulated parts, or PnP in one camera),
+interpolated over the rest; or a constant-velocity Kalman filter + RTS smoother over them.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from adjust.camera import CameraTensors, project_cameras
+from adjust.lsq.geometry import so3_exp, so3_log
+
+log = logging.getLogger(__name__)
+
+
+def undistort_normalized(
+    u: Tensor, v: Tensor, cams: CameraTensors, iterations: int = 8
+) -> tuple[Tensor, Tensor]:
+    """Pixels (..., C) -> undistorted normalized coordinates (..., C) (fixed-point inversion of
+    OpenCV's model, as cv2.undistortPoints)."""
+    Kc, dist = cams.K, cams.dist
+    fx, s, cx, fy, cy = Kc[:, 0, 0], Kc[:, 0, 1], Kc[:, 0, 2], Kc[:, 1, 1], Kc[:, 1, 2]
+    yd = (v - cy) / fy
+    xd = (u - cx - s * yd) / fx
+    if not bool((dist != 0).any()):
+        return xd, yd
+    k1, k2, p1, p2, k3 = dist.unbind(-1)
+    x, y = xd, yd
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x = (xd - dx) / radial
+        y = (yd - dy) / radial
+    return x, y
+
+
+def triangulate_linear(xy: Tensor, valid: Tensor, cams: CameraTensors) -> tuple[Tensor, Tensor]:
+    """Fast linear triangulation (inhomogeneous DLT on undistorted normalized coordinates).
+
+    xy: (T, K, C, 2) px; valid: (T, K, C) bool -> X (T, K, 3) mm (zeros where not ok),
+    ok (T, K) bool (>= 2 views, well conditioned, in front of the cameras).
+    """
+    xn, yn = undistort_normalized(xy[..., 0], xy[..., 1], cams)
+    R, t = cams.R, cams.t
+    w = valid.to(xy.dtype)
+    # rows (R_0 - x R_2) X = x t_2 - t_0 and (R_1 - y R_2) X = y t_2 - t_1, per camera
+    a1 = R[:, 0] - xn[..., None] * R[:, 2]  # (T, K, C, 3)
+    b1 = xn * t[:, 2] - t[:, 0]
+    a2 = R[:, 1] - yn[..., None] * R[:, 2]
+    b2 = yn * t[:, 2] - t[:, 1]
+    M = torch.einsum("tkc,tkci,tkcj->tkij", w, a1, a1) + torch.einsum(
+        "tkc,tkci,tkcj->tkij", w, a2, a2
+    )
+    r = torch.einsum("tkc,tkci->tki", w * b1, a1) + torch.einsum("tkc,tkci->tki", w * b2, a2)
+    n = valid.sum(-1)
+    M = M + 1e-12 * torch.eye(3, dtype=M.dtype)
+    ev = torch.linalg.eigvalsh(M)
+    ok = (n >= 2) & (ev[..., 0] > 1e-6 * ev[..., 2].clamp_min(1e-300))
+    X = torch.linalg.solve(
+        torch.where(ok[..., None, None], M, torch.eye(3, dtype=M.dtype)), r[..., None]
+    )[..., 0]
+    X = torch.where(ok[..., None], X, torch.zeros_like(X))
+    zc = torch.einsum("cj,tkj->tkc", R[:, 2], X) + t[:, 2]
+    ok = ok & ((zc > 0) | ~valid).all(-1) & torch.isfinite(X).all(-1)
+    return torch.where(ok[..., None], X, torch.zeros_like(X)), ok
+
+
+def kabsch_poses(
+    body: Tensor, X: Tensor, mask: Tensor, min_parts: int = 3
+) -> tuple[Tensor, Tensor]:
+    """Rigid fit of the body model to observed 3D parts, per frame (weighted Kabsch, batched).
+
+    body: (K, 3) model points; X: (T, K, 3) global (any value where not mask); mask: (T, K) bool
+    -> poses (T, 6) (zeros where not ok), ok (T,) bool (>= min_parts non-collinear parts).
+    """
+    if X.dim() != 3 or X.shape[1:] != body.shape or mask.shape != X.shape[:2]:
+        raise ValueError(
+            f"X (T, K, 3), mask (T, K) for body {tuple(body.shape)}; got {tuple(X.shape)}, {tuple(mask.shape)}"
+        )
+    w = mask.to(X.dtype)
+    n = w.sum(1)
+    ok = n >= min_parts
+    Xz = torch.where(mask[..., None], X, torch.zeros_like(X))
+    ws = n.clamp_min(1.0)[:, None]
+    cx = (Xz * w[..., None]).sum(1) / ws
+    cm = (body[None] * w[..., None]).sum(1) / ws
+    A = (body[None] - cm[:, None]) * w[..., None]
+    H = torch.einsum("tki,tkj->tij", A, Xz - cx[:, None])  # model -> global cross-covariance
+    U, S, Vh = torch.linalg.svd(H)
+    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+    D = torch.ones_like(S)
+    D[:, 2] = torch.where(d == 0, torch.ones_like(d), d)
+    R = Vh.transpose(-1, -2) @ torch.diag_embed(D) @ U.transpose(-1, -2)
+    ok = ok & (S[:, 1] > 1e-6 * S[:, 0].clamp_min(1e-300)) & torch.isfinite(S).all(-1)
+    tau = cx - (R @ cm[..., None])[..., 0]
+    poses = torch.cat((so3_log(R), tau), -1)
+    return torch.where(ok[:, None], poses, torch.zeros_like(poses)), ok
+
+
+def pnp_poses(
+    xy: np.ndarray,
+    valid: np.ndarray,
+    cams: CameraTensors,
+    body: np.ndarray,
+    frames: np.ndarray,
+    max_error_px: float = 25.0,
+) -> dict[int, np.ndarray]:
+    """Single-camera PnP (OpenCV) for the given frames, using the camera with most parts (>= 4).
+
+    xy: (T, K, C, 2); valid: (T, K, C) bool; body (K, 3) -> {frame: pose (6,)} for successes.
+    """
+    try:
+        import cv2
+    except ImportError:  # pragma: no cover - opencv is a dependency
+        return {}
+    K_ = cams.K.detach().cpu().numpy()
+    dist = cams.dist.detach().cpu().numpy()
+    Rc = cams.R.detach().cpu().numpy()
+    tc = cams.t.detach().cpu().numpy()
+    out: dict[int, np.ndarray] = {}
+    for t in frames:
+        counts = valid[t].sum(0)
+        c = int(np.argmax(counts))
+        if counts[c] < 4:
+            continue
+        sel = valid[t, :, c]
+        obj = body[sel].astype(np.float64)
+        img = xy[t, sel, c].astype(np.float64)
+        try:
+            okp, rvec, tvec = cv2.solvePnP(obj, img, K_[c], dist[c], flags=cv2.SOLVEPNP_EPNP)
+            if okp:
+                okp, rvec, tvec = cv2.solvePnP(
+                    obj, img, K_[c], dist[c], rvec, tvec, True, flags=cv2.SOLVEPNP_ITERATIVE
+                )
+        except cv2.error:
+            continue
+        if not okp:
+            continue
+        Rp = so3_exp(torch.as_tensor(rvec.reshape(3), dtype=torch.float64)).numpy()
+        R = Rc[c].T @ Rp
+        tau = Rc[c].T @ (tvec.reshape(3) - tc[c])
+        Xc = obj @ Rp.T + tvec.reshape(3)
+        if np.any(Xc[:, 2] <= 0):
+            continue
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, K_[c], dist[c])
+        if np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, -1))) > max_error_px:
+            continue
+        r = so3_log(torch.as_tensor(R)).numpy()
+        out[int(t)] = np.concatenate([r, tau])
+    return out
+
+
+def interpolate_poses(poses: Tensor, ok: Tensor) -> Tensor:
+    """Fill frames that are not ok: slerp of rotations (R = exp(a log(R_b R_a^T)) R_a) and linear
+    translations between the nearest ok frames; constant beyond the first/last; zeros if none.
+
+    poses: (T, 6); ok: (T,) bool -> (T, 6).
+    """
+    T = poses.shape[0]
+    if T == 0 or bool(ok.all()):
+        return poses.clone()
+    if not bool(ok.any()):
+        return torch.zeros_like(poses)
+    idx = torch.arange(T)
+    okn = ok.cpu().numpy()
+    prev = np.where(okn, np.arange(T), -1)
+    prev = np.maximum.accumulate(prev)
+    nxt = np.where(okn, np.arange(T), T)
+    nxt = np.minimum.accumulate(nxt[::-1])[::-1]
+    prev = np.where(prev < 0, nxt, prev)
+    nxt = np.where(nxt >= T, prev, nxt)
+    a, b = torch.as_tensor(prev), torch.as_tensor(nxt)
+    span = (b - a).clamp_min(1).to(poses.dtype)
+    alpha = torch.where(b > a, (idx - a).to(poses.dtype) / span, torch.zeros_like(span))[:, None]
+    Ra, Rb = so3_exp(poses[a, :3]), so3_exp(poses[b, :3])
+    rel = so3_log(Rb @ Ra.transpose(-1, -2))
+    R = so3_exp(alpha * rel) @ Ra
+    tau = (1 - alpha) * poses[a, 3:] + alpha * poses[b, 3:]
+    return torch.cat((so3_log(R), tau), -1)
+
+
+def unwrap_rotations(r: np.ndarray) -> np.ndarray:
+    """Continuous rotation vectors: per row, of r + 2 pi k r/|r| (k = -1, 0, 1, ...) the one
+    nearest the previous row.  (T, 3) -> (T, 3)."""
+    out = r.copy()
+    for t in range(1, len(r)):
+        th = np.linalg.norm(r[t])
+        if th < 1e-12:
+            cands = [r[t]]
+        else:
+            ax = r[t] / th
+            base = out[t - 1] @ ax  # nearest angle along this axis
+            k = np.round((base - th) / (2 * np.pi))
+            cands = [r[t] + 2 * np.pi * (k + j) * ax for j in (-1, 0, 1)]
+        out[t] = min(cands, key=lambda c: float(np.sum((c - out[t - 1]) ** 2)))
+    return out
+
+
+def kalman_smooth(
+    z: np.ndarray, ok: np.ndarray, meas_std: np.ndarray, accel_std: np.ndarray
+) -> np.ndarray:
+    """Constant-velocity Kalman filter + RTS smoother, independently per column.
+
+    z: (T, P) measurements (ignored where not ok); ok: (T,) bool; meas_std, accel_std: (P,)
+    -> smoothed values (T, P). State (value, velocity), dt = 1 frame, white acceleration.
+    """
+    T, P = z.shape
+    if T == 0:
+        return z.copy()
+    first = int(np.argmax(ok)) if ok.any() else 0
+    q = accel_std**2
+    Q = np.stack([np.stack([q / 4, q / 2], -1), np.stack([q / 2, q], -1)], -2)  # (P, 2, 2)
+    F = np.array([[1.0, 1.0], [0.0, 1.0]])
+    r2 = meas_std**2
+    x = np.zeros((P, 2))
+    x[:, 0] = z[first] if ok.any() else 0.0
+    Pm = np.zeros((P, 2, 2))
+    Pm[:, 0, 0] = r2 * 1e2 + 1.0
+    Pm[:, 1, 1] = 1e2 * (q + 1.0)
+    xs_f = np.zeros((T, P, 2))
+    Ps_f = np.zeros((T, P, 2, 2))
+    xs_p = np.zeros((T, P, 2))
+    Ps_p = np.zeros((T, P, 2, 2))
+    for t in range(T):
+        if t > 0:
+            x = x @ F.T
+            Pm = F @ Pm @ F.T + Q
+        xs_p[t], Ps_p[t] = x, Pm
+        if ok[t]:
+            S = Pm[:, 0, 0] + r2
+            Kg = Pm[:, :, 0] / S[:, None]  # (P, 2)
+            x = x + Kg * (z[t] - x[:, 0])[:, None]
+            Pm = Pm - Kg[:, :, None] * Pm[:, None, 0, :]
+        xs_f[t], Ps_f[t] = x, Pm
+    xs = xs_f.copy()
+    for t in range(T - 2, -1, -1):
+        G = Ps_f[t] @ F.T @ np.linalg.inv(Ps_p[t + 1])
+        xs[t] = xs_f[t] + np.einsum("pij,pj->pi", G, xs[t + 1] - xs_p[t + 1])
+    return xs[..., 0]
+
+
+def initial_poses(
+    xy: Tensor,
+    valid: Tensor,
+    cams: CameraTensors,
+    body: Tensor,
+    method: str = "fit",
+    accel_std: tuple[float, float] = (0.2, 50.0),
+) -> tuple[Tensor, Tensor]:
+    """Initial poses from the detections.
+
+    xy: (T, K, C, 2) px (anything where not valid); valid: (T, K, C) bool; body: (K, 3).
+    method 'fit': Kabsch on parts triangulated from >= 2 cameras (>= 3 parts), else PnP in the
+    camera with >= 4 parts, slerp-interpolated over frames without a fit; 'kalman': the same
+    per-frame fits smoothed (and gaps bridged) by a constant-velocity Kalman filter + RTS
+    smoother on unwrapped rotation vectors and translations.
+    Returns poses (T, 6) and fitted (T,) bool (frames that had their own fit).
+    """
+    T, K, C, _ = xy.shape
+    dt = body.dtype
+    if T == 0:
+        return xy.new_zeros((0, 6)), torch.zeros(0, dtype=torch.bool)
+    X, mask = triangulate_linear(xy, valid, cams)
+    poses, ok = kabsch_poses(body, X, mask)
+    need = np.flatnonzero(~ok.cpu().numpy() & (valid.sum(1) >= 4).any(-1).cpu().numpy())
+    if need.size:
+        fits = pnp_poses(xy.cpu().numpy(), valid.cpu().numpy(), cams, body.cpu().numpy(), need)
+        for t, p in fits.items():
+            poses[t] = torch.as_tensor(p, dtype=dt)
+            ok[t] = True
+        log.debug(
+            "PnP initialised %d of %d frames without a triangulated fit", len(fits), need.size
+        )
+    log.info("initial fits in %d of %d frames", int(ok.sum()), T)
+    if method == "fit" or not bool(ok.any()):
+        return interpolate_poses(poses, ok), ok
+    if method != "kalman":
+        raise ValueError(f"unknown init method {method!r} (fit, kalman)")
+    okn = ok.cpu().numpy()
+    filled = interpolate_poses(poses, ok).cpu().numpy()
+    z = filled.copy()
+    z[:, :3] = unwrap_rotations(filled[:, :3])
+    meas = np.array([0.05] * 3 + [2.0] * 3)
+    acc = np.array([accel_std[0]] * 3 + [accel_std[1]] * 3)
+    sm = kalman_smooth(z, okn, meas, acc)
+    sm_t = torch.as_tensor(sm, dtype=dt)
+    r = so3_log(so3_exp(sm_t[:, :3]))
+    return torch.cat((r, sm_t[:, 3:]), -1), ok
+
+
+def reprojection_rms(
+    poses: Tensor, body: Tensor, xy: Tensor, valid: Tensor, cams: CameraTensors
+) -> float:
+    """RMS reprojection error (px) of the rigid model at the poses over the valid detections."""
+    X = torch.einsum("tij,kj->tki", so3_exp(poses[:, :3]), body) + poses[:, None, 3:]
+    e = project_cameras(X, cams) - xy
+    e2 = torch.where(valid, (e * e).sum(-1), torch.zeros_like(e[..., 0]))
+    n = int(valid.sum())
+    return float((e2.sum() / max(n, 1)).sqrt())

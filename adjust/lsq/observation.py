@@ -1,0 +1,171 @@
+"""Pluggable observation functions: the 3D body-part positions X_i(p_t) the cameras observe.
+
+An observation model maps the poses (T, 6) to global part positions (T, K, 3) and their
+Jacobian w.r.t. the left increment of each frame's *own* pose, (T, K, 3, 6). Models whose
+points depend on neighbouring frames too (the learned deformation, which reads a window of
+rigid positions around t) hold the neighbours' inputs fixed per outer iteration: `prepare` is
+called with the current poses at the start of every Gauss-Newton iteration, so the normal
+equations keep their block-banded structure and the deformation is re-evaluated as the poses
+converge (a fixed-point / block-Jacobi treatment of the cross-frame coupling).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from adjust.lsq.geometry import retract, rigid_points
+
+
+@runtime_checkable
+class ObservationModel(Protocol):
+    """What the solver needs from an observation function."""
+
+    @property
+    def num_parts(self) -> int: ...
+
+    def prepare(self, poses: Tensor) -> None:
+        """Called with the current poses (T, 6) at the start of every outer iteration."""
+
+    def points(self, poses: Tensor, jacobian: bool = True) -> tuple[Tensor, Tensor | None]:
+        """poses (T, 6) -> X (T, K, 3) global mm and, if asked, dX/d(delta_t) (T, K, 3, 6)."""
+
+    def rigid_points(self, poses: Tensor) -> tuple[Tensor, Tensor]:
+        """The rigid model's points (T, K, 3) and Jacobian (T, K, 3, 6) (for fusion/uncertainty)."""
+
+    def window(self, start: int, stop: int) -> ObservationModel:
+        """The same model for frames start..stop-1 (chunked solving)."""
+
+
+class RigidObservation:
+    """The rigid body model moved by the pose (paper eq. 4): X_i = R(r_t) X_i^m + tau_t."""
+
+    def __init__(self, body_points: Tensor) -> None:
+        if body_points.dim() != 2 or body_points.shape[-1] != 3:
+            raise ValueError(f"body_points must have shape (K, 3), got {tuple(body_points.shape)}")
+        self.body = body_points
+
+    @property
+    def num_parts(self) -> int:
+        return self.body.shape[0]
+
+    def prepare(self, poses: Tensor) -> None:  # nothing depends on other frames
+        return None
+
+    def points(self, poses: Tensor, jacobian: bool = True) -> tuple[Tensor, Tensor | None]:
+        X, J = self.rigid_points(poses)
+        return X, (J if jacobian else None)
+
+    def rigid_points(self, poses: Tensor) -> tuple[Tensor, Tensor]:
+        return rigid_points(poses, self.body.to(poses.dtype))
+
+    def window(self, start: int, stop: int) -> RigidObservation:
+        return self
+
+
+class DeformableObservation:
+    """The learned deformation on top of the rigid model (paper: deep-learned body deformation).
+
+    `model` follows the `DeformationModel` contract: ``model(rigid (B, W, K, 3), deformed
+    (B, W, K, 3), observed (B, W, K) bool) -> (B, K, 3)`` global mm for the window's mid frame
+    (W = 2n + 1). Per outer iteration (`prepare`) the window inputs of every frame are rebuilt
+    from the current poses (rigid positions; `deformed` = current predictions, `observed` from
+    the detections); within the iteration only the mid frame's own rigid input moves with p_t,
+    and the Jacobian dX_t/d(delta_t) is taken by batched reverse-mode autograd through the
+    model (three backward passes: one per output coordinate, summed over independent frames,
+    since the mid-frame output depends only on its own frame's increment).
+    """
+
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        body_points: Tensor,
+        window: int,
+        observed: Tensor | None = None,
+        batch_size: int = 4096,
+    ) -> None:
+        if window < 1 or window % 2 != 1:
+            raise ValueError(f"window must be odd and >= 1, got {window}")
+        self.model = model
+        self.rigid = RigidObservation(body_points)
+        self.W = int(window)
+        self.observed = observed  # (T, K) bool or None (= all observed)
+        self.batch_size = int(batch_size)
+        self._rigid_win: Tensor | None = None
+        self._deformed_win: Tensor | None = None
+        self._observed_win: Tensor | None = None
+
+    @property
+    def num_parts(self) -> int:
+        return self.rigid.num_parts
+
+    def _windows(self, X: Tensor) -> Tensor:
+        """(T, K, 3) -> (T, W, K, 3) windows, edge frames repeated at the sequence ends."""
+        T = X.shape[0]
+        n = self.W // 2
+        idx = (torch.arange(T)[:, None] + torch.arange(-n, n + 1)[None]).clamp(0, T - 1)
+        return X[idx]
+
+    def prepare(self, poses: Tensor) -> None:
+        Xr, _ = self.rigid.rigid_points(poses)
+        self._rigid_win = self._windows(Xr.detach())
+        if self._deformed_win is None or self._deformed_win.shape[0] != poses.shape[0]:
+            self._deformed_win = self._rigid_win.clone()
+        T, K = Xr.shape[:2]
+        obs = self.observed if self.observed is not None else torch.ones(T, K, dtype=torch.bool)
+        self._observed_win = self._windows(obs[..., None].to(torch.float32))[..., 0] > 0.5
+        with torch.no_grad():
+            Xd, _ = self.points(poses, jacobian=False)
+        self._deformed_win = self._windows(Xd.detach())
+
+    def points(self, poses: Tensor, jacobian: bool = True) -> tuple[Tensor, Tensor | None]:
+        if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
+            self.prepare(poses)
+        if jacobian:
+            return self._part_jacobian(poses)
+        n = self.W // 2
+        outs = []
+        with torch.no_grad():
+            for s in range(0, poses.shape[0], self.batch_size):
+                e = min(poses.shape[0], s + self.batch_size)
+                Xmid, _ = self.rigid.rigid_points(poses[s:e])
+                outs.append(self._model(Xmid, s, e, n).to(poses.dtype))
+        return torch.cat(outs, 0), None
+
+    def _model(self, Xmid: Tensor, s: int, e: int, n: int) -> Tensor:
+        rw = self._rigid_win[s:e].clone()
+        rw[:, n] = Xmid
+        mdt = next(self.model.parameters(), torch.empty(0, dtype=Xmid.dtype)).dtype
+        return self.model(rw.to(mdt), self._deformed_win[s:e].to(mdt), self._observed_win[s:e])
+
+    def _part_jacobian(self, poses: Tensor) -> tuple[Tensor, Tensor]:
+        """X (T, K, 3) and dX_t,k / d delta_t (T, K, 3, 6) by batched reverse mode.
+
+        Frames are independent given the fixed neighbour inputs, so one backward pass per
+        (part, coordinate) of the output summed over frames gives every frame's row at once.
+        """
+        n = self.W // 2
+        T, K = poses.shape[0], self.num_parts
+        X = poses.new_zeros((T, K, 3))
+        J = poses.new_zeros((T, K, 3, 6))
+        for s in range(0, T, self.batch_size):
+            e = min(T, s + self.batch_size)
+            delta = torch.zeros_like(poses[s:e], requires_grad=True)
+            with torch.enable_grad():
+                Xmid, _ = self.rigid.rigid_points(retract(poses[s:e].detach(), delta))
+                out = self._model(Xmid, s, e, n)
+                X[s:e] = out.detach().to(poses.dtype)
+                for k in range(K):
+                    for i in range(3):
+                        (g,) = torch.autograd.grad(out[:, k, i].sum(), delta, retain_graph=True)
+                        J[s:e, k, i] = g.to(poses.dtype)
+        return X, J
+
+    def rigid_points(self, poses: Tensor) -> tuple[Tensor, Tensor]:
+        return self.rigid.rigid_points(poses)
+
+    def window(self, start: int, stop: int) -> DeformableObservation:
+        obs = None if self.observed is None else self.observed[start:stop]
+        return DeformableObservation(self.model, self.rigid.body, self.W, obs, self.batch_size)

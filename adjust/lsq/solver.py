@@ -1,0 +1,523 @@
+"""Pose-track least-squares adjustment: banded Levenberg-Marquardt over per-frame rigid poses.
+
+Unknowns: p_t = (r_t, tau_t), t = 0..T-1 (model -> global, `deformnet.so3`). Cost:
+
+    sum_{t,k,c} w_tkc rho(|x_tkc - proj_c(X_k(p_t))|^2)  +  lambda_track sum_t |d_t(p_{t-2..t+2})|^2
+
+with the observation function X_k(p_t) pluggable (`observation.py`; rigid by default), the
+motion-track residual d_t in its spline or grid form (`constraint.py`), weights from the
+two-Gaussian mixture and robust kernel (`robust.py`) times the detection weights, and
+lambda_track = track_weight / track_sigma_mm^2. The normal equations are block-banded (6 x 6
+blocks, frames up to 4 apart: scalar half-bandwidth 29) and solved by banded Cholesky in O(T)
+(`banded.py`); rotations are updated multiplicatively, R <- exp(delta) R. Pose covariances are
+the 6 x 6 diagonal blocks of the inverse normal matrix (selected inversion, O(T)), in the
+tangent space of the left increment (rotation part: rad^2 about the global axes).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from adjust.camera import CameraTensors
+from adjust.lsq import banded
+from adjust.lsq.config import SolverConfig
+from adjust.lsq.constraint import add_track_normal, default_rho, make_grid, track_residuals
+from adjust.lsq.fusion import fuse_points
+from adjust.lsq.geometry import project_components, retract
+from adjust.lsq.init import initial_poses
+from adjust.lsq.observation import ObservationModel, RigidObservation
+from adjust.lsq.robust import kernel_cost, kernel_weight, mixture_weights
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class AdjustmentResult:
+    """Output of `adjust_poses` (numpy float64; T frames, K parts, C cameras).
+
+    poses (T, 6): Rodrigues vector (angle in [0, pi]) + translation mm, model -> global.
+    points (T, K, 3): fused part positions (own detections + model), mm; point_cov (T, K, 3, 3)
+    mm^2 and point_sigma (T, K, 3) mm their uncertainty.
+    model_points (T, K, 3): the observation model's points at the poses; model_sigma (T, K, 3)
+    mm: the pose uncertainty propagated to them.
+    pose_cov (T, 6, 6): covariance of the left increment (rad^2 about global axes; mm^2).
+    residuals (T, K, C, 2) px: detection minus projected model point (NaN: no detection).
+    weights (T, K, C): final relative weight of each detection (robust kernel x mixture, scaled
+    so that a clean detection of the narrow Gaussian has 1; 0: no detection).
+    ncams (T, K): accepted detections per part; observed (T,): frame had any detection;
+    fitted (T,): frame had its own initial fit; init_poses (T, 6).
+    iterations: LM iterations (max over chunks); cost_history: one list of costs per chunk;
+    converged: all chunks converged; mixture_share: final share of the narrow Gaussian.
+    """
+
+    poses: np.ndarray
+    points: np.ndarray
+    point_cov: np.ndarray
+    point_sigma: np.ndarray
+    model_points: np.ndarray
+    model_sigma: np.ndarray
+    pose_cov: np.ndarray
+    residuals: np.ndarray
+    weights: np.ndarray
+    ncams: np.ndarray
+    observed: np.ndarray
+    fitted: np.ndarray
+    init_poses: np.ndarray
+    iterations: int = 0
+    cost_history: list[list[float]] = field(default_factory=list)
+    converged: bool = False
+    mixture_share: float = 1.0
+    chunks: int = 1
+
+    @property
+    def pose_sigma(self) -> np.ndarray:
+        """(T, 6) standard deviations of the pose increments (rad, mm)."""
+        return np.sqrt(np.clip(np.diagonal(self.pose_cov, axis1=-2, axis2=-1), 0, None))
+
+    @property
+    def reprojection_error(self) -> np.ndarray:
+        """(T, K) mean reprojection error (px) of the model points over the detections (NaN: none)."""
+        err = np.linalg.norm(self.residuals, axis=-1)
+        with np.errstate(invalid="ignore"):
+            return (
+                np.nanmean(np.where(np.isfinite(err), err, np.nan), axis=-1)
+                if err.size
+                else err[..., 0]
+            )
+
+
+@dataclass
+class _Problem:
+    """One (chunk of the) adjustment problem in torch."""
+
+    xy: Tensor  # (T, K, C, 2), zeros where not valid
+    base: Tensor  # (T, K, C) detection weights, 0 where not valid
+    valid: Tensor  # (T, K, C) bool
+    cams: CameraTensors
+    obs: ObservationModel
+    cfg: SolverConfig
+    rho: float
+    grid: Tensor | None
+    focal: Tensor  # (C,) px
+    W6: Tensor | None = None  # (C 6, 9): camera-frame 3x3 (6 unique) -> world, summed over C
+    Wg: Tensor | None = None  # (C 3, 3): camera-frame gradient -> world, summed over C
+
+    def __post_init__(self) -> None:
+        self.xu, self.xv = self.xy[..., 0], self.xy[..., 1]
+        if self.W6 is None:
+            self.W6, self.Wg = _rotation_gemm_weights(self.cams.R)
+
+    @property
+    def track_w(self) -> float:
+        return (
+            self.cfg.track_weight / self.cfg.track_sigma_mm**2
+            if self.cfg.constraint != "none"
+            else 0.0
+        )
+
+
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _rotation_gemm_weights(R: Tensor) -> tuple[Tensor, Tensor]:
+    """Constant matrices turning per-camera camera-frame normal blocks into world ones.
+
+    sum_c R_c^T H_c R_c = H6 (.., C 6) @ W6 (C 6, 9) for symmetric H_c given by its 6 unique
+    entries (_PAIRS); sum_c R_c^T g_c = g (.., C 3) @ Wg (C 3, 3). R: (C, 3, 3).
+    """
+    C = R.shape[0]
+    W6 = R.new_zeros((C, 6, 3, 3))
+    for p, (j, l) in enumerate(_PAIRS):
+        W6[:, p] = R[:, j, :, None] * R[:, l, None, :]
+        if j != l:
+            W6[:, p] += R[:, l, :, None] * R[:, j, None, :]
+    return W6.reshape(C * 6, 9), R.reshape(C * 3, 3)
+
+
+@dataclass
+class _Lin:
+    """Residuals (and, with `jacobian`, derivatives) at one set of poses."""
+
+    eu: Tensor  # (T, K, C) px, detection minus projection (garbage where not valid)
+    ev: Tensor
+    z: Tensor  # (T, K, C) depth mm
+    r: Tensor  # (R, m) track residuals
+    X: Tensor  # (T, K, 3)
+    A: tuple[Tensor, ...] | None = None  # d(u, v)/dX_cam entries, (T, K, C) each
+    JX: Tensor | None = None  # (T, K, 3, 6)
+    poses: Tensor | None = None  # (T, 6) where linearised
+
+    @property
+    def e2(self) -> Tensor:
+        return self.eu * self.eu + self.ev * self.ev
+
+
+def _evaluate(poses: Tensor, pb: _Problem, jacobian: bool) -> _Lin:
+    X, JX = pb.obs.points(poses, jacobian=jacobian)
+    u, v, z, A = project_components(X, pb.cams, jacobian)
+    eu = pb.xu - u
+    ev = pb.xv - v
+    if pb.cfg.constraint == "none":
+        r = poses.new_zeros((0, 6))
+    elif jacobian:  # computed with the normal equations (`_normal_equations`)
+        r = None
+    else:
+        r, _ = track_residuals(poses, pb.cfg.constraint, rho=pb.rho, grid=pb.grid, jacobian=False)
+    return _Lin(eu, ev, z, r, X, A, JX, poses)
+
+
+def _weights(lin: _Lin, pb: _Problem, share: float) -> tuple[Tensor, Tensor, float]:
+    """IRLS weights (T, K, C) px^-2, the mixture inverse variances (T, K, C), the new share."""
+    cfg = pb.cfg
+    e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
+    sdef = None
+    if cfg.sigma_def_mm > 0:
+        sdef = cfg.sigma_def_mm * pb.focal / lin.z.abs().clamp_min(1e-6)
+    wmix, _, share = mixture_weights(e2, pb.base, cfg.sigma_det_px, sdef, share)
+    u = (e2 * wmix).sqrt()
+    w = pb.base * wmix * kernel_weight(u, cfg.robust, cfg.robust_scale)  # 0 where not valid
+    return w, wmix, share
+
+
+def _cost(lin: _Lin, pb: _Problem, wmix: Tensor) -> float:
+    e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
+    c = (pb.base * kernel_cost(e2 * wmix, pb.cfg.robust, pb.cfg.robust_scale)).sum()
+    return float(c) + 0.5 * pb.track_w * float((lin.r * lin.r).sum())
+
+
+def _normal_equations(lin: _Lin, w: Tensor, pb: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Banded normal matrix (5, T, 6, 6) and right-hand side (T, 6) of the weighted GN step."""
+    T, K, C = lin.eu.shape
+    a0, a1 = lin.A[:3], lin.A[3:]
+    wa0 = [w * x for x in a0]
+    wa1 = [w * x for x in a1]
+    h = torch.stack([wa0[j] * a0[m] + wa1[j] * a1[m] for j, m in _PAIRS], -1)  # (T, K, C, 6)
+    gc = torch.stack([wa0[j] * lin.eu + wa1[j] * lin.ev for j in range(3)], -1)  # (T, K, C, 3)
+    Hx = (h.reshape(T * K, C * 6) @ pb.W6).reshape(T * K, 3, 3)  # world frame, summed over C
+    gx = (gc.reshape(T * K, C * 3) @ pb.Wg).reshape(T, K * 3, 1)
+    JX = lin.JX.reshape(T * K, 3, 6)
+    HJ = torch.bmm(Hx, JX).reshape(T, K * 3, 6)
+    JXt = lin.JX.reshape(T, K * 3, 6).transpose(1, 2)
+    H = torch.bmm(JXt, HJ)  # (T, 6, 6)
+    g = torch.bmm(JXt, gx)[..., 0]
+    blocks = banded.zeros(T)
+    banded.add_diagonal(blocks, H)
+    g = g.detach().cpu().numpy().astype(np.float64)
+    if pb.cfg.constraint != "none":
+        lin.r = add_track_normal(
+            blocks, g, lin.poses, pb.cfg.constraint, pb.track_w, rho=pb.rho, grid=pb.grid
+        )
+    return blocks, g
+
+
+def _add_ridge(blocks: np.ndarray, ridge: float) -> float:
+    d = np.diagonal(blocks[0], axis1=-2, axis2=-1)
+    scale = float(np.mean(d)) if d.size else 1.0
+    eps = ridge * (scale if math.isfinite(scale) and scale > 0 else 1.0) + 1e-300
+    idx = np.arange(blocks.shape[-1])
+    blocks[0][:, idx, idx] += eps
+    return eps
+
+
+@contextlib.contextmanager
+def _progress(enabled: bool, total: int, label: str) -> Iterator:
+    if not enabled:
+        yield None
+        return
+    try:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    except ImportError:  # pragma: no cover - rich is a dependency
+        yield None
+        return
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        transient=True,
+    ) as bar:
+        task = bar.add_task(label, total=total)
+        yield lambda desc: bar.update(task, advance=1, description=desc)
+
+
+def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
+    """Levenberg-Marquardt with IRLS reweighting on one problem; returns poses and stats."""
+    cfg = pb.cfg
+    T = poses.shape[0]
+    share = cfg.mixture_prior if cfg.sigma_def_mm > 0 else 1.0
+    lam = cfg.lm_lambda
+    history: list[float] = []
+    converged = False
+    it = 0
+    idx = np.arange(6)
+    with _progress(progress and T > 0, cfg.max_iterations, label) as tick:
+        for it in range(1, cfg.max_iterations + 1):
+            pb.obs.prepare(poses)
+            lin = _evaluate(poses, pb, jacobian=True)
+            w, wmix, share = _weights(lin, pb, share)
+            blocks, g = _normal_equations(lin, w, pb)
+            cost = _cost(lin, pb, wmix)
+            history.append(cost)
+            _add_ridge(blocks, cfg.ridge)
+            diag0 = blocks[0][:, idx, idx].copy()
+            accepted = False
+            stop = False
+            for _ in range(12):
+                blocks[0][:, idx, idx] = diag0 + lam * np.maximum(
+                    diag0, 1e-12 * diag0.max(initial=1.0)
+                )
+                try:
+                    delta = banded.solve(blocks, g)
+                except np.linalg.LinAlgError:
+                    lam = max(lam * cfg.lm_up, 1e-8)
+                    continue
+                dt = torch.as_tensor(delta, dtype=poses.dtype, device=poses.device)
+                trial = retract(poses, dt)
+                new = _cost(_evaluate(trial, pb, jacobian=False), pb, wmix)
+                if math.isfinite(new) and new <= cost:
+                    accepted = True
+                    rel = (cost - new) / max(cost, 1e-300)
+                    step = float(dt.abs().max())
+                    poses = trial
+                    lam = max(lam * cfg.lm_down, 1e-12)
+                    change = abs(history[-2] - cost) / max(cost, 1e-300) if it > 1 else 1.0
+                    if it >= cfg.min_iterations and (
+                        rel < cfg.ftol or step < cfg.xtol or change < cfg.wtol
+                    ):
+                        stop = True
+                    break
+                lam = max(lam * cfg.lm_up, 1e-8)
+            if tick is not None:
+                tick(f"{label} cost {cost:.6g} lambda {lam:.1e}")
+            if not accepted:  # no decrease possible at any damping: a minimum
+                stop = it >= cfg.min_iterations or cost == 0.0
+            if stop:
+                converged = True
+                break
+    # final linearisation: weights, covariance, residuals
+    pb.obs.prepare(poses)
+    lin = _evaluate(poses, pb, jacobian=True)
+    w, wmix, share = _weights(lin, pb, share)
+    blocks, _ = _normal_equations(lin, w, pb)
+    history.append(_cost(lin, pb, wmix))
+    _add_ridge(blocks, cfg.ridge)
+    cov = banded.diagonal_blocks_of_inverse(blocks) if T else np.zeros((0, 6, 6))
+    log.info(
+        "%s: %d iterations, cost %.6g -> %.6g, converged=%s",
+        label,
+        it,
+        history[0],
+        history[-1],
+        converged,
+    )
+    return dict(
+        poses=poses, cov=cov, iterations=it, history=history, converged=converged, share=share
+    )
+
+
+def _as_tensor(x, dtype: torch.dtype) -> Tensor:
+    return x.to(dtype) if isinstance(x, Tensor) else torch.as_tensor(np.asarray(x), dtype=dtype)
+
+
+def adjust_poses(
+    xy: Tensor | np.ndarray,
+    weight: Tensor | np.ndarray | None,
+    cams: CameraTensors,
+    body_points: Tensor | np.ndarray,
+    config: SolverConfig | None = None,
+    init_poses: Tensor | np.ndarray | None = None,
+    observation: ObservationModel | None = None,
+    progress: bool = True,
+) -> AdjustmentResult:
+    """Complete 3D pose track and part positions from incomplete multi-camera detections.
+
+    xy: (T, K, C, 2) detections px, NaN where missing; weight: (T, K, C) >= 0 per detection
+    (e.g. DeepLabCut likelihood; None = 1; NaN/<= config.min_weight = missing); cams: C fixed
+    cameras; body_points: (K, 3) model points mm; init_poses: (T, 6) or None (from
+    config.init); observation: observation function (default: rigid body_points); progress: a
+    rich progress bar over the iterations. Never returns NaN in poses, points or covariances:
+    frames without detections get their pose from the track constraint (or, with nothing to
+    go by, from the initialisation with a huge covariance).
+    """
+    cfg = config if config is not None else SolverConfig()
+    with _threads(cfg.num_threads):
+        return _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, progress)
+
+
+@contextlib.contextmanager
+def _threads(n: int) -> Iterator[None]:
+    """Run with n torch threads (0: unchanged), restoring the previous setting."""
+    if n <= 0:
+        yield
+        return
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, progress):
+    dt = cfg.torch_dtype
+    xy_t = _as_tensor(xy, dt)
+    if xy_t.dim() != 4 or xy_t.shape[-1] != 2:
+        raise ValueError(f"xy must have shape (T, K, C, 2), got {tuple(xy_t.shape)}")
+    T, K, C, _ = xy_t.shape
+    body = _as_tensor(body_points, dt)
+    if body.shape != (K, 3):
+        raise ValueError(
+            f"body_points must have shape ({K}, 3) for xy {tuple(xy_t.shape)}, got {tuple(body.shape)}"
+        )
+    if cams.num_cameras != C:
+        raise ValueError(f"xy has {C} cameras, cams has {cams.num_cameras}")
+    w_t = torch.ones((T, K, C), dtype=dt) if weight is None else _as_tensor(weight, dt)
+    if w_t.shape != (T, K, C):
+        raise ValueError(f"weight must have shape ({T}, {K}, {C}), got {tuple(w_t.shape)}")
+    cams = CameraTensors(cams.K.to(dt), cams.R.to(dt), cams.t.to(dt), cams.dist.to(dt), cams.names)
+    valid = torch.isfinite(xy_t).all(-1) & torch.isfinite(w_t) & (w_t > cfg.min_weight)
+    xy0 = torch.where(valid[..., None], xy_t, torch.zeros_like(xy_t))
+    base = torch.where(valid, w_t, torch.zeros_like(w_t))
+    obs = observation if observation is not None else RigidObservation(body)
+    # initialisation
+    if init_poses is not None:
+        p0 = _as_tensor(init_poses, dt)
+        if p0.shape != (T, 6):
+            raise ValueError(f"init_poses must have shape ({T}, 6), got {tuple(p0.shape)}")
+        p0 = torch.nan_to_num(p0)
+        fitted = torch.ones(T, dtype=torch.bool)
+    else:
+        p0, fitted = initial_poses(
+            xy0, valid, cams, body, cfg.init, (cfg.kalman_accel_rad, cfg.kalman_accel_mm)
+        )
+    rho = cfg.rotation_scale_mm if cfg.rotation_scale_mm is not None else default_rho(body)
+    grid = make_grid(body, cfg.grid_size) if cfg.constraint == "grid" else None
+    focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs())
+
+    def problem(a: int, b: int) -> _Problem:
+        return _Problem(
+            xy0[a:b], base[a:b], valid[a:b], cams, obs.window(a, b), cfg, rho, grid, focal
+        )
+
+    # chunks: cores [a, b) solved with `overlap` extra frames each side, the core kept
+    ov = cfg.overlap
+    if cfg.chunk_size and T > cfg.chunk_size + 2 * ov:
+        cores = [(a, min(a + cfg.chunk_size, T)) for a in range(0, T, cfg.chunk_size)]
+    else:
+        cores = [(0, T)]
+    poses = p0.clone()
+    pose_cov = np.zeros((T, 6, 6))
+    histories, iters, conv, shares = [], 0, True, []
+    for i, (a, b) in enumerate(cores):
+        ea, eb = (max(0, a - ov), min(T, b + ov)) if len(cores) > 1 else (a, b)
+        label = f"adjust chunk {i + 1}/{len(cores)}" if len(cores) > 1 else "adjust"
+        out = _solve(p0[ea:eb].clone(), problem(ea, eb), progress, label)
+        poses[a:b] = out["poses"][a - ea : b - ea]
+        pose_cov[a:b] = out["cov"][a - ea : b - ea]
+        histories.append(out["history"])
+        iters = max(iters, out["iterations"])
+        conv = conv and out["converged"]
+        shares.append(out["share"])
+    share = float(np.mean(shares)) if shares else 1.0
+    return _finish(
+        poses, pose_cov, p0, fitted, problem(0, T), share, histories, iters, conv, len(cores)
+    )
+
+
+def _finish(
+    poses, pose_cov, p0, fitted, pb: _Problem, share, histories, iters, conv, nchunks
+) -> AdjustmentResult:
+    """Residuals, weights, fused points and uncertainties at the final poses."""
+    cfg = pb.cfg
+    T, K, C = pb.valid.shape
+    dt = poses.dtype
+    pb.obs.prepare(poses)
+    lin = _evaluate(poses, pb, jacobian=False)
+    _, wmix, _ = _weights(lin, pb, share)
+    e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
+    rob = kernel_weight((e2 * wmix).sqrt(), cfg.robust, cfg.robust_scale)
+    Xr, JXr = pb.obs.rigid_points(poses)
+    cov_t = torch.as_tensor(pose_cov, dtype=dt)
+    _, JX = (
+        pb.obs.points(poses, jacobian=True)
+        if not isinstance(pb.obs, RigidObservation)
+        else (None, JXr)
+    )
+    model_cov = JX @ cov_t[:, None] @ JX.transpose(-1, -2)  # (T, K, 3, 3)
+    eye = torch.eye(3, dtype=dt)
+    prior = model_cov + (cfg.sigma_def_mm**2 + 1e-6) * eye
+    w_fuse = pb.base * rob / cfg.sigma_det_px**2
+    pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, cfg.fuse_iterations)
+    e = torch.stack((lin.eu, lin.ev), -1)
+    res = torch.where(pb.valid[..., None], e, torch.full_like(e, float("nan")))
+    inv_det = 1.0 / cfg.sigma_det_px**2
+    from adjust.lsq.geometry import so3_exp, so3_log  # noqa: PLC0415
+
+    poses_c = torch.cat((so3_log(so3_exp(poses[:, :3])), poses[:, 3:]), -1)
+
+    def np_(x: Tensor) -> np.ndarray:
+        return x.detach().cpu().numpy().astype(np.float64)
+
+    return AdjustmentResult(
+        poses=np_(poses_c),
+        points=np_(pts),
+        point_cov=np_(pcov),
+        point_sigma=np_(torch.diagonal(pcov, dim1=-2, dim2=-1).clamp_min(0).sqrt()),
+        model_points=np_(lin.X),
+        model_sigma=np_(torch.diagonal(model_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()),
+        pose_cov=np.asarray(pose_cov, dtype=np.float64),
+        residuals=np_(res),
+        weights=np_(torch.where(pb.valid, wmix * rob / inv_det, torch.zeros_like(rob))),
+        ncams=pb.valid.sum(-1).cpu().numpy(),
+        observed=pb.valid.any(-1).any(-1).cpu().numpy(),
+        fitted=fitted.cpu().numpy(),
+        init_poses=np_(p0),
+        iterations=iters,
+        cost_history=histories,
+        converged=conv,
+        mixture_share=share,
+        chunks=nchunks,
+    )
+
+
+def normal_matrix(
+    poses: Tensor,
+    xy: Tensor,
+    weight: Tensor,
+    cams: CameraTensors,
+    body_points: Tensor,
+    config: SolverConfig | None = None,
+) -> np.ndarray:
+    """The banded normal matrix (5, T, 6, 6) J^T W J at `poses` with the plain (non-robust,
+    single-Gaussian) weights weight / sigma_det^2 and the track constraint: the Fisher
+    information of the problem (for Cramer-Rao bounds and tests)."""
+    cfg = config if config is not None else SolverConfig()
+    dt = poses.dtype
+    valid = torch.isfinite(xy).all(-1) & (weight > cfg.min_weight)
+    base = torch.where(valid, weight, torch.zeros_like(weight))
+    body = body_points.to(dt)
+    rho = cfg.rotation_scale_mm if cfg.rotation_scale_mm is not None else default_rho(body)
+    grid = make_grid(body, cfg.grid_size) if cfg.constraint == "grid" else None
+    focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs())
+    pb = _Problem(
+        torch.where(valid[..., None], xy, torch.zeros_like(xy)),
+        base,
+        valid,
+        cams,
+        RigidObservation(body),
+        cfg,
+        rho,
+        grid,
+        focal,
+    )
+    lin = _evaluate(poses, pb, jacobian=True)
+    blocks, _ = _normal_equations(lin, base / cfg.sigma_det_px**2, pb)
+    return blocks
