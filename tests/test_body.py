@@ -1,0 +1,86 @@
+"""BodyModel: estimation by generalized Procrustes, aliases, config round trip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from deformnet.body import BodyModel, default_mouse
+
+
+def _pairwise(P: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(P[:, None] - P[None], axis=-1)
+
+
+def _observe(model: np.ndarray, T: int, noise: float, missing: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(T, random_state=seed).as_matrix()
+    t = rng.uniform(-200, 200, (T, 3))
+    X = np.einsum("tij,kj->tki", R, model) + t[:, None] + rng.normal(0, noise, (T, len(model), 3))
+    X[rng.random((T, len(model))) < missing] = np.nan
+    return X
+
+
+def test_from_observations_recovers_rigid_model_up_to_rigid_transform():
+    truth = default_mouse()
+    X = _observe(truth.points, T=400, noise=0.5, missing=0.2, seed=0)
+    est = BodyModel.from_observations(X, parts=truth.parts, name="est")
+    assert est.parts == truth.parts and est.name == "est"
+    err = np.abs(_pairwise(est.points) - _pairwise(truth.points))
+    assert err.max() < 0.5, err.max()
+    # a proper rigid transform maps the estimate onto the truth (not a mirror image)
+    a, b = est.points - est.points.mean(0), truth.points - truth.points.mean(0)
+    U, _, Vt = np.linalg.svd(a.T @ b)
+    R = (U @ Vt).T
+    if np.linalg.det(R) < 0:
+        D = np.diag([1.0, 1.0, -1.0])
+        R = (U @ D @ Vt).T
+    rms = np.sqrt(np.mean(np.sum((a @ R.T - b) ** 2, -1)))
+    assert rms < 0.3, rms
+    # model frame conventions: centroid at the origin, largest spread along Y
+    np.testing.assert_allclose(est.points.mean(0), 0.0, atol=1e-9)
+    assert np.ptp(est.points[:, 1]) >= np.ptp(est.points[:, 0]) >= np.ptp(est.points[:, 2])
+
+
+def test_from_observations_noise_free_is_exact():
+    truth = default_mouse()
+    X = _observe(truth.points, T=50, noise=0.0, missing=0.3, seed=1)
+    est = BodyModel.from_observations(X, parts=truth.parts)
+    np.testing.assert_allclose(_pairwise(est.points), _pairwise(truth.points), atol=1e-6)
+
+
+def test_from_observations_errors():
+    X = np.full((10, 8, 3), np.nan)
+    with pytest.raises(ValueError, match="frames"):
+        BodyModel.from_observations(X)
+    with pytest.raises(ValueError, match="shape"):
+        BodyModel.from_observations(np.zeros((10, 8)))
+    with pytest.raises(ValueError, match="part names"):
+        BodyModel.from_observations(np.zeros((10, 8, 3)), parts=["a", "b"])
+    Y = _observe(default_mouse().points, 20, 0.1, 0.0, 2)
+    Y[:, 3] = np.nan
+    with pytest.raises(ValueError, match="part3"):
+        BodyModel.from_observations(Y, min_parts=6)
+
+
+def test_alias_lookup():
+    body = default_mouse()
+    assert body.index("snout") == body.index("nose_tip") == 0
+    assert body.resolve("tailbase") == "tail_root"
+    assert body.resolve("left_forepaw") == "left_front_paw"
+    assert body.resolve("wing") is None
+    with pytest.raises(KeyError, match="wing"):
+        body.index("wing")
+    with pytest.raises(ValueError, match="unknown part"):
+        BodyModel(("a", "b", "c"), np.zeros((3, 3)), {"x": "d"})
+
+
+def test_default_mouse_left_is_minus_x_and_round_trip():
+    body = default_mouse()
+    for part in ("ear", "front_paw", "hind_paw"):
+        assert body.points[body.index(f"left_{part}"), 0] < 0
+        assert body.points[body.index(f"right_{part}"), 0] > 0
+    again = BodyModel.from_config(body.to_mapping())
+    assert again.parts == body.parts and again.aliases == body.aliases
+    np.testing.assert_array_equal(again.points, body.points)
