@@ -241,19 +241,45 @@ def default_rig(cfg: Any = None, arena_size: Sequence[float] | None = None) -> l
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Ellipsoid:
-    """An axis-aligned ellipsoid in the model frame: centre (3,) and semi-axes (3,) in mm."""
+    """An axis-aligned ellipsoid in the model frame: centre (3,) and semi-axes (3,) in mm.
+
+    parts: empty -> it moves with the body pose; else it moves with the rigid best fit
+    (Kabsch) of these parts' model positions onto their true positions in each frame (>= 3
+    parts; e.g. the head triangle nose_tip, left_ear, right_ear for a head proxy).
+    """
 
     name: str
     center: np.ndarray
     radii: np.ndarray
+    parts: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         c = _vec(self.center, 3, f"ellipsoid '{self.name}': center")
         r = _vec(self.radii, 3, f"ellipsoid '{self.name}': radii")
         if np.any(r <= 0):
             raise ValueError(f"ellipsoid '{self.name}': radii must be > 0, got {r.tolist()}")
+        parts = tuple(str(p) for p in (self.parts or ()))
+        if parts and len(set(parts)) < 3:
+            raise ValueError(
+                f"ellipsoid '{self.name}': needs >= 3 distinct parts to follow, got {list(parts)}"
+            )
         object.__setattr__(self, "center", c)
         object.__setattr__(self, "radii", r)
+        object.__setattr__(self, "parts", parts)
+
+
+def _kabsch(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid fits B_t ~ R_t A + t_t.  A (n, 3), B (T, n, 3) -> R (T, 3, 3), t (T, 3)."""
+    ca, cb = A.mean(0), B.mean(1)
+    H = np.einsum("ni,tnj->tij", A - ca, B - cb[:, None, :])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("tji,tkj->tik", Vt, U)))
+    d = np.where(d == 0, 1.0, d)
+    D = np.zeros((len(B), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.einsum("tji,tjk,tlk->til", Vt, D, U)  # V D U^T
+    return R, cb - np.einsum("tij,j->ti", R, ca)
 
 
 def occluded_by_ellipsoids(
@@ -262,13 +288,17 @@ def occluded_by_ellipsoids(
     centers: np.ndarray,
     ellipsoids: Sequence[Ellipsoid],
     surface_margin: float = 3.0,
+    model: np.ndarray | None = None,
+    parts: Sequence[str] | None = None,
 ) -> np.ndarray:
-    """Is each point hidden from each camera by one of the pose-moved ellipsoids?
+    """Is each point hidden from each camera by one of the moving ellipsoids?
 
-    points: (T, K, 3) global mm; poses: (T, 6) Rodrigues + translation, model -> global;
-    centers: (C, 3) camera centres. Returns (T, K, C) bool: True where the segment from the
-    camera centre to the point, less its last `surface_margin` mm, meets an ellipsoid's
-    interior. A camera inside an ellipsoid sees nothing through it.
+    points: (T, K, 3) true global mm; poses: (T, 6) Rodrigues + translation, model -> global;
+    centers: (C, 3) camera centres; model (K, 3) and parts (K names): needed by ellipsoids that
+    follow parts. Returns (T, K, C) bool: True where the segment from the camera centre to the
+    point, less its last `surface_margin` mm, meets an ellipsoid's interior. A point inside an
+    ellipsoid is tested as its radial projection onto that ellipsoid's surface (in the
+    ellipsoid's unit-sphere coordinates). A camera inside an ellipsoid sees nothing through it.
     """
     P = np.asarray(points, dtype=np.float64)
     poses = np.asarray(poses, dtype=np.float64)
@@ -279,18 +309,36 @@ def occluded_by_ellipsoids(
         raise ValueError(f"poses must be ({P.shape[0]}, 6), got {poses.shape}")
     if O.ndim != 2 or O.shape[-1] != 3:
         raise ValueError(f"centers must be (C, 3), got {O.shape}")
-    R = rodrigues_to_matrix(torch.as_tensor(poses[:, :3])).numpy()  # (T, 3, 3) model->global
-    tau = poses[:, 3:]
+    R_body = rodrigues_to_matrix(torch.as_tensor(poses[:, :3])).numpy()  # (T, 3, 3)
+    tau_body = poses[:, 3:]
     hidden = np.zeros((P.shape[0], P.shape[1], O.shape[0]), dtype=bool)
     for e in ellipsoids:  # a handful of proxies, not a loop over frames
+        if e.parts:
+            if model is None or parts is None:
+                raise ValueError(
+                    f"ellipsoid '{e.name}' follows parts {list(e.parts)}: pass model and parts"
+                )
+            names = [str(p) for p in parts]
+            missing = [p for p in e.parts if p not in names]
+            if missing:
+                raise ValueError(f"ellipsoid '{e.name}': parts {missing} are not among {names}")
+            idx = [names.index(p) for p in e.parts]
+            R, tau = _kabsch(np.asarray(model, dtype=np.float64)[idx], P[:, idx])
+        else:
+            R, tau = R_body, tau_body
         centre = np.einsum("tij,j->ti", R, e.center) + tau  # (T, 3)
         # into the ellipsoid's unit-sphere frame: u = D^-1 R^T (x - centre)
         p = np.einsum("tji,tkj->tki", R, P - centre[:, None, :]) / e.radii  # (T, K, 3)
         o = np.einsum("tji,tcj->tci", R, O[None, :, :] - centre[:, None, :]) / e.radii  # (T, C, 3)
         o = o[:, None, :, :]  # (T, 1, C, 3)
+        # a part inside the proxy (where the proxy is cruder than the body) stands for its
+        # radial projection onto the proxy's surface: a paw tucked to the chest is seen from
+        # the front, not from behind
+        r = np.linalg.norm(p, axis=-1, keepdims=True)
+        p = np.where(r < 1.0, p / np.maximum(r, 1e-9), p)
         d = p[:, :, None, :] - o  # (T, K, C, 3), segment o + s d, s in [0, 1]
-        seg_len = np.linalg.norm(P[:, :, None, :] - O[None, None, :, :], axis=-1)  # (T, K, C)
-        s_max = 1.0 - surface_margin / np.maximum(seg_len, 1e-9)
+        seg = np.linalg.norm(d * e.radii, axis=-1)
+        s_max = 1.0 - surface_margin / np.maximum(seg, 1e-9)
         a = (d * d).sum(-1)
         b = 2.0 * (o * d).sum(-1)
         c = (o * o).sum(-1) - 1.0
@@ -299,8 +347,7 @@ def occluded_by_ellipsoids(
         a2 = np.maximum(2.0 * a, 1e-18)
         s0 = (-b - root) / a2
         s1 = (-b + root) / a2
-        hit = (disc > 0) & (s1 > 0.0) & (s0 < s_max) & (s_max > 0.0)
-        hidden |= hit
+        hidden |= (disc > 0) & (s1 > 0.0) & (s0 < s_max) & (s_max > 0.0)
     return hidden
 
 
@@ -340,7 +387,8 @@ def lockbox_boxes(sim: Any) -> np.ndarray:
 
 
 def ellipsoids_from_config(occ_cfg: Any) -> list[Ellipsoid]:
-    """``{name: {center: [x,y,z], radii: [a,b,c]}}`` (model frame, mm) -> ellipsoids."""
+    """``{name: {center: [x,y,z], radii: [a,b,c], parts?: [...]}}`` (model frame, mm) ->
+    ellipsoids."""
     occ = _plain(occ_cfg) or {}
     if not isinstance(occ, Mapping):
         raise ValueError(f"occluders must map name -> {{center, radii}}, got {occ!r}")
@@ -348,7 +396,10 @@ def ellipsoids_from_config(occ_cfg: Any) -> list[Ellipsoid]:
     for name, spec in occ.items():
         if not isinstance(spec, Mapping) or {"center", "radii"} - set(spec):
             raise ValueError(f"occluder '{name}' needs 'center' and 'radii' (mm), got {spec!r}")
-        out.append(Ellipsoid(str(name), spec["center"], spec["radii"]))
+        unknown = set(spec) - {"center", "radii", "parts"}
+        if unknown:
+            raise ValueError(f"occluder '{name}': unknown keys {sorted(unknown)}")
+        out.append(Ellipsoid(str(name), spec["center"], spec["radii"], spec.get("parts") or ()))
     return out
 
 
@@ -364,8 +415,11 @@ def _range(value: Any, what: str, lo: float = 0.0, hi: float = 1.0) -> tuple[flo
     return float(v[0]), float(v[1])
 
 
-#: the default body proxy (mouse model frame, mm), as in ``conf/detector/default.yaml``
-DEFAULT_TRUNK = Ellipsoid("trunk", (0.0, -1.0, 3.0), (12.0, 26.0, 10.0))
+#: the default body proxies (mouse model frame, mm), as in ``conf/detector/default.yaml``
+DEFAULT_OCCLUDERS = (
+    Ellipsoid("trunk", (0.0, -1.0, 3.0), (12.0, 26.0, 10.0)),
+    Ellipsoid("head", (0.0, 22.0, 8.0), (7.0, 11.0, 7.0), ("nose_tip", "left_ear", "right_ear")),
+)
 
 
 @dataclass(frozen=True)
@@ -389,7 +443,7 @@ class DetectorConfig:
     the segment ending at the part that is not tested (the part's own surface vicinity).
     """
 
-    dropout_rate: float = 0.25
+    dropout_rate: float = 0.34
     dropout_correlation_frames: float = 4.0
     swap_rate: float = 0.01
     swap_correlation_frames: float = 3.0
@@ -403,7 +457,7 @@ class DetectorConfig:
     out_of_image: str = "clip"
     out_of_image_likelihood: tuple[float, float] = (0.0, 0.05)
     threshold: float = 0.5
-    occluders: tuple[Ellipsoid, ...] = field(default_factory=lambda: (DEFAULT_TRUNK,))
+    occluders: tuple[Ellipsoid, ...] = field(default_factory=lambda: DEFAULT_OCCLUDERS)
     lockbox_occludes: bool = True
     surface_margin: float = 3.0
 
@@ -619,7 +673,10 @@ def simulate_scene(
     finite = np.isfinite(uv).all(-1)
     in_image = (z > 0) & finite & (uv >= lo).all(-1) & (uv < hi).all(-1)
     centers = np.stack([c.center for c in cams])
-    occluded = occluded_by_ellipsoids(X, poses, centers, cfg.occluders, cfg.surface_margin)
+    model = getattr(sim, "model", None)
+    occluded = occluded_by_ellipsoids(
+        X, poses, centers, cfg.occluders, cfg.surface_margin, model=model, parts=parts
+    )
     if cfg.lockbox_occludes:
         occluded |= occluded_by_boxes(X, centers, lockbox_boxes(sim), cfg.surface_margin)
     occluded &= in_image

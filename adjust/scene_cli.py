@@ -35,7 +35,7 @@ def _simulate(cfg: DictConfig, body: BodyModel, num_frames: int, seed: int) -> A
         from deformnet.sim import simulate
     except ImportError as e:  # pragma: no cover - the simulator ships with the package
         raise RuntimeError(f"adjust-simulate needs the simulator deformnet.sim: {e}") from e
-    return simulate(cfg, num_frames=num_frames, seed=seed, body=body)
+    return simulate(cfg.sim, num_frames=num_frames, seed=seed, body=body)
 
 
 def run(cfg: DictConfig) -> dict:

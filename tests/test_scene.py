@@ -140,11 +140,12 @@ def test_point_in_front_visible_behind_hidden():
     ell = [Ellipsoid("trunk", [0, 0, 0], [10, 20, 5])]
     pose = np.zeros((1, 6))
     cam = np.array([[0.0, 0, 500]])  # above
-    pts = np.array([[[0.0, 0, 8], [0, 0, -8], [15, 0, -8], [0, 5, 4.0], [0, 0, 0]]])
+    pts = np.array([[[0.0, 0, 8], [0, 0, -8], [15, 0, -8], [0, 5, 4.0], [0, 0, -2], [0, 0, 2]]])
     hid = occluded_by_ellipsoids(pts, pose, cam, ell, surface_margin=2.0)[0, :, 0]
     # above (in front of) it; below (behind) it; beside it; just under its surface (the part's
-    # own surface vicinity); deep inside
-    assert hid.tolist() == [False, True, False, False, True]
+    # own surface vicinity); inside, in the lower half (stands for the bottom surface: hidden
+    # from above); inside, upper half (the top surface: seen)
+    assert hid.tolist() == [False, True, False, False, True, False]
     # the same from the side camera: the point above is seen, one beyond the body is not
     side = np.array([[500.0, 0, 0]])
     pts_s = np.array([[[0.0, 0, 8], [-15, 0, 0], [15, 0, 0]]])
@@ -158,6 +159,23 @@ def test_point_in_front_visible_behind_hidden():
     pts2 = np.array([[[100.0 - 15, 50, -8], [100 + 15, 50, -8], [100, 50 + 15, -8]]])
     hid2 = occluded_by_ellipsoids(pts2, pose2, np.array([[100.0, 50, 500]]), ell, 2.0)[0, :, 0]
     assert hid2.tolist() == [True, True, False]
+
+
+def test_ellipsoid_following_parts():
+    # a proxy attached to three parts moves with their rigid fit, not with the body pose
+    model = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [5, 5, -30]])
+    parts = ("a", "b", "c", "paw")
+    ell = [Ellipsoid("head", [5, 5, -10], [6, 6, 6], ("a", "b", "c"))]
+    shift = np.array([100.0, 0, 0])
+    pts = (model + shift)[None]  # the whole body shifted, the pose left at the identity
+    pose = np.zeros((1, 6))
+    cam = np.array([[105.0, 5, 500]])
+    hid = occluded_by_ellipsoids(pts, pose, cam, ell, 2.0, model=model, parts=parts)
+    assert hid[0, :, 0].tolist() == [False, False, False, True]
+    with pytest.raises(ValueError, match="model and parts"):
+        occluded_by_ellipsoids(pts, pose, cam, ell, 2.0)
+    with pytest.raises(ValueError, match=">= 3 distinct parts"):
+        Ellipsoid("x", [0, 0, 0], [1, 1, 1], ("a", "b"))
 
 
 def test_box_occlusion():
@@ -248,7 +266,8 @@ def test_shipped_detector_config_loads():
     from omegaconf import OmegaConf
 
     cfg = detector_config(OmegaConf.load(CONF_DIR / "detector" / "default.yaml"))
-    assert [e.name for e in cfg.occluders] == ["trunk"] and cfg.threshold == 0.5
+    assert [e.name for e in cfg.occluders] == ["trunk", "head"] and cfg.threshold == 0.5
+    assert cfg.occluders[1].parts == ("nose_tip", "left_ear", "right_ear")
 
 
 def test_standin_fractions_in_range(rig):
@@ -328,8 +347,8 @@ def test_dataclass_defaults_match_shipped_config():
     for f in fields(DetectorConfig):
         a, b = getattr(shipped, f.name), getattr(plain, f.name)
         if f.name == "occluders":
-            assert [(e.name, e.center.tolist(), e.radii.tolist()) for e in a] == [
-                (e.name, e.center.tolist(), e.radii.tolist()) for e in b
+            assert [(e.name, e.center.tolist(), e.radii.tolist(), e.parts) for e in a] == [
+                (e.name, e.center.tolist(), e.radii.tolist(), e.parts) for e in b
             ]
         else:
             assert a == b, f.name
