@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
-from scipy.spatial.transform import Rotation
 
 from deformnet.body import BodyModel, default_mouse
 from deformnet.sim.config import BEHAVIORS, MECHANISMS, SimConfig
@@ -127,6 +126,40 @@ def _pose_at(s: np.ndarray, xy: np.ndarray, yaw: np.ndarray, values: np.ndarray)
     return xy[i] + f[:, None] * (xy[j] - xy[i]), yaw[i] + f * (yaw[j] - yaw[i])
 
 
+def _rotvec_z_x(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """Rodrigues vectors (T, 3) of Rz(yaw) Rx(pitch), |pitch| < pi / 2 (via the quaternion
+    (ca cb, ca sb, sa sb, sa cb), a = yaw / 2, b = pitch / 2)."""
+    a = 0.5 * ((yaw + np.pi) % (2 * np.pi) - np.pi)
+    b = 0.5 * pitch
+    ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
+    w = ca * cb  # >= 0
+    v = np.stack([ca * sb, sa * sb, sa * cb], -1)
+    n = np.linalg.norm(v, axis=-1)
+    small = n < 1e-12
+    scale = np.where(
+        small, 2.0 / np.maximum(w, 1e-300), 2.0 * np.arctan2(n, w) / np.where(small, 1.0, n)
+    )
+    return v * scale[:, None]
+
+
+def _euler_zxy(ang: np.ndarray) -> np.ndarray:
+    """R = Rz(yaw) Rx(pitch) Ry(roll) (T, 3, 3) from (T, 3) radians (yaw, pitch, roll)."""
+    cz, sz = np.cos(ang[:, 0]), np.sin(ang[:, 0])
+    cx, sx = np.cos(ang[:, 1]), np.sin(ang[:, 1])
+    cy, sy = np.cos(ang[:, 2]), np.sin(ang[:, 2])
+    R = np.empty((len(ang), 3, 3))
+    R[:, 0, 0] = cz * cy - sz * sx * sy
+    R[:, 0, 1] = -sz * cx
+    R[:, 0, 2] = cz * sy + sz * sx * cy
+    R[:, 1, 0] = sz * cy + cz * sx * sy
+    R[:, 1, 1] = cz * cx
+    R[:, 1, 2] = sz * sy - cz * sx * cy
+    R[:, 2, 0] = -cx * sy
+    R[:, 2, 1] = sx
+    R[:, 2, 2] = cx * cy
+    return R
+
+
 def _gait(scene: Scene, cfg: SimConfig, xy, yaw, d, ep, parity0: int, flat):
     """Paw positions (T, 4, 3) in PAWS order for the paper's pace: pair A (right front + left
     hind) stands on even half cycles while pair B swings, then they swap.
@@ -242,10 +275,10 @@ def simulate(
     tau = np.einsum("tij,tj->ti", Rz, P - RxP)
     tau[:, :2] += xy
     tau[:, 2] += scene.ground
-    rvec = Rotation.from_matrix(R).as_rotvec()
+    rvec = _rotvec_z_x(yaw, pitch)
     poses = np.concatenate([rvec, tau], -1)
     model = scene.model
-    rigid = np.einsum("tij,kj->tki", R, model) + tau[:, None]
+    rigid = np.matmul(model, R.transpose(0, 2, 1)) + tau[:, None]
     deformed = rigid.copy()
 
     # --- paws: pace gait (ground contact), expressed as offsets from the unpitched rigid paws ---
@@ -253,7 +286,7 @@ def simulate(
     turn_r = float(np.linalg.norm(model[scene.paws, :2], axis=1).mean())
     d = np.zeros(T)
     d[1:] = np.hypot(*np.diff(xy, axis=0).T) + turn_r * np.abs(np.diff(yaw))
-    flat = np.einsum("tij,kj->tki", Rz, model[scene.paws])
+    flat = np.matmul(model[scene.paws], Rz.transpose(0, 2, 1))
     flat[..., :2] += xy[:, None]
     flat[..., 2] += scene.ground
     gait, _ = _gait(scene, cfg, xy, yaw, d, ep, int(rng_gait.integers(2)), flat)
@@ -273,10 +306,10 @@ def simulate(
             lo, hi = getattr(grp, key)
             angles[:, a] += wgt * (lo + (hi - lo) * _tri(t / grp.period[a] + phase[a]))
     # yaw about model Z, pitch about model X, roll about model Y: R_h = Rz(yaw) Rx(pitch) Ry(roll)
-    Rh = Rotation.from_euler("ZXY", angles, degrees=True).as_matrix()
+    Rh = _euler_zxy(np.radians(angles))
     hp = scene.head_pivot
-    head_m = np.einsum("tij,kj->tki", Rh, model[scene.head] - hp) + hp
-    deformed[:, scene.head] = np.einsum("tij,tkj->tki", R, head_m) + tau[:, None]
+    head_m = np.matmul(model[scene.head] - hp, Rh.transpose(0, 2, 1)) + hp
+    deformed[:, scene.head] = np.matmul(head_m, R.transpose(0, 2, 1)) + tau[:, None]
 
     # --- rear: front paws tucked to the chest (the body pitch is in the pose) ------------------
     rear = np.where(labels == REAR, env, 0.0)
