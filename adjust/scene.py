@@ -716,7 +716,6 @@ def simulate_scene(
     xy = np.where(far[..., None], far_xy, xy)
     lik = np.where(far, _uniform(rng, cfg.outlier_likelihood, shape), lik)
     outlier = far | swapped
-    lik = np.where(swapped & ~far, np.maximum(lik, cfg.visible_likelihood[0]), lik)
     # outside the image (or behind the camera): missing / low likelihood
     out_lik = _uniform(rng, cfg.out_of_image_likelihood, shape)
     if cfg.out_of_image == "nan":
