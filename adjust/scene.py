@@ -571,6 +571,25 @@ class SceneDetections:
         """(T, K) number of cameras with an accepted, correct detection."""
         return self.correct.sum(-1)
 
+    @property
+    def accepted_xy(self) -> np.ndarray:
+        """(T, K, C, 2) reported pixels, NaN below the threshold (as `adjust.io` loads them)."""
+        return np.where(self.accepted[..., None], self.xy, np.nan)
+
+    def to_detections(self):
+        """The in-memory twin of what `adjust.io.load_detections` reads from the written
+        scene folder: an `adjust.io.Detections` (xy NaN below the threshold, no files)."""
+        from adjust.io import Detections
+
+        return Detections(
+            cameras=tuple(self.cameras),
+            parts=tuple(self.parts),
+            xy=self.accepted_xy,
+            likelihood=np.nan_to_num(self.likelihood, nan=0.0),
+            files=(),
+            threshold=self.threshold,
+        )
+
     def fractions(self) -> dict[str, float]:
         """Measured fractions of part-frames (and rates over part-frame-cameras)."""
         nv = self.nviews

@@ -228,6 +228,21 @@ def test_detector_rates_roughly_as_configured(rig, sim):
     assert np.linalg.norm(det.xy[t, k, c] - det.truth_xy[t, j, c]) < 15
 
 
+def test_distorted_camera(sim):
+    cam = camera_look_at(
+        "wide",
+        [150, 150, 700],
+        [150, 150, 0],
+        up=[0, 1, 0],
+        focal_px=1500,
+        size=[1280, 1024],
+        dist=[-0.2, 0.05, 0.0, 0.0, 0.0],
+    )
+    assert np.allclose(cam.dist, [-0.2, 0.05, 0, 0, 0])
+    det = simulate_scene(sim, [cam], None, seed=0)
+    assert det.in_image.all() and np.isfinite(det.xy).all()
+
+
 def test_out_of_image_and_behind(sim):
     cam = camera_look_at(
         "narrow", [150, 150, 400], [150, 150, 0], up=[0, 1, 0], focal_px=3000, size=[320, 240]
@@ -239,6 +254,12 @@ def test_out_of_image_and_behind(sim):
     assert (det.xy[out] >= -0.5).all() and (det.xy[out][:, 0] < 320).all()
     det_nan = simulate_scene(sim, [cam], {"out_of_image": "nan"}, seed=0)
     assert np.isnan(det_nan.xy[out]).all()
+    # a camera in the arena looking along +X: what lies behind it is never visible
+    inside = camera_look_at("in", [150, 150, 60], [300, 150, 0], focal_px=300, size=[1280, 1024])
+    det_in = simulate_scene(sim, [inside], None, seed=0)
+    behind = sim.deformed[..., 0] < 140
+    assert behind.any() and not det_in.in_image[behind, 0].any()
+    assert (det_in.likelihood[behind, 0] <= 0.05).all()
 
 
 def test_deterministic(rig, sim):
@@ -301,6 +322,10 @@ def test_write_scene_reads_back(tmp_path, rig, sim):
         assert np.allclose(a.K, b.K) and np.allclose(a.R, b.R) and np.allclose(a.tvec, b.tvec)
         assert tuple(a.size) == tuple(b.size)
     np.testing.assert_allclose(loaded.likelihood, det.likelihood)
+    # the in-memory twin equals what the loader reads back
+    mem = det.to_detections()
+    np.testing.assert_allclose(loaded.xy, mem.xy, equal_nan=True)
+    assert np.array_equal(loaded.observed, mem.observed)
     truth = np.load(res["truth"])
     assert truth["points"].shape == sim.deformed.shape
     assert truth["nviews"].shape == det.likelihood.shape[:2]
