@@ -327,7 +327,7 @@ def test_small_arena_and_moved_box():
     for X in (d.rigid, d.deformed):
         assert X[..., 0].min() >= 0 and X[..., 0].max() <= 240
         assert X[..., 1].min() >= 0 and X[..., 1].max() <= 260
-    np.testing.assert_allclose(d.mechanisms[1][:, 1], 220.0 - np.array([10.0, 2.0, 8.0, 2.0]))
+    np.testing.assert_allclose(d.mechanisms[1][:, 1], 220.0 - np.array([15.0, 2.0, 12.0, 2.0]))
     assert d.lockbox_corners[:, 1].min() == 220.0
 
 

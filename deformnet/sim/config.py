@@ -122,9 +122,9 @@ class MechanismConfig:
 
 
 _DEFAULT_MECHANISMS: tuple[MechanismConfig, ...] = (
-    MechanismConfig((-60.0, 10.0, 18.0), "right_front_paw"),
+    MechanismConfig((-60.0, 15.0, 18.0), "right_front_paw"),
     MechanismConfig((-20.0, 2.0, 12.0), "nose_tip"),
-    MechanismConfig((20.0, 8.0, 10.0), "left_front_paw"),
+    MechanismConfig((20.0, 12.0, 10.0), "left_front_paw"),
     MechanismConfig((60.0, 2.0, 20.0), "nose_tip"),
 )
 
