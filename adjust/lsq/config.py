@@ -23,7 +23,7 @@ class SolverConfig:
 
     constraint: str = "grid"  # motion-track constraint form: spline | grid | none
     track_weight: float = 1.0  # multiplier of the track constraint's weight (1 = its sigma below)
-    track_sigma_mm: float = 0.5  # std of the track residual (deviation from the cubic), mm
+    track_sigma_mm: float = 0.2  # std of the track residual (deviation from the cubic), mm
     rotation_scale_mm: float | None = None  # spline form: mm per rad (None: body's rms radius)
     grid_size: int = 3  # grid form: points per axis (>= 3)
     sigma_det_px: float = 2.0  # detector accuracy, px

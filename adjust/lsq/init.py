@@ -39,6 +39,29 @@ def undistort_normalized(
     return x, y
 
 
+def triangulate_robust(
+    xy: Tensor, valid: Tensor, cams: CameraTensors, max_error_px: float = 15.0, rounds: int = 2
+) -> tuple[Tensor, Tensor]:
+    """Linear triangulation, then views reprojecting worse than `max_error_px` dropped and the
+    point re-triangulated (`rounds` times; a view is dropped only if >= 2 others remain).
+    Shapes as `triangulate_linear`."""
+    use = valid.clone()
+    X, ok = triangulate_linear(xy, use, cams)
+    for _ in range(rounds):
+        err = (project_cameras(X, cams) - xy).norm(dim=-1)  # (T, K, C)
+        err = torch.where(use & ok[..., None], err, torch.zeros_like(err))
+        worst = err.argmax(-1, keepdim=True)
+        bad = (err.gather(-1, worst) > max_error_px) & (use.sum(-1, keepdim=True) >= 3)
+        drop = torch.zeros_like(use).scatter(-1, worst, bad)
+        if not bool(drop.any()):
+            break
+        use = use & ~drop
+        X, ok = triangulate_linear(xy, use, cams)
+    err = (project_cameras(X, cams) - xy).norm(dim=-1)
+    ok = ok & ~(use & (err > max_error_px)).any(-1)
+    return X, ok
+
+
 def triangulate_linear(xy: Tensor, valid: Tensor, cams: CameraTensors) -> tuple[Tensor, Tensor]:
     """Fast linear triangulation (inhomogeneous DLT on undistorted normalized coordinates).
 
@@ -68,6 +91,46 @@ def triangulate_linear(xy: Tensor, valid: Tensor, cams: CameraTensors) -> tuple[
     zc = torch.einsum("cj,tkj->tkc", R[:, 2], X) + t[:, 2]
     ok = ok & ((zc > 0) | ~valid).all(-1) & torch.isfinite(X).all(-1)
     return torch.where(ok[..., None], X, torch.zeros_like(X)), ok
+
+
+def _fit_errors(body: Tensor, X: Tensor, poses: Tensor) -> Tensor:
+    Xm = torch.einsum("tij,kj->tki", so3_exp(poses[:, :3]), body) + poses[:, None, 3:]
+    return (Xm - X).norm(dim=-1)
+
+
+def kabsch_robust(
+    body: Tensor, X: Tensor, mask: Tensor, max_error_mm: float = 10.0
+) -> tuple[Tensor, Tensor]:
+    """Outlier-resistant `kabsch_poses`: frames whose plain fit leaves a part off by more than
+    `max_error_mm` are refitted by RANSAC over all part triplets (scored by the number of parts
+    within `max_error_mm`, ties by rms), then on the winner's inliers. Frames with fewer than 3
+    inliers are not ok. Shapes as `kabsch_poses`."""
+    import itertools
+
+    poses, ok = kabsch_poses(body, X, mask)
+    err = torch.where(mask, _fit_errors(body, X, poses), torch.zeros_like(X[..., 0]))
+    sus = torch.nonzero(ok & (err.max(-1).values > max_error_mm)).ravel()
+    if sus.numel():
+        Xs, ms = X[sus], mask[sus]
+        K = mask.shape[1]
+        best = torch.full((sus.numel(),), -1.0, dtype=X.dtype)
+        best_in = torch.zeros_like(ms)
+        for tri in itertools.combinations(range(K), 3):
+            sel = torch.zeros(K, dtype=torch.bool)
+            sel[list(tri)] = True
+            use = ms & sel
+            p, o = kabsch_poses(body, Xs, use)
+            e = _fit_errors(body, Xs, p)
+            inl = ms & (e <= max_error_mm) & o[:, None]
+            rms = torch.where(inl, e * e, torch.zeros_like(e)).sum(-1) / inl.sum(-1).clamp_min(1)
+            score = inl.sum(-1).to(X.dtype) - rms.sqrt() / (max_error_mm + 1.0)
+            better = o & (score > best)
+            best = torch.where(better, score, best)
+            best_in = torch.where(better[:, None], inl, best_in)
+        p, o = kabsch_poses(body, Xs, best_in)
+        poses[sus] = p
+        ok[sus] = o & (best_in.sum(-1) >= 3)
+    return torch.where(ok[:, None], poses, torch.zeros_like(poses)), ok
 
 
 def kabsch_poses(
@@ -265,8 +328,8 @@ def initial_poses(
     dt = body.dtype
     if T == 0:
         return xy.new_zeros((0, 6)), torch.zeros(0, dtype=torch.bool)
-    X, mask = triangulate_linear(xy, valid, cams)
-    poses, ok = kabsch_poses(body, X, mask)
+    X, mask = triangulate_robust(xy, valid, cams)
+    poses, ok = kabsch_robust(body, X, mask)
     need = np.flatnonzero(~ok.cpu().numpy() & (valid.sum(1) >= 4).any(-1).cpu().numpy())
     if need.size:
         fits = pnp_poses(xy.cpu().numpy(), valid.cpu().numpy(), cams, body.cpu().numpy(), need)

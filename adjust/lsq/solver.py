@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -33,6 +32,7 @@ from adjust.lsq.constraint import add_track_normal, default_rho, make_grid, trac
 from adjust.lsq.fusion import fuse_points
 from adjust.lsq.geometry import project_components, retract
 from adjust.lsq.init import initial_poses
+from adjust.lsq.lm import add_ridge, levenberg_marquardt
 from adjust.lsq.observation import ObservationModel, RigidObservation
 from adjust.lsq.robust import kernel_cost, kernel_weight, mixture_weights
 
@@ -218,15 +218,6 @@ def _normal_equations(lin: _Lin, w: Tensor, pb: _Problem) -> tuple[np.ndarray, n
     return blocks, g
 
 
-def _add_ridge(blocks: np.ndarray, ridge: float) -> float:
-    d = np.diagonal(blocks[0], axis1=-2, axis2=-1)
-    scale = float(np.mean(d)) if d.size else 1.0
-    eps = ridge * (scale if math.isfinite(scale) and scale > 0 else 1.0) + 1e-300
-    idx = np.arange(blocks.shape[-1])
-    blocks[0][:, idx, idx] += eps
-    return eps
-
-
 @contextlib.contextmanager
 def _progress(enabled: bool, total: int, label: str) -> Iterator:
     if not enabled:
@@ -252,63 +243,47 @@ def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
     """Levenberg-Marquardt with IRLS reweighting on one problem; returns poses and stats."""
     cfg = pb.cfg
     T = poses.shape[0]
-    share = cfg.mixture_prior if cfg.sigma_def_mm > 0 else 1.0
-    lam = cfg.lm_lambda
-    history: list[float] = []
-    converged = False
-    it = 0
-    idx = np.arange(6)
+    state = {"share": cfg.mixture_prior if cfg.sigma_def_mm > 0 else 1.0}
+
+    def linearise(p: Tensor):
+        pb.obs.prepare(p)
+        lin = _evaluate(p, pb, jacobian=True)
+        w, wmix, state["share"] = _weights(lin, pb, state["share"])
+        blocks, g = _normal_equations(lin, w, pb)
+        return blocks, g, _cost(lin, pb, wmix), wmix
+
+    def cost(p: Tensor, wmix: Tensor) -> float:
+        return _cost(_evaluate(p, pb, jacobian=False), pb, wmix)
+
+    def step(p: Tensor, delta: np.ndarray) -> Tensor:
+        return retract(p, torch.as_tensor(delta, dtype=p.dtype, device=p.device))
+
     with _progress(progress and T > 0, cfg.max_iterations, label) as tick:
-        for it in range(1, cfg.max_iterations + 1):
-            pb.obs.prepare(poses)
-            lin = _evaluate(poses, pb, jacobian=True)
-            w, wmix, share = _weights(lin, pb, share)
-            blocks, g = _normal_equations(lin, w, pb)
-            cost = _cost(lin, pb, wmix)
-            history.append(cost)
-            _add_ridge(blocks, cfg.ridge)
-            diag0 = blocks[0][:, idx, idx].copy()
-            accepted = False
-            stop = False
-            for _ in range(12):
-                blocks[0][:, idx, idx] = diag0 + lam * np.maximum(
-                    diag0, 1e-12 * diag0.max(initial=1.0)
-                )
-                try:
-                    delta = banded.solve(blocks, g)
-                except np.linalg.LinAlgError:
-                    lam = max(lam * cfg.lm_up, 1e-8)
-                    continue
-                dt = torch.as_tensor(delta, dtype=poses.dtype, device=poses.device)
-                trial = retract(poses, dt)
-                new = _cost(_evaluate(trial, pb, jacobian=False), pb, wmix)
-                if math.isfinite(new) and new <= cost:
-                    accepted = True
-                    rel = (cost - new) / max(cost, 1e-300)
-                    step = float(dt.abs().max())
-                    poses = trial
-                    lam = max(lam * cfg.lm_down, 1e-12)
-                    change = abs(history[-2] - cost) / max(cost, 1e-300) if it > 1 else 1.0
-                    if it >= cfg.min_iterations and (
-                        rel < cfg.ftol or step < cfg.xtol or change < cfg.wtol
-                    ):
-                        stop = True
-                    break
-                lam = max(lam * cfg.lm_up, 1e-8)
-            if tick is not None:
-                tick(f"{label} cost {cost:.6g} lambda {lam:.1e}")
-            if not accepted:  # no decrease possible at any damping: a minimum
-                stop = it >= cfg.min_iterations or cost == 0.0
-            if stop:
-                converged = True
-                break
+        out = levenberg_marquardt(
+            poses,
+            linearise,
+            cost,
+            step,
+            max_iterations=cfg.max_iterations,
+            min_iterations=cfg.min_iterations,
+            ftol=cfg.ftol,
+            xtol=cfg.xtol,
+            wtol=cfg.wtol,
+            lam=cfg.lm_lambda,
+            lam_up=cfg.lm_up,
+            lam_down=cfg.lm_down,
+            ridge=cfg.ridge,
+            tick=(lambda d: tick(f"{label} {d}")) if tick is not None else None,
+        )
+    poses, it, history, converged = out.x, out.iterations, out.history, out.converged
+    share = state["share"]
     # final linearisation: weights, covariance, residuals
     pb.obs.prepare(poses)
     lin = _evaluate(poses, pb, jacobian=True)
     w, wmix, share = _weights(lin, pb, share)
     blocks, _ = _normal_equations(lin, w, pb)
     history.append(_cost(lin, pb, wmix))
-    _add_ridge(blocks, cfg.ridge)
+    add_ridge(blocks, cfg.ridge)
     cov = banded.diagonal_blocks_of_inverse(blocks) if T else np.zeros((0, 6, 6))
     log.info(
         "%s: %d iterations, cost %.6g -> %.6g, converged=%s",
