@@ -38,16 +38,17 @@ def _simulate(cfg: DictConfig, body: BodyModel, num_frames: int, seed: int) -> A
     return simulate(cfg.sim, num_frames=num_frames, seed=seed, body=body)
 
 
+def _int(cfg: DictConfig, key: str, minimum: int) -> int:
+    value = cfg.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{key} must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
 def run(cfg: DictConfig) -> dict:
     """Simulate, detect, write the scene folder; returns its paths and the measured fractions."""
-    num_frames = cfg.get("num_frames")
-    if num_frames is None or int(num_frames) < 1:
-        raise ValueError(f"num_frames must be a positive integer, got {num_frames!r}")
-    num_frames = int(num_frames)
-    seed = cfg.get("seed")
-    if seed is None or int(seed) < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    seed = int(seed)
+    num_frames = _int(cfg, "num_frames", 1)
+    seed = _int(cfg, "seed", 0)
     body = BodyModel.from_config(cfg.body)
     sim = _simulate(cfg, body, num_frames, seed)
     cameras = default_rig(cfg, arena_size=getattr(sim, "arena_size", None))

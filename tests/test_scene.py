@@ -377,3 +377,22 @@ def test_dataclass_defaults_match_shipped_config():
             ]
         else:
             assert a == b, f.name
+
+
+@pytest.mark.skipif(not _has("deformnet.sim", "simulate"), reason="simulator not landed yet")
+def test_adjust_simulate_bad_config(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from adjust.scene_cli import run
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        for bad, match in (("num_frames=0", "num_frames"), ("seed=-1", "seed")):
+            cfg = compose("scene", overrides=[bad, f"output.dir={tmp_path}"])
+            with pytest.raises(ValueError, match=match):
+                run(cfg)
+        cfg = compose(
+            "scene",
+            overrides=["num_frames=10", "detector.dropout_rate=2", f"output.dir={tmp_path}"],
+        )
+        with pytest.raises(ValueError, match="dropout_rate"):
+            run(cfg)
