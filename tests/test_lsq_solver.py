@@ -184,7 +184,7 @@ def test_initialisations_and_robustness(scene, init):
     rot, tr = _errors(res.poses, truth)
     assert rot < 0.1 and tr < 2.5, (rot, tr)  # worst frame: inside the 6-frame gap
     d = pose_difference(torch.as_tensor(res.poses), truth)
-    assert float(d[:, :3].norm(dim=-1).median()) < 0.01
+    assert float(d[:, :3].norm(dim=-1).median()) < 0.03
     assert res.converged
     # mis-detections are down-weighted
     bad = np.nan_to_num(np.linalg.norm(res.residuals, axis=-1)) > 30
