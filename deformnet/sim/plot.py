@@ -41,16 +41,22 @@ def track_xy(data: SimData) -> np.ndarray:
     return 0.5 * (data.rigid[:, i, :2] + data.rigid[:, j, :2])
 
 
-def _snapshots(ax, data: SimData, count: int = 10) -> None:
-    """A few deformed mice (top view) along the track."""
+def _snapshots(ax, data: SimData, count: int = 8) -> None:
+    """A few deformed mice (top view) along the track: head triangle, spine, paws."""
     parts = data.parts
-    edges = [(parts.index(p), parts.index(q)) for p, q in _EDGES if p in parts and q in parts]
+    need = ("nose_tip", "left_ear", "right_ear", "tail_root")
+    if not all(p in parts for p in need):
+        return
+    nose, le, re, tail = (parts.index(p) for p in need)
+    paws = [i for i, p in enumerate(parts) if p.endswith("_paw")]
     for t in np.linspace(0, data.num_frames - 1, count + 2)[1:-1].astype(int):
         X = data.deformed[t]
-        for i, j in edges:
-            ax.plot(X[[i, j], 0], X[[i, j], 1], color="k", lw=0.8, zorder=4)
-        for name, p in zip(parts, X):
-            ax.scatter(p[0], p[1], s=6, color=_side_color(name), zorder=5)
+        tri = X[[nose, le, re, nose], :2]
+        ax.fill(tri[:, 0], tri[:, 1], color="0.2", alpha=0.8, zorder=4)
+        neck = 0.5 * (X[le, :2] + X[re, :2])
+        ax.plot([neck[0], X[tail, 0]], [neck[1], X[tail, 1]], color="0.2", lw=2, zorder=4)
+        for i in paws:
+            ax.scatter(X[i, 0], X[i, 1], s=10, color=_side_color(parts[i]), zorder=5)
 
 
 def plot_sim(path: str | os.PathLike, data: SimData, max_points: int = 40000) -> Path:
@@ -80,15 +86,21 @@ def plot_sim(path: str | os.PathLike, data: SimData, max_points: int = 40000) ->
         for name, pt in zip(parts, model):
             ax.scatter(pt[a], pt[b], color=_side_color(name), s=30, zorder=2)
             labels.setdefault((round(pt[a], 3), round(pt[b], 3)), []).append(name)
+        flipped = col == 2
         for (u, v), names in labels.items():  # parts that coincide in this view share a label
             color = _side_color(names[0]) if len(names) == 1 else "0.3"
+            # write left parts' names on their outer side (right parts likewise)
+            outward = names[0].startswith("left") and a == 0
+            outward_r = names[0].startswith("right") and a == 0
+            to_left = (outward and not flipped) or (outward_r and flipped)
             ax.annotate(
                 " / ".join(names),
                 (u, v),
                 fontsize=7,
-                xytext=(3, 3),
+                xytext=(-3, 3) if to_left else (3, 3),
                 textcoords="offset points",
                 color=color,
+                ha="right" if to_left else "left",
             )
         if col == 2:  # looking at the mouse from the front: its left appears on the right
             ax.invert_xaxis()
