@@ -16,7 +16,12 @@ import torch
 from torch import Tensor
 
 from adjust.camera import CameraTensors
-from adjust.lsq.geometry import project_with_jacobian
+from adjust.lsq.geometry import (
+    normal_blocks_3d,
+    project_components,
+    rotation_gemm_weights,
+    sym3_inverse,
+)
 
 
 def fuse_points(
@@ -26,12 +31,14 @@ def fuse_points(
     w: Tensor,
     cams: CameraTensors,
     iterations: int = 2,
+    W6: Tensor | None = None,
+    Wg: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Fuse detections with model points.
 
     X_model: (T, K, 3) mm; prior_cov: (T, K, 3, 3) mm^2 (positive definite); xy: (T, K, C, 2) px
     (any finite value where w = 0); w: (T, K, C) inverse variances px^-2 (0 = no detection)
-    -> X (T, K, 3) mm, cov (T, K, 3, 3) mm^2.
+    -> X (T, K, 3) mm, cov (T, K, 3, 3) mm^2. W6, Wg: `rotation_gemm_weights(cams.R)` (optional).
     """
     T, K, C, _ = xy.shape
     if X_model.shape != (T, K, 3) or prior_cov.shape != (T, K, 3, 3) or w.shape != (T, K, C):
@@ -39,14 +46,15 @@ def fuse_points(
             f"shapes: X_model {tuple(X_model.shape)}, prior_cov {tuple(prior_cov.shape)}, "
             f"xy {tuple(xy.shape)}, w {tuple(w.shape)}"
         )
-    Pinv = torch.linalg.inv(prior_cov)
+    if W6 is None or Wg is None:
+        W6, Wg = rotation_gemm_weights(cams.R)
+    Pinv = sym3_inverse(prior_cov)
     X = X_model.clone()
     A = Pinv
     for _ in range(max(iterations, 1)):
-        uv, J, _ = project_with_jacobian(X, cams)  # (T, K, C, 2), (T, K, C, 2, 3)
-        e = xy - uv
-        Jw = J * w[..., None, None]
-        A = Pinv + torch.einsum("tkcai,tkcaj->tkij", Jw, J)
-        b = torch.einsum("tkcai,tkca->tki", Jw, e) - (Pinv @ (X - X_model)[..., None])[..., 0]
-        X = X + torch.linalg.solve(A, b[..., None])[..., 0]
-    return X, torch.linalg.inv(A)
+        u, v, _, Ac = project_components(X, cams, True)
+        H, g = normal_blocks_3d(Ac, xy[..., 0] - u, xy[..., 1] - v, w, W6, Wg)
+        A = Pinv + H
+        b = g - (Pinv @ (X - X_model)[..., None])[..., 0]
+        X = X + (sym3_inverse(A) @ b[..., None])[..., 0]
+    return X, sym3_inverse(A)

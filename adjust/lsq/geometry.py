@@ -241,3 +241,57 @@ def project_components(
     a02 = -(a00 * x + a01 * y)
     a12 = -(a10 * x + a11 * y)
     return u, v, Xc[..., 2], (a00, a01, a02, a10, a11, a12)
+
+
+def sym3_inverse(M: Tensor) -> Tensor:
+    """Inverse of symmetric 3x3 matrices by cofactors (elementwise, fast).  (..., 3, 3)."""
+    a, b, c = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
+    d, e, f = M[..., 1, 1], M[..., 1, 2], M[..., 2, 2]
+    A = d * f - e * e
+    B = c * e - b * f
+    Cc = b * e - c * d
+    D = a * f - c * c
+    E = b * c - a * e
+    F = a * d - b * b
+    det = a * A + b * B + c * Cc
+    inv = 1.0 / det
+    return torch.stack(
+        (torch.stack((A, B, Cc), -1), torch.stack((B, D, E), -1), torch.stack((Cc, E, F), -1)), -2
+    ) * inv[..., None, None]
+
+
+def normal_blocks_3d(
+    A: tuple[Tensor, ...], eu: Tensor, ev: Tensor, w: Tensor, W6: Tensor, Wg: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Per point: sum over cameras of w J^T J (3x3) and w J^T e (3), J = d(u,v)/dX = A R_c.
+
+    A: six (..., C) entries of d(u, v)/dX_cam (`project_components`); eu, ev, w: (..., C);
+    W6 (C 6, 9), Wg (C 3, 3): camera -> world rotation weights. -> (..., 3, 3), (..., 3).
+    """
+    a0, a1 = A[:3], A[3:]
+    wa0 = [w * x for x in a0]
+    wa1 = [w * x for x in a1]
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    h = torch.stack([wa0[j] * a0[m] + wa1[j] * a1[m] for j, m in pairs], -1)  # (..., C, 6)
+    gc = torch.stack([wa0[j] * eu + wa1[j] * ev for j in range(3)], -1)  # (..., C, 3)
+    lead = w.shape[:-1]
+    C = w.shape[-1]
+    H = (h.reshape(-1, C * 6) @ W6).reshape(*lead, 3, 3)
+    g = (gc.reshape(-1, C * 3) @ Wg).reshape(*lead, 3)
+    return H, g
+
+
+def rotation_gemm_weights(R: Tensor) -> tuple[Tensor, Tensor]:
+    """Constant matrices turning per-camera camera-frame normal blocks into world ones.
+
+    sum_c R_c^T H_c R_c = H6 (.., C 6) @ W6 (C 6, 9) for symmetric H_c given by its 6 unique
+    entries (00, 01, 02, 11, 12, 22); sum_c R_c^T g_c = g (.., C 3) @ Wg (C 3, 3). R: (C, 3, 3).
+    """
+    C = R.shape[0]
+    W6 = R.new_zeros((C, 6, 3, 3))
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    for p, (j, m) in enumerate(pairs):
+        W6[:, p] = R[:, j, :, None] * R[:, m, None, :]
+        if j != m:
+            W6[:, p] += R[:, m, :, None] * R[:, j, None, :]
+    return W6.reshape(C * 6, 9), R.reshape(C * 3, 3)

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from adjust.camera import CameraTensors, project_cameras
-from adjust.lsq.geometry import so3_exp, so3_log
+from adjust.lsq.geometry import project_components, so3_exp, so3_log, sym3_inverse
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,11 @@ def undistort_normalized(
     return x, y
 
 
+def _reprojection_errors(X: Tensor, xy: Tensor, cams: CameraTensors) -> Tensor:
+    u, v, _, _ = project_components(X, cams, jacobian=False)
+    return ((xy[..., 0] - u) ** 2 + (xy[..., 1] - v) ** 2).sqrt()
+
+
 def triangulate_robust(
     xy: Tensor, valid: Tensor, cams: CameraTensors, max_error_px: float = 15.0, rounds: int = 2
 ) -> tuple[Tensor, Tensor]:
@@ -48,7 +53,7 @@ def triangulate_robust(
     use = valid.clone()
     X, ok = triangulate_linear(xy, use, cams)
     for _ in range(rounds):
-        err = (project_cameras(X, cams) - xy).norm(dim=-1)  # (T, K, C)
+        err = _reprojection_errors(X, xy, cams)  # (T, K, C)
         err = torch.where(use & ok[..., None], err, torch.zeros_like(err))
         worst = err.argmax(-1, keepdim=True)
         bad = (err.gather(-1, worst) > max_error_px) & (use.sum(-1, keepdim=True) >= 3)
@@ -57,7 +62,7 @@ def triangulate_robust(
             break
         use = use & ~drop
         X, ok = triangulate_linear(xy, use, cams)
-    err = (project_cameras(X, cams) - xy).norm(dim=-1)
+    err = _reprojection_errors(X, xy, cams)
     ok = ok & ~(use & (err > max_error_px)).any(-1)
     return X, ok
 
@@ -72,18 +77,27 @@ def triangulate_linear(xy: Tensor, valid: Tensor, cams: CameraTensors) -> tuple[
     R, t = cams.R, cams.t
     w = valid.to(xy.dtype)
     # rows (R_0 - x R_2) X = x t_2 - t_0 and (R_1 - y R_2) X = y t_2 - t_1, per camera
-    a1 = R[:, 0] - xn[..., None] * R[:, 2]  # (T, K, C, 3)
+    r0, r1, r2 = R[:, 0], R[:, 1], R[:, 2]  # (C, 3)
+    a1 = [r0[:, i] - xn * r2[:, i] for i in range(3)]  # 3 x (T, K, C)
+    a2 = [r1[:, i] - yn * r2[:, i] for i in range(3)]
     b1 = xn * t[:, 2] - t[:, 0]
-    a2 = R[:, 1] - yn[..., None] * R[:, 2]
     b2 = yn * t[:, 2] - t[:, 1]
-    M = torch.einsum("tkc,tkci,tkcj->tkij", w, a1, a1) + torch.einsum(
-        "tkc,tkci,tkcj->tkij", w, a2, a2
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    m6 = [(w * (a1[i] * a1[j] + a2[i] * a2[j])).sum(-1) for i, j in pairs]
+    r = torch.stack([(w * (a1[i] * b1 + a2[i] * b2)).sum(-1) for i in range(3)], -1)
+    M = torch.stack(
+        (
+            torch.stack((m6[0], m6[1], m6[2]), -1),
+            torch.stack((m6[1], m6[3], m6[4]), -1),
+            torch.stack((m6[2], m6[4], m6[5]), -1),
+        ),
+        -2,
     )
-    r = torch.einsum("tkc,tkci->tki", w * b1, a1) + torch.einsum("tkc,tkci->tki", w * b2, a2)
     n = valid.sum(-1)
     M = M + 1e-12 * torch.eye(3, dtype=M.dtype)
-    ev = torch.linalg.eigvalsh(M)
-    ok = (n >= 2) & (ev[..., 0] > 1e-6 * ev[..., 2].clamp_min(1e-300))
+    det = torch.linalg.det(M)
+    tr = M.diagonal(dim1=-2, dim2=-1).sum(-1)
+    ok = (n >= 2) & (det > 1e-9 * tr.clamp_min(1e-300) ** 3)
     X = torch.linalg.solve(
         torch.where(ok[..., None, None], M, torch.eye(3, dtype=M.dtype)), r[..., None]
     )[..., 0]

@@ -30,7 +30,12 @@ from adjust.lsq import banded
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.constraint import add_track_normal, default_rho, make_grid, track_residuals
 from adjust.lsq.fusion import fuse_points
-from adjust.lsq.geometry import project_components, retract
+from adjust.lsq.geometry import (
+    normal_blocks_3d,
+    project_components,
+    retract,
+    rotation_gemm_weights,
+)
 from adjust.lsq.init import initial_poses
 from adjust.lsq.lm import add_ridge, levenberg_marquardt
 from adjust.lsq.observation import ObservationModel, RigidObservation
@@ -113,7 +118,7 @@ class _Problem:
     def __post_init__(self) -> None:
         self.xu, self.xv = self.xy[..., 0], self.xy[..., 1]
         if self.W6 is None:
-            self.W6, self.Wg = _rotation_gemm_weights(self.cams.R)
+            self.W6, self.Wg = rotation_gemm_weights(self.cams.R)
 
     @property
     def track_w(self) -> float:
@@ -122,24 +127,6 @@ class _Problem:
             if self.cfg.constraint != "none"
             else 0.0
         )
-
-
-_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-def _rotation_gemm_weights(R: Tensor) -> tuple[Tensor, Tensor]:
-    """Constant matrices turning per-camera camera-frame normal blocks into world ones.
-
-    sum_c R_c^T H_c R_c = H6 (.., C 6) @ W6 (C 6, 9) for symmetric H_c given by its 6 unique
-    entries (_PAIRS); sum_c R_c^T g_c = g (.., C 3) @ Wg (C 3, 3). R: (C, 3, 3).
-    """
-    C = R.shape[0]
-    W6 = R.new_zeros((C, 6, 3, 3))
-    for p, (j, l) in enumerate(_PAIRS):
-        W6[:, p] = R[:, j, :, None] * R[:, l, None, :]
-        if j != l:
-            W6[:, p] += R[:, l, :, None] * R[:, j, None, :]
-    return W6.reshape(C * 6, 9), R.reshape(C * 3, 3)
 
 
 @dataclass
@@ -196,13 +183,9 @@ def _cost(lin: _Lin, pb: _Problem, wmix: Tensor) -> float:
 def _normal_equations(lin: _Lin, w: Tensor, pb: _Problem) -> tuple[np.ndarray, np.ndarray]:
     """Banded normal matrix (5, T, 6, 6) and right-hand side (T, 6) of the weighted GN step."""
     T, K, C = lin.eu.shape
-    a0, a1 = lin.A[:3], lin.A[3:]
-    wa0 = [w * x for x in a0]
-    wa1 = [w * x for x in a1]
-    h = torch.stack([wa0[j] * a0[m] + wa1[j] * a1[m] for j, m in _PAIRS], -1)  # (T, K, C, 6)
-    gc = torch.stack([wa0[j] * lin.eu + wa1[j] * lin.ev for j in range(3)], -1)  # (T, K, C, 3)
-    Hx = (h.reshape(T * K, C * 6) @ pb.W6).reshape(T * K, 3, 3)  # world frame, summed over C
-    gx = (gc.reshape(T * K, C * 3) @ pb.Wg).reshape(T, K * 3, 1)
+    Hx, gx = normal_blocks_3d(lin.A, lin.eu, lin.ev, w, pb.W6, pb.Wg)
+    Hx = Hx.reshape(T * K, 3, 3)
+    gx = gx.reshape(T, K * 3, 1)
     JX = lin.JX.reshape(T * K, 3, 6)
     HJ = torch.bmm(Hx, JX).reshape(T, K * 3, 6)
     JXt = lin.JX.reshape(T, K * 3, 6).transpose(1, 2)
@@ -430,7 +413,7 @@ def _finish(
     eye = torch.eye(3, dtype=dt)
     prior = model_cov + (cfg.sigma_def_mm**2 + 1e-6) * eye
     w_fuse = pb.base * rob / cfg.sigma_det_px**2
-    pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, cfg.fuse_iterations)
+    pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, cfg.fuse_iterations, pb.W6, pb.Wg)
     e = torch.stack((lin.eu, lin.ev), -1)
     res = torch.where(pb.valid[..., None], e, torch.full_like(e, float("nan")))
     inv_det = 1.0 / cfg.sigma_det_px**2
