@@ -101,57 +101,60 @@ def test_rigid_is_model_moved_by_pose(long_run):
 
 
 # --- gait --------------------------------------------------------------------------------------
-def test_pace_gait_stance_still_and_swing_twice_body_speed(long_run):
-    d = long_run
+def _swing_ratio(d: SimData, band_deg: float, window: int) -> tuple[np.ndarray, dict]:
+    """Swing paw / body horizontal speed on steady, straight walking frames (heading within
+    `band_deg` for +-window frames, no rest within +-1.5 s, no pair swap at t-1 .. t+1), and
+    stance statistics over all moving walk frames."""
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
     walk = (d.labels[:-1] == 0) & (d.labels[1:] == 0)
     body_v = np.hypot(*np.diff(d.poses[:, 3:5], axis=0).T) * FPS
     moving = walk & (body_v > 15.0)
-    assert moving.sum() > 5000
     paw_v = np.linalg.norm(np.diff(d.deformed, axis=0), axis=-1) * FPS  # (T-1, K), 3D
     a, b = _idx(d, *PAIR_A), _idx(d, *PAIR_B)
-    va, vb = paw_v[moving][:, a], paw_v[moving][:, b]
-    still_a = (va < 1e-9).all(1)
-    still_b = (vb < 1e-9).all(1)
-    # a diagonal pair is planted (both paws exactly still) in almost every moving frame; the rest
-    # are frames where the pairs swap
-    assert np.mean(still_a | still_b) > 0.85
-    assert not np.any(still_a & still_b)
-    # each paw's stance alone never happens: the pairs move together
-    assert (
-        np.all((va[:, 0] < 1e-9) == (va[:, 1] < 1e-9))
-        or np.mean((va[:, 0] < 1e-9) == (va[:, 1] < 1e-9)) > 0.98
-    )
-    # both pairs take turns
-    assert 0.3 < still_a.sum() / max(1, (still_a | still_b).sum()) < 0.7
-    # the swinging pair: horizontal speed twice the body's (on straight stretches; in a turn the
-    # outer paws cover more ground than the body's origin)
+    planted = np.stack([(paw_v[:, a] < 1e-9).all(1), (paw_v[:, b] < 1e-9).all(1)], 1)
+    any_still = np.stack([(paw_v[:, a] < 1e-9).any(1), (paw_v[:, b] < 1e-9).any(1)], 1)
+    stats = {
+        "moving": int(moving.sum()),
+        "one_pair_planted": float(np.mean(planted[moving].any(1))),
+        "both_planted": int(np.sum(planted[moving].all(1))),
+        "split_pairs": int(np.sum(any_still[moving] & ~planted[moving])),
+        "share_a": float(planted[moving, 0].sum() / max(1, planted[moving].any(1).sum())),
+    }
     R = _rot(d)
     yaw = np.unwrap(np.arctan2(R[:, 1, 1], R[:, 0, 1]))
-    # steady, straight walking: heading changes < 5 deg within +-w frames, and no rest within
-    # +-2w frames (a walk's strides are uniform between rests)
-    w = 20
-    turn = np.full(len(yaw), np.inf)
-    turn[w:-w] = np.abs(yaw[2 * w :] - yaw[: -2 * w])
-    from scipy.ndimage import minimum_filter1d
-
-    turn[:-1][minimum_filter1d(body_v, 4 * w + 1) < 10.0] = np.inf
-    steady = np.zeros(len(moving), dtype=bool)  # no pair swap at t-1 .. t+1
-    planted = np.zeros((len(moving), 2), dtype=bool)
-    planted[:, 0] = (paw_v[:, a] < 1e-9).all(1)
-    planted[:, 1] = (paw_v[:, b] < 1e-9).all(1)
+    band = maximum_filter1d(yaw, 2 * window + 1) - minimum_filter1d(yaw, 2 * window + 1)
+    ok = (band[:-1] < np.radians(band_deg)) & (minimum_filter1d(body_v, 91) > 10.0) & moving
+    steady = np.zeros_like(ok)
     steady[1:-1] = (planted[1:-1] == planted[:-2]).all(1) & (planted[1:-1] == planted[2:]).all(1)
-    straight = (turn[:-1] < np.radians(5.0))[moving] & steady[moving]
-    assert straight.sum() > 200
+    sel = ok & steady & planted.any(1)
     hv = np.linalg.norm(np.diff(d.deformed[..., :2], axis=0), axis=-1) * FPS
-    hv, bv = hv[moving][straight], body_v[moving][straight][:, None]
-    sa, sb = still_a[straight], still_b[straight]
-    ratio = np.concatenate([(hv[:, b] / bv)[sa], (hv[:, a] / bv)[sb]]).ravel()
-    # exactly 2 on straight stretches; footfalls are placed by gait distance, so where the path
-    # bends between two footfalls the swing deviates by a few per cent
-    assert abs(np.median(ratio) - 2.0) < 0.02
+    swing = np.where(planted[:, :1], hv[:, b], hv[:, a])  # the pair that is not planted
+    return (swing[sel] / body_v[sel, None]).ravel(), stats
+
+
+def test_pace_gait_stance_still_and_swing_twice_body_speed(long_run):
+    ratio, st = _swing_ratio(long_run, band_deg=5.0, window=15)
+    assert st["moving"] > 5000
+    # a diagonal pair is planted (both paws exactly still) in almost every moving frame; the
+    # rest are the frames in which the pairs swap
+    assert st["one_pair_planted"] > 0.85
+    assert st["both_planted"] == 0
+    assert st["split_pairs"] == 0  # the paws of a pair are planted together
+    assert 0.3 < st["share_a"] < 0.7  # both pairs take turns
+    # swing pair: twice the body's speed. Footfalls are placed by gait distance, so where the
+    # path bends within a stride this holds to a few per cent only (exact test below)
+    assert len(ratio) > 200
     err = np.abs(ratio - 2.0)
-    assert np.mean(err < 0.1) > 0.85, np.percentile(err, [50, 80, 95])
-    assert np.mean(err < 0.25) > 0.95, np.percentile(err, [50, 80, 95])
+    assert abs(np.median(ratio) - 2.0) < 0.03
+    assert np.mean(err < 0.1) > 0.7, np.percentile(err, [50, 80, 95])
+
+
+def test_swing_exactly_twice_body_speed_on_straight_paths():
+    cfg = SimConfig.from_config({"walk": {"curvature_std": 0.0, "stop_rate": 0.0}})
+    ratio, st = _swing_ratio(simulate(cfg, num_frames=20000, seed=2), band_deg=0.5, window=30)
+    assert len(ratio) > 200 and st["split_pairs"] == 0
+    np.testing.assert_allclose(ratio, 2.0, atol=0.01)
 
 
 def test_paws_on_the_ground_in_stance(long_run):

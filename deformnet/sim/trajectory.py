@@ -21,6 +21,11 @@ from deformnet.sim.scene import Scene
 WALK, SCAN, REAR, GROOM = 0, 1, 2, 3
 FIRST_MECH = 4
 MIN_SPEED = 1.0  # mm/s below which the heading is held (not read from the path)
+HEADING_SMOOTH = 0.2  # s: Gaussian smoothing of the heading read from the path at low speed
+TURN_SPEED = 20.0  # mm/s: from this speed on, the heading is exactly the path's direction
+TURN_RATE = 2 * np.pi  # rad/s: turning on the spot before setting off in another direction
+WALL_TURN = 30.0  # mm of path over which the mouse turns away from a wall ahead
+MAX_WALL_TURNS = 12  # wall turns computed per walk; beyond, the path is folded at the walls
 
 
 @dataclass(frozen=True)
@@ -54,6 +59,24 @@ def fold(v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     span = np.maximum(hi - lo, 1e-9)
     u = np.mod(v - lo, 2.0 * span)
     return lo + np.where(u > span, 2.0 * span - u, u)
+
+
+def smooth_heading(
+    h: np.ndarray, xy: np.ndarray, p0: np.ndarray, h0: float, sigma: float, fps: float
+) -> np.ndarray:
+    """Gaussian-smooth an unwrapped heading (sigma in frames) where the body is slow, keeping its
+    start at h0: setting off in another direction (or reversing at a wall while nearly still)
+    becomes a turn on the spot. At speeds >= TURN_SPEED the heading is the path's direction."""
+    n = len(h)
+    if sigma <= 0 or n < 2:
+        return h
+    hs = gaussian_filter1d(h, sigma, mode="nearest")
+    u = np.arange(n, dtype=np.float64)
+    pin = 1.0 - smoothstep(u / max(1.0, min(3.0 * sigma, n / 2.0)))
+    hs = hs + (h0 - hs[0]) * pin
+    speed = np.hypot(*np.diff(np.concatenate([p0[None], xy]), axis=0).T) * fps
+    w = 1.0 - np.clip(speed / TURN_SPEED, 0.0, 1.0)
+    return w * hs + (1.0 - w) * h
 
 
 def heading_from_path(xy: np.ndarray, p0: np.ndarray, h0: float, fps: float) -> np.ndarray:
@@ -97,9 +120,15 @@ class _Planner:
         taper = smoothstep((u + 1.0) / ramp) * smoothstep((n - 1.0 - u) / ramp)
         ds = speed * gate * taper / fps
         curv = w.curvature_std * ou_noise(rng, n, w.curvature_tau * fps)
-        h = h0 + np.cumsum(curv * ds)
-        raw = p0 + np.cumsum(ds[:, None] * np.stack([np.cos(h), np.sin(h)], -1), axis=0)
-        xy = fold(raw, lo, hi)
+        start = h0
+        ahead = p0 + WALL_TURN * np.array([np.cos(h0), np.sin(h0)])
+        if np.any(ahead < lo) or np.any(ahead > hi):  # facing a wall: set off inwards
+            goal = self.scene.free_lo + rng.random(2) * (self.scene.free_hi - self.scene.free_lo)
+            start = float(np.arctan2(*(goal - p0)[::-1]))
+            start = h0 + (start - h0 + np.pi) % (2 * np.pi) - np.pi
+        h = start + np.cumsum(curv * ds)
+        raw = self._steer(p0, h, ds, lo, hi)
+        xy = fold(raw, lo, hi)  # a guard: the steering normally keeps the path inside
         sigma = w.smooth * fps
         if sigma > 0 and n > 1:
             xy = gaussian_filter1d(xy, sigma, axis=0, mode="nearest")
@@ -107,7 +136,48 @@ class _Planner:
             corr = 1.0 - smoothstep(u / max(1.0, min(3.0 * sigma, n / 2.0)))
             xy = xy + (p0 - xy[0]) * corr[:, None]
             xy = np.clip(xy, lo, hi)
-        return xy, heading_from_path(xy, p0, h0, fps)
+        return self._turn_then_go(p0, h0, xy)
+
+    def _steer(self, p0, h, ds, lo, hi) -> np.ndarray:
+        """Integrate the path; where it would leave [lo, hi], turn away from the wall (billiard
+        reflection plus noise) over the WALL_TURN mm of path before it. A few passes."""
+        dist = np.cumsum(ds)
+        for _ in range(MAX_WALL_TURNS):
+            raw = p0 + np.cumsum(ds[:, None] * np.stack([np.cos(h), np.sin(h)], -1), axis=0)
+            out = (raw < lo) | (raw > hi)
+            bad = out.any(1)
+            if not bad.any():
+                break
+            e = int(np.argmax(bad))
+            normal = np.where(raw[e] < lo, 1.0, 0.0) - np.where(raw[e] > hi, 1.0, 0.0)
+            normal /= np.linalg.norm(normal)
+            c = np.array([np.cos(h[e]), np.sin(h[e])])
+            ref = c - 2.0 * min(float(c @ normal), 0.0) * normal
+            want = np.arctan2(ref[1], ref[0]) + self.rng.normal(0.0, 0.3)
+            if np.cos(want) * normal[0] + np.sin(want) * normal[1] < 0.3:  # keep it inwards
+                want = np.arctan2(normal[1], normal[0]) + self.rng.uniform(-0.8, 0.8)
+            delta = (want - h[e] + np.pi) % (2 * np.pi) - np.pi
+            h = h + delta * smoothstep((dist - (dist[e] - WALL_TURN)) / WALL_TURN)
+        return raw
+
+    def _turn_then_go(self, p0: np.ndarray, h0: float, xy: np.ndarray):
+        """Headings for a path starting at p0; if it sets off in a direction other than h0, the
+        mouse first turns on the spot (frames prepended). Returns (xy, heading)."""
+        fps = self.fps
+        far = np.flatnonzero(np.hypot(*(xy - p0).T) > 1.0)
+        if far.size:
+            v = xy[far[0]] - p0
+            delta = (np.arctan2(v[1], v[0]) - h0 + np.pi) % (2 * np.pi) - np.pi
+            if abs(delta) > np.radians(20.0):
+                m = max(2, int(np.ceil(abs(delta) / TURN_RATE * fps)))
+                turn = h0 + delta * smoothstep(np.arange(1, m + 1) / m)
+                h1 = h0 + delta
+                h = smooth_heading(
+                    heading_from_path(xy, p0, h1, fps), xy, p0, h1, HEADING_SMOOTH * fps, fps
+                )
+                return np.concatenate([np.repeat(p0[None], m, 0), xy]), np.concatenate([turn, h])
+        h = heading_from_path(xy, p0, h0, fps)
+        return xy, smooth_heading(h, xy, p0, h0, HEADING_SMOOTH * fps, fps)
 
     def approach(self, p0: np.ndarray, h0: float, target: np.ndarray, h1: float):
         """Walk from (p0, h0) to `target`, arriving with heading h1 (Hermite curve, min-jerk
@@ -120,6 +190,8 @@ class _Planner:
         k = float(np.clip(dist, 10.0, 120.0))
         u = np.linspace(0.0, 1.0, 256)[:, None]
         t0 = np.array([np.cos(h0), np.sin(h0)])
+        if t0 @ (target - p0) < 0:  # target behind: turn on the spot first, then go
+            t0 = (target - p0) / dist
         t1 = np.array([np.cos(h1), np.sin(h1)])
         curve = (
             (2 * u**3 - 3 * u**2 + 1) * p0
@@ -131,11 +203,12 @@ class _Planner:
         arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(curve, axis=0).T))])
         length = arc[-1]
         n = max(2, int(np.ceil(1.875 * length / self.cfg.walk.approach_speed * self.fps)))
-        s = np.arange(1, n + 1) / n
+        s = np.arange(n + 1) / n  # the first sample is p0 itself (dropped below)
         s = length * (10 * s**3 - 15 * s**4 + 6 * s**5)
-        xy = np.stack([np.interp(s, arc, curve[:, 0]), np.interp(s, arc, curve[:, 1])], -1)
+        xy = np.stack([np.interp(s, arc, curve[:, 0]), np.interp(s, arc, curve[:, 1])], -1)[1:]
         xy[-1] = target
-        h = heading_from_path(xy, p0, h0, self.fps)
+        xy, h = self._turn_then_go(p0, h0, xy)
+        n = len(h)
         # arrive exactly with heading h1 (mod 2 pi); the curve's end tangent already is h1
         err = (h1 - h[-1] + np.pi) % (2 * np.pi) - np.pi
         h = h + err * smoothstep((np.arange(n) - 0.6 * n) / (0.4 * n - 1 + 1e-9))
