@@ -238,40 +238,50 @@ def add_track_normal(
         Av[:, 0] = Av[:, 0] + (tau_t - tau_S)
         r = Av.reshape(n, 12)
         P = left_jacobian(phi_S)[:, None] @ D  # (R, 5, 3, 3)
-        B = skew(Ea)  # (R, 4, 3, 3)
-        corr = E[:, None] @ skew(a) - skew(a)  # (R, 4, 3, 3): frame-t extra term
-        Bt = B.transpose(-1, -2)
-        S = (Bt @ B).sum(1)
-        N = (Bt @ corr).sum(1)
+        # B_v = [E a_v]_x; corr_v = (E - I)[a_v]_x (frame-t extra term)
+        u = Ea  # (R, 4, 3)
+        uu = (u * u).sum(-1)  # (R, 4)
+        S = torch.diag_embed(uu.sum(1)[:, None].expand(n, 3)) - torch.einsum("rvi,rvj->rij", u, u)
+        Sa = skew(a.reshape(-1, 3)).reshape(n, 4, 3, 3)
+        corr = E[:, None] @ Sa - Sa  # (R, 4, 3, 3)
+        BtC = -_skew_cols(u, corr)  # B_v^T corr_v = -[u_v]_x corr_v
+        N = BtC.sum(1)
         Cc = (corr.transpose(-1, -2) @ corr).sum(1)
-        Btr = (Bt @ Av[..., None]).sum(1)  # (R, 3, 1)
+        Btr = torch.linalg.cross(Av, u, dim=-1).sum(1)[..., None]  # sum_v B_v^T r_v, (R, 3, 1)
         grad_rot = P.transpose(-1, -2) @ Btr[:, None]  # (R, 5, 3, 1)
         grad_rot[:, 2] += (corr.transpose(-1, -2) @ Av[..., None]).sum(1)
-        Jc = B[:, 0, None] @ P  # (R, 5, 3, 3): rotation Jacobian of the first 3 rows per frame
+        Jc = _skew_cols(u[:, None, 0], P)  # (R, 5, 3, 3): rotation Jacobian of rows 0..2
         Jc[:, 2] += corr[:, 0]
         r_c = Av[:, 0]
     else:
         raise ValueError(f"kind must be 'spline' or 'grid', got {kind!r}")
     wt = float(weight)
-    Pc = P.permute(0, 2, 1, 3).reshape(n, 3, 15)  # rotation Jacobian columns of the 5 frames
-    RR = Pc.transpose(1, 2) @ (S @ Pc)  # (R, 15, 15)
-    if N is not None:
-        RR[:, 6:9, :] += N.transpose(-1, -2) @ Pc
-        RR[:, :, 6:9] += Pc.transpose(1, 2) @ N
-        RR[:, 6:9, 6:9] += Cc
+    Sw = wt * S
+    Pt = P.transpose(-1, -2).contiguous()  # (R, 5, 3, 3): P_a^T
     ctt = torch.tensor(ct, dtype=dt, device=dev)
     bt = torch.from_numpy(blocks)
-    RRv = RR.view(n, SPAN, 3, SPAN, 3)
     if Jc is not None:
-        JcT = Jc.transpose(-1, -2).permute(1, 0, 2, 3)  # (5, R, 3 rot, 3 row)
+        JcT = (wt * Jc.transpose(-1, -2)).permute(1, 0, 2, 3)  # (5, R, 3 rot, 3 row)
+        Jcw = wt * Jc
+        Nw_t = wt * N.transpose(-1, -2)
+        Nw = wt * N
     tt = torch.diag_embed((wt * ctt[:, None] * ctt[None, :])[..., None].expand(SPAN, SPAN, 3))
     for ic in range(SPAN):  # column frame ic, row frames ia = ic..4 -> offsets 0..4-ic
-        sl = slice(ic, ic + n)
-        band = bt[: SPAN - ic, sl]  # (5 - ic, R, 6, 6) view
-        band[..., :3, :3] += wt * RRv[:, ic:, :, ic, :].permute(1, 0, 2, 3)
+        m = SPAN - ic
+        # rotation-rotation blocks P_a^T S P_ic (+ frame-t corrections), a = ic..4
+        SPc = Sw @ P[:, ic]  # (R, 3, 3)
+        rr = (Pt[:, ic:].reshape(n, 3 * m, 3) @ SPc).view(n, m, 3, 3)
+        if N is not None:
+            if ic <= 2:  # row frame t: N^T P_ic
+                rr[:, 2 - ic] += Nw_t @ P[:, ic]
+            if ic == 2:  # column frame t: P_a^T N, and the (t, t) block's C
+                rr += Pt[:, 2:] @ Nw[:, None]
+                rr[:, 0] += wt * Cc
+        band = bt[:m, ic : ic + n]  # (5 - ic, R, 6, 6) view
+        band[..., :3, :3] += rr.permute(1, 0, 2, 3)
         if Jc is not None:  # rot(ia) x trans(ic): ct_ic Jc_ia^T; trans(ia) x rot(ic): ct_ia Jc_ic
-            band[..., :3, 3:] += (wt * ct[ic]) * JcT[ic:]
-            band[..., 3:, :3] += (wt * ctt[ic:, None, None, None]) * Jc[None, :, ic]
+            band[..., :3, 3:] += ct[ic] * JcT[ic:]
+            band[..., 3:, :3] += ctt[ic:, None, None, None] * Jcw[None, :, ic]
         band[..., 3:, 3:] += tt[ic:, ic, None]
     gt = torch.from_numpy(g)
     for ia in range(SPAN):
