@@ -80,3 +80,12 @@ def test_console_script(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "sim.npz").is_file() and (tmp_path / "sim.png").is_file()
+
+
+def test_paper_variant_walks_only(tmp_path):
+    cfg = _compose(["sim=paper", "num_frames=1500", f"output.dir={tmp_path}"])
+    assert cfg.sim.walk.speed_mean == 60.0  # the rest comes from sim/default
+    from deformnet.sim import simulate
+
+    data = simulate(cfg)
+    assert np.all(data.labels == 0)
