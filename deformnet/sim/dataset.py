@@ -4,30 +4,32 @@ File format (``sim.npz``, written atomically by `save_sim`, read by `load_sim`):
 NumPy ``.npz`` archive with these arrays (T frames, K parts, M lock-box corners; mm, s, global
 frame: arena x, y in [0, size], z up, ground z = 0):
 
-==================  ============  =======  ==================================================
-key                 shape         dtype    meaning
-==================  ============  =======  ==================================================
-format              ()            str      ``"mousetrack-sim"``
-version             ()            int64    format version (1)
-time                (T,)          float64  time stamp of frame t in s (t / fps)
-poses               (T, 6)        float64  rigid pose model->global: Rodrigues vector r (rad),
-                                           translation tau (mm); X_g = R(r) X_m + tau
-rigid               (T, K, 3)     float64  rigid part positions X̄ = R(r) model + tau
-deformed            (T, K, 3)     float64  deformed (true) part positions X̃
-labels              (T,)          int64    behavior index into ``behaviors``
-behaviors           (B,)          str      behavior names (walk, scan, rear, groom, lever,
-                                           splint, ball, slider)
-observed            (T, K)        bool     True = part observed, False = missing
-parts               (K,)          str      part names in model order
-model               (K, 3)        float64  rigid body model (model frame: X right, Y forward,
-                                           Z up)
-fps                 ()            float64  frame rate (Hz)
-seed                ()            int64    random seed used
-lockbox_corners     (M, 3)        float64  lock-box corner points (M = 8), known 3D points
-mechanism_names     (4,)          str      lever, splint, ball, slider
-mechanism_positions (4, 3)        float64  3D positions of the mechanisms
-arena_size          (2,)          float64  arena extent in x and y
-==================  ============  =======  ==================================================
+====================  ==========  ========  ====================================================
+key                   shape       dtype     meaning
+====================  ==========  ========  ====================================================
+format                ()          str       ``"mousetrack-sim"``
+version               ()          int64     format version (1)
+time                  (T,)        float64   time stamp of frame t in s (t / fps)
+poses                 (T, 6)      float64   rigid pose model->global: Rodrigues vector r (rad),
+                                            translation tau (mm); X_g = R(r) X_m + tau
+rigid                 (T, K, 3)   float64   rigid part positions X̄ = R(r) model + tau
+deformed              (T, K, 3)   float64   deformed (true) part positions X̃
+labels                (T,)        int64     behavior index into ``behaviors``
+behaviors             (B,)        str       behavior names (walk, scan, rear, groom, lever,
+                                            splint, ball, slider)
+observed              (T, K)      bool      True = part observed, False = missing
+parts                 (K,)        str       part names in model order
+model                 (K, 3)      float64   rigid body model (model frame: X right, Y forward,
+                                            Z up)
+fps                   ()          float64   frame rate (Hz)
+seed                  ()          int64     random seed used
+lockbox_corners       (M, 3)      float64   lock-box corners (M = 8: z in {0, h}, then y in
+                                            {front, back}, then x in {left, right}); known 3D
+                                            points for camera resection
+mechanism_names       (4,)        str       lever, splint, ball, slider
+mechanism_positions   (4, 3)      float64   3D positions of the mechanisms
+arena_size            (2,)        float64   arena extent in x and y
+====================  ==========  ========  ====================================================
 
 ``deformed`` and ``rigid`` are complete; ``observed`` says which entries a detector would have
 seen (random dropout and contiguous occlusion episodes). Load with `load_sim` (or plain
