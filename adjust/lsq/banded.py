@@ -2,7 +2,8 @@
 
 A symmetric matrix of T x T blocks of size n x n whose block (i, j) vanishes for |i - j| > b is
 stored by its lower blocks, offset-major: ``blocks (b + 1, T, n, n)`` with
-``blocks[d, s] = N[s + d, s]`` (entries with s + d >= T are ignored and kept zero). For the pose-track adjustment n = 6 (pose
+``blocks[d, s] = N[s + d, s]`` (entries with s + d >= T are ignored and kept zero).
+For the pose-track adjustment n = 6 (pose
 parameters) and b = 4 (the track residual at t couples frames t-2..t+2), i.e. a scalar
 half-bandwidth of n (b + 1) - 1 = 29.
 

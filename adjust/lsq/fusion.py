@@ -12,7 +12,6 @@ the model with the model's uncertainty.
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from adjust.camera import CameraTensors

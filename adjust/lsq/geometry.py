@@ -90,7 +90,10 @@ def quat_conj(q: Tensor) -> Tensor:
 
 
 def rotvec_from_quat(q: Tensor) -> Tensor:
-    """Rotation vector (angle in [0, pi]) of (not necessarily unit) quaternions.  (..., 4) -> (..., 3)."""
+    """Rotation vector (angle in [0, pi]) of (not necessarily unit) quaternions.
+
+    (..., 4) -> (..., 3).
+    """
     q = torch.where(q[..., :1] < 0, -q, q)
     w, v = q[..., :1], q[..., 1:]
     s2 = (v * v).sum(-1, keepdim=True)
@@ -110,7 +113,10 @@ def retract(poses: Tensor, delta: Tensor) -> Tensor:
 
 
 def pose_difference(a: Tensor, b: Tensor) -> Tensor:
-    """Left difference a (-) b = (log(R_a R_b^T), tau_a - tau_b).  (..., 6), (..., 6) -> (..., 6)."""
+    """Left difference a (-) b = (log(R_a R_b^T), tau_a - tau_b).
+
+    (..., 6), (..., 6) -> (..., 6).
+    """
     Ra, Rb = so3_exp(a[..., :3]), so3_exp(b[..., :3])
     return torch.cat((so3_log(Ra @ Rb.transpose(-1, -2)), a[..., 3:] - b[..., 3:]), -1)
 
@@ -255,9 +261,13 @@ def sym3_inverse(M: Tensor) -> Tensor:
     F = a * d - b * b
     det = a * A + b * B + c * Cc
     inv = 1.0 / det
-    return torch.stack(
-        (torch.stack((A, B, Cc), -1), torch.stack((B, D, E), -1), torch.stack((Cc, E, F), -1)), -2
-    ) * inv[..., None, None]
+    return (
+        torch.stack(
+            (torch.stack((A, B, Cc), -1), torch.stack((B, D, E), -1), torch.stack((Cc, E, F), -1)),
+            -2,
+        )
+        * inv[..., None, None]
+    )
 
 
 def normal_blocks_3d(

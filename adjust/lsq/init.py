@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from adjust.camera import CameraTensors, project_cameras
-from adjust.lsq.geometry import project_components, so3_exp, so3_log, sym3_inverse
+from adjust.lsq.geometry import project_components, so3_exp, so3_log
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,8 @@ def kabsch_poses(
     """
     if X.dim() != 3 or X.shape[1:] != body.shape or mask.shape != X.shape[:2]:
         raise ValueError(
-            f"X (T, K, 3), mask (T, K) for body {tuple(body.shape)}; got {tuple(X.shape)}, {tuple(mask.shape)}"
+            f"X (T, K, 3), mask (T, K) for body {tuple(body.shape)}; "
+            f"got {tuple(X.shape)}, {tuple(mask.shape)}"
         )
     w = mask.to(X.dtype)
     n = w.sum(1)

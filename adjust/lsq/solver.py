@@ -89,7 +89,7 @@ class AdjustmentResult:
 
     @property
     def reprojection_error(self) -> np.ndarray:
-        """(T, K) mean reprojection error (px) of the model points over the detections (NaN: none)."""
+        """(T, K) mean reprojection error (px) of the model points (NaN: no detection)."""
         err = np.linalg.norm(self.residuals, axis=-1)
         with np.errstate(invalid="ignore"):
             return (
@@ -333,7 +333,8 @@ def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, p
     body = _as_tensor(body_points, dt)
     if body.shape != (K, 3):
         raise ValueError(
-            f"body_points must have shape ({K}, 3) for xy {tuple(xy_t.shape)}, got {tuple(body.shape)}"
+            f"body_points must have shape ({K}, 3) for xy {tuple(xy_t.shape)}, "
+            f"got {tuple(body.shape)}"
         )
     if cams.num_cameras != C:
         raise ValueError(f"xy has {C} cameras, cams has {cams.num_cameras}")
