@@ -15,6 +15,6 @@ Public API: `simulate`, `SimConfig`, `SimData`, `save_sim`, `load_sim`, `BEHAVIO
 
 from deformnet.sim.config import BEHAVIORS, MECHANISMS, SimConfig
 from deformnet.sim.dataset import SimData, load_sim, save_sim
-from deformnet.sim.simulate import simulate
+from deformnet.sim.engine import simulate
 
 __all__ = ["BEHAVIORS", "MECHANISMS", "SimConfig", "SimData", "load_sim", "save_sim", "simulate"]

@@ -17,8 +17,8 @@ from omegaconf import DictConfig
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, output_dir
 from deformnet.sim.dataset import save_sim
+from deformnet.sim.engine import simulate
 from deformnet.sim.plot import plot_sim, track_xy
-from deformnet.sim.simulate import simulate
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,6 @@
-"""`simulate`: the deformable-mouse simulator (the paper's "Simulated Data", extended with
-behaviors). Everything per frame is vectorised with NumPy; see the package docstring."""
+"""The simulator engine, `simulate`: the deformable-mouse simulator (the paper's "Simulated
+Data", extended with behaviors). Everything per frame is vectorised with NumPy; see the package
+docstring."""
 
 from __future__ import annotations
 
