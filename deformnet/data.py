@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -406,6 +407,8 @@ class DeformDataModule(L.LightningDataModule):
             )
 
     def train_dataloader(self) -> DataLoader:
+        # our batches are generated in-process (num_workers=0): the length is exact
+        warnings.filterwarnings("ignore", message=r".*`IterableDataset` has `__len__` defined")
         if self.trainer is not None:
             self.train_set.rank = self.trainer.global_rank
         return DataLoader(self.train_set, batch_size=None, collate_fn=_identity)

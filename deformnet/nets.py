@@ -21,7 +21,36 @@ from torch import Tensor, nn
 
 from deformnet.tokens import NUM_FEATURES, PRIOR_FEATURES, token_features
 
-__all__ = ["LSTMPredictor", "TransformerPredictor", "sinusoidal_encoding"]
+__all__ = ["LSTMPredictor", "TransformerPredictor", "PartHead", "sinusoidal_encoding"]
+
+
+class PartHead(nn.Module):
+    """Per-part output layer: part i's offset from the window context and its own prior.
+
+    h_i = W_i ctx + U [prior_i, e_i] (e_i a learned part embedding), then a shared MLP -> 3.
+    The shared path lets all parts learn one use of their interpolation prior; the per-part
+    context projection keeps a joint view of the window. The last layer (`out`) is zero-
+    initialised, so an untrained head outputs zero offsets (the rigid baseline).
+    """
+
+    def __init__(self, ctx_dim: int, num_parts: int, hidden: int, d_part: int = 16) -> None:
+        super().__init__()
+        self.num_parts, self.hidden = int(num_parts), int(hidden)
+        self.part_embedding = nn.Embedding(self.num_parts, d_part)
+        self.ctx = nn.Linear(ctx_dim, self.num_parts * self.hidden)
+        self.local = nn.Linear(PRIOR_FEATURES + d_part, self.hidden, bias=False)
+        self.mlp = nn.Sequential(nn.GELU(), nn.Linear(self.hidden, self.hidden), nn.GELU())
+        self.out = nn.Linear(self.hidden, 3)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, ctx: Tensor, prior: Tensor) -> Tensor:
+        """ctx (B, C), prior (B, K, P) -> offsets (B, K, 3) in units of offset_scale."""
+        B = ctx.shape[0]
+        emb = self.part_embedding.weight.to(prior.dtype).expand(B, -1, -1)
+        h = self.ctx(ctx).reshape(B, self.num_parts, self.hidden)
+        h = h + self.local(torch.cat((prior, emb), -1))
+        return self.out(self.mlp(h))
 
 
 class _Base(nn.Module):
@@ -55,12 +84,12 @@ class _Base(nn.Module):
             )
 
     def _features(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
-        """Token features (B, W, K, F) and the flattened interpolation prior (B, K * P)."""
+        """Token features (B, W, K, F) and the interpolation prior (B, K, P)."""
         self._check(rigid, deformed, observed)
         feats, prior, _ = token_features(
             rigid, deformed, observed, self.half_window, self.pos_scale, self.offset_scale
         )
-        return feats, prior.flatten(1)
+        return feats, prior
 
     def _finish(self, offset: Tensor, rigid: Tensor) -> Tensor:
         return rigid[:, self.half_window] + offset * self.offset_scale
@@ -95,21 +124,15 @@ class LSTMPredictor(_Base):
             bidirectional=True,
             dropout=dropout if layers > 1 else 0.0,
         )
-        head_in = 2 * hidden + embed + K * PRIOR_FEATURES
-        self.head = nn.Sequential(
-            nn.Linear(head_in, 2 * hidden), nn.GELU(), nn.Linear(2 * hidden, K * 3)
-        )
-        nn.init.zeros_(self.head[-1].weight)
-        nn.init.zeros_(self.head[-1].bias)
+        self.head = PartHead(2 * hidden + embed, K, 2 * hidden)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K * P)
+        feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K, P)
         B, W = feats.shape[:2]
         e = self.embed(feats.reshape(B, W, -1))
         h, _ = self.lstm(e)
         mid = self.half_window
-        out = self.head(torch.cat((h[:, mid], e[:, mid], prior), -1))
-        out = out.reshape(B, self.num_parts, 3)
+        out = self.head(torch.cat((h[:, mid], e[:, mid]), -1), prior)
         return self._finish(out, rigid)
 
 
@@ -169,16 +192,10 @@ class TransformerPredictor(_Base):
         )
         self.encoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(d_model)
-        self.head = nn.Sequential(
-            nn.Linear(d_model + K * PRIOR_FEATURES, 2 * d_model),
-            nn.GELU(),
-            nn.Linear(2 * d_model, K * 3),
-        )
-        nn.init.zeros_(self.head[-1].weight)
-        nn.init.zeros_(self.head[-1].bias)
+        self.head = PartHead(d_model, K, 2 * d_model)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K * P)
+        feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K, P)
         B, W, K, _ = feats.shape
         part = self.part_embedding.weight.to(feats.dtype).expand(B, W, K, -1)
         tok = self.token_embed(torch.cat((feats, part), -1))  # (B, W, K, d_part)
@@ -186,6 +203,5 @@ class TransformerPredictor(_Base):
         if self.use_pos_enc:
             x = x + self.pos_encoding.to(feats.dtype)[None]
         x = self.encoder(x)
-        out = self.head(torch.cat((self.norm(x[:, self.half_window]), prior), -1))
-        out = out.reshape(B, K, 3)
+        out = self.head(self.norm(x[:, self.half_window]), prior)
         return self._finish(out, rigid)

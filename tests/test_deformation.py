@@ -48,7 +48,7 @@ def body():
 def _model(body, kind: str) -> DeformationModel:
     torch.manual_seed(0)
     net = build_net(NET_CONFIGS[kind])
-    last = net.head[-1]
+    last = net.head.out
     with torch.no_grad():  # not the zero-initialised rigid baseline
         last.weight.normal_(0.0, 0.3)
         last.bias.normal_(0.0, 0.3)

@@ -25,7 +25,7 @@ def body():
 def _randomise_head(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
     """Give the zero-initialised output layer weights, so the net is not the rigid baseline."""
     g = torch.Generator().manual_seed(seed)
-    last = net.head[-1] if isinstance(net.head, torch.nn.Sequential) else net.head
+    last = net.head.out
     with torch.no_grad():
         last.weight.copy_(0.3 * torch.randn(last.weight.shape, generator=g))
         last.bias.copy_(0.3 * torch.randn(last.bias.shape, generator=g))
