@@ -5,7 +5,7 @@ projection, Gaussian pixel noise, NaN dropout and a few far outliers; times
 `adjust.triangulate.triangulate` (plain and robust) and reports accuracy. Prints one JSON
 line last and writes it to runs/benchmarks/triangulate.json (atomically).
 
-    .venv/bin/python benchmarks/triangulate.py [--frames 100000] [--threads 2]
+    .venv/bin/python benchmarks/triangulate.py [--frames 100000] [--threads 1]
 """
 
 from __future__ import annotations
@@ -46,7 +46,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=100_000)
     ap.add_argument("--parts", type=int, default=8)
     ap.add_argument("--cameras", type=int, default=3, choices=range(2, len(CENTERS) + 1))
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--threads", type=int, default=1, help="torch intra-op threads inside triangulate"
+    )
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--noise-px", type=float, default=1.0)
     ap.add_argument("--dropout", type=float, default=0.2)
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> dict:
         walls, cpus, res = [], [], None
         for _ in range(args.repeats):
             t0, c0 = time.perf_counter(), time.process_time()
-            res = triangulate(xy, w, cams, **kw)
+            res = triangulate(xy, w, cams, num_threads=args.threads, **kw)
             walls.append(time.perf_counter() - t0)
             cpus.append(time.process_time() - c0)
         return walls, cpus, res
