@@ -1,0 +1,293 @@
+"""`adjust-track` through Hydra's compose API: a small simulated scene, the real hand data,
+the grid constraint, bad input, and a deformable run with a tiny checkpoint."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import hydra
+import numpy as np
+import pytest
+import torch
+
+from adjust.camera import CameraTensors
+from adjust.io import InputError, load_scene, read_points3d
+from adjust.track import POSE_COLUMNS, run
+from deformnet.body import default_mouse
+from deformnet.paths import CONF_DIR
+
+REAL = Path("/work/shared/data/real-hand-4cam")
+FIELDS = ("x", "y", "z", "error", "ncams", "score")
+FAST = ["progress=false", "solver.max_iterations=8"]
+
+
+def _cfg(name: str, overrides: list[str]):
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return hydra.compose(name, overrides=overrides)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """A small simulated scene folder (default rig and detector), written by adjust-simulate."""
+    from adjust.scene_cli import run as simulate
+
+    out = tmp_path_factory.mktemp("scene")
+    simulate(_cfg("scene", [f"output.dir={out}", "num_frames=120", "seed=5"]))
+    return out
+
+
+def _track(scene: Path, out: Path, extra: list[str] = ()) -> dict:
+    ov = [
+        f"input.calibration={scene / 'calibration.toml'}",
+        f"input.detections={scene / 'detections'}",
+        f"output.dir={out}",
+        *FAST,
+        *extra,
+    ]
+    return run(_cfg("track", ov))
+
+
+def _columns(path: Path) -> list[str]:
+    return path.read_text().splitlines()[0].split(",")
+
+
+def _dlt(scene: Path) -> np.ndarray:
+    from adjust.triangulate import triangulate
+
+    cameras, det = load_scene(scene / "calibration.toml", scene / "detections", default_mouse())
+    cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
+    with torch.no_grad():
+        res = triangulate(torch.as_tensor(det.xy), torch.as_tensor(det.weight()), cams)
+    return res.points.numpy()
+
+
+@pytest.fixture(scope="module")
+def rigid_run(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("track")
+    return out, _track(scene, out)
+
+
+def test_rigid_track_complete_and_better_than_dlt(scene, rigid_run):
+    out, summary = rigid_run
+    parts = default_mouse().parts
+    cols = _columns(out / "points3d.csv")
+    want = [f"{p}_{f}" for p in parts for f in FIELDS]
+    assert cols[: len(want)] == want
+    assert set(POSE_COLUMNS) | {"pose_sigma_r", "pose_sigma_t"} <= set(cols)
+    assert {f"{p}_sigma" for p in parts} <= set(cols) and cols[-1] == "fnum"
+
+    d = read_points3d(out / "points3d.csv")
+    P = d["points"]
+    assert P.shape == (120, 8, 3) and np.isfinite(P).all()  # every part in every frame
+    assert summary["completeness"] == 1.0
+    assert json.loads((out / "summary.json").read_text()) == summary
+    for key in ("iterations", "final_cost", "reprojection_error_px_per_camera", "time_s"):
+        assert key in summary
+    assert set(summary["reprojection_error_px_per_camera"]) == {"top", "side", "front"}
+    assert summary["settings"]["solver"]["constraint"] == "grid"  # conf/solver/default.yaml
+
+    # _ncams / _score / _error semantics
+    truth = np.load(scene / "truth.npz")
+    cameras, det = load_scene(scene / "calibration.toml", scene / "detections", default_mouse())
+    ncams = det.observed.sum(-1)
+    assert (d["ncams"] == ncams).all() and (ncams == 0).any()
+    assert np.isnan(d["score"][ncams == 0]).all() and np.isnan(d["error"][ncams == 0]).all()
+    assert (d["score"][ncams > 0] >= det.threshold).all()
+    assert np.isfinite(d["error"][ncams > 0]).all()
+    sig = np.stack([d["extra"][f"{p}_sigma"] for p in parts], 1)
+    assert np.isfinite(sig).all() and (sig > 0).all()
+    assert np.median(sig[ncams == 0]) > np.median(sig[ncams >= 2])  # unseen parts less certain
+
+    # accuracy: better than DLT triangulation on the part-frames DLT can do
+    dlt = _dlt(scene)
+    can = np.isfinite(dlt).all(-1)
+    assert 0.3 < can.mean() < 0.95
+    err_adj = np.linalg.norm(P - truth["points"], axis=-1)
+    err_dlt = np.linalg.norm(dlt - truth["points"], axis=-1)
+    rmse_adj = np.sqrt(np.mean(err_adj[can] ** 2))
+    rmse_dlt = np.sqrt(np.mean(err_dlt[can] ** 2))
+    assert rmse_adj < rmse_dlt, (rmse_adj, rmse_dlt)
+    # and the parts DLT cannot do are tracked within a body length
+    assert np.sqrt(np.mean(err_adj[~can] ** 2)) < 30.0
+
+
+def test_grid_and_spline_constraints(scene, rigid_run, tmp_path):
+    _, grid = rigid_run
+    spline = _track(scene, tmp_path, ["solver.constraint=spline"])
+    assert spline["settings"]["solver"]["constraint"] == "spline"
+    assert spline["completeness"] == 1.0
+    a = read_points3d(rigid_run[0] / "points3d.csv")["points"]
+    b = read_points3d(tmp_path / "points3d.csv")["points"]
+    # two forms of the same constraint: close, not identical
+    assert 0 < np.sqrt(np.mean(np.sum((a - b) ** 2, -1))) < 10.0
+    assert grid["iterations"] >= 1 and spline["iterations"] >= 1
+
+
+def _hand_subset(tmp_path: Path, start: int = 240, frames: int = 60) -> Path:
+    """Frames start .. start + frames - 1 of the real hand data (the CSV files cut; in these
+    frames every part is triangulated in some well-observed frame, as body=auto needs)."""
+    det = tmp_path / "trial"
+    det.mkdir()
+    for f in sorted((REAL / "trial_000").glob("*.csv")):
+        lines = f.read_text().splitlines()
+        rows = lines[:3] + lines[3 + start : 3 + start + frames]
+        (det / f.name).write_text("\n".join(rows) + "\n")
+    return det
+
+
+@pytest.mark.skipif(not REAL.exists(), reason="real hand data not present")
+def test_body_auto_on_real_hand_data(tmp_path):
+    det = _hand_subset(tmp_path)
+    out = tmp_path / "out"
+    summary = run(
+        _cfg(
+            "track",
+            [
+                f"input.calibration={REAL / 'calibration.toml'}",
+                f"input.detections={det}",
+                f"output.dir={out}",
+                "body=auto",
+                *FAST,
+            ],
+        )
+    )
+    assert summary["body"]["source"] == "auto" and len(summary["parts"]) == 21
+    assert summary["completeness"] == 1.0
+    d = read_points3d(out / "points3d.csv")
+    assert d["parts"][:2] == ("elbow", "wrist") and d["points"].shape == (60, 21, 3)
+    assert np.isfinite(d["points"]).all()
+    # the reported points agree with the detections (DLT's median is ~3.3-3.9 px)
+    assert summary["reprojection_error_px"]["median"] < 6.0
+    assert summary["settings"]["solver"]["sigma_def_mm"] == pytest.approx(
+        max(summary["body"]["rms_deviation_mm"], 0.5)
+    )
+
+
+def test_body_mouse_on_hand_data_is_an_input_error(tmp_path):
+    if not REAL.exists():
+        pytest.skip("real hand data not present")
+    cfg = _cfg(
+        "track",
+        [
+            f"input.calibration={REAL / 'calibration.toml'}",
+            f"input.detections={REAL / 'trial_000'}",
+            f"output.dir={tmp_path}",
+            *FAST,
+        ],
+    )
+    with pytest.raises(InputError, match="elbow"):
+        run(cfg)
+
+
+def test_bad_input(scene, tmp_path):
+    base = [f"output.dir={tmp_path / 'out'}", *FAST]
+    cfg = _cfg(
+        "track",
+        [
+            f"input.calibration={tmp_path / 'nope.toml'}",
+            f"input.detections={scene / 'detections'}",
+            *base,
+        ],
+    )
+    with pytest.raises(InputError, match="calibration file not found: .*nope.toml"):
+        run(cfg)
+    # a detections folder without the file of one camera
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    for cam in ("top", "side"):
+        (partial / f"{cam}.csv").write_bytes((scene / "detections" / f"{cam}.csv").read_bytes())
+    cfg = _cfg(
+        "track",
+        [
+            f"input.calibration={scene / 'calibration.toml'}",
+            f"input.detections={partial}",
+            *base,
+        ],
+    )
+    with pytest.raises(InputError, match=r"cameras without a file: \['front'\]"):
+        run(cfg)
+    cfg = _cfg(
+        "track",
+        [
+            f"input.calibration={scene / 'calibration.toml'}",
+            f"input.detections={scene / 'detections'}",
+            f"deformation={tmp_path / 'missing.ckpt'}",
+            *base,
+        ],
+    )
+    with pytest.raises(InputError, match="deformation checkpoint not found"):
+        run(cfg)
+    with pytest.raises(ValueError, match="input.calibration"):
+        run(_cfg("track", [f"input.detections={scene / 'detections'}", *base]))
+    assert not (tmp_path / "out" / "points3d.csv").exists()
+
+
+def _tiny_checkpoint(path: Path) -> Path:
+    """An untrained tiny LSTM deformation model saved as a checkpoint (DeformationModel.save)."""
+    from deformnet.deformation import DeformationModel, build_net
+
+    torch.manual_seed(0)
+    body = default_mouse()
+    config = {
+        "_target_": "deformnet.nets.LSTMPredictor",
+        "num_parts": body.num_parts,
+        "half_window": 2,
+        "hidden": 8,
+        "layers": 1,
+        "embed": 8,
+    }
+    try:
+        net = build_net(config)
+    except (TypeError, ValueError) as exc:  # the net's signature changed: say so
+        pytest.fail(f"cannot build a tiny LSTMPredictor: {exc}")
+    DeformationModel(net, body, 2, config).save(path)
+    return path
+
+
+def test_deformable_run_with_tiny_checkpoint(scene, rigid_run, tmp_path):
+    ckpt = _tiny_checkpoint(tmp_path / "tiny.ckpt")
+    out = tmp_path / "out"
+    summary = _track(scene, out, [f"deformation={ckpt}", "deform.max_iterations=2"])
+    assert summary["deformation"]["window"] == 5
+    assert summary["body"]["source"] == "checkpoint"
+    assert summary["completeness"] == 1.0
+    d = read_points3d(out / "points3d.csv")
+    assert np.isfinite(d["points"]).all()
+    # an untrained net moves parts by little: the result stays near the rigid track
+    rigid = read_points3d(rigid_run[0] / "points3d.csv")["points"]
+    truth = np.load(scene / "truth.npz")["points"]
+    rmse = np.sqrt(np.mean(np.sum((d["points"] - truth) ** 2, -1)))
+    rmse_rigid = np.sqrt(np.mean(np.sum((rigid - truth) ** 2, -1)))
+    assert rmse < 2 * rmse_rigid + 5.0
+
+
+@pytest.mark.slow
+def test_deformable_run_with_trained_tiny_checkpoint(scene, tmp_path):
+    """Train a tiny net with deformnet-train's run() (toy data), then track with it."""
+    from deformnet.train import run as train
+
+    res = train(
+        _cfg(
+            "train",
+            [
+                f"output.dir={tmp_path / 'net'}",
+                "data=toy",
+                "data.num_frames=200",
+                "data.steps_per_epoch=2",
+                "data.val_windows=64",
+                "trainer.max_epochs=1",
+                "trainer.num_sanity_val_steps=0",
+                "net.hidden=8",
+                "net.embed=8",
+                "net.layers=1",
+                "half_window=2",
+                "logger=none",
+                "progress_bar=none",
+            ],
+        )
+    )
+    assert res["best_checkpoint"]
+    ckpt = res["best_checkpoint"]
+    summary = _track(scene, tmp_path / "out", [f"deformation={ckpt}", "deform.max_iterations=2"])
+    assert summary["completeness"] == 1.0
