@@ -299,8 +299,13 @@ def _triangulate_flat(
                 used[idx[sel], best_c[sel]] = False
                 Xn, okn = solve(w[idx].detach() * used[idx], idx)
                 used[idx] = used[idx] & okn[:, None]
+                X[idx], ok[idx] = Xn, okn
                 err[idx] = _view_errors(Xn, xy0[idx].detach(), observed[idx], cams)
-    X, ok = solve(w * used)
+        inputs = (xy, weight, cams.K, cams.R, cams.t, cams.dist)
+        if torch.is_grad_enabled() and any(z.requires_grad for z in inputs):
+            X, ok = solve(w * used)  # again, with the graph, on the final views
+    else:
+        X, ok = solve(w * used)
     ncams = used.sum(-1)
     valid = ok & (ncams >= min_views)
     used = used & valid[:, None]
