@@ -196,3 +196,29 @@ def test_camera_constructors():
     torch.testing.assert_close(
         rodrigues_to_matrix(torch.as_tensor(cam.rvec)).float(), ct.R[0], atol=1e-6, rtol=0
     )
+
+
+def test_small_helpers_shapes_values_gradients():
+    cams = CameraTensors.from_cameras([make_camera(s, skew=1.0) for s in range(2)])
+    K = cams.K.clone().requires_grad_(True)
+    uv = (torch.rand(4, 2, 2, dtype=D) * 1000).requires_grad_(True)
+    xy = pixels_to_normalized(uv, K)
+    assert xy.shape == (4, 2, 2)
+    torch.testing.assert_close(normalized_to_pixels(xy, K), uv)
+    assert torch.autograd.gradcheck(pixels_to_normalized, (uv, K))
+    assert torch.autograd.gradcheck(normalized_to_pixels, (xy.detach().requires_grad_(True), K))
+    d = cams.dist.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(distort_normalized, (xy.detach().requires_grad_(True), d))
+    R, t = cams.R.clone().requires_grad_(True), cams.t.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(projection_matrix, (K, R, t))
+    assert projection_matrix(cams.K[0], cams.R[0], cams.t).shape == (2, 3, 4)  # broadcast
+    with pytest.raises(ValueError):
+        projection_matrix(cams.K, cams.R, cams.t[..., :2])
+    with pytest.raises(ValueError):
+        pixels_to_normalized(uv[..., :1], K)
+    with pytest.raises(ValueError):
+        normalized_to_pixels(xy, K[..., :2])
+    with pytest.raises(ValueError):
+        undistort_normalized(xy, cams.dist[..., :4])
+    with pytest.raises(ValueError):
+        undistort_normalized(xy, cams.dist, iters=-1)

@@ -185,3 +185,9 @@ def test_gradcheck_triangulation():
     uv2.requires_grad_(True)
     triangulate(uv2, w.detach(), cams, robust=True).points.sum().backward()
     assert torch.isfinite(uv2.grad).all() and (uv2.grad[0, 0, 2] == 0).all()
+
+
+def test_gradcheck_reprojection_errors():
+    cams, X, uv, w, _ = scene(T=2, K=2)
+    X = (X + 1.0).requires_grad_(True)  # non-zero residuals (the norm is not smooth at 0)
+    assert torch.autograd.gradcheck(lambda X: reprojection_errors(X, uv, cams), (X,))
