@@ -44,7 +44,7 @@ class SolverConfig:
     kalman_accel_rad: float = 0.2  # kalman init: white-acceleration std per frame, rad
     chunk_size: int = 50000  # frames per chunk (0: never chunk)
     overlap: int = 64  # frames of overlap on each side of a chunk
-    fuse_iterations: int = 2  # Gauss-Newton steps of the per-part fusion
+    fuse_iterations: int = 1  # Gauss-Newton steps of the per-part fusion
     ridge: float = 1e-9  # relative ridge keeping the normal matrix definite
     wtol: float = 1e-4  # ... or the cost changes by less than this between iterations (IRLS)
     num_threads: int = 0  # torch threads while solving (0: leave torch's setting)

@@ -257,32 +257,35 @@ def add_track_normal(
         raise ValueError(f"kind must be 'spline' or 'grid', got {kind!r}")
     wt = float(weight)
     Sw = wt * S
-    Pt = P.transpose(-1, -2).contiguous()  # (R, 5, 3, 3): P_a^T
+    P5 = P.permute(1, 0, 2, 3).contiguous()  # (5, R, 3, 3)
+    Pt5 = P5.transpose(-1, -2)
     ctt = torch.tensor(ct, dtype=dt, device=dev)
     bt = torch.from_numpy(blocks)
     if Jc is not None:
-        JcT = (wt * Jc.transpose(-1, -2)).permute(1, 0, 2, 3)  # (5, R, 3 rot, 3 row)
-        Jcw = wt * Jc
+        Jc5 = (wt * Jc).permute(1, 0, 2, 3).contiguous()  # (5, R, 3 row, 3 rot)
         Nw_t = wt * N.transpose(-1, -2)
         Nw = wt * N
-    tt = torch.diag_embed((wt * ctt[:, None] * ctt[None, :])[..., None].expand(SPAN, SPAN, 3))
+    tt = (wt * ctt[:, None] * ctt[None, :])[..., None, None] * torch.eye(3, dtype=dt, device=dev)
+    tmp = poses.new_empty((SPAN, n, 6, 6))
     for ic in range(SPAN):  # column frame ic, row frames ia = ic..4 -> offsets 0..4-ic
         m = SPAN - ic
-        # rotation-rotation blocks P_a^T S P_ic (+ frame-t corrections), a = ic..4
-        SPc = Sw @ P[:, ic]  # (R, 3, 3)
-        rr = (Pt[:, ic:].reshape(n, 3 * m, 3) @ SPc).view(n, m, 3, 3)
+        blk = tmp[:m]
+        # rotation-rotation: P_a^T S P_ic (+ frame-t corrections), a = ic..4
+        torch.matmul(Pt5[ic:], (Sw @ P5[ic])[None], out=blk[..., :3, :3])
         if N is not None:
             if ic <= 2:  # row frame t: N^T P_ic
-                rr[:, 2 - ic] += Nw_t @ P[:, ic]
+                blk[2 - ic, :, :3, :3] += Nw_t @ P5[ic]
             if ic == 2:  # column frame t: P_a^T N, and the (t, t) block's C
-                rr += Pt[:, 2:] @ Nw[:, None]
-                rr[:, 0] += wt * Cc
-        band = bt[:m, ic : ic + n]  # (5 - ic, R, 6, 6) view
-        band[..., :3, :3] += rr.permute(1, 0, 2, 3)
+                blk[..., :3, :3] += Pt5[2:] @ Nw[None]
+                blk[0, :, :3, :3] += wt * Cc
         if Jc is not None:  # rot(ia) x trans(ic): ct_ic Jc_ia^T; trans(ia) x rot(ic): ct_ia Jc_ic
-            band[..., :3, 3:] += ct[ic] * JcT[ic:]
-            band[..., 3:, :3] += ctt[ic:, None, None, None] * Jcw[None, :, ic]
-        band[..., 3:, 3:] += tt[ic:, ic, None]
+            torch.mul(Jc5[ic:].transpose(-1, -2), ct[ic], out=blk[..., :3, 3:])
+            torch.mul(Jc5[ic][None], ctt[ic:, None, None, None], out=blk[..., 3:, :3])
+        else:
+            blk[..., :3, 3:] = 0.0
+            blk[..., 3:, :3] = 0.0
+        blk[..., 3:, 3:] = tt[ic:, ic, None]
+        bt[:m, ic : ic + n] += blk
     gt = torch.from_numpy(g)
     for ia in range(SPAN):
         gt[ia : ia + n, :3] -= wt * grad_rot[:, ia, :, 0]

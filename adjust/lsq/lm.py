@@ -25,6 +25,9 @@ class LMResult:
     iterations: int
     history: list[float] = field(default_factory=list)
     converged: bool = False
+    blocks: np.ndarray | None = (
+        None  # undamped normal matrix (with ridge) of the last linearisation
+    )
 
 
 def add_ridge(blocks: np.ndarray, ridge: float) -> float:
@@ -96,9 +99,10 @@ def levenberg_marquardt(
             lam = max(lam * lam_up, 1e-8)
         if tick is not None:
             tick(f"cost {c:.6g} lambda {lam:.1e}")
+        blocks[0][:, idx, idx] = diag0
         if not accepted:  # no decrease at any damping: at a minimum (to machine precision)
             stop = it >= min_iterations or c == 0.0
         if stop:
             converged = True
             break
-    return LMResult(x, it, history, converged)
+    return LMResult(x, it, history, converged, blocks if max_iterations > 0 else None)

@@ -260,13 +260,14 @@ def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
         )
     poses, it, history, converged = out.x, out.iterations, out.history, out.converged
     share = state["share"]
-    # final linearisation: weights, covariance, residuals
-    pb.obs.prepare(poses)
-    lin = _evaluate(poses, pb, jacobian=True)
-    w, wmix, share = _weights(lin, pb, share)
-    blocks, _ = _normal_equations(lin, w, pb)
-    history.append(_cost(lin, pb, wmix))
-    add_ridge(blocks, cfg.ridge)
+    # covariance: the normal matrix of the last linearisation when converged (the last step
+    # was negligible), else a fresh linearisation at the final poses
+    if converged and out.blocks is not None:
+        blocks = out.blocks
+    else:
+        blocks, _, c, _ = linearise(poses)
+        history.append(c)
+        add_ridge(blocks, cfg.ridge)
     cov = banded.diagonal_blocks_of_inverse(blocks) if T else np.zeros((0, 6, 6))
     log.info(
         "%s: %d iterations, cost %.6g -> %.6g, converged=%s",
