@@ -14,13 +14,14 @@ view choice is discrete and made without gradients).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors, project_points, undistort_points
+from adjust.camera import Camera, CameraTensors, project_points, undistort_points
 
 
 @dataclass(frozen=True)
@@ -135,7 +136,7 @@ def _mean_over(err: Tensor, mask: Tensor) -> Tensor:
 def triangulate(
     xy: Tensor | np.ndarray,
     weight: Tensor | np.ndarray,
-    cams: CameraTensors,
+    cams: CameraTensors | Sequence[Camera],
     robust: bool = False,
     max_error_px: float = 20.0,
     min_views: int = 2,
@@ -148,15 +149,16 @@ def triangulate(
     """Triangulate every part in every frame seen by >= ``min_views`` cameras.
 
     xy: (T, K, C, 2) pixels, NaN where missing; weight: (T, K, C) >= 0 (0 = missing; e.g.
-    DeepLabCut likelihoods); cams: C cameras. Any leading dims may replace (T, K). Numpy
-    inputs are converted; outputs are torch tensors in the promoted dtype of xy and cams
-    (float64 recommended). Work proceeds in chunks of ``chunk_size`` points (small tensors
-    stay in cache: several times faster than whole-array ops), with torch limited to
-    ``num_threads`` intra-op threads during the call (restored after; None leaves torch's
-    setting): chunk-sized elementwise work gains nothing from threads, and on a shared CPU
-    2 threads measured 2-30x slower than 1. Points are undistorted first,
-    then solved by weighted linear least squares (see module docstring) with
-    ``reweight_iters`` depth reweightings.
+    DeepLabCut likelihoods); cams: C cameras (a list of `Camera` is converted, float64).
+    Any leading dims may replace (T, K). Numpy inputs are converted; outputs are torch
+    tensors in the promoted dtype of xy and cams (float64 recommended).
+
+    Points are undistorted first, then solved by weighted linear least squares (see module
+    docstring) with ``reweight_iters`` depth reweightings. Work proceeds in chunks of
+    ``chunk_size`` points (small tensors stay in cache: several times faster than
+    whole-array ops), with torch limited to ``num_threads`` intra-op threads during the call
+    (restored after; None leaves torch's setting): chunk-sized elementwise work gains
+    nothing from threads, and on the shared 2-core CPU 2 threads measured 2-30x slower.
 
     robust: if True, for points with >= 3 used views whose worst view error exceeds
     ``max_error_px`` (px), drop the view whose removal leaves the smallest mean reprojection
@@ -164,8 +166,12 @@ def triangulate(
     Points with fewer views (0 or 1 included) or degenerate geometry are NaN, never an error.
     Returns a `TriangulationResult`.
     """
+    if isinstance(cams, (list, tuple)) and cams and all(isinstance(c, Camera) for c in cams):
+        cams = CameraTensors.from_cameras(list(cams))
     if not isinstance(cams, CameraTensors):
-        raise TypeError(f"cams must be a CameraTensors, got {type(cams).__name__}")
+        raise TypeError(
+            f"cams must be a CameraTensors (or list of Camera), got {type(cams).__name__}"
+        )
     C = cams.num_cameras
     dtype = cams.K.dtype
     xy = torch.as_tensor(xy, device=cams.K.device)

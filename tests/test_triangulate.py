@@ -103,6 +103,15 @@ def test_numpy_inputs_and_float32():
     cams, X, uv, w, _ = scene(T=5, K=2)
     res = triangulate(uv.numpy(), w.numpy(), cams)
     assert (res.points - X).abs().max() < 1e-6
+    cam_list = [
+        Camera.from_matrices(
+            f"c{i}", cams.K[i].numpy(), cams.R[i].numpy(), cams.t[i].numpy(), cams.dist[i].numpy()
+        )
+        for i in range(3)
+    ]
+    assert (triangulate(uv, w, cam_list).points - X).abs().max() < 1e-6
+    with pytest.raises(TypeError):
+        triangulate(uv, w, [1, 2, 3])
     res32 = triangulate(uv.float(), w.float(), cams.to(torch.float32))
     assert res32.points.dtype == torch.float32
     assert (res32.points.double() - X).abs().max() < 0.05  # mm
