@@ -73,8 +73,10 @@ def point_errors(
     part-frames where both est and truth are finite. Keys, for g in all / seen (nviews >=
     min_views) / occluded (nviews < min_views):
       rmse_g, median_g, mean_g, p90_g, max_g (mm), within5_g (fraction of evaluated part-frames
-      with error <= within_mm), n_g (evaluated count), completeness_g (fraction of the group's
-      part-frames with finite truth that have a finite estimate);
+      with error <= within_mm), within5_strict_g (the same over all the group's part-frames
+      with finite truth, a missing estimate counting as a miss), n_g (evaluated count),
+      completeness_g (fraction of the group's part-frames with finite truth that have a
+      finite estimate);
     plus completeness (all part-frames), frac_occluded, within_mm, and per_part:
     {part: {rmse, median, within5, completeness}}.
     """
@@ -104,6 +106,9 @@ def point_errors(
         out[f"p90_{g}"] = s["p90"]
         out[f"max_{g}"] = s["max"]
         out[f"within5_{g}"] = float((e <= within_mm).mean()) if e.size else float("nan")
+        denom = int((m & has_truth).sum())
+        hits = int((err[m] <= within_mm).sum())  # NaN compares False: missing = miss
+        out[f"within5_strict_{g}"] = hits / denom if denom else float("nan")
         out[f"n_{g}"] = s["n"]
         out[f"completeness_{g}"] = completeness(est, m & has_truth)
     if nviews is not None:

@@ -52,6 +52,8 @@ def test_point_errors_values_and_split():
     assert m["within5_seen"] == 1.0 and m["n_seen"] == 2
     assert m["rmse_occluded"] == pytest.approx(12.0) and m["n_occluded"] == 1
     assert m["completeness_seen"] == 1.0 and m["completeness_occluded"] == 0.5
+    assert m["within5_strict_all"] == pytest.approx(2 / 4)
+    assert m["within5_strict_occluded"] == 0.0 and m["within5_strict_seen"] == 1.0
     assert m["frac_occluded"] == 0.5
     assert m["per_part"]["snout"]["rmse"] == pytest.approx(math.sqrt((25 + 144) / 2))
     assert m["per_part"]["tail"]["completeness"] == 0.5
