@@ -264,7 +264,7 @@ def resect(
             raise ValueError(f"resection with known K (PnP) needs >= 4 points, got {N}")
         ok, rvec, tvec = cv2.solvePnP(
             X.numpy(), x.numpy(), K0.numpy(), dist0.numpy(),
-            flags=cv2.SOLVEPNP_SQPNP if N >= 4 else cv2.SOLVEPNP_ITERATIVE,
+            flags=cv2.SOLVEPNP_SQPNP,  # global, any N >= 3, planar or not
         )  # fmt: skip
         if not ok:
             raise ValueError("cv2.solvePnP failed: degenerate configuration (collinear points?)")
