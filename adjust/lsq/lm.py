@@ -51,6 +51,7 @@ def levenberg_marquardt(
     ftol: float = 1e-10,
     xtol: float = 1e-12,
     wtol: float = 0.0,
+    atol: float = 0.0,
     lam: float = 1e-6,
     lam_up: float = 10.0,
     lam_down: float = 0.3,
@@ -59,9 +60,10 @@ def levenberg_marquardt(
 ) -> LMResult:
     """Minimise a sum of squares whose normal matrix is block-banded.
 
-    Stops when an accepted step decreases the cost by less than `ftol` (relative), moves less
-    than `xtol` (max abs), the cost at successive linearisation points changes by less than
-    `wtol` (relative; for reweighted problems), or no damping gives a decrease.
+    Stops when an accepted step decreases the cost by less than `ftol` (relative) or by less
+    than `atol` (absolute) while also by less than 1e-3 (relative), moves less than `xtol` (max
+    abs), the cost at successive linearisation points changes by less than `wtol` (relative;
+    for reweighted problems), or no damping gives a decrease.
     """
     x = x0
     history: list[float] = []
@@ -93,7 +95,8 @@ def levenberg_marquardt(
                 x = trial
                 lam = max(lam * lam_down, 1e-12)
                 change = abs(history[-2] - c) / max(c, 1e-300) if it > 1 else math.inf
-                if it >= min_iterations and (rel < ftol or step < xtol or change < wtol):
+                small = (c - new) < atol and rel < 1e-3
+                if it >= min_iterations and (rel < ftol or small or step < xtol or change < wtol):
                     stop = True
                 break
             lam = max(lam * lam_up, 1e-8)
