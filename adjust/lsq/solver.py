@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -91,12 +92,9 @@ class AdjustmentResult:
     def reprojection_error(self) -> np.ndarray:
         """(T, K) mean reprojection error (px) of the model points (NaN: no detection)."""
         err = np.linalg.norm(self.residuals, axis=-1)
-        with np.errstate(invalid="ignore"):
-            return (
-                np.nanmean(np.where(np.isfinite(err), err, np.nan), axis=-1)
-                if err.size
-                else err[..., 0]
-            )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # parts without any detection
+            return np.nanmean(err, axis=-1)
 
 
 @dataclass
