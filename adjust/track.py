@@ -394,7 +394,9 @@ def _run(cfg: DictConfig) -> dict:
     rigid_iterations = 0
     if observation is not None and bool(cfg.deform.get("rigid_first", True)):
         # the rigid adjustment is cheap: start the deformable one from its poses
-        rigid = adjust_poses(det.xy, det.weight(), cams, body.points, solver_cfg, progress=progress)
+        rigid = adjust_poses(
+            det.xy, det.weight(), cams, np.array(body.points), solver_cfg, progress=progress
+        )
         init_poses, rigid_iterations = rigid.poses, int(rigid.iterations)
         timings["rigid_s"] = time.perf_counter() - t0
         if cfg.deform.get("max_iterations") is not None:
@@ -403,7 +405,7 @@ def _run(cfg: DictConfig) -> dict:
         det.xy,
         det.weight(),
         cams,
-        body.points,
+        np.array(body.points),  # a writable copy
         solver_cfg,
         init_poses=init_poses,
         observation=observation,
