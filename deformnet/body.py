@@ -167,8 +167,11 @@ class BodyModel:
             )
         # initial mean: the frame with the most observed parts, centred
         ref = int(np.argmax(w.sum(1)))
-        mean = _masked_mean_shape(X[ref : ref + 1], w[ref : ref + 1], fill=np.nanmean(
-            np.where(w[..., None] > 0, X, np.nan), axis=0))
+        mean = _masked_mean_shape(
+            X[ref : ref + 1],
+            w[ref : ref + 1],
+            fill=np.nanmean(np.where(w[..., None] > 0, X, np.nan), axis=0),
+        )
         aligned = X
         for _ in range(iterations):
             aligned = _align_to(X, w, mean)
@@ -191,7 +194,7 @@ class BodyModel:
 
 
 def _masked_mean_shape(X: np.ndarray, w: np.ndarray, fill: np.ndarray) -> np.ndarray:
-    """Per-part weighted mean of (F, K, 3) with weights (F, K); `fill` where a part has no weight."""
+    """Per-part weighted mean of (F, K, 3), weights (F, K); `fill` where a part has no weight."""
     tot = w.sum(0)
     m = (X * w[..., None]).sum(0) / np.maximum(tot, 1e-12)[:, None]
     return np.where(tot[:, None] > 0, m, fill)
@@ -213,7 +216,7 @@ def _align_to(X: np.ndarray, w: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def default_mouse() -> BodyModel:
-    """The default mouse (paper's Table 1 with left/right X negated), read from conf/body/mouse.yaml."""
+    """The default mouse (Table 1, left/right X negated), from conf/body/mouse.yaml."""
     import yaml
 
     from deformnet.paths import CONF_DIR

@@ -20,7 +20,9 @@ def _check_last(x: Tensor, size: int | tuple[int, ...], name: str) -> None:
     if not isinstance(x, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if tuple(x.shape[x.dim() - len(size) :]) != size or x.dim() < len(size):
-        raise ValueError(f"{name} must have shape (..., {', '.join(map(str, size))}), got {tuple(x.shape)}")
+        raise ValueError(
+            f"{name} must have shape (..., {', '.join(map(str, size))}), got {tuple(x.shape)}"
+        )
 
 
 def skew(v: Tensor) -> Tensor:
@@ -80,7 +82,10 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:
 
 
 def quaternion_to_rodrigues(q: Tensor) -> Tensor:
-    """Rotation vector of angle in [0, pi] from a unit quaternion (w, x, y, z).  (..., 4) -> (..., 3)."""
+    """Rotation vector (angle in [0, pi]) from a unit quaternion (w, x, y, z).
+
+    q: (..., 4) -> (..., 3).
+    """
     _check_last(q, 4, "q")
     q = torch.where(q[..., :1] < 0, -q, q)
     w, v = q[..., :1], q[..., 1:]
@@ -96,7 +101,10 @@ def quaternion_to_rodrigues(q: Tensor) -> Tensor:
 
 
 def matrix_to_rodrigues(R: Tensor) -> Tensor:
-    """Rotation vector (angle in [0, pi]) from a rotation matrix (log map).  (..., 3, 3) -> (..., 3)."""
+    """Rotation vector (angle in [0, pi]) from a rotation matrix (log map).
+
+    R: (..., 3, 3) -> (..., 3).
+    """
     return quaternion_to_rodrigues(matrix_to_quaternion(R))
 
 

@@ -96,12 +96,13 @@ def token_features(
     that frame's own body frame (rotation by Kabsch of the frame's rigid points onto the mid
     frame's), / offset_scale, zero where masked; the observed flag.
 
-    Part features (B, K, PRIOR_FEATURES), an interpolation prior for the mid frame built from the
-    nearest observed frames before and after it: the body-frame offset interpolated linearly (held
-    from the one side that has an observation, zero with none) and the canonical deformed position
-    interpolated linearly, minus the mid rigid point (the body-frame value where a side is
-    missing), both / offset_scale; the distances to those frames / (W // 2) (2 when missing); and
-    flags for each side.
+    Part features (B, K, PRIOR_FEATURES = 26), an interpolation prior for the mid frame built from
+    the nearest observed frames before and after it: the body-frame offset interpolated linearly
+    (held from the one side that has an observation, zero with none); the canonical deformed
+    position interpolated linearly, minus the mid rigid point (the body-frame value where a side
+    is missing); the body-frame offsets at the nearest and second-nearest observed frames on each
+    side (zero where none) -- all / offset_scale --; the distances to those four frames / (W // 2)
+    (2 where none); and their four existence flags.
 
     Returns (token features, part features, observed with the mid frame masked).
     """
@@ -123,24 +124,44 @@ def token_features(
     local = torch.where(both, ob + w * (oa - ob), torch.where(has_b[..., None], ob, oa))
     db, da = _gather_frames(deformed_c, ib), _gather_frames(deformed_c, ia)
     glob = torch.where(both, db + w * (da - db) - rigid_c[..., mid, :, :], local)
+    # the second-nearest observations on each side (local slopes / curvature)
+    frames = torch.arange(W, device=obs.device)[:, None]
+    first = ((frames == ib[..., None, :]) & has_b[..., None, :]) | (
+        (frames == ia[..., None, :]) & has_a[..., None, :]
+    )
+    ib2, ia2, has_b2, has_a2 = _nearest_observed(obs & ~first, mid)
+    zero = torch.zeros_like(ob)
+    ob2 = torch.where(has_b2[..., None], _gather_frames(off, ib2), zero)
+    oa2 = torch.where(has_a2[..., None], _gather_frames(off, ia2), zero)
+    ob = torch.where(has_b[..., None], ob, zero)
+    oa = torch.where(has_a[..., None], oa, zero)
     half = max(1, W // 2)
-    dist_b = torch.where(has_b, (mid - ib).to(rigid_c.dtype) / half, torch.full_like(w[..., 0], 2))
-    dist_a = torch.where(has_a, (ia - mid).to(rigid_c.dtype) / half, torch.full_like(w[..., 0], 2))
+
+    def dist(i: Tensor, has: Tensor) -> Tensor:
+        d = (i - mid).abs().to(rigid_c.dtype) / half
+        return torch.where(has, d, torch.full_like(d, 2.0))[..., None]
+
+    flags = torch.stack((has_b, has_a, has_b2, has_a2), -1).to(rigid_c.dtype)
     prior = torch.cat(
         (
             local / offset_scale,
             glob / offset_scale,
-            dist_b[..., None],
-            dist_a[..., None],
-            has_b[..., None].to(rigid_c.dtype),
-            has_a[..., None].to(rigid_c.dtype),
+            ob / offset_scale,
+            oa / offset_scale,
+            ob2 / offset_scale,
+            oa2 / offset_scale,
+            dist(ib, has_b),
+            dist(ia, has_a),
+            dist(ib2, has_b2),
+            dist(ia2, has_a2),
+            flags,
         ),
         -1,
     )
     return feats, prior, obs
 
 
-PRIOR_FEATURES = 10
+PRIOR_FEATURES = 26
 
 
 def _nearest_observed(obs: Tensor, mid: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
