@@ -288,7 +288,7 @@ def make_deformable_observation(model, body_points: np.ndarray, det: Detections,
     cls = _measured_observation_class()
     obs = cls(
         net,
-        torch.as_tensor(body_points, dtype=torch.float64),
+        torch.tensor(np.asarray(body_points), dtype=torch.float64),
         int(model.window),
         torch.nan_to_num(X),
         observed,
