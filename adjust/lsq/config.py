@@ -42,7 +42,7 @@ class SolverConfig:
     init: str = "fit"  # initialisation: fit (Kabsch/PnP + interpolation) | kalman (CV + RTS)
     kalman_accel_mm: float = 50.0  # kalman init: white-acceleration std per frame, mm
     kalman_accel_rad: float = 0.2  # kalman init: white-acceleration std per frame, rad
-    chunk_size: int = 50000  # frames per chunk (0: never chunk)
+    chunk_size: int = 10000  # frames per chunk (0: never chunk)
     overlap: int = 64  # frames of overlap on each side of a chunk
     fuse_iterations: int = 1  # Gauss-Newton steps of the per-part fusion
     ridge: float = 1e-9  # relative ridge keeping the normal matrix definite
