@@ -224,11 +224,12 @@ def _measured_observation_class():
         def prepare(self, poses: torch.Tensor) -> None:
             Xr, _ = self.rigid.rigid_points(poses)
             Xr = Xr.detach()
-            obs = self.observed & torch.isfinite(self.data).all(-1)
+            data = self.data.to(Xr.dtype)
+            obs = self.observed & torch.isfinite(data).all(-1)
             if self.gate_mm > 0:
-                obs = obs & ((self.data - Xr).norm(dim=-1) <= self.gate_mm)
+                obs = obs & ((data - Xr).norm(dim=-1) <= self.gate_mm)
             self._rigid_win = self._windows(Xr)
-            self._deformed_win = self._windows(torch.where(obs[..., None], self.data, Xr))
+            self._deformed_win = self._windows(torch.where(obs[..., None], data, Xr))
             self._observed_win = self._windows(obs[..., None].to(Xr.dtype))[..., 0] > 0.5
 
         def _forward(self, poses: torch.Tensor) -> torch.Tensor:

@@ -291,3 +291,34 @@ def test_deformable_run_with_trained_tiny_checkpoint(scene, tmp_path):
     ckpt = res["best_checkpoint"]
     summary = _track(scene, tmp_path / "out", [f"deformation={ckpt}", "deform.max_iterations=2"])
     assert summary["completeness"] == 1.0
+
+
+def test_measured_deformation_matches_autograd(tmp_path):
+    """The finite-difference Jacobian of the deformable observation equals the solver's
+    reverse-mode one, and measured inputs reach the net (gated by distance)."""
+    from adjust.lsq.observation import DeformableObservation
+    from adjust.track import _measured_observation_class
+    from deformnet.deformation import DeformationModel
+
+    model = DeformationModel.from_checkpoint(_tiny_checkpoint(tmp_path / "t.ckpt")).double()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    gen = torch.Generator().manual_seed(1)
+    T, body = 20, torch.tensor(default_mouse().points)
+    rand = lambda *shape: torch.randn(*shape, generator=gen, dtype=torch.float64)  # noqa: E731
+    poses = torch.cat((0.3 * rand(T, 3), 50 * rand(T, 3)), -1)
+    data = body[None] + poses[:, None, 3:] + 2 * rand(T, 8, 3)
+    data[3, 2] += 100.0  # a mis-detection: gated out
+    observed = torch.rand(T, 8, generator=gen) > 0.3
+    obs = _measured_observation_class()(model, body, model.window, data, observed, 30.0, 4096)
+    ref = DeformableObservation(model, body, model.window, observed)
+    obs.prepare(poses)
+    ref.prepare(poses)
+    assert not obs._observed_win[3, model.half_window, 2]  # gated
+    ref._deformed_win, ref._observed_win = obs._deformed_win, obs._observed_win
+    X, J = obs.points(poses)
+    Xr, Jr = ref.points(poses)
+    torch.testing.assert_close(X, Xr)
+    torch.testing.assert_close(J, Jr, atol=1e-6, rtol=1e-5)
+    sub = obs.window(5, 15)
+    assert sub.data.shape[0] == 10 and type(sub) is type(obs)
