@@ -122,7 +122,7 @@ def track_residuals(
             return r, None
         J = poses.new_zeros((n, SPAN, 6, 6))
         Jl_inv = left_jacobian_inverse(phi)  # (4, R, 3, 3) d phi_s / d delta_s
-        Jr_inv = left_jacobian_inverse(-phi)  # -d phi_s / d delta_t
+        Jr_inv = Jl_inv.transpose(-1, -2)  # J_r^-1 = J_l^-1(-phi) = J_l^-1^T: -d phi_s / d delta_t
         for j, o in enumerate(OFFSETS):
             J[:, 2 + o, :3, :3] = -rho * w[j] * Jl_inv[j]
             J[:, 2 + o, 3:, 3:] = -w[j] * eye
@@ -142,7 +142,7 @@ def track_residuals(
     if not jacobian:
         return r, None
     Jl_inv = left_jacobian_inverse(phi)  # (4, R, 3, 3): d phi_s / d delta_s
-    Jr_inv = left_jacobian_inverse(-phi)  # -d phi_s / d delta_t
+    Jr_inv = Jl_inv.transpose(-1, -2)  # J_r^-1 = J_l^-1(-phi) = J_l^-1^T: -d phi_s / d delta_t
     # d phi_S / d delta for the five frames (rotation columns), premultiplied by J_l(phi_S)
     Dphi = poses.new_zeros((n, SPAN, 3, 3))
     Dphi[:, 2] = -(w[:, None, None, None] * Jr_inv).sum(0)
@@ -205,7 +205,7 @@ def add_track_normal(
     Rt, phi, tau_t, tau_S = _relative(poses)
     phi_S = (w[:, None, None] * phi).sum(0)
     Jl_inv = left_jacobian_inverse(phi)
-    Jr_inv = left_jacobian_inverse(-phi)
+    Jr_inv = Jl_inv.transpose(-1, -2)  # J_r^-1(phi) = J_l^-1(-phi) = J_l^-1(phi)^T
     D = torch.stack(
         (
             w[0] * Jl_inv[0],

@@ -282,7 +282,12 @@ def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
 
 
 def _as_tensor(x, dtype: torch.dtype) -> Tensor:
-    return x.to(dtype) if isinstance(x, Tensor) else torch.as_tensor(np.asarray(x), dtype=dtype)
+    if isinstance(x, Tensor):
+        return x.to(dtype)
+    arr = np.asarray(x)
+    if not arr.flags.writeable:  # e.g. BodyModel.points (read-only): copy, torch needs writable
+        arr = arr.copy()
+    return torch.as_tensor(arr, dtype=dtype)
 
 
 def adjust_poses(
