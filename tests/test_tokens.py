@@ -145,3 +145,27 @@ def test_window_bank_batches(body):
     hide[:, 4] = True
     b = bank.batch(torch.tensor([0, 1]), hide)
     assert not b["observed"][:, 4].any() and torch.all(b["deformed"][:, 4] == 0)
+
+
+def test_interpolation_prior_uses_nearest_observed_frames(body):
+    W, mid, K = 9, 4, body.num_parts
+    M = torch.tensor(np.array(body.points))
+    rigid = M.expand(1, W, K, 3).clone()  # a mouse standing still: canonical = model frame
+    t = torch.arange(W, dtype=torch.float64)
+    deformed = rigid + t[None, :, None, None] * torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    observed = torch.zeros(1, W, K, dtype=torch.bool)
+    observed[0, [1, 2, 6, 7], 0] = True  # part 0: nearest 2 and 6, second-nearest 1 and 7
+    observed[0, [0, 3], 1] = True  # part 1: nothing after the mid frame
+    _, prior, _ = token_features(rigid, deformed, observed, mid, offset_scale=10.0)
+    p = prior[0, 0]
+    assert prior.shape == (1, K, 26)
+    x = lambda v: torch.tensor([v, 0.0, 0.0], dtype=torch.float64)  # noqa: E731
+    assert torch.allclose(p[0:3], x(0.4)) and torch.allclose(p[3:6], x(0.4))  # linear at t=4
+    assert torch.allclose(p[6:9], x(0.2)) and torch.allclose(p[9:12], x(0.6))
+    assert torch.allclose(p[12:15], x(0.1)) and torch.allclose(p[15:18], x(0.7))
+    assert torch.allclose(p[18:22], torch.tensor([0.5, 0.5, 0.75, 0.75], dtype=torch.float64))
+    assert torch.all(p[22:] == 1)
+    q = prior[0, 1]  # one side only: held, second-nearest before is frame 0
+    assert torch.allclose(q[0:3], x(0.3)) and torch.allclose(q[12:15], x(0.0))
+    assert torch.allclose(q[22:], torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=torch.float64))
+    assert torch.all(prior[0, 2:, 22:] == 0)  # nothing observed
