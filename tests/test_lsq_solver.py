@@ -88,7 +88,16 @@ def test_frames_without_observations_are_filled_by_the_track_constraint(scene):
 
 @pytest.mark.parametrize(
     "case",
-    ["all_missing", "one_frame", "T2", "T4", "nan_coordinates", "zero_weights", "one_camera"],
+    [
+        "all_missing",
+        "no_frames",
+        "one_frame",
+        "T2",
+        "T4",
+        "nan_coordinates",
+        "zero_weights",
+        "one_camera",
+    ],
 )
 def test_no_nan_for_degenerate_inputs(scene, case):
     body, cams = scene
@@ -96,6 +105,8 @@ def test_no_nan_for_degenerate_inputs(scene, case):
     xy, w, _ = synthetic.simulate(truth, body, cams, noise_px=1.0, seed=3)
     if case == "all_missing":
         xy[:] = float("nan")
+    elif case == "no_frames":
+        xy, w = xy[:0], w[:0]
     elif case == "one_frame":
         xy, w = xy[:1], w[:1]
     elif case == "T2":
@@ -125,6 +136,10 @@ def test_no_nan_for_degenerate_inputs(scene, case):
         arr = getattr(res, name)
         assert arr.shape[0] == T
         assert np.all(np.isfinite(arr)), name
+    if case == "one_camera":  # PnP initialisation; depth is weakly determined by one camera
+        assert res.fitted.all()
+        rot, tr = _errors(res.poses, truth)
+        assert rot < 0.15 and tr < 30.0
     if case in ("one_frame", "T4"):
         rot, tr = _errors(res.poses, truth[:T])
         assert rot < 0.05 and tr < 2.0

@@ -109,6 +109,8 @@ def solve(blocks: np.ndarray, rhs: np.ndarray, factor: np.ndarray | None = None)
     T, b, n = _check_blocks(blocks)
     if rhs.shape[:2] != (T, n):
         raise ValueError(f"rhs must have shape ({T}, {n}[, k]), got {rhs.shape}")
+    if T == 0:
+        return np.zeros_like(rhs)
     cb = cholesky(blocks) if factor is None else factor
     x = cho_solve_banded((cb, True), rhs.reshape(T * n, -1), check_finite=False)
     return x.reshape(rhs.shape)
