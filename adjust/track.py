@@ -402,6 +402,8 @@ def _run(cfg: DictConfig) -> dict:
         timings["rigid_s"] = time.perf_counter() - t0
         if cfg.deform.get("max_iterations") is not None:
             solver_cfg = solver_cfg.replace(max_iterations=int(cfg.deform.max_iterations))
+    if observation is not None and cfg.deform.get("sigma_def_mm") is not None:
+        solver_cfg = solver_cfg.replace(sigma_def_mm=float(cfg.deform.sigma_def_mm))
     res = adjust_poses(
         det.xy,
         det.weight(),
