@@ -48,7 +48,7 @@ class SolverConfig:
     ridge: float = 1e-9  # relative ridge keeping the normal matrix definite
     dtol: float = 1e-2  # ... or by less than this per frame (and < 1e-3 relative)
     wtol: float = 1e-4  # ... or the cost changes by less than this between iterations (IRLS)
-    num_threads: int = 0  # torch threads while solving (0: leave torch's setting)
+    num_threads: int = 1  # torch threads while solving (0: leave torch's setting)
     dtype: str = "float64"
 
     def __post_init__(self) -> None:

@@ -52,17 +52,18 @@ def triangulate_robust(
     Shapes as `triangulate_linear`."""
     use = valid.clone()
     X, ok = triangulate_linear(xy, use, cams)
+    err = _reprojection_errors(X, xy, cams)  # (T, K, C)
     for _ in range(rounds):
-        err = _reprojection_errors(X, xy, cams)  # (T, K, C)
-        err = torch.where(use & ok[..., None], err, torch.zeros_like(err))
-        worst = err.argmax(-1, keepdim=True)
-        bad = (err.gather(-1, worst) > max_error_px) & (use.sum(-1, keepdim=True) >= 3)
-        drop = torch.zeros_like(use).scatter(-1, worst, bad)
-        if not bool(drop.any()):
+        e = torch.where(use & ok[..., None], err, torch.zeros_like(err))
+        worst = e.argmax(-1, keepdim=True)
+        bad = (e.gather(-1, worst) > max_error_px) & (use.sum(-1, keepdim=True) >= 3)
+        idx = torch.nonzero(bad[..., 0], as_tuple=True)  # points with a view to drop
+        if idx[0].numel() == 0:
             break
-        use = use & ~drop
-        X, ok = triangulate_linear(xy, use, cams)
-    err = _reprojection_errors(X, xy, cams)
+        use[idx] = use[idx] & ~torch.zeros_like(use[idx]).scatter(-1, worst[idx], True)
+        Xs, oks = triangulate_linear(xy[idx][None], use[idx][None], cams)  # only those points
+        X[idx], ok[idx] = Xs[0], oks[0]
+        err[idx] = _reprojection_errors(Xs, xy[idx][None], cams)[0]
     ok = ok & ~(use & (err > max_error_px)).any(-1)
     return X, ok
 
