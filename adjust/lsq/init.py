@@ -344,8 +344,12 @@ def initial_poses(
     dt = body.dtype
     if T == 0:
         return xy.new_zeros((0, 6)), torch.zeros(0, dtype=torch.bool)
-    X, mask = triangulate_robust(xy, valid, cams)
-    poses, ok = kabsch_robust(body, X, mask)
+    fits = []
+    for a in range(0, T, 10000):  # per-frame fits in blocks of frames (cache-friendly)
+        X, mask = triangulate_robust(xy[a : a + 10000], valid[a : a + 10000], cams)
+        fits.append(kabsch_robust(body, X, mask))
+    poses = torch.cat([f[0] for f in fits], 0)
+    ok = torch.cat([f[1] for f in fits], 0)
     need = np.flatnonzero(~ok.cpu().numpy() & (valid.sum(1) >= 4).any(-1).cpu().numpy())
     if need.size:
         fits = pnp_poses(xy.cpu().numpy(), valid.cpu().numpy(), cams, body.cpu().numpy(), need)

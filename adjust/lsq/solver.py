@@ -36,6 +36,8 @@ from adjust.lsq.geometry import (
     project_components,
     retract,
     rotation_gemm_weights,
+    so3_exp,
+    so3_log,
 )
 from adjust.lsq.init import initial_poses
 from adjust.lsq.lm import add_ridge, levenberg_marquardt
@@ -391,30 +393,44 @@ def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, p
         conv = conv and out["converged"]
         shares.append(out["share"])
     share = float(np.mean(shares)) if shares else 1.0
-    return _finish(
-        poses, pose_cov, p0, fitted, problem(0, T), share, histories, iters, conv, len(cores)
+    # per-frame outputs, chunk by chunk (cache-friendly; neighbours for windowed models)
+    parts = []
+    for a, b in cores:
+        ea, eb = (max(0, a - ov), min(T, b + ov)) if len(cores) > 1 else (a, b)
+        out = _frame_outputs(poses[ea:eb], pose_cov[ea:eb], problem(ea, eb), share)
+        parts.append({k: v[a - ea : b - ea] for k, v in out.items()})
+    arrays = {k: np.concatenate([p[k] for p in parts], 0) for k in parts[0]}
+
+    def np_(x: Tensor) -> np.ndarray:
+        return x.detach().cpu().numpy().astype(np.float64)
+
+    return AdjustmentResult(
+        pose_cov=np.asarray(pose_cov, dtype=np.float64),
+        fitted=fitted.cpu().numpy(),
+        init_poses=np_(p0),
+        iterations=iters,
+        cost_history=histories,
+        converged=conv,
+        mixture_share=share,
+        chunks=len(cores),
+        **arrays,
     )
 
 
-def _finish(
-    poses, pose_cov, p0, fitted, pb: _Problem, share, histories, iters, conv, nchunks
-) -> AdjustmentResult:
-    """Residuals, weights, fused points and uncertainties at the final poses."""
+def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: _Problem, share: float) -> dict:
+    """Per-frame outputs at the final poses: residuals, weights, fused points, uncertainties."""
     cfg = pb.cfg
-    T, K, C = pb.valid.shape
     dt = poses.dtype
     pb.obs.prepare(poses)
     lin = _evaluate(poses, pb, jacobian=False)
     _, wmix, _ = _weights(lin, pb, share)
     e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
     rob = kernel_weight((e2 * wmix).sqrt(), cfg.robust, cfg.robust_scale)
-    Xr, JXr = pb.obs.rigid_points(poses)
     cov_t = torch.as_tensor(pose_cov, dtype=dt)
-    _, JX = (
-        pb.obs.points(poses, jacobian=True)
-        if not isinstance(pb.obs, RigidObservation)
-        else (None, JXr)
-    )
+    if isinstance(pb.obs, RigidObservation):
+        _, JX = pb.obs.rigid_points(poses)
+    else:
+        _, JX = pb.obs.points(poses, jacobian=True)
     model_cov = JX @ cov_t[:, None] @ JX.transpose(-1, -2)  # (T, K, 3, 3)
     eye = torch.eye(3, dtype=dt)
     prior = model_cov + (cfg.sigma_def_mm**2 + 1e-6) * eye
@@ -423,33 +439,23 @@ def _finish(
     e = torch.stack((lin.eu, lin.ev), -1)
     res = torch.where(pb.valid[..., None], e, torch.full_like(e, float("nan")))
     inv_det = 1.0 / cfg.sigma_det_px**2
-    from adjust.lsq.geometry import so3_exp, so3_log  # noqa: PLC0415
-
     poses_c = torch.cat((so3_log(so3_exp(poses[:, :3])), poses[:, 3:]), -1)
 
     def np_(x: Tensor) -> np.ndarray:
         return x.detach().cpu().numpy().astype(np.float64)
 
-    return AdjustmentResult(
-        poses=np_(poses_c),
-        points=np_(pts),
-        point_cov=np_(pcov),
-        point_sigma=np_(torch.diagonal(pcov, dim1=-2, dim2=-1).clamp_min(0).sqrt()),
-        model_points=np_(lin.X),
-        model_sigma=np_(torch.diagonal(model_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()),
-        pose_cov=np.asarray(pose_cov, dtype=np.float64),
-        residuals=np_(res),
-        weights=np_(torch.where(pb.valid, wmix * rob / inv_det, torch.zeros_like(rob))),
-        ncams=pb.valid.sum(-1).cpu().numpy(),
-        observed=pb.valid.any(-1).any(-1).cpu().numpy(),
-        fitted=fitted.cpu().numpy(),
-        init_poses=np_(p0),
-        iterations=iters,
-        cost_history=histories,
-        converged=conv,
-        mixture_share=share,
-        chunks=nchunks,
-    )
+    return {
+        "poses": np_(poses_c),
+        "points": np_(pts),
+        "point_cov": np_(pcov),
+        "point_sigma": np_(torch.diagonal(pcov, dim1=-2, dim2=-1).clamp_min(0).sqrt()),
+        "model_points": np_(lin.X),
+        "model_sigma": np_(torch.diagonal(model_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()),
+        "residuals": np_(res),
+        "weights": np_(torch.where(pb.valid, wmix * rob / inv_det, torch.zeros_like(rob))),
+        "ncams": pb.valid.sum(-1).cpu().numpy(),
+        "observed": pb.valid.any(-1).any(-1).cpu().numpy(),
+    }
 
 
 def normal_matrix(
