@@ -346,7 +346,7 @@ class DeformDataModule(L.LightningDataModule):
     def __init__(
         self,
         body: BodyModel,
-        half_window: int = 12,
+        half_window: int = 16,
         source: str = "sim",
         sim: Any = None,
         train_sequences: int = 4,

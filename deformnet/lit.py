@@ -117,13 +117,14 @@ class DeformLit(L.LightningModule):
         def rmse(x: Tensor) -> Tensor:
             return (x.sum() / total).sqrt().float()
 
-        self.log("val/rmse_mm", rmse(sums["net"]), prog_bar=True)
-        self.log("val/rmse_mm_rigid", rmse(sums["rigid"]))
-        self.log("val/rmse_mm_linear", rmse(sums["linear"]))
+        # the sums are already reduced over processes: every rank logs the same value
+        self.log("val/rmse_mm", rmse(sums["net"]), prog_bar=True, sync_dist=True)
+        self.log("val/rmse_mm_rigid", rmse(sums["rigid"]), sync_dist=True)
+        self.log("val/rmse_mm_linear", rmse(sums["linear"]), sync_dist=True)
         per_part = (sums["net"] / count.clamp_min(1.0)).sqrt().float()
         for name, value, c in zip(self.parts, per_part, count):
             if c > 0:
-                self.log(f"val/rmse_mm/{name}", value)
+                self.log(f"val/rmse_mm/{name}", value, sync_dist=True)
         self._val_sums = {}
 
     def configure_optimizers(self):

@@ -105,7 +105,7 @@ class LSTMPredictor(_Base):
     def __init__(
         self,
         num_parts: int,
-        half_window: int = 12,
+        half_window: int = 16,
         hidden: int = 64,
         layers: int = 2,
         embed: int = 64,
@@ -160,7 +160,7 @@ class TransformerPredictor(_Base):
     def __init__(
         self,
         num_parts: int,
-        half_window: int = 12,
+        half_window: int = 16,
         d_model: int = 64,
         heads: int = 4,
         layers: int = 2,

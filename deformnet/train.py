@@ -61,6 +61,7 @@ def net_config(cfg: DictConfig, num_parts: int) -> tuple[str, dict]:
     """(net name, `_target_` config with num_parts and half_window filled in)."""
     net = dict(_container(cfg.net))
     name = str(net.pop("name", net.get("_target_", "net").rsplit(".", 1)[-1]))
+    net.pop("lr", None)  # the net's default learning rate (optim.lr), not a constructor argument
     net["num_parts"] = int(num_parts)
     net["half_window"] = int(cfg.half_window)
     return name, net
