@@ -2,9 +2,23 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+REPO_DIR = Path(__file__).resolve().parents[1]
+CONF_DIR = REPO_DIR / "conf"
+
+
+def shared_dir() -> Path:
+    """The project's shared folder (the paper, real data sets): `$MOUSETRACK_SHARED`, else the
+    `shared/` folder beside the checkout (where CI and developers have it)."""
+    env = os.environ.get("MOUSETRACK_SHARED")
+    return Path(env) if env else REPO_DIR.parent / "shared"
+
+
+def real_hand_dir() -> Path:
+    """The real 4-camera DeepLabCut hand data set (anipose calibration + trial_000/ CSVs)."""
+    return shared_dir() / "data" / "real-hand-4cam"
 
 
 def output_dir(cfg) -> Path:

@@ -11,8 +11,9 @@ import pytest
 from adjust.camera import Camera
 from adjust.io import InputError, load_detections, load_scene, match_files, write_dlc_csv
 from deformnet.body import BodyModel, default_mouse
+from deformnet.paths import real_hand_dir
 
-REAL = Path("/work/shared/data/real-hand-4cam")
+REAL = real_hand_dir()
 HAND_PARTS = ("elbow", "wrist", "thumb1", "thumb2", "thumb3") + tuple(
     f"{f}{i}" for f in ("index", "middle", "ring", "little") for i in range(1, 5)
 )

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import hydra
 import numpy as np
@@ -14,9 +13,9 @@ from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import read_points3d, save_calibration, write_dlc_csv
 from adjust.triangulate_cli import run
 from deformnet.body import default_mouse
-from deformnet.paths import CONF_DIR
+from deformnet.paths import CONF_DIR, real_hand_dir
 
-REAL = Path("/work/shared/data/real-hand-4cam")
+REAL = real_hand_dir()
 
 
 def _cfg(overrides):
