@@ -1,6 +1,7 @@
 """Real-data benchmark: `adjust-track body=auto` vs. DLT triangulation on the 4-camera hand data.
 
-Data: /work/shared/data/real-hand-4cam (anipose calibration.toml + trial_000/ DeepLabCut CSVs,
+Data: `deformnet.paths.real_hand_dir()` (shared/data/real-hand-4cam beside the checkout or under
+$MOUSETRACK_SHARED; anipose calibration.toml + trial_000/ DeepLabCut CSVs,
 21 hand keypoints, 513 frames; no 3D truth). Both methods run end to end through their CLI's
 `run(cfg)` with default settings (likelihood threshold 0.5): `adjust-triangulate` (linear
 triangulation from >= 2 views) and `adjust-track body=auto` (rigid model estimated from the
@@ -11,7 +12,7 @@ reported points against the accepted detections — per point (mean over its det
 all points each method reports, and over the common subset (part-frames DLT triangulated) for a
 like-for-like comparison; seconds.
 
-    .venv/bin/python benchmarks/real_hand.py [--data /work/shared/data/real-hand-4cam] \\
+    .venv/bin/python benchmarks/real_hand.py [--data ../shared/data/real-hand-4cam] \\
         [--threads 1] [-o solver.constraint=spline]
 
 Prints a table; the last line is JSON keyed by method, also written atomically to
@@ -37,12 +38,12 @@ from adjust.camera import CameraTensors
 from adjust.io import load_scene, read_points3d
 from adjust.track import reprojection_errors
 from deformnet.atomic import write_text
-from deformnet.paths import CONF_DIR
+from deformnet.paths import CONF_DIR, real_hand_dir
 
 log = logging.getLogger("benchmarks.real_hand")
 
 ROOT = CONF_DIR.parent
-DATA = Path("/work/shared/data/real-hand-4cam")
+DATA = real_hand_dir()
 
 
 def compose(name: str, overrides: list[str]):

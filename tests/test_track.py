@@ -15,9 +15,9 @@ from adjust.camera import CameraTensors
 from adjust.io import InputError, load_scene, read_points3d
 from adjust.track import POSE_COLUMNS, run
 from deformnet.body import default_mouse
-from deformnet.paths import CONF_DIR
+from deformnet.paths import CONF_DIR, real_hand_dir
 
-REAL = Path("/work/shared/data/real-hand-4cam")
+REAL = real_hand_dir()
 FIELDS = ("x", "y", "z", "error", "ncams", "score")
 FAST = ["progress=false", "solver.max_iterations=8"]
 
