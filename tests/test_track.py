@@ -310,7 +310,8 @@ def test_measured_deformation_matches_autograd(tmp_path):
     data = body[None] + poses[:, None, 3:] + 2 * rand(T, 8, 3)
     data[3, 2] += 100.0  # a mis-detection: gated out
     observed = torch.rand(T, 8, generator=gen) > 0.3
-    obs = _measured_observation_class()(model, body, model.window, data, observed, 30.0, 4096)
+    cls = _measured_observation_class()
+    obs = cls(model, body, model.window, data, observed, 30.0, 4096, "central")
     ref = DeformableObservation(model, body, model.window, observed)
     obs.prepare(poses)
     ref.prepare(poses)
@@ -320,5 +321,8 @@ def test_measured_deformation_matches_autograd(tmp_path):
     Xr, Jr = ref.points(poses)
     torch.testing.assert_close(X, Xr)
     torch.testing.assert_close(J, Jr, atol=1e-6, rtol=1e-5)
+    fwd = cls(model, body, model.window, data, observed, 30.0, 4096, "forward")
+    fwd.prepare(poses)
+    torch.testing.assert_close(fwd.points(poses)[1], Jr, atol=1e-4, rtol=1e-4)
     sub = obs.window(5, 15)
     assert sub.data.shape[0] == 10 and type(sub) is type(obs)
