@@ -50,11 +50,13 @@ from adjust.io import Detections, InputError, load_scene, write_points3d
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.so3 import skew
 
 log = logging.getLogger(__name__)
 
 #: finite-difference steps of the deformable Jacobian: rotation (rad), translation (mm)
-FD_STEP = {"forward": (1e-6, 1e-4), "central": (1e-5, 1e-3)}
+FD_STEP = {"forward": (1e-6, 1e-4), "central": (1e-5, 1e-3)}  # (rad, mm) steps
+JACOBIANS = ("frozen", *FD_STEP)
 POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
 
 
@@ -217,14 +219,16 @@ def _measured_observation_class():
         """
 
         def __init__(
-            self, model, body_points, window, data, observed, gate_mm, batch_size, differences
+            self, model, body_points, window, data, observed, gate_mm, batch_size, jacobian
         ):
             super().__init__(model, body_points, window, observed, batch_size)
-            if differences not in FD_STEP:
-                raise ValueError(f"deform.differences must be one of {list(FD_STEP)}")
+            if jacobian not in JACOBIANS:
+                raise ValueError(
+                    f"deform.jacobian must be one of {list(JACOBIANS)}, got {jacobian!r}"
+                )
             self.data = data
             self.gate_mm = float(gate_mm)
-            self.differences = differences
+            self.jacobian = jacobian
 
         def prepare(self, poses: torch.Tensor) -> None:
             Xr, _ = self.rigid.rigid_points(poses)
@@ -248,22 +252,33 @@ def _measured_observation_class():
             return torch.cat(outs, 0) if outs else poses.new_zeros((0, self.num_parts, 3))
 
         def points(self, poses: torch.Tensor, jacobian: bool = True):
-            """X (T, K, 3) and, if asked, dX_t/d(delta_t) (T, K, 3, 6) by finite differences:
-            frames are independent given the fixed neighbour inputs, so one batched forward
-            pass per perturbed pose component gives every frame's column at once (6 forward
-            passes, or 12 with central differences, instead of 3K reverse-mode passes)."""
+            """X (T, K, 3) and, if asked, dX_t/d(delta_t) (T, K, 3, 6).
+
+            ``jacobian="frozen"`` (default): the net's prediction in the frame's own body
+            coordinates, c_t = R_t^T (X_t - tau_t), is held fixed within an iteration (it is
+            re-predicted at every linearisation and cost evaluation), so dX_t/d(delta_t) =
+            [-[X_t - tau_t]_x, I] as for a rigid point: one forward pass per evaluation; it
+            neglects how the prediction changes with the frame's pose relative to its fixed
+            neighbours (a Gauss-Newton with that approximate Jacobian). ``"forward"`` /
+            ``"central"``: the full Jacobian by finite differences through the net; frames are
+            independent given the fixed neighbour inputs, so one batched forward pass per
+            perturbed pose component gives every frame's column at once (6 or 12 passes)."""
             if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
                 self.prepare(poses)
             X = self._forward(poses)
             if not jacobian:
                 return X, None
+            if self.jacobian == "frozen":
+                a = X - poses[:, None, 3:]
+                eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
+                return X, torch.cat((-skew(a), eye), -1)
             J = poses.new_zeros((*X.shape, 6))
             for j in range(6):
-                h = FD_STEP[self.differences][j // 3]
+                h = FD_STEP[self.jacobian][j // 3]
                 d = torch.zeros_like(poses)
                 d[:, j] = h
                 Xp = self._forward(retract(poses, d))
-                if self.differences == "central":
+                if self.jacobian == "central":
                     J[..., j] = (Xp - self._forward(retract(poses, -d))) / (2 * h)
                 else:
                     J[..., j] = (Xp - X) / h
@@ -278,7 +293,7 @@ def _measured_observation_class():
                 self.observed[start:stop],
                 self.gate_mm,
                 self.batch_size,
-                self.differences,
+                self.jacobian,
             )
 
     return MeasuredDeformation
@@ -292,7 +307,9 @@ def make_deformable_observation(model, body_points: np.ndarray, det: Detections,
     tri = _triangulate(det, cams, True, float(cfg_def.get("max_error_px", 20.0)))
     X = tri.points.to(torch.float64)
     observed = torch.isfinite(X).all(-1)
-    net = model.double().eval()
+    jac = str(cfg_def.get("jacobian", "frozen"))
+    # finite differences need float64 through the net; the frozen Jacobian does not
+    net = (model.float() if jac == "frozen" else model.double()).eval()
     for p in net.parameters():
         p.requires_grad_(False)
     cls = _measured_observation_class()
@@ -304,7 +321,7 @@ def make_deformable_observation(model, body_points: np.ndarray, det: Detections,
         observed,
         float(cfg_def.get("gate_mm", 30.0)),
         int(cfg_def.get("batch_size", 4096)),
-        str(cfg_def.get("differences", "forward")),
+        jac,
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
