@@ -1,4 +1,5 @@
-"""Scaling of the rigid pose-track adjustment: wall time at T = 10,000 and 100,000 frames.
+"""Scaling of the rigid pose-track adjustment: wall time at T = 10,000 and 100,000 frames,
+and the deformable adjustment (adjust-track with the learned net) at 10,000 frames.
 
 Synthetic scene: the default mouse body model (8 parts), 3 ring cameras, a smooth trajectory
 that keeps turning through 180 degrees, 2 px Gaussian detector noise, 20 % missing detections.
@@ -6,7 +7,13 @@ Default solver settings (grid constraint, two-Gaussian mixture, Cauchy kernel), 
 initialisation included in the time. Prints one line per size and a JSON summary as the last
 line, also written to runs/benchmarks/scaling.json.
 
+Deformable: a simulated 10,000-frame scene (adjust-simulate, default rig), `adjust-track` with
+`deformation=CHECKPOINT` end to end (loading, initialisation, rigid stage, deformable stage,
+outputs), timed against the rigid `adjust-track` on the same scene. Without --checkpoint a net
+is trained first with the default CPU config (about 5 minutes, not timed).
+
     .venv/bin/python benchmarks/scaling.py [--frames 10000 100000] [--threads 1]
+        [--deformable-frames 10000] [--checkpoint runs/.../best.ckpt]  (--deformable-frames 0: skip)
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ import json
 import logging
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -53,11 +61,42 @@ def run_one(T: int, threads: int, seed: int = 0) -> dict:
     }
 
 
+def run_deformable(T: int, checkpoint: str | None, threads: int, work: Path) -> dict:
+    """Time adjust-track rigid and deformable on a simulated T-frame scene (see module doc)."""
+    import tracking  # benchmarks/tracking.py: scene, training and adjust-track helpers
+
+    scene = work / f"scene_{T}"
+    if not (scene / "truth.npz").exists():
+        tracking.simulate(scene, T, tracking.SCENE_SEED)
+    if checkpoint is None:
+        checkpoint, train_s, _ = tracking.train_net(work / "net", [])
+        log.info("trained a deformation net in %.0f s: %s", train_s, checkpoint)
+    extra = [f"threads={threads}"] if threads else []
+    truth = np.load(scene / "truth.npz")["points"]
+    row: dict = {"frames": T, "checkpoint": str(checkpoint)}
+    for name, overrides in (("rigid", []), ("deformable", [f"deformation={checkpoint}"])):
+        points, seconds, summary = tracking.run_track(scene, work / name, overrides + extra)
+        err = np.linalg.norm(points - truth, axis=-1)
+        row[name] = {
+            "seconds": round(seconds, 2),
+            "iterations": summary.get("iterations"),
+            "completeness": float(np.isfinite(points).all(-1).mean()),
+            "rmse_mm": float(np.sqrt(np.nanmean(err**2))),
+        }
+        log.info(
+            "adjust-track %s, T=%d: %.1f s, rmse %.2f mm", name, T, seconds, row[name]["rmse_mm"]
+        )
+    return row
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, nargs="+", default=[10000, 100000])
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--out", default=str(CONF_DIR.parent / "runs" / "benchmarks" / "scaling.json"))
+    ap.add_argument("--deformable-frames", type=int, default=10000, help="0: skip")
+    ap.add_argument("--checkpoint", default=None, help="deformation checkpoint (else: train one)")
+    ap.add_argument("--work", default=str(CONF_DIR.parent / "runs" / "benchmarks" / "scaling"))
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     rows = []
@@ -79,6 +118,11 @@ def main(argv: list[str] | None = None) -> dict:
     ratio = secs[-1] / secs[0] if len(secs) > 1 and secs[0] > 0 else None
     cpus = [r["cpu_seconds"] for r in rows]
     cpu_ratio = cpus[-1] / cpus[0] if len(cpus) > 1 and cpus[0] > 0 else None
+    deformable = None
+    if args.deformable_frames > 0:
+        deformable = run_deformable(
+            args.deformable_frames, args.checkpoint, args.threads, Path(args.work)
+        )
     summary = {
         "benchmark": "scaling",
         "parts": 8,
@@ -88,6 +132,7 @@ def main(argv: list[str] | None = None) -> dict:
         "cpu_ratio": round(cpu_ratio, 3) if cpu_ratio is not None else None,
         "frame_ratio": args.frames[-1] / args.frames[0] if len(args.frames) > 1 else 1,
         "targets": {"seconds_at_100k": 20.0, "ratio": 12.0},
+        "deformable": deformable,
         "threads": args.threads or torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(),
         "load_avg_1min": round(float(np.round(_loadavg(), 2)), 2),
