@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from adjust.app import finite_or_none, load_kwargs, required, stats
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import Detections, InputError, load_scene, write_points3d
 from deformnet.atomic import write_text
@@ -63,50 +64,10 @@ POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz"
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
-def _required(cfg: DictConfig, key: str) -> str:
-    value = OmegaConf.select(cfg, key, throw_on_missing=False)
-    if value is None or OmegaConf.is_missing(cfg, key) or str(value) == "":
-        raise ValueError(f"set {key}=... (see conf/track.yaml)")
-    return str(value)
-
-
-def _stats(values: np.ndarray) -> dict:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
-    return {
-        "count": int(v.size),
-        "median": float(np.median(v)),
-        "mean": float(v.mean()),
-        "p90": float(np.percentile(v, 90)),
-        "max": float(v.max()),
-    }
-
-
-def _finite_or_none(x):
-    """JSON has no NaN: replace non-finite floats (recursively) by None."""
-    if isinstance(x, dict):
-        return {k: _finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_finite_or_none(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def _plain(node):
     return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
-
-
-def _load_kwargs(inp: DictConfig) -> dict:
-    return {
-        "likelihood_threshold": float(inp.get("likelihood_threshold", 0.5)),
-        "individual": inp.get("individual"),
-        "pattern": inp.get("pattern"),
-        "ignore_unknown_parts": bool(inp.get("ignore_unknown_parts", False)),
-        "allow_missing_parts": bool(inp.get("allow_missing_parts", False)),
-    }
 
 
 def _triangulate(det: Detections, cams: CameraTensors, robust: bool, max_error_px: float):
@@ -349,11 +310,11 @@ def _run(cfg: DictConfig) -> dict:
 
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    calibration = _required(cfg, "input.calibration")
-    detections = _required(cfg, "input.detections")
+    calibration = required(cfg, "input.calibration", "track")
+    detections = required(cfg, "input.detections", "track")
     if not Path(calibration).is_file():
         raise InputError(f"calibration file not found: {calibration}")
-    kwargs = _load_kwargs(cfg.input)
+    kwargs = load_kwargs(cfg.input)
     body_cfg = cfg.get("body")
     deformation = cfg.get("deformation")
     solver_cfg = SolverConfig.from_config(cfg.get("solver"))
@@ -511,17 +472,17 @@ def _run(cfg: DictConfig) -> dict:
         "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},
         # reprojection error (px) of the reported points: per point (mean over its accepted
         # detections), per camera and per part (over single detections)
-        "reprojection_error_px": _stats(error),
+        "reprojection_error_px": stats(error),
         "reprojection_error_px_per_camera": {
-            c: _stats(view_err[..., i]) for i, c in enumerate(det.cameras)
+            c: stats(view_err[..., i]) for i, c in enumerate(det.cameras)
         },
         "reprojection_error_px_per_part": {
-            p: _stats(view_err[:, k]) for k, p in enumerate(det.parts)
+            p: stats(view_err[:, k]) for k, p in enumerate(det.parts)
         },
         "sigma_mm": {
-            "seen_ge2": _stats(sigma[seen2]),
-            "seen_1": _stats(sigma[ncams == 1]),
-            "unseen": _stats(sigma[ncams == 0]),
+            "seen_ge2": stats(sigma[seen2]),
+            "seen_1": stats(sigma[ncams == 1]),
+            "unseen": stats(sigma[ncams == 0]),
         },
         "counts": {
             "part_frames": int(T * K),
@@ -538,7 +499,7 @@ def _run(cfg: DictConfig) -> dict:
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
-    summary = _finite_or_none(summary)
+    summary = finite_or_none(summary)
     write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     err = summary["reprojection_error_px"]
     log.info(

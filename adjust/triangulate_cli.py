@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from pathlib import Path
 
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from adjust.app import finite_or_none, load_kwargs, required, stats
 from adjust.camera import CameraTensors
 from adjust.io import load_scene, write_points3d
 from deformnet.atomic import write_text
@@ -34,43 +34,12 @@ log = logging.getLogger(__name__)
 WEIGHTS = ("likelihood", "uniform")
 
 
-def _required(cfg: DictConfig, key: str) -> str:
-    value = OmegaConf.select(cfg, key, throw_on_missing=False)
-    if value is None or OmegaConf.is_missing(cfg, key) or str(value) == "":
-        raise ValueError(f"set {key}=... (see conf/triangulate.yaml)")
-    return str(value)
-
-
-def _stats(values: np.ndarray) -> dict:
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
-    return {
-        "count": int(v.size),
-        "median": float(np.median(v)),
-        "mean": float(v.mean()),
-        "p90": float(np.percentile(v, 90)),
-        "max": float(v.max()),
-    }
-
-
-def _finite_or_none(x):
-    """JSON has no NaN: replace non-finite floats (recursively) by None."""
-    if isinstance(x, dict):
-        return {k: _finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_finite_or_none(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def run(cfg: DictConfig) -> dict:
     """Load, triangulate, write points3d.csv and summary.json; returns the summary."""
     from adjust.triangulate import triangulate
 
-    calibration = _required(cfg, "input.calibration")
-    detections = _required(cfg, "input.detections")
+    calibration = required(cfg, "input.calibration", "triangulate")
+    detections = required(cfg, "input.detections", "triangulate")
     inp = cfg.input
     tri = cfg.triangulate
     weight_mode = str(tri.get("weight", "likelihood"))
@@ -82,11 +51,7 @@ def run(cfg: DictConfig) -> dict:
         calibration,
         detections,
         body,
-        likelihood_threshold=float(inp.get("likelihood_threshold", 0.5)),
-        individual=inp.get("individual"),
-        pattern=inp.get("pattern"),
-        ignore_unknown_parts=bool(inp.get("ignore_unknown_parts", False)),
-        allow_missing_parts=bool(inp.get("allow_missing_parts", False)),
+        **load_kwargs(inp),
     )
     weight = det.weight() if weight_mode == "likelihood" else det.observed.astype(np.float64)
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
@@ -134,9 +99,9 @@ def run(cfg: DictConfig) -> dict:
         "completeness": float(done.mean()) if done.size else 0.0,
         "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},
         # mean reprojection error (px) over each point's used views, over all 3D points
-        "reprojection_error_px": _stats(error[done]),
+        "reprojection_error_px": stats(error[done]),
         "reprojection_error_px_per_part": {
-            p: _stats(error[:, k][done[:, k]])["median"] for k, p in enumerate(det.parts)
+            p: stats(error[:, k][done[:, k]])["median"] for k, p in enumerate(det.parts)
         },
         "counts": {
             "keypoint_frames": int(T * K),
@@ -152,7 +117,7 @@ def run(cfg: DictConfig) -> dict:
         },
         "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
     }
-    summary = _finite_or_none(summary)
+    summary = finite_or_none(summary)
     write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     err = summary["reprojection_error_px"]
     log.info(
