@@ -163,4 +163,13 @@ class DeformationModel(nn.Module):
                 f"{path} is not a deformnet checkpoint (no '{CHECKPOINT_KEY}' entry); write it "
                 "with deformnet-train or DeformationModel.save"
             )
-        return cls.from_export(ckpt[CHECKPOINT_KEY]).to(map_location)
+        try:
+            model = cls.from_export(ckpt[CHECKPOINT_KEY])
+        except (RuntimeError, KeyError, TypeError) as exc:  # weights that do not fit the net
+            raise ValueError(
+                f"{path}: the checkpoint does not fit this version's "
+                f"{ckpt[CHECKPOINT_KEY].get('net_config', {}).get('_target_', 'net')} "
+                f"(written by an older or newer deformnet?); retrain with deformnet-train. "
+                f"Detail: {str(exc).splitlines()[0]}"
+            ) from None
+        return model.to(map_location)

@@ -199,3 +199,26 @@ def test_not_a_deformnet_checkpoint(tmp_path):
     torch.save({"state_dict": {}}, path)
     with pytest.raises(ValueError, match="not a deformnet checkpoint"):
         DeformationModel.from_checkpoint(path)
+
+
+def test_checkpoint_that_does_not_fit_the_net_gives_a_clear_error(tmp_path):
+    """A checkpoint whose weights do not fit the current net (an architecture change) is a
+    ValueError naming the file, not a state-dict traceback."""
+    from deformnet.deformation import CHECKPOINT_KEY
+
+    body = default_mouse()
+    config = {
+        "_target_": "deformnet.nets.LSTMPredictor",
+        "num_parts": body.num_parts,
+        "half_window": 2,
+        "hidden": 8,
+        "layers": 1,
+        "embed": 8,
+    }
+    path = tmp_path / "old.ckpt"
+    DeformationModel(build_net(config), body, 2, config).save(path)
+    blob = torch.load(path, weights_only=False)
+    blob[CHECKPOINT_KEY]["net_config"]["hidden"] = 16  # the net changed since
+    torch.save(blob, path)
+    with pytest.raises(ValueError, match="old.ckpt.*does not fit"):
+        DeformationModel.from_checkpoint(path)
