@@ -134,9 +134,11 @@ class BodyModel:
     ) -> BodyModel:
         """Estimate a rigid model from 3D observations by generalized Procrustes analysis.
 
-        points: (T, K, 3) in mm with NaN for missing. Frames with at least `min_parts` observed
-        parts (default: max(3, ceil(0.75 K))) are aligned rigidly (no scale) to the evolving
-        mean shape; each part's model position is the mean over the frames that observed it.
+        points: (T, K, 3) in mm with NaN for missing. Stage 1: the frames with at least
+        `min_parts` observed parts (default: max(3, ceil(0.75 K))) are aligned rigidly (no
+        scale) to the evolving mean shape; each part's model position is the mean over the
+        frames that observed it. Stage 2: a part that no such frame sees is placed from the
+        frames that see it together with >= 3 stage-1 parts, aligned on those parts.
         The model frame: origin at the centroid, axes along the principal directions (largest
         spread -> Y, smallest -> Z), right-handed.
         """
@@ -149,7 +151,9 @@ class BodyModel:
             raise ValueError(f"{len(names)} part names for {K} parts")
         seen = np.isfinite(X).all(-1)
         need = max(3, int(np.ceil(0.75 * K))) if min_parts is None else int(min_parts)
-        good = np.flatnonzero(seen.sum(1) >= need)
+        counts = seen.sum(1)
+        well = counts >= need
+        good = np.flatnonzero(well)
         if good.size < 2:
             raise ValueError(
                 f"cannot estimate a body model: only {good.size} frames have >= {need} of the "
@@ -157,30 +161,41 @@ class BodyModel:
             )
         if good.size > max_frames:
             good = good[np.linspace(0, good.size - 1, max_frames).astype(int)]
-        X, w = X[good], seen[good].astype(np.float64)
-        X = np.where(w[..., None] > 0, X, 0.0)
-        never = w.sum(0) == 0
-        if never.any():
-            raise ValueError(
-                "cannot estimate a body model: parts never observed in the well-observed frames: "
-                + ", ".join(names[i] for i in np.flatnonzero(never))
-            )
-        # initial mean: the frame with the most observed parts, centred
-        ref = int(np.argmax(w.sum(1)))
-        mean = _masked_mean_shape(
-            X[ref : ref + 1],
-            w[ref : ref + 1],
-            fill=np.nanmean(np.where(w[..., None] > 0, X, np.nan), axis=0),
-        )
-        aligned = X
+        # stage 1: generalized Procrustes over the well-observed frames
+        lacking = ~seen[good].any(0)  # parts no well-observed frame sees
+        w = seen[good].astype(np.float64)
+        Xg = np.where(w[..., None] > 0, X[good], 0.0)
+        ref = int(np.argmax(w.sum(1)))  # initial mean: the frame with the most parts
+        tot = w.sum(0)[:, None]
+        fill = (Xg * w[..., None]).sum(0) / np.maximum(tot, 1.0)  # rough start, refined below
+        mean = _masked_mean_shape(Xg[ref : ref + 1], w[ref : ref + 1], fill=fill)
+        aligned = Xg
         for _ in range(iterations):
-            aligned = _align_to(X, w, mean)
+            aligned = _align_to(Xg, w, mean)
             new_mean = _masked_mean_shape(aligned, w, fill=mean)
             new_mean -= new_mean.mean(0)
             if np.abs(new_mean - mean).max() < 1e-9:
                 mean = new_mean
                 break
             mean = new_mean
+        # stage 2: a lacking part from the frames that see it with >= 3 parts of stage 1,
+        # each aligned on those parts only
+        if lacking.any():
+            known = seen & ~lacking[None]
+            sparse = np.flatnonzero((known.sum(1) >= 3) & (seen & lacking[None]).any(1))
+            if sparse.size > max_frames:
+                sparse = sparse[np.linspace(0, sparse.size - 1, max_frames).astype(int)]
+            ws = (seen[sparse] & lacking[None]).astype(np.float64)
+            tot = ws.sum(0)
+            never = lacking & (tot == 0)
+            if never.any():
+                raise ValueError(
+                    "cannot estimate a body model: parts never observed together with >= 3 "
+                    "other parts: " + ", ".join(names[i] for i in np.flatnonzero(never))
+                )
+            Xs = np.where(seen[sparse][..., None], X[sparse], 0.0)
+            placed = _align_to(Xs, known[sparse].astype(np.float64), mean)
+            mean[lacking] = (placed * ws[..., None]).sum(0)[lacking] / tot[lacking, None]
         # principal axes: largest spread -> Y (forward), next -> X, smallest -> Z
         centred = mean - mean.mean(0)
         _, _, vt = np.linalg.svd(centred, full_matrices=False)

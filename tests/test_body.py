@@ -84,3 +84,14 @@ def test_default_mouse_left_is_minus_x_and_round_trip():
     again = BodyModel.from_config(body.to_mapping())
     assert again.parts == body.parts and again.aliases == body.aliases
     np.testing.assert_array_equal(again.points, body.points)
+
+
+def test_from_observations_places_a_part_seen_only_in_sparse_frames():
+    """A part never seen together with most others (e.g. an elbow out of view whenever the
+    fingers are visible) is placed from the frames with >= 3 parts that do see it."""
+    truth = default_mouse()
+    X = _observe(truth.points, T=200, noise=0.0, missing=0.0, seed=4)
+    X[:150, 7] = np.nan  # tail root missing where everything else is seen ...
+    X[150:, 3:7] = np.nan  # ... and seen only with 3 other parts
+    est = BodyModel.from_observations(X, parts=truth.parts)
+    np.testing.assert_allclose(_pairwise(est.points), _pairwise(truth.points), atol=1e-6)
