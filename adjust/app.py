@@ -2,10 +2,24 @@
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger(__name__)
+
+
+def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
+    """Call an app's `run(cfg)`; bad input or config (ValueError, whose message names the file,
+    camera, part or frame) is one logged line and exit status 2, not a traceback."""
+    try:
+        return run(cfg)
+    except ValueError as exc:
+        log.error("%s", exc)
+        raise SystemExit(2) from None
 
 
 def required(cfg: DictConfig, key: str, config_name: str) -> str:

@@ -30,6 +30,7 @@ from scipy.ndimage import convolve1d
 from scipy.special import ndtri
 
 from adjust.camera import Camera, CameraTensors, depth, project_cameras
+from deformnet.confutil import to_plain
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
 
 log = logging.getLogger(__name__)
@@ -52,16 +53,6 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # config helpers
 # --------------------------------------------------------------------------------------------
-def _plain(cfg: Any) -> Any:
-    """OmegaConf node -> plain containers (resolved); anything else unchanged."""
-    try:
-        from omegaconf import OmegaConf
-
-        if OmegaConf.is_config(cfg):
-            return OmegaConf.to_container(cfg, resolve=True)
-    except ImportError:  # pragma: no cover - omegaconf ships with hydra-core
-        pass
-    return cfg
 
 
 def _vec(value: Any, n: int, what: str) -> np.ndarray:
@@ -135,7 +126,7 @@ _CAMERA_KEYS = {"size", "focal_px", "position", "look_at", "up", "dist", "princi
 def rig_from_config(rig_cfg: Any) -> list[Camera]:
     """Cameras from a rig config: ``{up: [..], cameras: {name: {size, focal_px, position,
     look_at, up?, dist?, principal_point?}}}`` (see ``conf/rig/default.yaml``)."""
-    rig = _plain(rig_cfg)
+    rig = to_plain(rig_cfg)
     if not isinstance(rig, Mapping) or not isinstance(rig.get("cameras"), Mapping):
         raise ValueError("rig config needs a 'cameras' mapping {name: {position, look_at, ...}}")
     if not rig["cameras"]:
@@ -210,7 +201,7 @@ def default_rig(cfg: Any = None, arena_size: Sequence[float] | None = None) -> l
         from deformnet.paths import CONF_DIR
 
         cfg = OmegaConf.load(CONF_DIR / "rig" / "default.yaml")
-    plain = _plain(cfg)
+    plain = to_plain(cfg)
     if not isinstance(plain, Mapping):
         raise ValueError(f"rig config must be a mapping, got {type(plain).__name__}")
     rig = plain.get("rig", plain) if "cameras" not in plain else plain
@@ -389,7 +380,7 @@ def lockbox_boxes(sim: Any) -> np.ndarray:
 def ellipsoids_from_config(occ_cfg: Any) -> list[Ellipsoid]:
     """``{name: {center: [x,y,z], radii: [a,b,c], parts?: [...]}}`` (model frame, mm) ->
     ellipsoids."""
-    occ = _plain(occ_cfg) or {}
+    occ = to_plain(occ_cfg) or {}
     if not isinstance(occ, Mapping):
         raise ValueError(f"occluders must map name -> {{center, radii}}, got {occ!r}")
     out = []
@@ -516,7 +507,7 @@ def detector_config(cfg: Any = None) -> DetectorConfig:
         cfg = OmegaConf.load(CONF_DIR / "detector" / "default.yaml")
     if isinstance(cfg, DetectorConfig):
         return cfg
-    d = _plain(cfg)
+    d = to_plain(cfg)
     if not isinstance(d, Mapping):
         raise ValueError(f"detector config must be a mapping, got {type(d).__name__}")
     if "detector" in d and isinstance(d["detector"], Mapping):

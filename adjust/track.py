@@ -43,9 +43,9 @@ from pathlib import Path
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, load_kwargs, required, stats
+from adjust.app import finite_or_none, load_kwargs, required, run_or_exit, stats
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import Detections, InputError, load_scene, write_points3d
 from deformnet.atomic import write_text
@@ -64,10 +64,6 @@ POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz"
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
-
-
-def _plain(node):
-    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
 
 
 def _triangulate(det: Detections, cams: CameraTensors, robust: bool, max_error_px: float):
@@ -519,11 +515,7 @@ def _run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="track", version_base=None)
 def main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except ValueError as exc:  # bad input or config: the message says what and where
-        log.error("%s", exc)
-        raise SystemExit(2) from None
+    run_or_exit(run, cfg)
 
 
 if __name__ == "__main__":  # pragma: no cover

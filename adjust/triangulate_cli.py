@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, load_kwargs, required, stats
+from adjust.app import finite_or_none, load_kwargs, required, run_or_exit, stats
 from adjust.camera import CameraTensors
 from adjust.io import load_scene, write_points3d
 from deformnet.atomic import write_text
@@ -135,11 +135,7 @@ def run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="triangulate", version_base=None)
 def main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except ValueError as exc:  # bad input or config: the message says what and where
-        log.error("%s", exc)
-        raise SystemExit(2) from None
+    run_or_exit(run, cfg)
 
 
 if __name__ == "__main__":  # pragma: no cover

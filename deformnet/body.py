@@ -110,14 +110,9 @@ class BodyModel:
     @classmethod
     def from_config(cls, cfg) -> BodyModel:
         """From a Hydra/OmegaConf node or dict with keys name, parts, aliases."""
-        try:
-            from omegaconf import OmegaConf
+        from deformnet.confutil import to_plain
 
-            if OmegaConf.is_config(cfg):
-                cfg = OmegaConf.to_container(cfg, resolve=True)
-        except ImportError:  # pragma: no cover - omegaconf ships with hydra-core
-            pass
-        cfg = dict(cfg)
+        cfg = dict(to_plain(cfg))
         cfg.pop("_target_", None)
         return cls.from_mapping(cfg["parts"], cfg.get("aliases"), cfg.get("name", "body"))
 

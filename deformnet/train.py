@@ -21,15 +21,12 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
 
 log = logging.getLogger(__name__)
 
 __all__ = ["run", "main", "build_model", "build_datamodule"]
-
-
-def _container(node: Any) -> Any:
-    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -53,13 +50,13 @@ def _seconds(max_time: Any) -> float | None:
     if OmegaConf.is_config(max_time) or isinstance(max_time, dict):
         import datetime
 
-        return datetime.timedelta(**dict(_container(max_time))).total_seconds()
+        return datetime.timedelta(**dict(to_plain(max_time))).total_seconds()
     return None
 
 
 def net_config(cfg: DictConfig, num_parts: int) -> tuple[str, dict]:
     """(net name, `_target_` config with num_parts and half_window filled in)."""
-    net = dict(_container(cfg.net))
+    net = dict(to_plain(cfg.net))
     name = str(net.pop("name", net.get("_target_", "net").rsplit(".", 1)[-1]))
     net.pop("lr", None)  # the net's default learning rate (optim.lr), not a constructor argument
     net["num_parts"] = int(num_parts)
@@ -75,7 +72,7 @@ def build_model(cfg: DictConfig):
 
     body = BodyModel.from_config(cfg.body)
     name, ncfg = net_config(cfg, body.num_parts)
-    hp = {k: v for k, v in _flatten(_container(cfg)).items() if not k.startswith(("sim/", "body/"))}
+    hp = {k: v for k, v in _flatten(to_plain(cfg)).items() if not k.startswith(("sim/", "body/"))}
     lit = DeformLit(
         build_net(ncfg),
         body,
@@ -93,12 +90,12 @@ def build_model(cfg: DictConfig):
 def build_datamodule(cfg: DictConfig, body):
     from deformnet.data import DeformDataModule
 
-    data = dict(_container(cfg.data))
+    data = dict(to_plain(cfg.data))
     data.pop("_target_", None)
     return DeformDataModule(
         body=body,
         half_window=int(cfg.half_window),
-        sim=_container(cfg.get("sim")),
+        sim=to_plain(cfg.get("sim")),
         seed=int(cfg.seed),
         **data,
     )
@@ -136,7 +133,7 @@ def run(cfg: DictConfig) -> dict:
     lit, body, name = build_model(cfg)
     dm = build_datamodule(cfg, body)
 
-    tcfg = dict(_container(cfg.trainer))
+    tcfg = dict(to_plain(cfg.trainer))
     ckpt_dir = out / "checkpoints"
     checkpoint = ModelCheckpoint(
         dirpath=ckpt_dir,
@@ -151,7 +148,7 @@ def run(cfg: DictConfig) -> dict:
     if bar is not None:
         callbacks.append(bar)
     logger: Any = False
-    lcfg = _container(cfg.get("logger")) or {}
+    lcfg = to_plain(cfg.get("logger")) or {}
     if lcfg.get("_target_"):
         logger = hydra.utils.instantiate(lcfg)
     trainer = L.Trainer(

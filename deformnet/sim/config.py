@@ -13,6 +13,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from deformnet.confutil import to_plain
+
 BEHAVIORS: tuple[str, ...] = ("walk", "scan", "rear", "groom", "lever", "splint", "ball", "slider")
 MECHANISMS: tuple[str, ...] = ("lever", "splint", "ball", "slider")
 
@@ -175,7 +177,7 @@ class SimConfig:
             return cfg
         if cfg is None:
             return cls()
-        data = _to_container(cfg)
+        data = to_plain(cfg)
         if not isinstance(data, Mapping):
             raise ValueError(f"sim: expected a mapping, got {type(data).__name__}")
         return _build(cls, data, "sim")
@@ -185,15 +187,6 @@ class SimConfig:
 
 
 # --------------------------------------------------------------------------------------------
-def _to_container(cfg: Any) -> Any:
-    try:
-        from omegaconf import OmegaConf
-
-        if OmegaConf.is_config(cfg):
-            return OmegaConf.to_container(cfg, resolve=True)
-    except ImportError:  # pragma: no cover - omegaconf ships with hydra-core
-        pass
-    return cfg
 
 
 def _num(value: Any, key: str) -> float:
