@@ -198,16 +198,6 @@ def _measured_observation_class():
             self._deformed_win = self._windows(torch.where(obs[..., None], data, Xr))
             self._observed_win = self._windows(obs[..., None].to(Xr.dtype))[..., 0] > 0.5
 
-        def _forward(self, poses: torch.Tensor) -> torch.Tensor:
-            n = self.W // 2
-            outs = []
-            with torch.no_grad():
-                for s in range(0, poses.shape[0], self.batch_size):
-                    e = min(poses.shape[0], s + self.batch_size)
-                    Xmid, _ = self.rigid.rigid_points(poses[s:e])
-                    outs.append(self._model(Xmid, s, e, n).to(poses.dtype))
-            return torch.cat(outs, 0) if outs else poses.new_zeros((0, self.num_parts, 3))
-
         def points(self, poses: torch.Tensor, jacobian: bool = True):
             """X (T, K, 3) and, if asked, dX_t/d(delta_t) (T, K, 3, 6).
 

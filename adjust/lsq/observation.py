@@ -125,6 +125,10 @@ class DeformableObservation:
             self.prepare(poses)
         if jacobian:
             return self._part_jacobian(poses)
+        return self._forward(poses), None
+
+    def _forward(self, poses: Tensor) -> Tensor:
+        """The net's mid-frame prediction (T, K, 3) for the poses (T, 6), no gradient, batched."""
         n = self.W // 2
         outs = []
         with torch.no_grad():
@@ -132,7 +136,7 @@ class DeformableObservation:
                 e = min(poses.shape[0], s + self.batch_size)
                 Xmid, _ = self.rigid.rigid_points(poses[s:e])
                 outs.append(self._model(Xmid, s, e, n).to(poses.dtype))
-        return torch.cat(outs, 0), None
+        return torch.cat(outs, 0) if outs else poses.new_zeros((0, self.num_parts, 3))
 
     def _model(self, Xmid: Tensor, s: int, e: int, n: int) -> Tensor:
         rw = self._rigid_win[s:e].clone()
