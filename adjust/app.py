@@ -46,13 +46,15 @@ def stats(values: np.ndarray) -> dict:
 
 
 def finite_or_none(x):
-    """JSON has no NaN: replace non-finite floats (recursively) by None."""
+    """JSON has no NaN: non-finite floats (recursively) -> None; numpy bools -> bool."""
     if isinstance(x, dict):
         return {k: finite_or_none(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
         return [finite_or_none(v) for v in x]
     if isinstance(x, float) and not math.isfinite(x):
         return None
+    if isinstance(x, np.bool_):
+        return bool(x)
     return x
 
 

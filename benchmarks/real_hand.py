@@ -34,6 +34,7 @@ import hydra
 import numpy as np
 import torch
 
+from adjust.app import finite_or_none
 from adjust.camera import CameraTensors
 from adjust.io import load_scene, read_points3d
 from adjust.track import reprojection_errors
@@ -156,7 +157,7 @@ def main(argv: list[str] | None = None) -> dict:
         "threads": args.threads or torch.get_num_threads(),
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
-    line = json.dumps(_finite_or_none(summary))
+    line = json.dumps(finite_or_none(summary))
     write_text(args.out, line + "\n")
     print(line, flush=True)
     return summary
@@ -164,14 +165,6 @@ def main(argv: list[str] | None = None) -> dict:
 
 def _fmt(v) -> str:
     return f"{v:.3f}" if isinstance(v, float) and math.isfinite(v) else "n/a"
-
-
-def _finite_or_none(x):
-    if isinstance(x, dict):
-        return {k: _finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 if __name__ == "__main__":

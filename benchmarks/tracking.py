@@ -39,6 +39,7 @@ import hydra
 import numpy as np
 import torch
 
+from adjust.app import finite_or_none
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
 from deformnet.atomic import write_text
@@ -255,7 +256,7 @@ def main(argv: list[str] | None = None) -> dict:
         "threads": args.threads or torch.get_num_threads(),
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
-    line = json.dumps(_finite_or_none(summary))
+    line = json.dumps(finite_or_none(summary))
     write_text(args.out, line + "\n")
     print(line, flush=True)
     return summary
@@ -263,18 +264,6 @@ def main(argv: list[str] | None = None) -> dict:
 
 def _round(v):
     return round(v, 4) if isinstance(v, float) and math.isfinite(v) else v
-
-
-def _finite_or_none(x):
-    if isinstance(x, dict):
-        return {k: _finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_finite_or_none(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, np.bool_ | bool):
-        return bool(x)
-    return x
 
 
 if __name__ == "__main__":
