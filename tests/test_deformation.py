@@ -204,19 +204,12 @@ def test_not_a_deformnet_checkpoint(tmp_path):
 def test_checkpoint_that_does_not_fit_the_net_gives_a_clear_error(tmp_path):
     """A checkpoint whose weights do not fit the current net (an architecture change) is a
     ValueError naming the file, not a state-dict traceback."""
+    from helpers import tiny_deformation_model
+
     from deformnet.deformation import CHECKPOINT_KEY
 
-    body = default_mouse()
-    config = {
-        "_target_": "deformnet.nets.LSTMPredictor",
-        "num_parts": body.num_parts,
-        "half_window": 2,
-        "hidden": 8,
-        "layers": 1,
-        "embed": 8,
-    }
     path = tmp_path / "old.ckpt"
-    DeformationModel(build_net(config), body, 2, config).save(path)
+    tiny_deformation_model().save(path)
     blob = torch.load(path, weights_only=False)
     blob[CHECKPOINT_KEY]["net_config"]["hidden"] = 16  # the net changed since
     torch.save(blob, path)

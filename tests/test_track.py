@@ -225,23 +225,9 @@ def test_bad_input(scene, tmp_path):
 
 def _tiny_checkpoint(path: Path) -> Path:
     """An untrained tiny LSTM deformation model saved as a checkpoint (DeformationModel.save)."""
-    from deformnet.deformation import DeformationModel, build_net
+    from helpers import tiny_deformation_model
 
-    torch.manual_seed(0)
-    body = default_mouse()
-    config = {
-        "_target_": "deformnet.nets.LSTMPredictor",
-        "num_parts": body.num_parts,
-        "half_window": 2,
-        "hidden": 8,
-        "layers": 1,
-        "embed": 8,
-    }
-    try:
-        net = build_net(config)
-    except (TypeError, ValueError) as exc:  # the net's signature changed: say so
-        pytest.fail(f"cannot build a tiny LSTMPredictor: {exc}")
-    DeformationModel(net, body, 2, config).save(path)
+    tiny_deformation_model().save(path)
     return path
 
 

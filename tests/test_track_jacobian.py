@@ -2,25 +2,16 @@
 function, the same points as the finite-difference modes, and close to the full Jacobian."""
 
 import torch
+from helpers import tiny_deformation_model
 
 from adjust.lsq.geometry import retract
 from deformnet.body import default_mouse
-from deformnet.deformation import DeformationModel, build_net
+from deformnet.deformation import DeformationModel
 from deformnet.so3 import rodrigues_to_matrix
 
 
 def _model(perturb: bool = True) -> DeformationModel:
-    body = default_mouse()
-    config = {
-        "_target_": "deformnet.nets.LSTMPredictor",
-        "num_parts": body.num_parts,
-        "half_window": 2,
-        "hidden": 8,
-        "embed": 8,
-        "layers": 1,
-    }
-    torch.manual_seed(0)
-    model = DeformationModel(build_net(config), body, 2, config)
+    model = tiny_deformation_model()
     for p in model.parameters():  # an untrained net predicts the rigid model: perturb it
         p.requires_grad_(False)
         if perturb:

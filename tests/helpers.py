@@ -1,0 +1,28 @@
+"""Shared test helpers (pytest puts this folder on sys.path)."""
+
+from __future__ import annotations
+
+import torch
+
+from deformnet.body import default_mouse
+from deformnet.deformation import DeformationModel, build_net
+
+
+def tiny_lstm_config(num_parts: int) -> dict:
+    """Net config of a tiny LSTM deformation net (window W = 5)."""
+    return {
+        "_target_": "deformnet.nets.LSTMPredictor",
+        "num_parts": num_parts,
+        "half_window": 2,
+        "hidden": 8,
+        "layers": 1,
+        "embed": 8,
+    }
+
+
+def tiny_deformation_model(seed: int = 0) -> DeformationModel:
+    """An untrained tiny LSTM DeformationModel of the default mouse (predicts the rigid model)."""
+    torch.manual_seed(seed)
+    body = default_mouse()
+    config = tiny_lstm_config(body.num_parts)
+    return DeformationModel(build_net(config), body, 2, config)
