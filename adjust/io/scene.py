@@ -1,7 +1,10 @@
-"""A calibration plus a folder of per-camera DeepLabCut files -> one (T, K, C, 2) detection array.
+"""A calibration plus a folder of per-camera 2D detection files -> one (T, K, C, 2) array.
 
-Files are matched to cameras by name: a file belongs to the camera whose name appears in the
-file name (without suffix); when several camera names appear, the longest wins (``cam10`` over
+A camera's file is a DeepLabCut table (``.csv``, ``.h5``; Lightning Pose writes the same CSV
+layout) or a SLEAP analysis file (``*.analysis.h5``, or any HDF5 file with SLEAP's ``tracks``
+and ``node_names``; `adjust.io.sleap`). Files are matched to cameras by name: a file belongs to
+the camera whose name appears in the file name (without suffix, and without SLEAP's
+``.analysis``); when several camera names appear, the longest wins (``cam10`` over
 ``cam1``), and two equally long matches are an error. Only ``.csv``, ``.h5`` and ``.hdf5``
 files are considered (hidden files, e.g. half-written temporaries, are skipped). When one camera
 has both a ``.h5`` and a ``.csv`` with the same stem (DeepLabCut writes the CSV as a copy of the
@@ -11,6 +14,19 @@ H5), the H5 is used; any other second file for a camera is an error (narrow the 
 Part names map to a body model through its aliases (`BodyModel.resolve`); with ``body=None`` the
 parts are the files' own names (in the first camera's file order). A likelihood below the
 threshold (or a non-finite one) makes the detection missing (NaN).
+
+Validation (each problem names the file, camera, part and frame):
+
+- a likelihood outside [0, 1] (DeepLabCut's are probabilities) is an error;
+- a non-finite coordinate, or one absurdly far from the image (more than one image width or
+  height outside it; without an image size, beyond 1e6 px), is a missing detection, with one
+  warning per camera counting them (one bad cell never spoils the other frames);
+- no usable detection at all (e.g. every likelihood below the threshold) is an error;
+- rows are matched by the files' frame numbers, never by position: when the files' integer
+  frame indices differ, the output covers their union (sorted), a camera without a row for a
+  frame has no detection there (with a warning); a frame number twice in one file, or labelled
+  image names that differ between files, is an error. `Detections.frames` holds the frame
+  numbers (the ``fnum`` column of every app's output).
 """
 
 from __future__ import annotations
@@ -19,7 +35,7 @@ import fnmatch
 import logging
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,11 +44,27 @@ from adjust.camera import Camera
 from adjust.io.calibration import load_calibration
 from adjust.io.dlc import DLCTable, read_dlc
 from adjust.io.errors import InputError
+from adjust.io.sleap import is_sleap_file, read_sleap
 from deformnet.body import BodyModel
 
 log = logging.getLogger(__name__)
 
 SUFFIXES = (".csv", ".h5", ".hdf5")
+#: a coordinate beyond this (px) is absurd when the camera's image size is unknown
+MAX_ABS_PX = 1e6
+
+
+def file_stem(f: Path) -> str:
+    """The part of a file name matched against camera names (SLEAP's ``.analysis`` dropped)."""
+    stem = f.stem
+    return stem[: -len(".analysis")] if stem.lower().endswith(".analysis") else stem
+
+
+def read_table(path: Path, individual: str | None = None) -> DLCTable:
+    """One camera's file: a SLEAP analysis HDF5 or a DeepLabCut CSV/H5 table."""
+    if is_sleap_file(path):
+        return read_sleap(path, individual)
+    return read_dlc(path, individual)
 
 
 @dataclass(frozen=True)
@@ -52,6 +84,8 @@ class Detections:
     files: tuple[Path, ...]
     threshold: float = 0.5
     frames: np.ndarray | None = None
+    #: what validation set aside: {"absurd_or_nonfinite": {camera: count}, ...}
+    notes: dict = field(default_factory=dict, compare=False)
 
     @property
     def num_frames(self) -> int:
@@ -91,14 +125,14 @@ def match_files(
         and f.suffix.lower() in SUFFIXES
         and (pattern is None or fnmatch.fnmatch(f.name, pattern))
     )
-    what = f"DeepLabCut files ({', '.join(SUFFIXES)}"
+    what = f"detection files ({', '.join(SUFFIXES)}"
     what += f", matching '{pattern}')" if pattern else ")"
     if not files:
         raise InputError(f"{folder}: no {what} found")
     by_camera: dict[str, list[Path]] = {n: [] for n in names}
     orphans = []
     for f in files:
-        hits = [n for n in names if n and n in f.stem]
+        hits = [n for n in names if n and n in file_stem(f)]
         if not hits:
             orphans.append(f.name)
             continue
@@ -113,7 +147,12 @@ def match_files(
     if orphans:
         raise InputError(
             f"{folder}: files without a camera: {orphans} (camera names: {names}); every file "
-            "name must contain one camera's name (remove other files or set a pattern)"
+            "name must contain one camera's name (remove other files or set a pattern"
+            + (
+                ", e.g. input.pattern='*.analysis.h5')"
+                if any(f.name.lower().endswith(".analysis.h5") for f in files)
+                else ")"
+            )
         )
     missing = [n for n, fs in by_camera.items() if not fs]
     if missing:
@@ -212,35 +251,21 @@ def load_detections(
     """
     if not cameras:
         raise ValueError("no cameras given")
-    thr = float(likelihood_threshold)
-    if not np.isfinite(thr):
-        raise ValueError(f"likelihood_threshold must be finite, got {likelihood_threshold!r}")
+    try:
+        thr = float(likelihood_threshold)
+    except (TypeError, ValueError):
+        thr = float("nan")
+    if not (0.0 <= thr <= 1.0):
+        raise InputError(
+            f"input.likelihood_threshold must be a number from 0 to 1, got {likelihood_threshold!r}"
+        )
     names = [c.name for c in cameras]
     paths = match_files(folder, names, pattern)
-    tables = [read_dlc(paths[n], individual) for n in names]
-    counts = {t.path.name: t.num_frames for t in tables}
-    if len(set(counts.values())) > 1:
-        raise InputError(
-            f"{Path(folder)}: files have different frame counts: "
-            + ", ".join(f"{f}: {n}" for f, n in counts.items())
-        )
-    T = tables[0].num_frames
+    tables = [read_table(paths[n], individual) for n in names]
+    frames, rows = _align_frames(Path(folder), tables)
+    T = len(frames)
     if T == 0:
         raise InputError(f"{Path(folder)}: the files have no frames (header rows only)")
-    frames = tables[0].frames
-    for t in tables[1:]:
-        if (
-            frames is not None
-            and t.frames is not None
-            and frames.dtype == t.frames.dtype
-            and not np.array_equal(frames, t.frames)
-        ):
-            log.warning(
-                "%s and %s have the same frame count but different frame indices; rows are "
-                "matched by position",
-                tables[0].path,
-                t.path,
-            )
     parts: tuple[str, ...] | None = None
     columns = []
     for name, t in zip(names, tables):
@@ -250,19 +275,29 @@ def load_detections(
     K, C = len(parts), len(cameras)
     xy = np.full((T, K, C, 2), np.nan)
     lik = np.zeros((T, K, C))
-    for c, (t, cols) in enumerate(zip(tables, columns)):
+    for c, (t, cols, r) in enumerate(zip(tables, columns, rows)):
+        _check_likelihoods(t, names[c])
         for k, j in enumerate(cols):
             if j is None:
                 continue
-            xy[:, k, c] = t.xy[:, j]
-            lik[:, k, c] = t.likelihood[:, j]
+            xy[r, k, c] = t.xy[:, j]
+            lik[r, k, c] = t.likelihood[:, j]
     lik = np.where(np.isfinite(lik), lik, 0.0)
+    absurd = _drop_absurd(xy, lik, cameras, [paths[n] for n in names], parts, frames)
     xy[(lik < thr) | ~np.isfinite(xy).all(-1)] = np.nan
+    notes = {"absurd_or_nonfinite": absurd} if any(absurd.values()) else {}
     det = Detections(
-        tuple(names), tuple(parts), xy, lik, tuple(paths[n] for n in names), thr, frames
+        tuple(names), tuple(parts), xy, lik, tuple(paths[n] for n in names), thr, frames, notes
     )
-    _check_in_image(det, cameras)
     obs = det.observed
+    if not obs.any():
+        present = lik[np.isfinite(lik) & (lik > 0)]
+        raise InputError(
+            f"{Path(folder)}: no usable detection in any file: every likelihood is below "
+            f"input.likelihood_threshold={thr:g}"
+            + (f" (the highest is {present.max():.3g})" if present.size else " (all are 0)")
+        )
+    _check_in_image(det, cameras)
     log.info(
         "read %d frames x %d parts x %d cameras from %s; %.1f%% of detections at likelihood >= %g",
         T,
@@ -273,6 +308,118 @@ def load_detections(
         thr,
     )
     return det
+
+
+def _align_frames(folder: Path, tables: Sequence[DLCTable]) -> tuple[np.ndarray, list]:
+    """The output's frame numbers and, per table, the output row of each of its rows.
+
+    Integer frame indices: their sorted union (rows matched by number). Labelled-image names:
+    the same set in every file (rows matched by name, in the first file's order), else an error.
+    """
+    frames = [
+        t.frames if t.frames is not None else np.arange(t.num_frames, dtype=np.int64)
+        for t in tables
+    ]
+    for t, f in zip(tables, frames):
+        if len(f) != t.num_frames:
+            raise InputError(f"{t.path}: {len(f)} frame labels for {t.num_frames} rows")
+        uniq, counts = np.unique(f.astype(str) if f.dtype == object else f, return_counts=True)
+        if (counts > 1).any():
+            raise InputError(
+                f"{t.path}: frame {uniq[counts > 1][0]} appears {counts[counts > 1][0]} times "
+                "(each frame number must appear once)"
+            )
+    if all(f.dtype.kind in "iu" for f in frames):
+        union = np.unique(np.concatenate(frames)).astype(np.int64)
+        rows = [np.searchsorted(union, f) for f in frames]
+        same = all(np.array_equal(frames[0], f) for f in frames[1:])
+        if not same:
+            lack = {t.path.name: int(len(union) - len(f)) for t, f in zip(tables, frames)}
+            log.warning(
+                "%s: the files' frame numbers differ; rows are matched by frame number over "
+                "the %d frames %d..%d (frames a file lacks have no detection in that camera: %s)",
+                folder,
+                len(union),
+                int(union[0]) if len(union) else 0,
+                int(union[-1]) if len(union) else 0,
+                ", ".join(f"{k}: {v}" for k, v in lack.items()),
+            )
+        elif len(union) and not np.array_equal(union, frames[0]):
+            log.warning("%s: rows are not in frame order; sorted by frame number", folder)
+        return union, rows
+    labels = [f.astype(str) for f in frames]
+    first = labels[0]
+    index = {v: i for i, v in enumerate(first)}
+    rows = []
+    for t, f in zip(tables, labels):
+        if len(f) != len(first) or set(f) != set(first):
+            only = sorted(set(f) ^ set(first))[:3]
+            raise InputError(
+                f"{t.path} and {tables[0].path} label different frames (e.g. {only}); rows "
+                "cannot be matched"
+            )
+        rows.append(np.array([index[v] for v in f], dtype=np.int64))
+    return np.array(first, dtype=object), rows
+
+
+def _check_likelihoods(t: DLCTable, camera: str) -> None:
+    """A likelihood outside [0, 1] where x and y are given is an error naming part and frame."""
+    lik = t.likelihood
+    present = np.isfinite(t.xy).all(-1) & np.isfinite(lik)
+    bad = present & ((lik < 0.0) | (lik > 1.0))
+    if bad.any():
+        r, k = np.argwhere(bad)[0]
+        frame = t.frames[r] if t.frames is not None else r
+        raise InputError(
+            f"{t.path} (camera '{camera}'): likelihood {float(lik[r, k])} of part "
+            f"'{t.parts[k]}' at frame {frame} is outside [0, 1]"
+            + (f"; {int(bad.sum()) - 1} more outside [0, 1]" if bad.sum() > 1 else "")
+            + " (likelihoods are probabilities; fix or rescale the file)"
+        )
+
+
+def _drop_absurd(
+    xy: np.ndarray,
+    lik: np.ndarray,
+    cameras: Sequence[Camera],
+    files: Sequence[Path],
+    parts: Sequence[str],
+    frames: np.ndarray,
+) -> dict[str, int]:
+    """Set detections (T, K, C, 2) that are non-finite or absurdly far outside the image to
+    missing (in place, likelihood 0); one warning per camera. Returns {camera: count}."""
+    counts = {}
+    for c, cam in enumerate(cameras):
+        v = xy[:, :, c]
+        given = lik[:, :, c] > 0
+        partial = np.isfinite(v).any(-1) & ~np.isfinite(v).all(-1)
+        w, h = cam.size
+        with np.errstate(invalid="ignore"):
+            if w > 0 and h > 0:
+                far = (
+                    (v[..., 0] < -w) | (v[..., 0] > 2 * w) | (v[..., 1] < -h) | (v[..., 1] > 2 * h)
+                )
+            else:
+                far = (np.abs(v) > MAX_ABS_PX).any(-1)
+        bad = given & (far | partial | np.isinf(v).any(-1))
+        counts[cam.name] = int(bad.sum())
+        if bad.any():
+            t, k = np.argwhere(bad)[0]
+            log.warning(
+                "camera '%s' (%s): %d detections are non-finite or far outside the %dx%d image "
+                "(first: part '%s' at frame %s, %s); treated as missing",
+                cam.name,
+                files[c],
+                int(bad.sum()),
+                w,
+                h,
+                parts[k],
+                frames[t],
+                v[t, k].tolist(),
+            )
+            v[bad] = np.nan
+            lik[:, :, c][bad] = 0.0
+    return counts
 
 
 def _check_in_image(det: Detections, cameras: Sequence[Camera]) -> None:

@@ -1,0 +1,143 @@
+"""SLEAP analysis HDF5 and Lightning Pose CSV files as detections; the shared SLEAP mouse."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from adjust.camera import Camera, CameraTensors, project_cameras
+from adjust.io import InputError, load_detections, load_scene
+from adjust.io.sleap import read_sleap
+from adjust.triangulate import triangulate
+from deformnet.paths import shared_dir
+
+SLEAP_MOUSE = shared_dir() / "data" / "real-mouse-sleap-4cam"
+NODES = ["nose", "ear_l", "ear_r"]
+
+
+def _cams(names) -> list[Camera]:
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    return [
+        Camera(n, K, np.zeros(5), np.zeros(3), np.array([0, 0, 500.0]), (640, 480)) for n in names
+    ]
+
+
+def _write_sleap(path: Path, xy: np.ndarray, scores: np.ndarray, tracks=None, transpose=True):
+    """xy (n_tracks, T, K, 2), scores (n_tracks, T, K) -> a SLEAP analysis file (SLEAP's layout:
+    tracks (n_tracks, 2, K, T) as read by h5py)."""
+    n = xy.shape[0]
+    with h5py.File(path, "w") as f:
+        t = xy.transpose(0, 3, 2, 1)
+        s = scores.transpose(0, 2, 1)
+        f["tracks"] = t if transpose else t.T
+        f["point_scores"] = s if transpose else s.T
+        f["node_names"] = np.array([n.encode() for n in NODES])
+        names = tracks if tracks is not None else [f"track_{i}" for i in range(n)]
+        f["track_names"] = np.array([n.encode() for n in names])
+    return path
+
+
+def _data(n_tracks=1, T=6, seed=0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(10, 400, (n_tracks, T, len(NODES), 2))
+    scores = rng.uniform(0.3, 1.1, (n_tracks, T, len(NODES)))
+    return xy, scores
+
+
+def test_read_sleap_layout_scores_and_missing(tmp_path):
+    xy, sc = _data()
+    xy[0, 2, 1] = np.nan  # node missing in frame 2
+    sc[0, 3, 0] = np.nan  # hand-placed point: no score
+    p = _write_sleap(tmp_path / "camA.analysis.h5", xy, sc)
+    t = read_sleap(p)
+    assert t.parts == tuple(NODES) and t.xy.shape == (6, 3, 2)
+    assert t.frames.tolist() == list(range(6))
+    np.testing.assert_array_equal(t.xy[~np.isnan(t.xy)], xy[0][~np.isnan(xy[0])])
+    assert np.isnan(t.xy[2, 1]).all()
+    assert t.likelihood[3, 0] == 1.0  # present without a score
+    assert np.nanmax(t.likelihood) <= 1.0  # scores above 1 clipped
+    keep = np.isfinite(sc[0]) & (sc[0] <= 1)
+    np.testing.assert_array_equal(t.likelihood[keep], sc[0][keep])
+    # the untransposed layout (frames, nodes, 2, tracks) reads the same
+    q = _write_sleap(tmp_path / "camB.analysis.h5", xy, sc, transpose=False)
+    u = read_sleap(q)
+    np.testing.assert_array_equal(np.nan_to_num(u.xy), np.nan_to_num(t.xy))
+
+
+def test_sleap_multi_animal_and_bad_scores(tmp_path):
+    xy, sc = _data(n_tracks=2)
+    p = _write_sleap(tmp_path / "camA.analysis.h5", xy, sc, tracks=["mouse1", "mouse2"])
+    with pytest.raises(InputError, match=r"tracks \['mouse1', 'mouse2'\]; choose one"):
+        read_sleap(p)
+    t = read_sleap(p, "mouse2")
+    np.testing.assert_array_equal(t.xy, xy[1])
+    assert t.individual == "mouse2"
+    with pytest.raises(InputError, match="individual 'mouse3' is not in the file"):
+        read_sleap(p, "mouse3")
+    sc[0, 4, 2] = 50.0
+    q = _write_sleap(tmp_path / "camB.analysis.h5", xy[:1], sc[:1])
+    with pytest.raises(
+        InputError, match=r"camB.analysis.h5: point score 50.0 of part 'ear_r' at fr"
+    ):
+        read_sleap(q)
+    with h5py.File(tmp_path / "camC.analysis.h5", "w") as f:
+        f["something"] = np.zeros(3)
+    with pytest.raises(InputError, match="not a SLEAP analysis file"):
+        read_sleap(tmp_path / "camC.analysis.h5")
+
+
+def test_sleap_files_matched_to_cameras(tmp_path):
+    for i, cam in enumerate(["camA", "camB"]):
+        xy, sc = _data(n_tracks=2, seed=i)
+        _write_sleap(tmp_path / f"session_{cam}.analysis.h5", xy, sc, tracks=["m1", "m2"])
+    det = load_detections(tmp_path, _cams(["camA", "camB"]), None, 0.0, individual="m2")
+    assert det.cameras == ("camA", "camB") and det.parts == tuple(NODES)
+    assert det.files[1].name == "session_camB.analysis.h5"
+    xy, _ = _data(n_tracks=2, seed=1)
+    np.testing.assert_array_equal(det.xy[:, :, 1], xy[1])
+
+
+def test_lightning_pose_csv(tmp_path):
+    """Lightning Pose writes DeepLabCut's CSV layout (scorer 'heatmap_tracker')."""
+    rng = np.random.default_rng(3)
+    T = 5
+    for cam in ("camA", "camB"):
+        cols = pd.MultiIndex.from_product(
+            [["heatmap_tracker"], NODES, ["x", "y", "likelihood"]],
+            names=["scorer", "bodyparts", "coords"],
+        )
+        data = rng.uniform(10, 400, (T, len(NODES), 3))
+        data[..., 2] = rng.uniform(0.6, 1, (T, len(NODES)))
+        pd.DataFrame(data.reshape(T, -1), columns=cols).to_csv(tmp_path / f"{cam}.csv")
+    det = load_detections(tmp_path, _cams(["camA", "camB"]), None)
+    assert det.parts == tuple(NODES) and det.num_frames == T and det.observed.all()
+
+
+def test_shared_sleap_mouse():
+    """The shared SLEAP mouse: 4 cameras, 15 nodes, 120 frames; with `side` (a wrong pose)
+    left out the other three reproject to a few px, `side` itself tens of px off."""
+    assert SLEAP_MOUSE.is_dir(), f"shared data missing: {SLEAP_MOUSE}"
+    with pytest.raises(InputError, match=r"input.pattern='\*.analysis.h5'"):
+        load_scene(SLEAP_MOUSE / "calibration.toml", SLEAP_MOUSE, None)
+    cams, det = load_scene(
+        SLEAP_MOUSE / "calibration.toml", SLEAP_MOUSE, None, 0.0, pattern="*.analysis.h5"
+    )
+    assert det.cameras == ("back", "mid", "side", "top")
+    assert det.xy.shape == (120, 15, 4, 2) and det.parts[0] == "Nose"
+    present = det.observed.mean((0, 1))
+    np.testing.assert_allclose(present, [0.7822, 1.0, 0.8711, 1.0], atol=1e-3)  # README
+    keep = [0, 1, 3]
+    sub = CameraTensors.from_cameras([cams[c] for c in keep], dtype=torch.float64)
+    tri = triangulate(
+        torch.as_tensor(det.xy[:, :, keep]), torch.as_tensor(det.weight()[:, :, keep]), sub
+    )
+    uv = project_cameras(tri.points, CameraTensors.from_cameras(cams, dtype=torch.float64))
+    err = np.linalg.norm(uv.numpy() - det.xy, axis=-1)
+    med = np.nanmedian(err.reshape(-1, 4), axis=0)
+    assert med[[0, 1, 3]].max() < 10.0, med  # measured 8.4, 1.9, 2.6 px
+    assert med[2] > 50.0, med  # measured 94 px
