@@ -482,6 +482,11 @@ def _run(cfg: DictConfig) -> dict:
         "time_s": {},
         "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
     }
+    if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
+        from adjust.export import write_nwb
+
+        nwb = write_nwb(out / "tracks.nwb", points_path, calibration, fps=cfg.output.get("fps"))
+        summary["outputs"]["nwb"] = str(nwb)
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
