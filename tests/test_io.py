@@ -32,7 +32,7 @@ translation = [1.0, 2.0, 300.0]
 def _cameras(rng: np.random.Generator) -> list[Camera]:
     cams = []
     for i in range(3):
-        K = np.array([[rng.uniform(400, 1500), 0.0, 1 / 3 + 320], [0.0, 1e3 / 7, 240.1], [0, 0, 1]])
+        K = np.array([[rng.uniform(400, 1500), 0.0, 1 / 3 + 320], [0.0, 1e4 / 7, 240.1], [0, 0, 1]])
         cams.append(
             Camera(
                 f"cam{i}",
@@ -65,7 +65,7 @@ def test_calibration_round_trip_is_exact(tmp_path):
 def test_calibration_pads_distortions_and_orders_sections(tmp_path):
     text = CAM_TOML.replace("cam_0", "cam_10").replace('"left"', '"ten"') + CAM_TOML.replace(
         "cam_0", "cam_2"
-    ).replace("[-0.1]", "[-0.1, 0.01, 0.001, 0.002]")
+    ).replace("[-0.1]", "[-0.1, 0.01, 0.001, 0.002]").replace("[1.0, 2.0", "[90.0, 2.0")
     (tmp_path / "c.toml").write_text(text)
     cams = load_calibration(tmp_path / "c.toml")
     assert [c.name for c in cams] == ["left", "ten"]  # cam_2 before cam_10

@@ -51,8 +51,16 @@ def _read_toml(path: Path) -> dict:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise InputError(f"calibration file not found: {path}") from None
+    except IsADirectoryError:
+        raise InputError(
+            f"calibration {path} is a directory, not a file (give its calibration.toml)"
+        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{path}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise InputError(
+            f"{path}: not a text (TOML) file: it holds bytes that are not UTF-8 (a binary file?)"
+        ) from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read calibration: {exc}") from None
 
@@ -121,10 +129,90 @@ def _camera(path: Path, section: str, item: dict) -> Camera:
             f"{item['size']!r}"
         )
     extra = {k: v for k, v in item.items() if k not in _KNOWN}
+    _check_intrinsics(path, where, K, dist, size)
     try:
         return Camera(name, K, dist, rvec, tvec, (int(size[0]), int(size[1])), extra)
     except ValueError as exc:  # Camera's own checks
         raise InputError(f"{path}: {where}: {exc}") from None
+
+
+#: the radial distortion factor 1 + k1 r^2 + k2 r^4 + k3 r^6 at the image corner must lie in
+#: this range (real lenses, fisheye aside, stay well inside), and r_d(r) must increase up to it
+RADIAL_FACTOR = (0.02, 100.0)
+
+
+def _check_intrinsics(path: Path, where: str, K: np.ndarray, dist: np.ndarray, size) -> None:
+    """Physically impossible intrinsics are an error: focal lengths <= 0, a third row of K
+    other than [0, 0, 1], a principal point far outside the image, a distortion that folds the
+    image over or scales the corner radius absurdly (e.g. k1 = 1e6)."""
+    if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9) or K[1, 0] != 0:
+        raise InputError(
+            f"{path}: {where}: 'matrix' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]]; got rows "
+            f"{K[1].tolist()}, {K[2].tolist()}"
+        )
+    fx, fy = K[0, 0], K[1, 1]
+    if fx <= 0 or fy <= 0:
+        raise InputError(f"{path}: {where}: focal lengths must be > 0 px, got fx={fx:g}, fy={fy:g}")
+    w, h = float(size[0]), float(size[1])
+    if w > 0 and h > 0:
+        cx, cy = K[0, 2], K[1, 2]
+        if not (-w <= cx <= 2 * w and -h <= cy <= 2 * h):
+            raise InputError(
+                f"{path}: {where}: principal point ({cx:g}, {cy:g}) lies far outside the "
+                f"{w:g}x{h:g} image"
+            )
+        corner = max(np.hypot(max(cx, w - cx), max(cy, h - cy)) / min(fx, fy), 1e-6)
+        inner = min(w, h) / 2 / max(fx, fy)
+    else:
+        corner = inner = 1.0  # ~ a 90 degree field of view when the image size is unknown
+    k1, k2, p1, p2, k3 = dist
+    r = np.linspace(0.0, corner, 201)
+    r2 = r * r
+    factor = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    rd = r * factor
+    lo, hi = RADIAL_FACTOR
+    # a fitted polynomial may fold over in the far corners; never inside the inscribed circle
+    folds = np.any(np.diff(rd[r <= inner]) <= 0)
+    if factor.min() < lo or factor.max() > hi or folds:
+        raise InputError(
+            f"{path}: {where}: distortion {dist.tolist()} is not a real lens within the image: "
+            f"the radial factor 1 + k1 r^2 + k2 r^4 + k3 r^6 reaches {factor.min():.3g} to "
+            f"{factor.max():.3g} up to the image corner (r = {corner:.3g}; expected "
+            f"{lo:g} to {hi:g}, r(1 + ...) increasing within r = {inner:.3g})"
+        )
+    if max(abs(p1), abs(p2)) > 0.5:
+        raise InputError(
+            f"{path}: {where}: tangential distortion p1={p1:g}, p2={p2:g} is absurd (|p| <= 0.5)"
+        )
+
+
+def _check_rig(path: Path, cameras: Sequence[Camera]) -> None:
+    """Cameras that share one centre (e.g. one camera's extrinsics copied to all) cannot
+    triangulate: an error naming them."""
+    if len(cameras) < 2:
+        return
+    centres = np.array([c.center for c in cameras])
+    spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+    scale = max(spread, 1e-9)
+    groups: list[list[str]] = []
+    for ci in centres:
+        same = [cameras[j].name for j in range(len(cameras)) if np.linalg.norm(centres[j] - ci)
+                <= 1e-6 * max(1.0, float(np.linalg.norm(ci)))]  # fmt: skip
+        if len(same) > 1 and same not in groups:
+            groups.append(same)
+    if groups and len(groups[0]) == len(cameras):
+        raise InputError(
+            f"{path}: all cameras {[c.name for c in cameras]} are at one position "
+            f"{centres[0].round(3).tolist()} mm (copied extrinsics?): nothing can be triangulated"
+        )
+    for g in groups:
+        log.warning(
+            "%s: cameras %s are at the same position (spread of the rig %.3g mm); copied "
+            "extrinsics? (the camera check will test them against the others)",
+            path,
+            g,
+            scale,
+        )
 
 
 def load_calibration(path: str | os.PathLike) -> list[Camera]:
@@ -140,6 +228,7 @@ def load_calibration(path: str | os.PathLike) -> list[Camera]:
     dups = sorted({n for n in names if names.count(n) > 1})
     if dups:
         raise InputError(f"{path}: duplicate camera names {dups}")
+    _check_rig(path, cameras)
     log.info("read %d cameras from %s: %s", len(cameras), path, ", ".join(names))
     return cameras
 

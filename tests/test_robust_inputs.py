@@ -1,0 +1,146 @@
+"""Validation at load time: impossible calibrations, absurd detections, likelihoods, frames."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from adjust.camera import Camera
+from adjust.io import InputError, load_calibration, load_detections, save_calibration, write_dlc_csv
+
+
+def _cam(name="A", K=None, dist=None, rvec=(0.0, 0.0, 0.0), tvec=(0.0, 0.0, 500.0)):
+    K = np.array([[800.0, 0, 639.5], [0, 800.0, 511.5], [0, 0, 1]]) if K is None else K
+    return Camera(name, np.asarray(K, float), np.zeros(5) if dist is None else np.asarray(dist),
+                  np.asarray(rvec), np.asarray(tvec), (1280, 1024))  # fmt: skip
+
+
+def _rig():
+    return [_cam("A"), _cam("B", rvec=(0, 0.5, 0), tvec=(-200.0, 0, 520.0))]
+
+
+def _load(tmp_path, cams):
+    return load_calibration(save_calibration(tmp_path / "calibration.toml", cams))
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"K": [[-800.0, 0, 639.5], [0, 800, 511.5], [0, 0, 1]]}, "focal lengths must be > 0"),
+        ({"K": [[0.0, 0, 639.5], [0, 0, 511.5], [0, 0, 1]]}, "focal lengths must be > 0"),
+        ({"K": [[800.0, 0, 639.5], [0, 800, 511.5], [0, 0.1, 1]]}, "'matrix' must be"),
+        ({"K": [[800.0, 0, 639.5], [0, 800, 511.5], [0, 0, 2]]}, "'matrix' must be"),
+        ({"dist": [1e6, 0, 0, 0, 0]}, "is not a real lens"),
+        ({"dist": [-3.0, 0, 0, 0, 0]}, "is not a real lens"),
+        ({"dist": [0, 0, 2.0, 0, 0]}, "tangential distortion"),
+        ({"K": [[800.0, 0, 1e5], [0, 800, 511.5], [0, 0, 1]]}, "principal point"),
+    ],
+)
+def test_impossible_intrinsics_name_the_camera(tmp_path, change, message):
+    cams = _rig()
+    cams[1] = _cam("B", **change)
+    with pytest.raises(InputError, match=message) as exc:
+        _load(tmp_path, cams)
+    assert "calibration.toml: camera [cam_1] ('B')" in str(exc.value)
+
+
+def test_real_lenses_accepted(tmp_path):
+    cams = _rig()
+    cams[0] = _cam("A", dist=[-0.3, 0.1, 0.001, -0.001, 0.0])
+    assert [c.name for c in _load(tmp_path, cams)] == ["A", "B"]
+
+
+def test_all_cameras_at_one_pose(tmp_path, caplog):
+    with pytest.raises(InputError, match=r"all cameras \['A', 'B'\] are at one position"):
+        _load(tmp_path, [_cam("A"), _cam("B")])
+    with caplog.at_level(logging.WARNING):
+        _load(tmp_path, [*_rig(), _cam("C")])  # C copies A's pose: loud, not fatal
+    assert "cameras ['A', 'C'] are at the same position" in caplog.text
+
+
+def test_binary_file_and_directory_as_calibration(tmp_path):
+    (tmp_path / "calib.toml").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(InputError, match=r"calib.toml: not a text \(TOML\) file"):
+        load_calibration(tmp_path / "calib.toml")
+    with pytest.raises(InputError, match="is a directory"):
+        load_calibration(tmp_path)
+
+
+# --- detections ----------------------------------------------------------------------------
+
+
+def _detections(tmp_path, T=20, K=3, seed=0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(100, 900, (2, T, K, 2))
+    lik = rng.uniform(0.6, 1.0, (2, T, K))
+    return xy, lik
+
+
+def _write(tmp_path, xy, lik, frames=(None, None)):
+    for c, name in enumerate("AB"):
+        write_dlc_csv(tmp_path / f"{name}.csv", ["p0", "p1", "p2"], xy[c], lik[c],
+                      frames=frames[c])  # fmt: skip
+
+
+def test_absurd_values_are_missing_and_counted(tmp_path, caplog):
+    xy, lik = _detections(tmp_path)
+    xy[0, 5, 1, 0] = 1e200  # one cell
+    xy[1, :, 2] = 1e160  # one part in every frame of camera B
+    _write(tmp_path, xy, lik)
+    with caplog.at_level(logging.WARNING):
+        det = load_detections(tmp_path, _rig(), None)
+    assert det.notes["absurd_or_nonfinite"] == {"A": 1, "B": 20}
+    assert (
+        "camera 'A'" in caplog.text and "1 detections are non-finite or far outside" in caplog.text
+    )
+    assert "20 detections" in caplog.text
+    obs = det.observed
+    assert not obs[5, 1, 0] and not obs[:, 2, 1].any()
+    assert obs.sum() == 2 * 20 * 3 - 21  # nothing else lost
+    np.testing.assert_array_equal(det.xy[4, 1, 0], xy[0, 4, 1])
+
+
+def test_likelihood_outside_unit_interval_refused(tmp_path):
+    xy, lik = _detections(tmp_path)
+    lik[1, 7, 2] = 50.0
+    lik[1, 9, 0] = -1.0
+    _write(tmp_path, xy, lik)
+    with pytest.raises(InputError) as exc:
+        load_detections(tmp_path, _rig(), None)
+    msg = str(exc.value)
+    assert "B.csv (camera 'B'): likelihood 50.0 of part 'p2' at frame 7 is outside [0, 1]" in msg
+    assert "1 more outside" in msg
+
+
+@pytest.mark.parametrize("threshold", [0.99999, 1.0])
+def test_no_usable_detection_is_an_error(tmp_path, threshold):
+    xy, lik = _detections(tmp_path)
+    _write(tmp_path, xy, lik * 0.9)
+    with pytest.raises(InputError, match="no usable detection in any file"):
+        load_detections(tmp_path, _rig(), None, threshold)
+
+
+@pytest.mark.parametrize("threshold", [2, -0.1, "abc", float("nan")])
+def test_threshold_out_of_range(tmp_path, threshold):
+    xy, lik = _detections(tmp_path)
+    _write(tmp_path, xy, lik)
+    with pytest.raises(InputError, match="input.likelihood_threshold must be a number from 0 to 1"):
+        load_detections(tmp_path, _rig(), None, threshold)
+
+
+def test_rows_matched_by_frame_number(tmp_path):
+    xy, lik = _detections(tmp_path, T=6)
+    # camera B's file lists the same frames in reverse order: matched by number, not position
+    frames_b = list(range(5, -1, -1))
+    _write(tmp_path, np.stack([xy[0], xy[1][::-1]]), np.stack([lik[0], lik[1][::-1]]),
+           frames=(None, frames_b))  # fmt: skip
+    det = load_detections(tmp_path, _rig(), None)
+    assert det.frames.tolist() == list(range(6))
+    np.testing.assert_array_equal(det.xy[:, :, 1], xy[1])
+    # labelled images with different names cannot be matched
+    _write(tmp_path, xy, lik, frames=([f"img{i}.png" for i in range(6)],
+                                     [f"img{i + 1}.png" for i in range(6)]))  # fmt: skip
+    with pytest.raises(InputError, match="label different frames"):
+        load_detections(tmp_path, _rig(), None)
