@@ -9,8 +9,8 @@ frame's deformed input, is differentiable in `rigid` and `deformed` with plain r
 autograd over batched independent windows (nn.LSTM does not support torch.func vmap-Jacobians,
 and CPU scaled-dot-product attention has no forward-mode AD), and supports `.double()`.
 
-Lightning is imported lazily (never at module import): only the checkpoint loader may need it to
-unpickle a Lightning checkpoint.
+Checkpoints are data, never code: `from_checkpoint` reads them with ``weights_only=True`` and
+never imports Lightning (a deformnet-train checkpoint holds only tensors and plain data).
 """
 
 from __future__ import annotations
@@ -33,6 +33,34 @@ log = logging.getLogger(__name__)
 __all__ = ["DeformationModel", "build_net", "CHECKPOINT_KEY"]
 
 CHECKPOINT_KEY = "deformation_model"  # extra entry the Lightning module adds to its checkpoints
+
+
+def load_checkpoint_data(path: str | os.PathLike, map_location="cpu") -> Any:
+    """``torch.load(path, weights_only=True)`` with one-line ValueErrors: a file that is not a
+    torch checkpoint (not the zip archive `torch.save` writes), or one holding pickled objects
+    beyond tensors and plain data (refused unexecuted: unpickling them could run any code)."""
+    import pickle
+    import zipfile
+
+    path = os.fspath(path)
+    if not zipfile.is_zipfile(path):
+        raise ValueError(
+            f"{path} is not a PyTorch checkpoint (not the zip archive torch.save writes)"
+        )
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        detail = next(
+            (ln.strip() for ln in str(exc).splitlines() if "global" in ln.lower()),
+            str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+        )
+        raise ValueError(
+            f"{path}: refused: the checkpoint holds pickled Python objects, not only tensors "
+            f"and plain data, and loading them could run code ({detail[:200]})"
+        ) from None
+    except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, KeyError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(f"{path}: cannot read the checkpoint: {first[:200]}") from None
 
 
 def build_net(config: Mapping[str, Any]) -> nn.Module:
@@ -150,14 +178,18 @@ class DeformationModel(nn.Module):
     ) -> DeformationModel:
         """Load from a Lightning checkpoint written by `deformnet-train` (or from `save`).
 
-        Returns the model in eval mode, float32 on `map_location`. Checkpoints are trusted
-        local files (they are unpickled).
+        Returns the model in eval mode, float32 on `map_location`. Checkpoints are data, not
+        code: they are read with ``torch.load(weights_only=True)`` (tensors, numbers, strings,
+        lists and dicts only), so a checkpoint that carries any other pickled object (which
+        unpickling would run) is refused with a ValueError, as is a file that is not a torch
+        checkpoint at all.
         """
-        try:  # a Lightning checkpoint may hold pickled Lightning objects (hyper-parameters)
-            import lightning  # noqa: F401
-        except ImportError:  # pragma: no cover - lightning is a dependency
-            log.debug("lightning not importable; loading the checkpoint with torch only")
-        ckpt = torch.load(os.fspath(path), map_location=map_location, weights_only=False)
+        ckpt = load_checkpoint_data(path, map_location)
+        if not isinstance(ckpt, dict):
+            raise ValueError(
+                f"{path} is not a deformnet checkpoint (it holds a {type(ckpt).__name__}, not a "
+                "dict)"
+            )
         if CHECKPOINT_KEY not in ckpt:
             raise ValueError(
                 f"{path} is not a deformnet checkpoint (no '{CHECKPOINT_KEY}' entry); write it "

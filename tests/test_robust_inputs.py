@@ -144,3 +144,61 @@ def test_rows_matched_by_frame_number(tmp_path):
                                      [f"img{i + 1}.png" for i in range(6)]))  # fmt: skip
     with pytest.raises(InputError, match="label different frames"):
         load_detections(tmp_path, _rig(), None)
+
+
+# --- checkpoints are data, not code ------------------------------------------------------
+
+
+class _Payload:
+    """Unpickling this creates a file: what a malicious checkpoint would do."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        import builtins
+
+        return (builtins.open, (self.marker, "w"))
+
+
+def test_checkpoint_with_pickle_payload_refused_unexecuted(tmp_path):
+    import torch
+    from helpers import tiny_deformation_model
+
+    from deformnet.deformation import CHECKPOINT_KEY, DeformationModel
+
+    path = tmp_path / "shared_by_another_lab.ckpt"
+    tiny_deformation_model().save(path)
+    good = DeformationModel.from_checkpoint(path)  # a plain checkpoint loads
+    assert good.window == tiny_deformation_model().window
+    blob = torch.load(path, weights_only=True)
+    marker = tmp_path / "pwned"
+    blob[CHECKPOINT_KEY]["extra"] = _Payload(marker)
+    torch.save(blob, path)
+    with pytest.raises(ValueError, match=r"refused: the checkpoint holds pickled Python objects"):
+        DeformationModel.from_checkpoint(path)
+    assert not marker.exists()  # never executed
+
+
+@pytest.mark.parametrize("content", ["passwd", "garbage", "empty", "pickle"])
+def test_garbage_checkpoint_is_one_clear_error(tmp_path, content):
+    import pickle
+
+    from adjust.track import load_deformation
+
+    path = tmp_path / "model.ckpt"
+    if content == "passwd":
+        path.write_text("root:x:0:0:root:/root:/bin/bash\n")
+    elif content == "garbage":
+        path.write_bytes(bytes(range(256)) * 8)
+    elif content == "empty":
+        path.write_bytes(b"")
+    else:
+        path.write_bytes(pickle.dumps({"a": 1}))  # a legacy (non-zip) pickle
+    with pytest.raises(InputError) as exc:
+        load_deformation(str(path))
+    msg = str(exc.value)
+    assert "model.ckpt" in msg and "\n" not in msg
+    assert "not a PyTorch checkpoint" in msg
+    with pytest.raises(InputError, match="not found"):
+        load_deformation(str(tmp_path / "missing.ckpt"))
