@@ -21,6 +21,11 @@ def real_hand_dir() -> Path:
     return shared_dir() / "data" / "real-hand-4cam"
 
 
+def real_mouse_poses_dir() -> Path:
+    """The 91 hand-labelled real 3D mouse poses (22 keypoints, ``poses3d.csv``)."""
+    return shared_dir() / "data" / "real-mouse-poses-3d"
+
+
 def output_dir(cfg) -> Path:
     """The folder a Hydra app writes into.
 

@@ -66,6 +66,9 @@ class ScanConfig:
 class RearConfig:
     pitch: tuple[float, float] = (35.0, 65.0)
     tuck: tuple[float, float, float] = (0.0, -4.0, 4.0)
+    lift: float = 0.0  # mm: the body (all but hind paws and tail root) raised on extended legs
+    stretch: float = 0.0  # relative: the parts ahead of the hind paws moved forward by this share
+    paw_motion: float = 0.0  # mm: std of the free front paws' random motion while reared
 
 
 @dataclass(frozen=True)
@@ -142,6 +145,39 @@ class LockboxConfig:
 
 
 @dataclass(frozen=True)
+class DeformConfig:
+    """Extra deformations (``sim=mouse_b``); every amount 0 (the default) switches one off.
+
+    spine_*: the parts behind model Y = spine_pivot (mm, before `SimConfig.body_scale`) bend
+    about the vertical through it, with a weight rising linearly to 1 at the rearmost part; the
+    bend angle is spine_bend times the heading change over the last spine_lag s (the rear follows
+    the curved path), at most spine_max deg, plus random bending of std spine_wiggle deg.
+    head_*: random head yaw, pitch, roll (std, deg) about the ears' midpoint and a random head
+    translation (neck, std mm per model axis), added in every behavior, correlation time
+    head_tau s; jitter: every part's own small smooth motion (skin, fur; std mm per axis,
+    correlation time jitter_tau s), the paws excepted; paw_tau s: correlation time of the reared
+    front paws' motion (`RearConfig.paw_motion`).
+    The random motions are smooth Ornstein-Uhlenbeck noise, Gaussian-smoothed over a fifth of
+    their correlation time.
+    """
+
+    spine_bend: float = 0.0
+    spine_lag: float = 0.3
+    spine_max: float = 40.0
+    spine_pivot: float = 20.0
+    spine_wiggle: float = 0.0
+    spine_tau: float = 0.6
+    head_yaw: float = 0.0
+    head_pitch: float = 0.0
+    head_roll: float = 0.0
+    head_shift: float = 0.0
+    head_tau: float = 0.4
+    jitter: float = 0.0
+    jitter_tau: float = 0.2
+    paw_tau: float = 0.25
+
+
+@dataclass(frozen=True)
 class MissingConfig:
     dropout: float = 0.05
     occlusion_rate: float = 0.05
@@ -155,6 +191,7 @@ class SimConfig:
     fps: float = 30.0
     num_frames: int = 9000
     seed: int = 0
+    body_scale: float = 1.0  # the body model is scaled by this before simulating (truth included)
     arena: ArenaConfig = field(default_factory=ArenaConfig)
     walk: WalkConfig = field(default_factory=WalkConfig)
     gait: GaitConfig = field(default_factory=GaitConfig)
@@ -166,6 +203,7 @@ class SimConfig:
     behaviors: BehaviorConfig = field(default_factory=BehaviorConfig)
     lockbox: LockboxConfig = field(default_factory=LockboxConfig)
     missing: MissingConfig = field(default_factory=MissingConfig)
+    deform: DeformConfig = field(default_factory=DeformConfig)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -182,8 +220,49 @@ class SimConfig:
             raise ValueError(f"sim: expected a mapping, got {type(data).__name__}")
         return _build(cls, data, "sim")
 
+    @classmethod
+    def from_name(cls, name: str) -> SimConfig:
+        """From ``conf/sim/<name>.yaml`` (e.g. ``"mouse_b"``), its ``defaults`` list followed
+        as Hydra would (sibling sim configs, then ``_self_``) without Hydra."""
+        return cls.from_config(_load_named(str(name), ()))
+
     def replace(self, **changes: Any) -> SimConfig:
         return dataclasses.replace(self, **changes)
+
+
+def _merge(base: dict, over: Mapping) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _load_named(name: str, chain: tuple[str, ...]) -> dict:
+    import yaml
+
+    from deformnet.paths import CONF_DIR
+
+    path = CONF_DIR / "sim" / f"{name}.yaml"
+    if name in chain:
+        raise ValueError(f"sim config '{name}': circular defaults {list(chain) + [name]}")
+    if not path.is_file():
+        known = sorted(p.stem for p in (CONF_DIR / "sim").glob("*.yaml"))
+        raise ValueError(f"sim config '{name}' not found in {path.parent} (known: {known})")
+    with open(path, encoding="utf-8") as fh:
+        data = yaml.safe_load(fh) or {}
+    own = {k: v for k, v in data.items() if k != "defaults"}
+    order = data.get("defaults") or ["_self_"]
+    if "_self_" not in order:
+        order = list(order) + ["_self_"]
+    merged: dict = {}
+    for entry in order:
+        if entry == "_self_":
+            merged = _merge(merged, own)
+        elif isinstance(entry, str):
+            merged = _merge(merged, _load_named(entry, chain + (name,)))
+        else:
+            raise ValueError(f"{path}: unsupported defaults entry {entry!r}")
+    return merged
 
 
 # --------------------------------------------------------------------------------------------
@@ -285,6 +364,7 @@ def validate(c: SimConfig) -> None:
     _check(c.fps > 0, "fps", "must be > 0", c.fps)
     _check(c.num_frames >= 1, "num_frames", "must be >= 1", c.num_frames)
     _check(c.seed >= 0, "seed", "must be >= 0", c.seed)
+    _check(c.body_scale > 0, "body_scale", "must be > 0", c.body_scale)
     a = c.arena
     _check(min(a.size) > 0, "arena.size", "must be > 0", a.size)
     _check(a.wall_margin >= 0, "arena.wall_margin", "must be >= 0", a.wall_margin)
@@ -306,6 +386,16 @@ def validate(c: SimConfig) -> None:
         _check(min(h.period) > 0, f"{grp}.period", "periods must be > 0", h.period)
     _check(c.head.blend >= 0, "head.blend", "must be >= 0", c.head.blend)
     _interval(c.rear.pitch, "rear.pitch", 0.0, 89.0)
+    for k in ("lift", "stretch", "paw_motion"):
+        _check(getattr(c.rear, k) >= 0, f"rear.{k}", "must be >= 0", getattr(c.rear, k))
+    df = c.deform
+    for k in ("spine_bend", "spine_max", "spine_wiggle", "head_yaw", "head_pitch", "head_roll"):
+        _check(getattr(df, k) >= 0, f"deform.{k}", "must be >= 0", getattr(df, k))
+    _check(df.spine_max < 90, "deform.spine_max", "must be < 90", df.spine_max)
+    _check(df.head_shift >= 0, "deform.head_shift", "must be >= 0", df.head_shift)
+    _check(df.jitter >= 0, "deform.jitter", "must be >= 0", df.jitter)
+    for k in ("spine_lag", "spine_tau", "head_tau", "jitter_tau", "paw_tau"):
+        _check(getattr(df, k) > 0, f"deform.{k}", "must be > 0", getattr(df, k))
     _interval(c.groom.pitch, "groom.pitch", 0.0, 89.0)
     _check(
         c.groom.stroke_amplitude >= 0,

@@ -220,6 +220,73 @@ def _gait(scene: Scene, cfg: SimConfig, xy, yaw, d, ep, parity0: int, flat):
     return np.where(stance[..., None], stance_pos, swing_pos), stance
 
 
+def _smooth_noise(rng: np.random.Generator, T: int, tau_frames: float, dims: int) -> np.ndarray:
+    """(T, dims) smooth random motion: unit-variance OU noise, Gaussian-smoothed over tau / 5."""
+    x = np.stack([ou_noise(rng, T, tau_frames) for _ in range(dims)], -1)
+    sigma = tau_frames / 5.0
+    return gaussian_filter1d(x, sigma, axis=0, mode="nearest") if sigma >= 0.5 and T > 1 else x
+
+
+def _rear_extras(cfg: SimConfig, scene: Scene, R, rear, deformed, rng) -> None:
+    """Rearing on extended legs (`RearConfig.lift`), a stretched trunk (`stretch`) and free front
+    paws (`paw_motion`), scaled by the rear envelope `rear` (T,); edits `deformed` (T, K, 3)."""
+    rc = cfg.rear
+    if not (rc.lift > 0 or rc.stretch > 0 or rc.paw_motion > 0):
+        return
+    K = len(scene.model)
+    low = np.zeros(K, dtype=bool)
+    low[[i for i in scene.paws if i not in scene.front]] = True  # the hind paws
+    if scene.tail >= 0:
+        low[scene.tail] = True
+    upper = np.flatnonzero(~low)
+    if rc.stretch > 0:  # parts ahead of the hind paws move forward along the body
+        ahead = np.maximum(scene.model[upper, 1] - scene.pitch_pivot[1], 0.0)  # (U,)
+        fwd = R[:, :, 1]  # (T, 3) the body's forward axis
+        deformed[:, upper] += (
+            (rc.stretch * rear)[:, None, None] * ahead[None, :, None] * fwd[:, None]
+        )
+    if rc.lift > 0:
+        deformed[:, upper, 2] += rc.lift * rear[:, None]
+    if rc.paw_motion > 0:
+        T = len(rear)
+        noise = _smooth_noise(rng, T, cfg.deform.paw_tau * cfg.fps, 3 * len(scene.front))
+        noise = noise.reshape(T, len(scene.front), 3)
+        move = np.einsum("tij,tpj->tpi", R, rc.paw_motion * noise)
+        deformed[:, scene.front] += rear[:, None, None] * move
+
+
+def _spine_bend(cfg: SimConfig, scene: Scene, yaw, R, tau, deformed, rng) -> None:
+    """Bend the parts behind `DeformConfig.spine_pivot` about the body's vertical axis through
+    it (see `DeformConfig`); edits `deformed` (T, K, 3)."""
+    dfc = cfg.deform
+    if not (dfc.spine_bend > 0 or dfc.spine_wiggle > 0):
+        return
+    T, fps = len(yaw), cfg.fps
+    pivot = dfc.spine_pivot * cfg.body_scale
+    y = scene.model[:, 1]
+    span = pivot - float(y.min())
+    if span <= 0:
+        return
+    w = np.clip((pivot - y) / span, 0.0, 1.0)  # (K,)
+    lag = max(1, int(round(dfc.spine_lag * fps)))
+    past = np.concatenate([np.full(min(lag, T), yaw[0]), yaw[: max(T - lag, 0)]])
+    lim = np.radians(dfc.spine_max)
+    theta = np.clip(dfc.spine_bend * (past - yaw), -lim, lim)
+    theta = gaussian_filter1d(theta, 0.05 * fps, mode="nearest") if T > 1 else theta
+    if dfc.spine_wiggle > 0:
+        theta = (
+            theta
+            + np.radians(dfc.spine_wiggle) * _smooth_noise(rng, T, dfc.spine_tau * fps, 1)[:, 0]
+        )
+    ang = theta[:, None] * w[None]  # (T, K)
+    local = np.einsum("tji,tkj->tki", R, deformed - tau[:, None])  # model frame
+    c, s = np.cos(ang), np.sin(ang)
+    x, yy = local[..., 0], local[..., 1] - pivot
+    local[..., 0] = c * x - s * yy
+    local[..., 1] = s * x + c * yy + pivot
+    deformed[:] = np.einsum("tij,tkj->tki", R, local) + tau[:, None]
+
+
 def _masks(cfg: SimConfig, T: int, K: int, rng: np.random.Generator) -> np.ndarray:
     m = cfg.missing
     missing = rng.random((T, K)) < m.dropout
@@ -252,12 +319,16 @@ def simulate(
     """
     t_start = _time.perf_counter()
     cfg, body = _resolve(cfg, num_frames, seed, body)
+    if cfg.body_scale != 1.0:
+        body = BodyModel(body.parts, body.points * cfg.body_scale, body.aliases, body.name)
     scene = build_scene(cfg, body)
     T, fps, K = cfg.num_frames, cfg.fps, body.num_parts
     ss = np.random.SeedSequence(cfg.seed)
     rng_plan, rng_head, rng_jit, rng_mask, rng_gait = (
         np.random.default_rng(s) for s in ss.spawn(5)
     )
+    rng_extra = np.random.default_rng(ss.spawn(1)[0])  # `cfg.deform` and the rear extras only
+    dfc = cfg.deform
 
     plan = make_plan(cfg, scene, T, rng_plan)
     xy, heading, labels = plan.xy, plan.heading, plan.labels
@@ -306,16 +377,22 @@ def simulate(
         for a, key in enumerate(("yaw", "pitch", "roll")):
             lo, hi = getattr(grp, key)
             angles[:, a] += wgt * (lo + (hi - lo) * _tri(t / grp.period[a] + phase[a]))
+    head_std = np.array([dfc.head_yaw, dfc.head_pitch, dfc.head_roll])
+    if np.any(head_std > 0):  # a head moving on its own, in every behavior
+        angles += head_std * _smooth_noise(rng_extra, T, dfc.head_tau * fps, 3)
     # yaw about model Z, pitch about model X, roll about model Y: R_h = Rz(yaw) Rx(pitch) Ry(roll)
     Rh = _euler_zxy(np.radians(angles))
     hp = scene.head_pivot
     head_m = np.matmul(model[scene.head] - hp, Rh.transpose(0, 2, 1)) + hp
+    if dfc.head_shift > 0:  # the neck: the head triangle moves relative to the trunk
+        head_m += dfc.head_shift * _smooth_noise(rng_extra, T, dfc.head_tau * fps, 3)[:, None]
     deformed[:, scene.head] = np.matmul(head_m, R.transpose(0, 2, 1)) + tau[:, None]
 
     # --- rear: front paws tucked to the chest (the body pitch is in the pose) ------------------
     rear = np.where(labels == REAR, env, 0.0)
     tuck = np.einsum("tij,j->ti", R, np.asarray(cfg.rear.tuck))
     deformed[:, scene.front] += (rear[:, None] * tuck)[:, None]
+    _rear_extras(cfg, scene, R, rear, deformed, rng_extra)
 
     # --- groom: front paws at the snout, stroking ----------------------------------------------
     g = np.where(labels == GROOM, env, 0.0)
@@ -349,6 +426,15 @@ def simulate(
         for h in scene.head:  # keep the head triangle rigid: the other head points move along
             sel = head_eff & (eff[rows] != h)
             deformed[rows[sel], h] += delta[sel]
+
+    # --- spine: the rear follows the curved path (and wiggles) ---------------------------------
+    _spine_bend(cfg, scene, yaw, R, tau, deformed, rng_extra)
+    if dfc.jitter > 0:  # every part's own small motion (skin, fur), in the body frame; the
+        # paws keep their gait (a stance paw stays put)
+        body_parts = np.setdiff1d(np.arange(K), scene.paws)
+        n = len(body_parts)
+        wob = _smooth_noise(rng_extra, T, dfc.jitter_tau * fps, 3 * n).reshape(T, n, 3)
+        deformed[:, body_parts] += dfc.jitter * np.einsum("tij,tkj->tki", R, wob)
 
     if scene.tail >= 0:
         np.maximum(deformed[:, scene.tail, 2], TAIL_FLOOR, out=deformed[:, scene.tail, 2])
