@@ -48,6 +48,7 @@ from omegaconf import DictConfig
 from adjust.app import finite_or_none, load_kwargs, required, run_or_exit, stats
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import Detections, InputError, load_scene, write_points3d
+from adjust.session import expand_session_globs, with_session
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, output_dir
@@ -79,13 +80,15 @@ def _triangulate(det: Detections, cams: CameraTensors, robust: bool, max_error_p
         )
 
 
-def reprojection_errors(points: np.ndarray, det: Detections, cams: CameraTensors) -> np.ndarray:
-    """(T, K, C) pixel distance between each accepted detection and the projection of the
-    reported point (T, K, 3); NaN where the camera has no accepted detection."""
+def reprojection_errors(
+    points: np.ndarray, det: Detections, cams: CameraTensors, accepted: np.ndarray | None = None
+) -> np.ndarray:
+    """(T, K, C) pixel distance between each accepted detection (`accepted` (T, K, C), default
+    all observed ones) and the projection of the reported point (T, K, 3); NaN elsewhere."""
     with torch.no_grad():
         uv = project_cameras(torch.as_tensor(points, dtype=torch.float64), cams).numpy()
     err = np.linalg.norm(uv - det.xy, axis=-1)
-    return np.where(det.observed, err, np.nan)
+    return np.where(det.observed if accepted is None else accepted, err, np.nan)
 
 
 # --------------------------------------------------------------------------------------------
@@ -96,7 +99,7 @@ def _is_auto(body_cfg) -> bool:
 
 
 def estimate_body(
-    det: Detections, cams: CameraTensors, body_cfg, name: str = "auto"
+    det: Detections, cams: CameraTensors, body_cfg, name: str = "auto", cons=None
 ) -> tuple[BodyModel, dict]:
     """``body=auto``: robust triangulation, then a rigid model by generalized Procrustes
     (`BodyModel.from_observations`). Returns the model and facts about the estimate, among them
@@ -105,10 +108,13 @@ def estimate_body(
     from adjust.lsq.geometry import rigid_points
     from adjust.lsq.init import kabsch_poses
 
-    tri = _triangulate(
-        det, cams, bool(body_cfg.get("robust", True)), float(body_cfg.get("max_error_px", 20.0))
-    )
-    X = tri.points.numpy()
+    if cons is not None:  # the session's gated 3D observations
+        X = cons.points
+    else:
+        tri = _triangulate(
+            det, cams, bool(body_cfg.get("robust", True)), float(body_cfg.get("max_error_px", 20.0))
+        )
+        X = tri.points.numpy()
     min_parts = body_cfg.get("min_parts")
     try:
         body = BodyModel.from_observations(
@@ -127,7 +133,7 @@ def estimate_body(
     d = d[: max(1, int(math.ceil(0.95 * d.size)))] if d.size else d
     rms = float(np.sqrt(np.mean(d**2) / 3.0)) if d.size else float("nan")
     facts = {
-        "frames_used": int((seen.sum(1) >= max(3, math.ceil(0.75 * body.num_parts))).sum()),
+        "frames_used": int((seen.sum(1) >= 3).sum()),
         "triangulated_fraction": float(seen.mean()) if seen.size else 0.0,
         "rms_deviation_mm": rms,
         "points": {p: [float(c) for c in xyz] for p, xyz in zip(body.parts, body.points)},
@@ -273,6 +279,81 @@ def make_deformable_observation(model, body_points: np.ndarray, det: Detections,
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
 
+def deformation_mode(deformation) -> str:
+    """``deformation=``: null / ``rigid`` (the rigid model), ``interp`` (each part's body-frame
+    offset interpolated from its own observations, `InterpObservation`), else a checkpoint."""
+    if deformation is None or str(deformation).lower() in ("", "none", "null", "rigid"):
+        return "rigid"
+    if str(deformation).lower() == "interp":
+        return "interp"
+    return "net"
+
+
+def scale_body(body: BodyModel, body_cfg, cons) -> tuple[BodyModel, dict]:
+    """``body.scale``: ``auto`` (default) fits the model's size to the session's triangulated
+    parts (`BodyModel.estimate_scale`), a number scales by it (1 keeps the model as is)."""
+    want = body_cfg.get("scale", "auto") if body_cfg is not None else "auto"
+    if want is None or (isinstance(want, str) and want.lower() == "auto"):
+        if cons is None:
+            return body, {"scale": 1.0, "scale_source": "none (stochastic.estimate=false)"}
+        s, n = body.estimate_scale(cons.points)
+        if not math.isfinite(s) or n < 5:
+            log.warning(
+                "body.scale=auto: only %d frames with >= 4 triangulated parts; keeping body "
+                "'%s' at its configured size",
+                n,
+                body.name,
+            )
+            return body, {"scale": 1.0, "scale_source": f"config (too few frames: {n})"}
+        log.info("body '%s' scaled by %.3f to the data (%d frames)", body.name, s, n)
+        return body.scaled(s), {"scale": s, "scale_source": "estimated", "scale_frames": n}
+    try:
+        s = float(want)
+    except (TypeError, ValueError):
+        raise ValueError(f"body.scale must be 'auto' or a number > 0, got {want!r}") from None
+    return body.scaled(s), {"scale": s, "scale_source": "config"}
+
+
+def rigid_observation(body: BodyModel, cons) -> tuple:
+    """The rigid observation with each part's deformation second moment estimated from the
+    session (Kabsch poses on its 3D observations, `adjust.estimate.deformation_moments`)."""
+    from adjust.estimate import deformation_moments
+    from adjust.lsq.init import kabsch_robust
+    from adjust.lsq.observation import RigidObservation
+
+    B = torch.tensor(np.array(body.points))
+    seen = torch.as_tensor(cons.observed)
+    poses, ok = kabsch_robust(B, torch.as_tensor(np.nan_to_num(cons.points)), seen)
+    okn = ok.numpy()
+    mom, mean = deformation_moments(
+        poses.numpy(), cons.points, cons.observed & okn[:, None], np.array(body.points)
+    )
+    sig = np.sqrt(mom.sum(-1))
+    log.info(
+        "rigid model: parts stray %s mm rms from it",
+        ", ".join(f"{p} {v:.1f}" for p, v in zip(body.parts, sig)),
+    )
+    facts = {
+        "rigid_rms_mm_per_part": {p: float(v) for p, v in zip(body.parts, sig)},
+        "rigid_rms_mm": float(np.sqrt(np.mean(sig**2))),
+    }
+    return RigidObservation(B, torch.as_tensor(mom)), facts
+
+
+def interp_facts(observation, body: BodyModel) -> dict:
+    """The estimated offset covariance of ``deformation=interp`` for the summary."""
+    cov = observation.cov
+    if cov is None:
+        return {}
+    return {
+        "deformation_sigma_mm_per_part": {p: float(v) for p, v in zip(body.parts, cov.sigma_mm)},
+        "mean_offset_mm_per_part": {p: [float(c) for c in m] for p, m in zip(body.parts, cov.mean)},
+        "nugget_mm_per_part": {
+            p: float(math.sqrt(v)) for p, v in zip(body.parts, cov.nugget.sum(-1))
+        },
+    }
+
+
 # --------------------------------------------------------------------------------------------
 # the app
 # --------------------------------------------------------------------------------------------
@@ -296,6 +377,7 @@ def _run(cfg: DictConfig) -> dict:
 
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+    cfg = with_session(cfg)  # input.session=DIR: DIR/calibration.toml, DIR[/detections]
     calibration = required(cfg, "input.calibration", "track")
     detections = required(cfg, "input.detections", "track")
     if not Path(calibration).is_file():
@@ -312,10 +394,15 @@ def _run(cfg: DictConfig) -> dict:
     auto = _is_auto(body_cfg)
     model = None
     body_facts: dict = {}
+    mode = deformation_mode(deformation)
+    est_cfg = cfg.get("stochastic") or {}
+    estimate = bool(est_cfg.get("estimate", True))
+    if mode == "interp" and not estimate:
+        raise ValueError("deformation=interp needs stochastic.estimate=true (its 3D observations)")
 
     # --- inputs and body model ----------------------------------------------------------
     t0 = time.perf_counter()
-    if deformation:
+    if mode == "net":
         model = load_deformation(str(deformation))
         if auto:
             raise ValueError(
@@ -343,8 +430,27 @@ def _run(cfg: DictConfig) -> dict:
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     timings["load_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    weight = det.weight()
+    cons = None
+    if estimate:
+        from adjust.estimate import consensus
+
+        cons = consensus(
+            det.xy,
+            weight,
+            cams,
+            max_error_px=float(est_cfg.get("max_error_px", 20.0)),
+            gate_sigmas=float(est_cfg.get("gate_sigmas", 4.0)),
+            sigma_det_px=est_cfg.get("sigma_det_px"),
+        )
+        weight = np.where(cons.dropped, 0.0, weight)
+        solver_cfg = solver_cfg.replace(sigma_det_px=cons.sigma_det_px)
+    timings["consensus_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     if auto:
-        body, body_facts = estimate_body(det, cams, body_cfg, str(body_cfg.get("name", "auto")))
+        body, body_facts = estimate_body(
+            det, cams, body_cfg, str(body_cfg.get("name", "auto")), cons=cons
+        )
         sig = body_cfg.get("sigma_def_mm")
         if sig == "auto" and math.isfinite(body_facts["rms_deviation_mm"]):
             value = max(float(body_facts["rms_deviation_mm"]), 0.5)
@@ -354,6 +460,13 @@ def _run(cfg: DictConfig) -> dict:
             solver_cfg = solver_cfg.replace(sigma_def_mm=float(sig))
     if tuple(body.parts) != tuple(det.parts):  # load_scene orders parts as the model does
         raise InputError(f"parts {list(det.parts)} do not match the body model {list(body.parts)}")
+    if not auto and model is None:
+        body, scale_facts = scale_body(body, body_cfg, cons)
+        body_facts.update(scale_facts)
+    rigid_obs = None
+    if cons is not None:
+        rigid_obs, moment_facts = rigid_observation(body, cons)
+        body_facts.update(moment_facts)
     timings["body_s"] = time.perf_counter() - t0
 
     # --- adjustment ---------------------------------------------------------------------
@@ -367,36 +480,57 @@ def _run(cfg: DictConfig) -> dict:
     progress = bool(cfg.get("progress", True))
     init_poses = None
     rigid_iterations = 0
-    if observation is not None and bool(cfg.deform.get("rigid_first", True)):
-        # the rigid adjustment is cheap: start the deformable one from its poses
+    deform_cfg = cfg.get("deform") or {}
+    if observation is None or bool(deform_cfg.get("rigid_first", True)) or mode == "interp":
+        # the rigid adjustment: the result itself, or the start of a deformable one
         rigid = adjust_poses(
-            det.xy, det.weight(), cams, np.array(body.points), solver_cfg, progress=progress
+            det.xy,
+            weight,
+            cams,
+            np.array(body.points),
+            solver_cfg,
+            observation=rigid_obs,
+            progress=progress,
         )
+        res = rigid
         init_poses, rigid_iterations = rigid.poses, int(rigid.iterations)
         timings["rigid_s"] = time.perf_counter() - t0
-        if cfg.deform.get("max_iterations") is not None:
-            solver_cfg = solver_cfg.replace(max_iterations=int(cfg.deform.max_iterations))
-    if observation is not None and cfg.deform.get("sigma_def_mm") is not None:
-        solver_cfg = solver_cfg.replace(sigma_def_mm=float(cfg.deform.sigma_def_mm))
-    res = adjust_poses(
-        det.xy,
-        det.weight(),
-        cams,
-        np.array(body.points),  # a writable copy
-        solver_cfg,
-        init_poses=init_poses,
-        observation=observation,
-        progress=progress,
-    )
+    if mode == "interp":
+        from adjust.lsq.observation import InterpObservation
+
+        observation = InterpObservation(
+            torch.tensor(np.array(body.points)),
+            torch.as_tensor(cons.points),
+            torch.as_tensor(cons.observed),
+            torch.as_tensor(cons.noise_cov),
+        )
+    if observation is not None:
+        dcfg = solver_cfg
+        if deform_cfg.get("max_iterations") is not None:
+            dcfg = dcfg.replace(max_iterations=int(deform_cfg["max_iterations"]))
+        if deform_cfg.get("sigma_def_mm") is not None:
+            dcfg = dcfg.replace(sigma_def_mm=float(deform_cfg["sigma_def_mm"]))
+        res = adjust_poses(
+            det.xy,
+            weight,
+            cams,
+            np.array(body.points),  # a writable copy
+            dcfg,
+            init_poses=init_poses,
+            observation=observation,
+            progress=progress,
+        )
+    if mode == "interp":
+        def_facts = interp_facts(observation, body)
     timings["adjust_s"] = time.perf_counter() - t0
 
     # --- outputs ------------------------------------------------------------------------
     t0 = time.perf_counter()
     T, K, C = det.num_frames, det.num_parts, det.num_cameras
     points = res.points
-    observed = det.observed
+    observed = res.weights > 0  # the detections the fused points rest on
     ncams = observed.sum(-1)
-    view_err = reprojection_errors(points, det, cams)
+    view_err = reprojection_errors(points, det, cams, observed)
     with warnings.catch_warnings():  # all-NaN rows (no detection) are expected
         warnings.simplefilter("ignore", RuntimeWarning)
         error = np.nanmean(view_err, axis=-1) if C else np.full((T, K), np.nan)
@@ -428,13 +562,15 @@ def _run(cfg: DictConfig) -> dict:
             "source": "auto" if auto else ("checkpoint" if model is not None else "config"),
             **body_facts,
         },
-        "deformation": None
+        "deformation": {"mode": mode, **(def_facts or {})}
         if model is None
         else {
+            "mode": mode,
             "checkpoint": str(Path(str(deformation)).resolve()),
             "window": int(model.window),
             **(def_facts or {}),
         },
+        "stochastic": None if cons is None else cons.facts(det.cameras),
         "cameras": list(det.cameras),
         "parts": list(det.parts),
         "num_frames": T,
@@ -509,8 +645,24 @@ def _run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="track", version_base=None)
-def main(cfg: DictConfig) -> None:
+def _main(cfg: DictConfig) -> dict | None:
+    from adjust.batch import in_multirun, run_session
+
+    if in_multirun():  # one session of a batch (adjust.batch): records a failure, never raises
+        return run_session(cfg)
     run_or_exit(run, cfg)
+
+
+def main() -> None:
+    """Console script: ``input.session=glob(PATTERN)`` -> the matching folders, then Hydra."""
+    import sys
+
+    try:
+        sys.argv = expand_session_globs(sys.argv)
+    except ValueError as exc:
+        log.error("%s", exc)
+        raise SystemExit(2) from None
+    _main()
 
 
 if __name__ == "__main__":  # pragma: no cover

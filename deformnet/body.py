@@ -116,6 +116,39 @@ class BodyModel:
         cfg.pop("_target_", None)
         return cls.from_mapping(cfg["parts"], cfg.get("aliases"), cfg.get("name", "body"))
 
+    def scaled(self, scale: float) -> BodyModel:
+        """The same model with every coordinate multiplied by `scale` (> 0)."""
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"body model '{self.name}': scale must be > 0, got {scale}")
+        return BodyModel(self.parts, self.points * float(scale), self.aliases, self.name)
+
+    def estimate_scale(self, points: np.ndarray, min_parts: int = 4) -> tuple[float, int]:
+        """The scale that fits this model to 3D observations of it.
+
+        points: (T, K, 3) mm, NaN missing, in model part order. Per frame with >= `min_parts`
+        parts, the ratio of the rms radius of the observed parts about their centroid to that
+        of the same model parts (rotation-free, exact for a scaled rigid body); the median
+        over frames. Returns (scale, frames used); (nan, 0) without usable frames.
+        """
+        X = np.asarray(points, dtype=np.float64)
+        if X.shape[1:] != (self.num_parts, 3):
+            raise ValueError(f"points must be (T, {self.num_parts}, 3), got {X.shape}")
+        seen = np.isfinite(X).all(-1)
+        use = seen.sum(1) >= max(3, int(min_parts))
+        if not use.any():
+            return float("nan"), 0
+        w = seen[use].astype(np.float64)[..., None]
+        Xu = np.where(w > 0, X[use], 0.0)
+        n = w.sum(1)
+        cx = (Xu * w).sum(1) / n
+        B = np.broadcast_to(self.points, Xu.shape)
+        cb = (B * w).sum(1) / n
+        rx = ((Xu - cx[:, None]) ** 2 * w).sum((1, 2))
+        rb = ((B - cb[:, None]) ** 2 * w).sum((1, 2))
+        ok = rb > 1e-9
+        ratio = np.sqrt(rx[ok] / rb[ok])
+        return (float(np.median(ratio)) if ratio.size else float("nan")), int(ratio.size)
+
     # --- estimation ---------------------------------------------------------------------
     @classmethod
     def from_observations(
@@ -129,11 +162,13 @@ class BodyModel:
     ) -> BodyModel:
         """Estimate a rigid model from 3D observations by generalized Procrustes analysis.
 
-        points: (T, K, 3) in mm with NaN for missing. Stage 1: the frames with at least
-        `min_parts` observed parts (default: max(3, ceil(0.75 K))) are aligned rigidly (no
-        scale) to the evolving mean shape; each part's model position is the mean over the
-        frames that observed it. Stage 2: a part that no such frame sees is placed from the
-        frames that see it together with >= 3 stage-1 parts, aligned on those parts.
+        points: (T, K, 3) in mm with NaN for missing; no frame needs all parts. Every frame
+        with at least `min_parts` (default and minimum 3) observed parts contributes. The
+        shape starts from the frame with the most parts; a part it lacks is placed from the
+        frames that see it together with >= 3 already placed parts (aligned on those); then
+        generalized Procrustes with missing data: each frame aligned rigidly (no scale) on its
+        own parts to the mean shape, each part's position the mean over the frames that saw
+        it, until the shape stops changing.
         The model frame: origin at the centroid, axes along the principal directions (largest
         spread -> Y, smallest -> Z), right-handed.
         """
@@ -145,52 +180,50 @@ class BodyModel:
         if len(names) != K:
             raise ValueError(f"{len(names)} part names for {K} parts")
         seen = np.isfinite(X).all(-1)
-        need = max(3, int(np.ceil(0.75 * K))) if min_parts is None else int(min_parts)
-        counts = seen.sum(1)
-        well = counts >= need
-        good = np.flatnonzero(well)
-        if good.size < 2:
+        need = 3 if min_parts is None else max(3, int(min_parts))
+        usable = seen.sum(1) >= need
+        if usable.sum() < 2:
             raise ValueError(
-                f"cannot estimate a body model: only {good.size} frames have >= {need} of the "
-                f"{K} parts observed"
+                f"cannot estimate a body model: only {int(usable.sum())} frames have >= {need} "
+                f"of the {K} parts observed"
             )
-        if good.size > max_frames:
-            good = good[np.linspace(0, good.size - 1, max_frames).astype(int)]
-        # stage 1: generalized Procrustes over the well-observed frames
-        lacking = ~seen[good].any(0)  # parts no well-observed frame sees
-        w = seen[good].astype(np.float64)
-        Xg = np.where(w[..., None] > 0, X[good], 0.0)
-        ref = int(np.argmax(w.sum(1)))  # initial mean: the frame with the most parts
-        tot = w.sum(0)[:, None]
-        fill = (Xg * w[..., None]).sum(0) / np.maximum(tot, 1.0)  # rough start, refined below
-        mean = _masked_mean_shape(Xg[ref : ref + 1], w[ref : ref + 1], fill=fill)
-        aligned = Xg
+        frames = np.flatnonzero(usable)
+        if frames.size > max_frames:
+            frames = frames[np.linspace(0, frames.size - 1, max_frames).astype(int)]
+        S = seen[frames]
+        Xf = np.where(S[..., None], X[frames], 0.0)
+        # incremental placement: start from the frame with the most parts, then place the
+        # parts still missing from the frames that see them with >= 3 already placed parts
+        ref = int(np.argmax(S.sum(1)))
+        placed = S[ref].copy()
+        mean = np.where(placed[:, None], Xf[ref], 0.0)
+        while not placed.all():
+            known = S & placed[None]
+            cand = (known.sum(1) >= 3) & (S & ~placed[None]).any(1)
+            if not cand.any():
+                never = [names[i] for i in np.flatnonzero(~placed)]
+                raise ValueError(
+                    "cannot estimate a body model: parts never observed together with >= 3 "
+                    "other placed parts: " + ", ".join(never)
+                )
+            al = _align_to(Xf[cand], known[cand].astype(np.float64), mean)
+            new = S[cand] & ~placed[None]
+            tot = new.sum(0)
+            add = tot > 0
+            mean[add] = (al * new[..., None]).sum(0)[add] / tot[add, None]
+            placed |= add
+        # generalized Procrustes with missing data: each frame aligned on its own parts
+        w = S.astype(np.float64)
+        aligned = Xf
         for _ in range(iterations):
-            aligned = _align_to(Xg, w, mean)
+            aligned = _align_to(Xf, w, mean)
             new_mean = _masked_mean_shape(aligned, w, fill=mean)
             new_mean -= new_mean.mean(0)
             if np.abs(new_mean - mean).max() < 1e-9:
                 mean = new_mean
                 break
             mean = new_mean
-        # stage 2: a lacking part from the frames that see it with >= 3 parts of stage 1,
-        # each aligned on those parts only
-        if lacking.any():
-            known = seen & ~lacking[None]
-            sparse = np.flatnonzero((known.sum(1) >= 3) & (seen & lacking[None]).any(1))
-            if sparse.size > max_frames:
-                sparse = sparse[np.linspace(0, sparse.size - 1, max_frames).astype(int)]
-            ws = (seen[sparse] & lacking[None]).astype(np.float64)
-            tot = ws.sum(0)
-            never = lacking & (tot == 0)
-            if never.any():
-                raise ValueError(
-                    "cannot estimate a body model: parts never observed together with >= 3 "
-                    "other parts: " + ", ".join(names[i] for i in np.flatnonzero(never))
-                )
-            Xs = np.where(seen[sparse][..., None], X[sparse], 0.0)
-            placed = _align_to(Xs, known[sparse].astype(np.float64), mean)
-            mean[lacking] = (placed * ws[..., None]).sum(0)[lacking] / tot[lacking, None]
+        good = frames
         # principal axes: largest spread -> Y (forward), next -> X, smallest -> Z
         centred = mean - mean.mean(0)
         _, _, vt = np.linalg.svd(centred, full_matrices=False)

@@ -90,8 +90,10 @@ def test_rigid_track_complete_and_better_than_dlt(scene, rigid_run):
     # _ncams / _score / _error semantics
     truth = np.load(scene / "truth.npz")
     cameras, det = load_scene(scene / "calibration.toml", scene / "detections", default_mouse())
-    ncams = det.observed.sum(-1)
-    assert (d["ncams"] == ncams).all() and (ncams == 0).any()
+    observed = det.observed.sum(-1)
+    ncams = d["ncams"]  # the accepted detections: gated against the other cameras and the track
+    assert (ncams <= observed).all() and (ncams == 0).any()
+    assert 0.9 < ncams.sum() / observed.sum() < 1.0  # a few mis-detections rejected, not more
     assert np.isnan(d["score"][ncams == 0]).all() and np.isnan(d["error"][ncams == 0]).all()
     assert (d["score"][ncams > 0] >= det.threshold).all()
     assert np.isfinite(d["error"][ncams > 0]).all()

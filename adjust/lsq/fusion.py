@@ -12,15 +12,20 @@ the model with the model's uncertainty.
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from adjust.camera import CameraTensors
 from adjust.lsq.geometry import (
     normal_blocks_3d,
     project_components,
+    project_with_jacobian,
     rotation_gemm_weights,
     sym3_inverse,
 )
+
+#: chi-square (2 dof) gate of a detection's innovation: tail probability 0.001
+GATE_CHI2 = 13.8
 
 
 def fuse_points(
@@ -32,12 +37,15 @@ def fuse_points(
     iterations: int = 2,
     W6: Tensor | None = None,
     Wg: Tensor | None = None,
+    tol: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Fuse detections with model points.
 
     X_model: (T, K, 3) mm; prior_cov: (T, K, 3, 3) mm^2 (positive definite); xy: (T, K, C, 2) px
     (any finite value where w = 0); w: (T, K, C) inverse variances px^-2 (0 = no detection)
     -> X (T, K, 3) mm, cov (T, K, 3, 3) mm^2. W6, Wg: `rotation_gemm_weights(cams.R)` (optional).
+    ``iterations`` Gauss-Newton steps, or with ``tol`` (mm) up to that many, until no point
+    moves by more than ``tol`` (run to convergence).
     """
     T, K, C, _ = xy.shape
     if X_model.shape != (T, K, 3) or prior_cov.shape != (T, K, 3, 3) or w.shape != (T, K, C):
@@ -55,5 +63,47 @@ def fuse_points(
         H, g = normal_blocks_3d(Ac, xy[..., 0] - u, xy[..., 1] - v, w, W6, Wg)
         A = Pinv + H
         b = g - (Pinv @ (X - X_model)[..., None])[..., 0]
-        X = X + (sym3_inverse(A) @ b[..., None])[..., 0]
+        step = (sym3_inverse(A) @ b[..., None])[..., 0]
+        X = X + step
+        if tol is not None and (
+            not bool(torch.isfinite(step).all()) or float(step.abs().max()) < tol
+        ):
+            break
+    if tol is not None:  # the covariance at the converged point
+        u, v, _, Ac = project_components(X, cams, True)
+        H, _ = normal_blocks_3d(Ac, xy[..., 0] - u, xy[..., 1] - v, w, W6, Wg)
+        A = Pinv + H
     return X, sym3_inverse(A)
+
+
+def innovation_gate(
+    X_prior: Tensor,
+    prior_cov: Tensor,
+    xy: Tensor,
+    valid: Tensor,
+    cams: CameraTensors,
+    sigma_px: float | Tensor,
+    chi2: float = GATE_CHI2,
+) -> tuple[Tensor, Tensor]:
+    """Which detections agree with the part's predicted position (its own track and model).
+
+    X_prior (T, K, 3) mm with covariance prior_cov (T, K, 3, 3); xy (T, K, C, 2) px; valid
+    (T, K, C) bool; sigma_px: detector noise (scalar or (C,)). The innovation of a detection,
+    e = xy - proj(X_prior), has covariance S = J P J^T + sigma^2 I (J = d proj / dX); it passes
+    when e^T S^-1 e <= chi2. A part-frame whose detections all fail although >= 2 cameras saw
+    it keeps them all (cameras that agree with each other outvote the prediction).
+    Returns (accepted (T, K, C) bool, d2 (T, K, C) the squared Mahalanobis distances).
+    """
+    uv, J, _ = project_with_jacobian(X_prior, cams)  # (T, K, C, 2), (T, K, C, 2, 3)
+    S = J @ prior_cov[..., None, :, :] @ J.transpose(-1, -2)
+    s2 = torch.as_tensor(sigma_px, dtype=S.dtype, device=S.device) ** 2
+    s2 = s2.expand(S.shape[-3]) if s2.dim() == 1 else s2
+    S = S + (s2[..., None, None] if s2.dim() else s2) * torch.eye(2, dtype=S.dtype, device=S.device)
+    e = torch.where(valid[..., None], xy - uv, torch.zeros_like(uv))
+    a, b, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 1]
+    det = (a * d - b * b).clamp_min(1e-300)
+    d2 = (d * e[..., 0] ** 2 - 2 * b * e[..., 0] * e[..., 1] + a * e[..., 1] ** 2) / det
+    ok = valid & (d2 <= chi2)
+    nvalid = valid.sum(-1, keepdim=True)
+    outvoted = (nvalid >= 2) & ~ok.any(-1, keepdim=True)
+    return ok | (valid & outvoted), torch.where(valid, d2, torch.full_like(d2, float("nan")))

@@ -16,7 +16,7 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from adjust.lsq.geometry import retract, rigid_points
+from adjust.lsq.geometry import retract, rigid_points, so3_exp
 
 
 @runtime_checkable
@@ -39,13 +39,36 @@ class ObservationModel(Protocol):
         """The same model for frames start..stop-1 (chunked solving)."""
 
 
-class RigidObservation:
-    """The rigid body model moved by the pose (paper eq. 4): X_i = R(r_t) X_i^m + tau_t."""
+def _rotate_axes_var(R: Tensor, var: Tensor) -> Tensor:
+    """Body-axis variances var (T, K, 3) -> global covariances R diag(var) R^T (T, K, 3, 3)."""
+    return torch.einsum("tij,tkj,tlj->tkil", R, var, R)
 
-    def __init__(self, body_points: Tensor) -> None:
+
+class RigidObservation:
+    """The rigid body model moved by the pose (paper eq. 4): X_i = R(r_t) X_i^m + tau_t.
+
+    ``var_mm2`` (K, 3), optional: the parts' deformation second moments per body axis (mm^2),
+    i.e. how far each part strays from its rigid point (estimated from the data by
+    `adjust.lsq.stochastic`); then the solver weights each detection by its own part's
+    deformation and the fusion uses it as the prior (`deformation_cov`). Without it the solver
+    uses its single ``sigma_def_mm`` for every part.
+    """
+
+    def __init__(self, body_points: Tensor, var_mm2: Tensor | None = None) -> None:
         if body_points.dim() != 2 or body_points.shape[-1] != 3:
             raise ValueError(f"body_points must have shape (K, 3), got {tuple(body_points.shape)}")
+        if var_mm2 is not None and tuple(var_mm2.shape) != (body_points.shape[0], 3):
+            raise ValueError(f"var_mm2 must be (K, 3), got {tuple(var_mm2.shape)}")
         self.body = body_points
+        self.var = var_mm2
+
+    def deformation_cov(self, poses: Tensor) -> Tensor | None:
+        """(T, K, 3, 3) global covariance of the parts about the model points, or None."""
+        if self.var is None:
+            return None
+        R = so3_exp(poses[:, :3])
+        v = self.var.to(poses.dtype).expand(poses.shape[0], -1, -1)
+        return _rotate_axes_var(R, v)
 
     @property
     def num_parts(self) -> int:
@@ -63,6 +86,121 @@ class RigidObservation:
 
     def window(self, start: int, stop: int) -> RigidObservation:
         return self
+
+
+class InterpObservation:
+    """``deformation=interp``: the rigid model plus each part's offset in body coordinates
+    predicted from the part's own observations in the neighbouring frames.
+
+    data (T, K, 3) global mm: the parts triangulated from >= 2 cameras (gated against
+    mis-detections), observed (T, K) bool where they are; noise_cov (T, K, 3, 3) mm^2 (global)
+    their triangulation covariance, or None. At every `prepare` (each outer iteration, with the
+    current poses) the offsets o_t = R_t^T (X_t - tau_t) - B are formed, their covariance in
+    time is estimated (`adjust.lsq.stochastic.OffsetCovariance`: mean, per-part deformation
+    variance, semivariogram) and each part-frame's offset is predicted by simple kriging from
+    the previous and next observed frame, excluding the frame itself (`krige_offsets`). The
+    model point is X_t = R_t (B + o_hat_t) + tau_t, its Jacobian the rigid-point one with the
+    prediction held fixed (as the net's "frozen" Jacobian), and `deformation_cov` the kriging
+    variance rotated to global coordinates: on a gap the interpolation across it, on an
+    observed frame an independent prediction to fuse with the frame's own detections.
+    """
+
+    def __init__(
+        self,
+        body_points: Tensor,
+        data: Tensor,
+        observed: Tensor,
+        noise_cov: Tensor | None = None,
+    ) -> None:
+        self.rigid = RigidObservation(body_points)
+        T, K = observed.shape
+        if tuple(data.shape) != (T, K, 3) or K != body_points.shape[0]:
+            raise ValueError(
+                f"data must be (T, K, 3) for observed {tuple(observed.shape)} and "
+                f"{body_points.shape[0]} body points, got {tuple(data.shape)}"
+            )
+        if noise_cov is not None and tuple(noise_cov.shape) != (T, K, 3, 3):
+            raise ValueError(f"noise_cov must be (T, K, 3, 3), got {tuple(noise_cov.shape)}")
+        self.data = torch.nan_to_num(data)
+        self.observed = observed & torch.isfinite(data).all(-1)
+        self.noise_cov = noise_cov
+        self.cov = None  # the last OffsetCovariance
+        self.outlier_rounds = 2
+        self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
+        self._M: Tensor | None = None  # (T, K, 3) body-frame model points
+        self._var: Tensor | None = None  # (T, K, 3) body-axis variances
+
+    @property
+    def num_parts(self) -> int:
+        return self.rigid.num_parts
+
+    @property
+    def body(self) -> Tensor:
+        return self.rigid.body
+
+    def prepare(self, poses: Tensor) -> None:
+        import numpy as np
+
+        from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
+
+        R = so3_exp(poses[:, :3]).detach()
+        Rn = R.cpu().numpy().astype(np.float64)
+        tn = poses[:, 3:].detach().cpu().numpy().astype(np.float64)
+        X = self.data.cpu().numpy().astype(np.float64)
+        m = self.observed.cpu().numpy()
+        B = self.body.cpu().numpy().astype(np.float64)
+        o = np.einsum("tji,tkj->tki", Rn, X - tn[:, None, :]) - B[None]
+        nugget = None
+        if self.noise_cov is not None and m.any():
+            nc = self.noise_cov.cpu().numpy().astype(np.float64)
+            nb = np.einsum("tji,tkjl,tlm->tkim", Rn, nc, Rn)  # R^T S R
+            d = np.diagonal(nb, axis1=-2, axis2=-1)  # (T, K, 3)
+            cnt = np.maximum(m.sum(0), 1)[:, None]
+            nugget = np.where(m[..., None], d, 0.0).sum(0) / cnt
+        # robust: an observation its own neighbours contradict (chi-square, 3 dof, p = 0.001)
+        # is a mis-detection, not deformation; re-estimate without it
+        good = m
+        for _ in range(self.outlier_rounds + 1):
+            self.cov = OffsetCovariance.estimate(o, good, nugget=nugget)
+            pred, var = krige_offsets(o, good, self.cov, skip_self=True)
+            if _ == self.outlier_rounds:
+                break
+            d2 = ((o - pred) ** 2 / (var + self.cov.nugget[None])).sum(-1)
+            new = m & ~(d2 > 16.3)
+            if (new == good).all():
+                break
+            good = new
+        self.outliers = m & ~good
+        dt = poses.dtype
+        self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
+        self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
+
+    def _ready(self, poses: Tensor) -> None:
+        if self._M is None or self._M.shape[0] != poses.shape[0]:
+            self.prepare(poses)
+
+    def points(self, poses: Tensor, jacobian: bool = True) -> tuple[Tensor, Tensor | None]:
+        self._ready(poses)
+        R = so3_exp(poses[:, :3])
+        a = torch.einsum("tij,tkj->tki", R, self._M.to(poses.dtype))
+        X = a + poses[:, None, 3:]
+        if not jacobian:
+            return X, None
+        from deformnet.so3 import skew
+
+        eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
+        return X, torch.cat((-skew(a), eye), -1)
+
+    def deformation_cov(self, poses: Tensor) -> Tensor:
+        self._ready(poses)
+        return _rotate_axes_var(so3_exp(poses[:, :3]), self._var.to(poses.dtype))
+
+    def rigid_points(self, poses: Tensor) -> tuple[Tensor, Tensor]:
+        return self.rigid.rigid_points(poses)
+
+    def window(self, start: int, stop: int) -> InterpObservation:
+        nc = None if self.noise_cov is None else self.noise_cov[start:stop]
+        return InterpObservation(self.body, self.data[start:stop], self.observed[start:stop], nc)
 
 
 class DeformableObservation:

@@ -30,7 +30,7 @@ from adjust.camera import CameraTensors
 from adjust.lsq import banded
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.constraint import add_track_normal, default_rho, make_grid, track_residuals
-from adjust.lsq.fusion import fuse_points
+from adjust.lsq.fusion import fuse_points, innovation_gate
 from adjust.lsq.geometry import (
     normal_blocks_3d,
     project_components,
@@ -114,6 +114,7 @@ class _Problem:
     focal: Tensor  # (C,) px
     W6: Tensor | None = None  # (C 6, 9): camera-frame 3x3 (6 unique) -> world, summed over C
     Wg: Tensor | None = None  # (C 3, 3): camera-frame gradient -> world, summed over C
+    defvar: Tensor | None = None  # (T, K) mm^2 per-part-frame deformation variance (per axis)
 
     def __post_init__(self) -> None:
         self.xu, self.xv = self.xy[..., 0], self.xy[..., 1]
@@ -161,10 +162,37 @@ def _evaluate(poses: Tensor, pb: _Problem, jacobian: bool) -> _Lin:
     return _Lin(eu, ev, z, r, X, A, JX, poses)
 
 
+def _deformation_var(obs: ObservationModel, poses: Tensor) -> Tensor | None:
+    """(T, K) mean per-axis deformation variance (mm^2) the observation model states for each
+    part-frame (trace / 3 of its `deformation_cov`), or None (then the solver's fixed
+    ``sigma_def_mm`` mixture applies)."""
+    fn = getattr(obs, "deformation_cov", None)
+    cov = fn(poses) if fn is not None else None
+    if cov is None:
+        return None
+    return torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1) / 3.0
+
+
 def _weights(lin: _Lin, pb: _Problem, share: float) -> tuple[Tensor, Tensor, float]:
-    """IRLS weights (T, K, C) px^-2, the mixture inverse variances (T, K, C), the new share."""
+    """IRLS weights (T, K, C) px^-2, the stochastic model's inverse variances (T, K, C), the
+    new mixture share.
+
+    With a per-part-frame deformation variance from the observation model (`pb.defvar`,
+    estimated from the data) each detection's variance is sigma_det^2 + (sigma_def f / z)^2
+    (its own part's deformation projected to px); otherwise the two-Gaussian mixture of
+    sigma_det and the solver's single sigma_def_mm (EM responsibilities). Then the robust kernel.
+    """
     cfg = pb.cfg
     e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
+    if pb.defvar is not None:
+        s2 = (
+            cfg.sigma_det_px**2
+            + pb.defvar[..., None] * (pb.focal / lin.z.abs().clamp_min(1e-6)) ** 2
+        )
+        wmix = 1.0 / s2
+        u = (e2 * wmix).sqrt()
+        w = pb.base * wmix * kernel_weight(u, cfg.robust, cfg.robust_scale)
+        return w, wmix, 1.0
     sdef = None
     if cfg.sigma_def_mm > 0:
         sdef = cfg.sigma_def_mm * pb.focal / lin.z.abs().clamp_min(1e-6)
@@ -230,6 +258,7 @@ def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
 
     def linearise(p: Tensor):
         pb.obs.prepare(p)
+        pb.defvar = _deformation_var(pb.obs, p)
         lin = _evaluate(p, pb, jacobian=True)
         w, wmix, state["share"] = _weights(lin, pb, state["share"])
         blocks, g = _normal_equations(lin, w, pb)
@@ -422,6 +451,7 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: _Problem, share: flo
     cfg = pb.cfg
     dt = poses.dtype
     pb.obs.prepare(poses)
+    pb.defvar = _deformation_var(pb.obs, poses)
     lin = _evaluate(poses, pb, jacobian=False)
     _, wmix, _ = _weights(lin, pb, share)
     e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
@@ -433,9 +463,21 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: _Problem, share: flo
         _, JX = pb.obs.points(poses, jacobian=True)
     model_cov = JX @ cov_t[:, None] @ JX.transpose(-1, -2)  # (T, K, 3, 3)
     eye = torch.eye(3, dtype=dt)
-    prior = model_cov + (cfg.sigma_def_mm**2 + 1e-6) * eye
-    w_fuse = pb.base * rob / cfg.sigma_det_px**2
-    pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, cfg.fuse_iterations, pb.W6, pb.Wg)
+    dcov_fn = getattr(pb.obs, "deformation_cov", None)
+    dcov = dcov_fn(poses) if dcov_fn is not None else None
+    if dcov is None:  # the fixed stochastic model: one sigma_def for all parts, robust weights
+        prior = model_cov + (cfg.sigma_def_mm**2 + 1e-6) * eye
+        accepted = pb.valid
+        w_fuse = pb.base * rob / cfg.sigma_det_px**2
+        pts, pcov = fuse_points(
+            lin.X, prior, pb.xy, w_fuse, pb.cams, cfg.fuse_iterations, pb.W6, pb.Wg
+        )
+    else:  # estimated: each part-frame's own prior, detections gated against it, to convergence
+        prior = model_cov + dcov + 1e-6 * eye
+        accepted, _ = innovation_gate(lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px)
+        w_fuse = accepted.to(dt) / cfg.sigma_det_px**2
+        pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, 50, pb.W6, pb.Wg, tol=1e-4)
+        rob = rob * accepted.to(dt)
     e = torch.stack((lin.eu, lin.ev), -1)
     res = torch.where(pb.valid[..., None], e, torch.full_like(e, float("nan")))
     inv_det = 1.0 / cfg.sigma_det_px**2
@@ -453,7 +495,7 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: _Problem, share: flo
         "model_sigma": np_(torch.diagonal(model_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()),
         "residuals": np_(res),
         "weights": np_(torch.where(pb.valid, wmix * rob / inv_det, torch.zeros_like(rob))),
-        "ncams": pb.valid.sum(-1).cpu().numpy(),
+        "ncams": accepted.sum(-1).cpu().numpy(),
         "observed": pb.valid.any(-1).any(-1).cpu().numpy(),
     }
 

@@ -1,0 +1,142 @@
+"""What `adjust-track` learns from a session before it adjusts: the cameras' consensus, the
+detector noise, the animal's size and how far each of its parts strays from the rigid body.
+
+- `consensus`: robust triangulation of every part-frame; views the other cameras outvote are
+  marked as mis-detections (dropped from the adjustment); the triangulated points whose views
+  agree (reprojection error within a gate of the estimated detector noise) become the
+  session's 3D observations of its parts, with their triangulation covariance.
+- `deformation_moments`: per part and body axis, the second moment of the observed parts about
+  their rigid model points at given poses (mean^2 + variance): the rigid model's prior.
+
+Shapes: T frames, K parts, C cameras; mm, px.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from adjust.camera import CameraTensors
+from adjust.lsq.geometry import (
+    normal_blocks_3d,
+    project_components,
+    rotation_gemm_weights,
+    sym3_inverse,
+)
+from adjust.lsq.stochastic import body_offsets, detector_sigma
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Consensus:
+    """points (T, K, 3) mm robustly triangulated (NaN: < 2 agreeing views); observed (T, K)
+    bool: gated 3D observations (>= 2 views, reprojection error within the gate); used
+    (T, K, C) the views they rest on; dropped (T, K, C): detections outvoted by the other
+    cameras; sigma_det_px (pooled) and sigma_det_per_camera (C,); noise_cov (T, K, 3, 3) mm^2
+    triangulation covariance (identity * 1e6 where not observed); gate_px."""
+
+    points: np.ndarray
+    observed: np.ndarray
+    used: np.ndarray
+    dropped: np.ndarray
+    sigma_det_px: float
+    sigma_det_per_camera: np.ndarray
+    noise_cov: np.ndarray
+    gate_px: float
+
+    def facts(self, cameras) -> dict:
+        return {
+            "sigma_det_px": self.sigma_det_px,
+            "sigma_det_px_per_camera": {
+                c: (None if not math.isfinite(v) else float(v))
+                for c, v in zip(cameras, self.sigma_det_per_camera)
+            },
+            "observed_3d_fraction": float(self.observed.mean()) if self.observed.size else 0.0,
+            "outvoted_detections": int(self.dropped.sum()),
+            "gate_px": self.gate_px,
+        }
+
+
+def consensus(
+    xy: np.ndarray,
+    weight: np.ndarray,
+    cams: CameraTensors,
+    max_error_px: float = 20.0,
+    gate_sigmas: float = 4.0,
+    sigma_det_px: float | None = None,
+) -> Consensus:
+    """Robust triangulation, detector noise and gated 3D observations.
+
+    xy (T, K, C, 2) px, NaN missing; weight (T, K, C) (0 = missing). A view is outvoted when
+    >= 3 cameras saw the part and robust triangulation (drop the worst view while the point
+    reprojects worse than ``max_error_px``) left it out. The detector noise is estimated from
+    the residuals (`detector_sigma`) unless given; a triangulated point is an observation when
+    its mean view error is within ``gate_sigmas`` x that noise (+ 1 px).
+    """
+    from adjust.triangulate import triangulate
+
+    with torch.no_grad():
+        tri = triangulate(
+            torch.as_tensor(xy),
+            torch.as_tensor(weight),
+            cams,
+            robust=True,
+            max_error_px=max_error_px,
+        )
+    X = tri.points.numpy().astype(np.float64)
+    used = tri.used.numpy()
+    ve = tri.view_error.numpy()
+    nviews = tri.nviews.numpy()
+    observed_views = np.isfinite(xy).all(-1) & (weight > 0)
+    fin = np.isfinite(X).all(-1)
+    dropped = observed_views & ~used & (nviews >= 3)[..., None] & fin[..., None]
+    est, per = detector_sigma(ve, used)
+    sig = float(sigma_det_px) if sigma_det_px else (est if math.isfinite(est) else 2.0)
+    gate = gate_sigmas * sig + 1.0
+    err = tri.error.numpy()
+    obs = fin & (tri.ncams.numpy() >= 2) & (err <= gate)
+    # triangulation covariance: (sum_c J^T J / sigma^2)^-1 over the used views
+    Xt = torch.as_tensor(np.nan_to_num(X))
+    u, v, _, A = project_components(Xt, cams, True)
+    W6, Wg = rotation_gemm_weights(cams.R)
+    w = torch.as_tensor(used & obs[..., None], dtype=Xt.dtype) / sig**2
+    H, _ = normal_blocks_3d(A, torch.zeros_like(u), torch.zeros_like(v), w, W6, Wg)
+    eye = torch.eye(3, dtype=Xt.dtype)
+    H = torch.where(torch.as_tensor(obs)[..., None, None], H, eye * 1e-6)
+    cov = sym3_inverse(H + 1e-9 * eye).numpy()
+    log.info(
+        "consensus: detector noise %.2f px (estimated %.2f), %.1f%% of part-frames observed in "
+        "3D, %d detections outvoted by the other cameras",
+        sig,
+        est,
+        100 * obs.mean() if obs.size else 0.0,
+        int(dropped.sum()),
+    )
+    return Consensus(np.where(obs[..., None], X, np.nan), obs, used, dropped, sig, per, cov, gate)
+
+
+def deformation_moments(
+    poses: np.ndarray, X: np.ndarray, observed: np.ndarray, body: np.ndarray, floor_mm: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """Second moments (K, 3) mm^2 per body axis of the observed parts about the rigid model
+    points at ``poses`` (T, 6) (mean^2 + variance of the body-frame offsets), and the offsets'
+    means (K, 3). A part never observed gets the largest moment of the others."""
+    from deformnet.so3 import rodrigues_to_matrix
+
+    R = rodrigues_to_matrix(torch.as_tensor(poses[:, :3], dtype=torch.float64)).numpy()
+    o = body_offsets(R, poses[:, 3:], np.where(observed[..., None], X, np.nan), body)
+    m = observed & np.isfinite(o).all(-1)
+    n = m.sum(0)
+    z = np.where(m[..., None], o, 0.0)
+    mean = z.sum(0) / np.maximum(n, 1)[:, None]
+    mom = (z**2).sum(0) / np.maximum(n, 1)[:, None]
+    if (n > 0).any():
+        mom[n == 0] = mom[n > 0].max(0)
+    else:
+        mom[:] = 100.0  # nothing observed in 3D: 10 mm per axis, and say so elsewhere
+    return np.maximum(mom, floor_mm**2), mean

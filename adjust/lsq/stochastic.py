@@ -1,0 +1,233 @@
+"""Stochastic model estimated from the data: detector noise, per-part deformation, interpolation.
+
+Nothing here is a fixed constant: every variance is estimated from the session itself.
+
+- `detector_sigma`: the detector's pixel noise from the reprojection residuals of the robustly
+  triangulated part-frames (sum of squared residuals over their degrees of freedom, 2n - 3 for
+  n views, trimmed against mis-detections), per camera and pooled.
+- `OffsetCovariance`: how a part's position in body coordinates, o_t = R_t^T (X_t - tau_t) - B,
+  varies in time: per part and body axis its mean, its variance (the deformation variance: a
+  hind paw strays from the rigid body far more than an ear), the triangulation noise on it
+  (the nugget) and its empirical semivariogram gamma(h) = E |o_{t+h} - o_t|^2 / 2 over lags h
+  in frames, estimated from the part-frames triangulated from >= 2 cameras.
+- `krige_offsets`: each part-frame's offset predicted from the nearest observed frames before
+  and after it, *excluding the frame itself* (simple kriging with the estimated covariance
+  C(h) = var - gamma(h)): the prediction and its variance. On a gap this is the interpolation
+  of the offsets across the gap (held towards the mean at the ends); on an observed frame it is
+  the prediction from its neighbours, an independent prior to fuse with the frame's own
+  detections. The variance is what makes the reported uncertainty calibrated.
+
+Shapes: T frames, K parts, C cameras. Units: px, mm, frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: lags (frames) at which the semivariogram is estimated; linear in between, the sill beyond
+DEFAULT_LAGS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512)
+
+
+def detector_sigma(
+    view_error: np.ndarray, used: np.ndarray, trim: float = 4.0, floor: float = 0.05
+) -> tuple[float, np.ndarray]:
+    """Detector noise (px) from triangulation residuals.
+
+    view_error: (T, K, C) reprojection error px of each view of a triangulated point (NaN where
+    none); used: (T, K, C) bool, the views the point rests on. A point from n >= 2 views leaves
+    2n - 3 degrees of freedom in its 2n residual coordinates, so sigma^2 = sum |e|^2 / sum(2n - 3)
+    (pooled), and per camera sigma_c^2 = sum_c |e|^2 / sum_c (2n - 3)/n. Residuals beyond
+    ``trim`` sigma are dropped and the estimate repeated (mis-detections are not noise).
+    Returns (pooled sigma, (C,) per-camera sigma; NaN where a camera has no data).
+    """
+    e = np.asarray(view_error, dtype=np.float64)
+    u = np.asarray(used, dtype=bool) & np.isfinite(e)
+    if e.ndim != 3 or u.shape != e.shape:
+        raise ValueError(f"view_error and used must be (T, K, C), got {e.shape}, {u.shape}")
+    C = e.shape[-1]
+    n = u.sum(-1, keepdims=True)
+    ok = u & (n >= 2)
+    if not ok.any():
+        return float("nan"), np.full(C, np.nan)
+    dof = np.where(ok, (2.0 * n - 3.0) / np.maximum(n, 1), 0.0)  # each view's share
+    e2 = np.where(ok, e * e, 0.0)
+    keep = ok
+    sigma2 = e2.sum() / max(dof.sum(), 1e-12)
+    for _ in range(5):  # trimmed re-estimation (a clean Gaussian loses ~0.03% beyond 4 sigma)
+        keep = ok & (e2 <= (trim * trim) * sigma2)
+        new = (e2 * keep).sum() / max((dof * keep).sum(), 1e-12)
+        if abs(new - sigma2) <= 1e-6 * sigma2:
+            sigma2 = new
+            break
+        sigma2 = new
+    # the trimmed sum misses the Gaussian tail beyond `trim` sigma (2D: exp(-trim^2/2))
+    sigma2 /= 1.0 - (1.0 + trim * trim / 2.0) * math.exp(-trim * trim / 2.0)
+    per = np.full(C, np.nan)
+    for c in range(C):
+        d = (dof[..., c] * keep[..., c]).sum()
+        if d > 10:
+            per[c] = math.sqrt((e2[..., c] * keep[..., c]).sum() / d)
+    return max(math.sqrt(sigma2), floor), per
+
+
+def body_offsets(poses_R: np.ndarray, poses_t: np.ndarray, X: np.ndarray, body: np.ndarray):
+    """Offsets of global points from the rigid model in body coordinates.
+
+    poses_R (T, 3, 3), poses_t (T, 3): model -> global; X (T, K, 3) global mm (NaN missing);
+    body (K, 3) -> (T, K, 3) o = R^T (X - t) - B (NaN where X is).
+    """
+    c = np.einsum("tji,tkj->tki", poses_R, X - poses_t[:, None, :])
+    return c - body[None]
+
+
+@dataclass
+class OffsetCovariance:
+    """Per part and body axis: mean (K, 3) mm, sill = variance (K, 3) mm^2, nugget (K, 3) mm^2
+    (noise of a single observation), the semivariogram gamma (K, 3, L) mm^2 at ``lags`` (L,)
+    frames (of the noise-free offsets), and the observation counts (K,)."""
+
+    mean: np.ndarray
+    sill: np.ndarray
+    nugget: np.ndarray
+    lags: np.ndarray
+    gamma: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def sigma_mm(self) -> np.ndarray:
+        """(K,) 3D rms deformation of each part about its mean position: sqrt(sum of sills)."""
+        return np.sqrt(self.sill.sum(-1))
+
+    def covariance(self, h: np.ndarray) -> np.ndarray:
+        """C(h) = sill - gamma(h) of the noise-free offsets: lags h (T, K) frames (>= 0;
+        C(0) = sill) -> (T, K, 3) mm^2."""
+        h = np.asarray(h, dtype=np.float64)
+        K = self.sill.shape[0]
+        if h.ndim != 2 or h.shape[1] != K:
+            raise ValueError(f"lags must be (T, {K}), got {h.shape}")
+        lag = np.concatenate(([0.0], self.lags.astype(np.float64)))
+        out = np.empty((*h.shape, 3))
+        for k in range(K):
+            for a in range(3):
+                g = np.concatenate(([0.0], self.gamma[k, a]))
+                out[:, k, a] = self.sill[k, a] - np.interp(h[:, k], lag, g, right=self.sill[k, a])
+        return np.maximum(out, 0.0)
+
+    @classmethod
+    def estimate(
+        cls,
+        offsets: np.ndarray,
+        observed: np.ndarray,
+        lags=DEFAULT_LAGS,
+        min_pairs: int = 20,
+        floor_mm: float = 0.05,
+        nugget: np.ndarray | None = None,
+    ) -> OffsetCovariance:
+        """From offsets (T, K, 3) observed where ``observed`` (T, K) (>= 2 views, gated).
+
+        The sample semivariogram at each lag is the mean half squared difference over the
+        pairs both observed; the nugget (K, 3) (the noise of one observation, e.g. the mean
+        triangulation variance per body axis) is given, or else extrapolated to lag 0 as for a
+        smooth (quadratic near 0) motion, (4 g(1) - g(2)) / 3; it is removed from every lag.
+        gamma is made non-decreasing and capped at the sill. A part with too few pairs at
+        a lag uses the sill there (no temporal information is claimed where none was seen).
+        """
+        o = np.asarray(offsets, dtype=np.float64)
+        m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
+        if o.ndim != 3 or o.shape[-1] != 3 or m.shape != o.shape[:2]:
+            raise ValueError(f"offsets (T, K, 3) and observed (T, K), got {o.shape}, {m.shape}")
+        T, K, _ = o.shape
+        lags = np.asarray([h for h in lags if h < max(T, 2)], dtype=np.int64)
+        if lags.size == 0:
+            lags = np.array([1])
+        counts = m.sum(0)
+        z = np.where(m[..., None], o, 0.0)
+        mean = z.sum(0) / np.maximum(counts, 1)[:, None]
+        var = (np.where(m[..., None], (o - mean) ** 2, 0.0)).sum(0) / np.maximum(counts - 1, 1)[
+            :, None
+        ]
+        raw = np.full((K, 3, lags.size), np.nan)
+        for i, h in enumerate(lags):
+            both = m[h:] & m[:-h]
+            n = both.sum(0)
+            d2 = np.where(both[..., None], (o[h:] - o[:-h]) ** 2, 0.0).sum(0)
+            g = 0.5 * d2 / np.maximum(n, 1)[:, None]
+            raw[:, :, i] = np.where((n >= min_pairs)[:, None], g, np.nan)
+        # nugget: quadratic extrapolation to 0 from lags 1 and 2 (or a linear one from lag 1)
+        g1 = raw[:, :, 0]
+        g2 = raw[:, :, 1] if lags.size > 1 and lags[1] == 2 else np.full_like(g1, np.nan)
+        nug = np.where(np.isfinite(g2), (4.0 * g1 - g2) / 3.0, 0.5 * g1)
+        nug = np.clip(np.nan_to_num(nug, nan=0.0), 0.0, np.nan_to_num(g1, nan=0.0))
+        if nugget is not None:
+            nug = np.broadcast_to(np.asarray(nugget, dtype=np.float64), (K, 3)).copy()
+        sill = np.maximum(var - nug, floor_mm**2)
+        gamma = raw - nug[..., None]
+        gamma = np.where(np.isfinite(gamma), gamma, sill[..., None])
+        gamma = np.clip(np.maximum.accumulate(gamma, axis=-1), 0.0, sill[..., None])
+        return cls(mean, sill, nug, lags, gamma, counts)
+
+
+def _neighbours(observed: np.ndarray, skip_self: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the previous and next observed frame (T, K) (-1 / T where none); with
+    ``skip_self`` strictly before / after t, else t itself where observed."""
+    T, K = observed.shape
+    t = np.arange(T)[:, None]
+    idx = np.where(observed, t, -1)
+    prev_incl = np.maximum.accumulate(idx, axis=0)
+    idx2 = np.where(observed, t, T)
+    next_incl = np.minimum.accumulate(idx2[::-1], axis=0)[::-1]
+    if not skip_self:
+        return prev_incl, next_incl
+    prev = np.vstack([np.full((1, K), -1), prev_incl[:-1]])
+    nxt = np.vstack([next_incl[1:], np.full((1, K), T)])
+    return prev, nxt
+
+
+def krige_offsets(
+    offsets: np.ndarray, observed: np.ndarray, cov: OffsetCovariance, skip_self: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predict every part-frame's offset from its nearest observed neighbours in time.
+
+    offsets (T, K, 3) (any value where not observed), observed (T, K) -> prediction (T, K, 3)
+    mm and its variance (T, K, 3) mm^2 per body axis. Simple kriging on the previous and the
+    next observed frame (strictly before / after t with ``skip_self``; both the same frame t
+    without it), with the noise-free covariance ``cov.covariance`` plus the nugget on the
+    observations. With no neighbour: the mean, variance = sill.
+    """
+    o = np.asarray(offsets, dtype=np.float64)
+    m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
+    T, K, _ = o.shape
+    prev, nxt = _neighbours(m, skip_self)
+    t = np.arange(T)[:, None]
+    has_p, has_n = prev >= 0, nxt < T
+    same = has_p & has_n & (prev == nxt)  # (only without skip_self) the frame itself
+    dp = np.where(has_p, t - prev, 0).astype(np.float64)
+    dn = np.where(has_n, nxt - t, 0).astype(np.float64)
+    mu = cov.mean[None]  # (1, K, 3)
+    op = np.where(has_p[..., None], o[np.clip(prev, 0, T - 1), np.arange(K)[None]], 0.0) - mu
+    on = np.where(has_n[..., None], o[np.clip(nxt, 0, T - 1), np.arange(K)[None]], 0.0) - mu
+    # covariances, (T, K, 3) each: c_p = C(dp), c_n = C(dn), c_pn = C(dp + dn)
+    Cp, Cn, Cpn = cov.covariance(dp), cov.covariance(dn), cov.covariance(dp + dn)
+    s0 = cov.sill[None] + cov.nugget[None]  # variance of one observation
+    sill = np.broadcast_to(cov.sill[None], (T, K, 3))
+    hp, hn = has_p[..., None], has_n[..., None]
+    both = hp & hn & ~same[..., None]
+    # two neighbours: solve [[s0, Cpn], [Cpn, s0]] lam = [Cp, Cn]
+    det = s0 * s0 - Cpn * Cpn
+    det = np.where(det > 1e-12, det, 1e-12)
+    l1 = (s0 * Cp - Cpn * Cn) / det
+    l2 = (s0 * Cn - Cpn * Cp) / det
+    pred2 = l1 * op + l2 * on
+    var2 = sill - (l1 * Cp + l2 * Cn)
+    # one neighbour (or the frame itself)
+    c1 = np.where(hp, Cp, Cn)
+    o1 = np.where(hp, op, on)
+    l = c1 / s0
+    pred1 = l * o1
+    var1 = sill - l * c1
+    pred = np.where(both, pred2, np.where(hp | hn, pred1, 0.0)) + mu
+    var = np.where(both, var2, np.where(hp | hn, var1, sill))
+    return pred, np.maximum(var, 1e-6)
