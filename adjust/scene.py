@@ -771,7 +771,8 @@ def write_scene(
     truth.npz: ``points (T, K, 3)`` true (deformed) parts, ``rigid (T, K, 3)``, ``poses (T, 6)``,
     ``labels (T,)``, ``parts (K,)``, ``behaviors``, ``cameras (C,)``, ``nviews (T, K)`` (cameras
     with an accepted, correct detection), ``visible / outlier / likelihood (T, K, C)``,
-    ``time (T,)``, ``fps``, ``lockbox_corners (M, 3)``, ``arena_size (2,)``.
+    ``time (T,)``, ``fps``, ``lockbox_corners (M, 3)``, ``arena_size (2,)``. The calibration's
+    ``[metadata]`` holds ``lockbox_points`` and ``mechanisms`` (name -> [x, y, z] mm).
     Returns {"dir", "calibration", "detections": {camera: path}, "truth"}.
     """
     from pathlib import Path
@@ -793,6 +794,9 @@ def write_scene(
         meta["arena_size"] = arena.tolist()
     if lockbox.size:
         meta["lockbox_points"] = lockbox.tolist()
+    mech = getattr(sim, "mechanisms", None)
+    if mech is not None and len(mech[0]):  # lock-box mechanisms: name -> [x, y, z] mm
+        meta["mechanisms"] = {str(n): np.asarray(p, float).tolist() for n, p in zip(*mech)}
     meta.update(dict(metadata or {}))
     calib = save_calibration(out / "calibration.toml", list(cameras), metadata=meta)
     det_dir = out / "detections"

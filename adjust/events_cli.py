@@ -1,0 +1,164 @@
+"""`adjust-events`: lock-box interaction events from 3D tracks (see `adjust.events`).
+
+    adjust-events tracks=out/points3d.csv calibration=scene/calibration.toml output.dir=ev
+    adjust-events tracks=out/points3d.csv mechanisms='{lever: [90.0, 255.0, 18.0]}'
+
+Mechanism positions (global mm) come from `mechanisms=` or from the calibration's
+``[metadata.mechanisms]`` table (written by `adjust-simulate`). Writes into ``output.dir``:
+``events.csv`` (start, stop as frame numbers ``fnum``, inclusive; part, mechanism,
+min_distance_mm, frames, seen_fraction, inferred), ``operations.csv`` (per mechanism, the events
+of any part merged: mechanism, start, stop, parts) and ``summary.json`` (counts, the order in
+which the mechanisms were first operated, settings).
+
+`run(cfg) -> dict` is the plain function behind the Hydra app.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import hydra
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from adjust.app import finite_or_none, required, run_or_exit
+from adjust.events import detect_events, first_operated, operations
+from adjust.io import InputError, load_calibration_metadata, read_points3d
+from deformnet.atomic import atomic_path, write_text
+from deformnet.confutil import to_plain
+from deformnet.paths import CONF_DIR, output_dir
+
+log = logging.getLogger(__name__)
+
+EVENT_COLUMNS = (
+    "start",
+    "stop",
+    "part",
+    "mechanism",
+    "min_distance_mm",
+    "frames",
+    "seen_fraction",
+    "inferred",
+)
+
+
+def mechanism_positions(cfg: DictConfig) -> dict[str, list[float]]:
+    """name -> [x, y, z] from `mechanisms=` or the calibration's metadata."""
+    mech = to_plain(cfg.get("mechanisms"))
+    source = "mechanisms="
+    if not mech and cfg.get("calibration"):
+        meta = load_calibration_metadata(str(cfg.calibration))
+        mech = meta.get("mechanisms")
+        source = f"{cfg.calibration} [metadata.mechanisms]"
+        if not mech:
+            raise InputError(f"{cfg.calibration}: no [metadata.mechanisms] table; set mechanisms=")
+    if not mech:
+        raise ValueError("set mechanisms={name: [x, y, z], ...} or calibration=calibration.toml")
+    if not isinstance(mech, dict):
+        raise ValueError(f"{source}: expected a table name -> [x, y, z], got {mech!r}")
+    out = {}
+    for name, pos in mech.items():
+        try:
+            p = np.asarray(pos, dtype=np.float64)
+        except (TypeError, ValueError):
+            p = np.array([])
+        if p.shape != (3,) or not np.isfinite(p).all():
+            raise ValueError(f"{source}: mechanism '{name}' needs [x, y, z], got {pos!r}")
+        out[str(name)] = p.tolist()
+    return out
+
+
+def _interpolate(x: np.ndarray) -> np.ndarray:
+    flat = x.reshape(len(x), -1).copy()
+    t = np.arange(len(x))
+    for j in range(flat.shape[1]):
+        ok = np.isfinite(flat[:, j])
+        if ok.any() and not ok.all():
+            flat[:, j] = np.interp(t, t[ok], flat[ok, j])
+    return flat.reshape(x.shape)
+
+
+def run(cfg: DictConfig) -> dict:
+    """Detect events, write events.csv, operations.csv and summary.json; returns the summary
+    plus the events and operations (frame numbers)."""
+    tracks = required(cfg, "tracks", "events")
+    mechs = mechanism_positions(cfg)
+    tr = read_points3d(tracks)
+    parts = list(tr["parts"])
+    use = [str(p) for p in (cfg.get("parts") or parts)]
+    missing = [p for p in use if p not in parts]
+    if missing:
+        raise InputError(f"{tracks}: no columns for part(s) {missing} (the file has {parts})")
+    pts = tr["points"]
+    if bool(cfg.get("interpolate", False)):
+        pts = _interpolate(pts)
+    sigma = None
+    if all(f"{p}_sigma" in tr["extra"] for p in parts):
+        sigma = np.stack([np.asarray(tr["extra"][f"{p}_sigma"], float) for p in parts], -1)
+    c, inf = cfg.contact, cfg.inferred
+    events = detect_events(
+        pts,
+        parts,
+        mechs,
+        use_parts=use,
+        on_mm=float(c.on_mm),
+        off_mm=float(c.off_mm),
+        min_frames=int(c.min_frames),
+        merge_gap=int(c.merge_gap),
+        ncams=tr["ncams"] if np.isfinite(tr["ncams"]).any() else None,
+        sigma=sigma,
+        max_sigma_mm=None if inf.get("max_sigma_mm") is None else float(inf.max_sigma_mm),
+        inferred_below=float(inf.below),
+        mechanism_parts=to_plain(cfg.get("mechanism_parts")),
+    )
+    fnum = np.asarray(tr["fnum"]).astype(np.int64)
+    for e in events:
+        e["start"], e["stop"] = int(fnum[e["start"]]), int(fnum[e["stop"]])
+    ops = operations(events, int(c.merge_gap))
+    order = first_operated(events)
+    out = output_dir(cfg)
+    with atomic_path(out / "events.csv") as tmp:
+        pd.DataFrame(events, columns=list(EVENT_COLUMNS)).to_csv(tmp, index=False)
+    with atomic_path(out / "operations.csv") as tmp:
+        rows = [{**o, "parts": ";".join(o["parts"])} for o in ops]
+        pd.DataFrame(rows, columns=["mechanism", "start", "stop", "parts"]).to_csv(tmp, index=False)
+    summary = {
+        "tracks": str(tracks),
+        "frames": int(len(fnum)),
+        "mechanisms": mechs,
+        "parts": use,
+        "events": len(events),
+        "inferred_events": int(sum(e["inferred"] for e in events)),
+        "operations": len(ops),
+        "order": order,
+        "first_operated": {
+            m: min(o["start"] for o in ops if o["mechanism"] == m) for m in order
+        },  # fmt: skip
+        "contact": dict(to_plain(c)),
+        "inferred": dict(to_plain(inf)),
+    }
+    write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")
+    log.info(
+        "%d events (%d inferred), %d operations; first operated: %s -> %s",
+        len(events),
+        summary["inferred_events"],
+        len(ops),
+        " > ".join(order) or "none",
+        out / "events.csv",
+    )
+    return {**summary, "event_list": events, "operation_list": ops, "output_dir": str(out)}
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="events", version_base=None)
+def _app(cfg: DictConfig) -> None:
+    run_or_exit(run, cfg)
+
+
+def main() -> None:
+    _app()
+
+
+if __name__ == "__main__":
+    main()

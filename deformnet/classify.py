@@ -1,0 +1,851 @@
+"""`deformnet-classify`: fine-tune a behavior classifier on a (pretrained) deformation net's
+encoder, or predict behavior labels with one (Hydra app over `run(cfg)`).
+
+    deformnet-classify pretrained=runs/train/<run>/checkpoints/best.ckpt freeze=false \\
+        labels.fraction=0.1 data.train_tracks=[a/points3d.csv] data.train_labels=[a.csv] \\
+        data.val_tracks=[...] data.val_labels=[...] data.test_tracks=[...] data.test_labels=[...]
+    deformnet-classify pretrained=null net=transformer ...        # same architecture, scratch
+    deformnet-classify data.source=sim ...                        # simulator sessions (seeds)
+    deformnet-classify mode=predict checkpoint=OUT/classifier.pt tracks=points3d.csv
+
+Inputs: 3D tracks in the points3d CSV layout `adjust-track` writes (`{part}_x/_y/_z` columns,
+`pose_rx..pose_tz`, `fnum`; read here by column name, without `adjust`), one file per session,
+with labels per frame (`fnum,label` CSV) or as bouts (`start,stop,label` CSV, frame numbers,
+stop inclusive). Sessions are split into train / val / test by session. Without pose columns
+(e.g. `adjust-triangulate` output) the rigid pose of each frame is fitted to the points by
+Kabsch; `data.interpolate=true` first fills gaps by linear interpolation in time.
+
+Training writes into the output folder: `classifier.pt` (what `mode=predict` loads),
+`report.json` (per-class precision / recall / F1, macro-F1, bout counts and mean durations, raw
+and smoothed), `confusion.png`, `ethogram.png`, `config.yaml`. Prediction writes
+`predictions.csv` (fnum, label, label_raw, p_<class>...) and `bouts.csv` (start, stop, label,
+mean_probability).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import pandas as pd
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
+
+from deformnet.confutil import to_plain
+from deformnet.paths import CONF_DIR, output_dir
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Session",
+    "read_tracks",
+    "read_labels",
+    "bouts",
+    "smooth",
+    "SessionBank",
+    "load_classifier",
+    "predict_session",
+    "evaluate",
+    "run",
+    "main",
+]
+
+CHECKPOINT_KIND = "mousetrack-behavior-classifier"
+POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
+
+
+# --------------------------------------------------------------------------------------------
+# sessions: tracks and labels
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Session:
+    """One recording: rigid, deformed (T, K, 3) global mm, observed (T, K) bool, fnum (T,)
+    frame numbers, labels (T,) int64 class index (-1: not labelled)."""
+
+    name: str
+    rigid: np.ndarray
+    deformed: np.ndarray
+    observed: np.ndarray
+    fnum: np.ndarray
+    labels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.fnum)
+
+
+def _interpolate(x: np.ndarray) -> np.ndarray:
+    """Fill NaN runs of each column of x (T, ...) by linear interpolation in time (ends held)."""
+    flat = x.reshape(len(x), -1).copy()
+    t = np.arange(len(x))
+    for j in range(flat.shape[1]):
+        ok = np.isfinite(flat[:, j])
+        if ok.any() and not ok.all():
+            flat[:, j] = np.interp(t, t[ok], flat[ok, j])
+    return flat.reshape(x.shape)
+
+
+def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dict:
+    """A points3d CSV -> {"rigid", "deformed" (T, K, 3), "observed" (T, K), "fnum" (T,)} in the
+    body model's part order (parts found by name or alias).
+
+    With pose columns the rigid points are the body model moved by each frame's pose; without,
+    the pose is fitted per frame by Kabsch (`deformnet.tokens.kabsch`) to the points, which then
+    must all be finite (set `interpolate` to fill gaps linearly in time first).
+    """
+    from deformnet.so3 import transform_points
+    from deformnet.tokens import kabsch
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"tracks file not found: {path}")
+    try:
+        df = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read CSV: {exc}") from None
+    cols = set(df.columns)
+    found: dict[str, str] = {}
+    for c in df.columns:
+        if c.endswith("_x") and f"{c[:-2]}_y" in cols and f"{c[:-2]}_z" in cols:
+            name = body.resolve(c[:-2])
+            if name is not None:
+                found[name] = c[:-2]
+    missing = [p for p in body.parts if p not in found]
+    if missing:
+        raise ValueError(
+            f"{path}: no {{part}}_x/_y/_z columns for body part(s) {missing} "
+            f"(found {sorted(found.values())})"
+        )
+    T = len(df)
+    if T == 0:
+        raise ValueError(f"{path}: no rows")
+
+    def numeric(col: str) -> np.ndarray:
+        v = pd.to_numeric(df[col], errors="coerce")
+        bad = v.isna() & df[col].notna()
+        if bad.any():
+            r = int(np.flatnonzero(bad.to_numpy())[0])
+            raise ValueError(f"{path}: non-numeric value {df[col].iloc[r]!r} in '{col}', row {r}")
+        return v.to_numpy(np.float64)
+
+    pts = np.stack(
+        [np.stack([numeric(f"{found[p]}_{a}") for a in "xyz"], -1) for p in body.parts], 1
+    )
+    observed = np.isfinite(pts).all(-1)
+    if interpolate:
+        pts = _interpolate(pts)
+        never = [p for k, p in enumerate(body.parts) if not np.isfinite(pts[:, k]).all()]
+        if never:
+            raise ValueError(f"{path}: part(s) {never} have no finite value to interpolate from")
+        observed = np.ones_like(observed)
+    model = torch.tensor(np.array(body.points, dtype=np.float64))
+    if all(c in cols for c in POSE_COLUMNS):
+        poses = np.stack([numeric(c) for c in POSE_COLUMNS], -1)
+        bad = ~np.isfinite(poses).all(-1)
+        if bad.any():
+            raise ValueError(
+                f"{path}: non-finite pose in row {int(np.flatnonzero(bad)[0])} (pose columns "
+                "must be complete; adjust-track writes them so)"
+            )
+        rigid = transform_points(torch.as_tensor(poses), model.expand(T, -1, -1)).numpy()
+    else:
+        if not observed.all():
+            t, k = np.argwhere(~observed)[0]
+            raise ValueError(
+                f"{path}: no pose columns and part '{body.parts[k]}' is missing in row {t}: "
+                "fill gaps first (data.interpolate=true) or use adjust-track output"
+            )
+        P = torch.as_tensor(pts)
+        R, t = kabsch(P, model)
+        rigid = (model @ R.transpose(-1, -2) + t[:, None, :]).numpy()
+    deformed = np.where(observed[..., None], pts, rigid)
+    fnum = numeric("fnum").astype(np.int64) if "fnum" in cols else np.arange(T, dtype=np.int64)
+    if len(np.unique(fnum)) != T:
+        raise ValueError(f"{path}: duplicate frame numbers in column 'fnum'")
+    return {
+        "rigid": rigid.astype(np.float32),
+        "deformed": deformed.astype(np.float32),
+        "observed": observed,
+        "fnum": fnum,
+    }
+
+
+def read_labels(
+    path: str | os.PathLike, fnum: np.ndarray, classes: Sequence[str], tracks: str = "the track"
+) -> np.ndarray:
+    """Labels (T,) int64 (-1: unlabelled) for frames `fnum` from a `fnum,label` CSV (one row per
+    frame) or a `start,stop,label` CSV (bouts, frame numbers, stop inclusive). Unknown labels,
+    duplicate frames, overlapping bouts and frames outside the track are errors naming the file
+    and row (rows count data rows from 1)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"labels file not found: {path}")
+    try:
+        df = pd.read_csv(path, dtype={"label": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read CSV: {exc}") from None
+    index = {str(c): i for i, c in enumerate(classes)}
+    pos = {int(f): i for i, f in enumerate(fnum)}
+    lo, hi = int(np.min(fnum)), int(np.max(fnum))
+    out = np.full(len(fnum), -1, dtype=np.int64)
+    cols = set(df.columns)
+    if {"fnum", "label"} <= cols:
+        kind, frame_cols = "frames", ("fnum",)
+    elif {"start", "stop", "label"} <= cols:
+        kind, frame_cols = "bouts", ("start", "stop")
+    else:
+        raise ValueError(
+            f"{path}: expected columns 'fnum,label' (per frame) or 'start,stop,label' (bouts), "
+            f"got {list(df.columns)}"
+        )
+
+    def frame(r: int, col: str) -> int:
+        v = df[col].iloc[r]
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            f = float("nan")
+        if not np.isfinite(f) or f != int(f):
+            raise ValueError(f"{path}: row {r + 1}: '{col}' must be a frame number, got {v!r}")
+        f = int(f)
+        if f not in pos:
+            raise ValueError(
+                f"{path}: row {r + 1}: frame {f} is outside {tracks} (frames {lo}..{hi})"
+            )
+        return f
+
+    owner = np.zeros(len(fnum), dtype=np.int64)  # 1-based row that labelled each frame
+    for r in range(len(df)):
+        name = df["label"].iloc[r]
+        if not isinstance(name, str) or str(name).strip() not in index:
+            raise ValueError(
+                f"{path}: row {r + 1}: unknown label {name!r} (known: {', '.join(classes)})"
+            )
+        c = index[str(name).strip()]
+        if kind == "frames":
+            i = pos[frame(r, "fnum")]
+            if owner[i]:
+                raise ValueError(
+                    f"{path}: row {r + 1}: frame {fnum[i]} is labelled again (row {owner[i]})"
+                )
+            sel = np.array([i])
+        else:
+            a, b = frame(r, frame_cols[0]), frame(r, frame_cols[1])
+            if b < a:
+                raise ValueError(f"{path}: row {r + 1}: stop {b} < start {a}")
+            sel = np.flatnonzero((fnum >= a) & (fnum <= b))
+            clash = sel[owner[sel] > 0]
+            if clash.size:
+                raise ValueError(
+                    f"{path}: row {r + 1}: bout {a}-{b} overlaps the bout in row "
+                    f"{owner[clash[0]]} (frame {fnum[clash[0]]})"
+                )
+        owner[sel] = r + 1
+        out[sel] = c
+    return out
+
+
+def bouts(labels: np.ndarray) -> list[tuple[int, int, int]]:
+    """Runs of equal labels: [(start index, stop index inclusive, label)], -1 runs skipped."""
+    labels = np.asarray(labels)
+    if labels.size == 0:
+        return []
+    change = np.flatnonzero(np.diff(labels) != 0) + 1
+    starts = np.concatenate(([0], change))
+    stops = np.concatenate((change, [len(labels)])) - 1
+    return [(int(a), int(b), int(labels[a])) for a, b in zip(starts, stops) if labels[a] >= 0]
+
+
+def smooth(probs: np.ndarray, median: int = 0, min_bout: int = 0) -> np.ndarray:
+    """Smoothed labels (T,) from per-frame probabilities (T, C): a running median of each class's
+    probability over `median` frames (0/1: none), argmax, then bouts shorter than `min_bout`
+    frames merged into the longer neighbour (repeated until none is left)."""
+    from scipy.ndimage import median_filter
+
+    p = np.asarray(probs, dtype=np.float64)
+    if median and median > 1:
+        p = median_filter(p, size=(int(median), 1), mode="nearest")
+    lab = p.argmax(-1)
+    if min_bout and min_bout > 1:
+        for _ in range(len(lab)):
+            runs = bouts(lab)
+            short = [i for i, (a, b, _) in enumerate(runs) if b - a + 1 < min_bout]
+            if not short or len(runs) == 1:
+                break
+            i = min(short, key=lambda j: runs[j][1] - runs[j][0])
+            a, b, _ = runs[i]
+            left = runs[i - 1] if i > 0 else None
+            right = runs[i + 1] if i + 1 < len(runs) else None
+            cand = [x for x in (left, right) if x is not None]
+            best = max(cand, key=lambda x: x[1] - x[0])
+            lab[a : b + 1] = best[2]
+    return lab
+
+
+# --------------------------------------------------------------------------------------------
+# windows
+# --------------------------------------------------------------------------------------------
+class SessionBank:
+    """All frames of some sessions as window centres: each session is padded with its first /
+    last frame n times (padding marked unobserved), so every frame has a full window."""
+
+    def __init__(self, sessions: Sequence[Session], half_window: int) -> None:
+        n = self.n = int(half_window)
+        rig, dfm, obs, mids, lab = [], [], [], [], []
+        off = 0
+        for s in sessions:
+            T = len(s)
+            pad = ((n, n), (0, 0), (0, 0))
+            rig.append(np.pad(s.rigid, pad, mode="edge"))
+            dfm.append(np.pad(s.deformed, pad, mode="edge"))
+            obs.append(np.pad(s.observed, ((n, n), (0, 0)), constant_values=False))
+            mids.append(off + n + np.arange(T))
+            lab.append(s.labels)
+            off += T + 2 * n
+        self.rigid = torch.from_numpy(np.concatenate(rig).astype(np.float32))
+        self.deformed = torch.from_numpy(np.concatenate(dfm).astype(np.float32))
+        self.observed = torch.from_numpy(np.concatenate(obs))
+        self.mids = torch.from_numpy(np.concatenate(mids).astype(np.int64))
+        self.labels = torch.from_numpy(np.concatenate(lab).astype(np.int64))
+
+    def __len__(self) -> int:
+        return len(self.mids)
+
+    def batch(self, idx: Tensor) -> dict:
+        frames = self.mids[idx][:, None] + torch.arange(-self.n, self.n + 1)
+        return {
+            "rigid": self.rigid[frames],
+            "deformed": self.deformed[frames],
+            "observed": self.observed[frames],
+            "label": self.labels[idx],
+        }
+
+
+class _Frames(torch.utils.data.Dataset):
+    def __init__(self, bank: SessionBank, idx: np.ndarray) -> None:
+        self.bank, self.idx = bank, torch.as_tensor(idx, dtype=torch.long)
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def __getitem__(self, i: int) -> int:
+        return int(self.idx[i])
+
+    def collate(self, items: list[int]) -> dict:
+        return self.bank.batch(torch.as_tensor(items, dtype=torch.long))
+
+
+def _loader(bank: SessionBank, idx: np.ndarray, batch_size: int, samples: int | None, seed: int):
+    ds = _Frames(bank, idx)
+    sampler = None
+    if samples:
+        gen = torch.Generator().manual_seed(int(seed))
+        sampler = torch.utils.data.RandomSampler(
+            ds, replacement=True, num_samples=int(samples), generator=gen
+        )
+    return torch.utils.data.DataLoader(
+        ds, batch_size=int(batch_size), sampler=sampler, shuffle=False, collate_fn=ds.collate
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# model building, checkpoint
+# --------------------------------------------------------------------------------------------
+def _build(net_cfg: dict, body, half_window: int, head_cfg: dict, frame_features: bool, C: int):
+    from deformnet.deformation import build_net
+    from deformnet.heads import BehaviorClassifier, WindowEncoder, build_head
+
+    enc = WindowEncoder(build_net(net_cfg), np.asarray(body.points), half_window, frame_features)
+    return BehaviorClassifier(enc, build_head(head_cfg, enc.out_dim, C))
+
+
+def export_classifier(model, meta: dict) -> dict:
+    return {
+        "kind": CHECKPOINT_KIND,
+        **meta,
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+    }
+
+
+def load_classifier(path: str | os.PathLike):
+    """(model in eval mode, metadata) from a `classifier.pt` written by training."""
+    from deformnet.body import BodyModel
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"classifier checkpoint not found: {path}")
+    blob = torch.load(os.fspath(path), map_location="cpu", weights_only=False)
+    if not isinstance(blob, dict) or blob.get("kind") != CHECKPOINT_KIND:
+        raise ValueError(f"{path} is not a behavior classifier (write it with deformnet-classify)")
+    b = blob["body"]
+    body = BodyModel.from_mapping(b["parts"], b.get("aliases"), b.get("name", "body"))
+    model = _build(
+        blob["net_config"],
+        body,
+        int(blob["half_window"]),
+        blob["head"],
+        bool(blob["frame_features"]),
+        len(blob["classes"]),
+    )
+    model.load_state_dict(blob["state_dict"])
+    return model.eval(), {**{k: v for k, v in blob.items() if k != "state_dict"}, "body": body}
+
+
+@torch.no_grad()
+def predict_probs(model, bank: SessionBank, batch_size: int = 512) -> np.ndarray:
+    """Class probabilities (N, C) for every frame of the bank, in order."""
+    model.eval()
+    out = []
+    for idx in torch.arange(len(bank)).split(int(batch_size)):
+        b = bank.batch(idx)
+        out.append(torch.softmax(model(b["rigid"], b["deformed"], b["observed"]), -1))
+    return torch.cat(out).numpy()
+
+
+def predict_session(model, session: Session, half_window: int, smoothing: dict) -> dict:
+    """{"probs" (T, C), "raw" (T,), "labels" (T,) smoothed (= raw without smoothing)}."""
+    probs = predict_probs(model, SessionBank([session], half_window))
+    raw = probs.argmax(-1)
+    lab = smooth(probs, int(smoothing.get("median") or 0), int(smoothing.get("min_bout") or 0))
+    return {"probs": probs, "raw": raw, "labels": lab}
+
+
+# --------------------------------------------------------------------------------------------
+# reports
+# --------------------------------------------------------------------------------------------
+def bout_stats(labels: np.ndarray, classes: Sequence[str], fps: float) -> dict:
+    """Per class: bout count and mean duration (frames and s)."""
+    runs = bouts(labels)
+    out = {}
+    for c, name in enumerate(classes):
+        d = np.array([b - a + 1 for a, b, lab in runs if lab == c])
+        mean = float(d.mean()) if d.size else 0.0
+        out[name] = {"bouts": int(d.size), "mean_frames": mean, "mean_s": mean / fps}
+    return out
+
+
+def evaluate(y_true: np.ndarray, y_pred: np.ndarray, classes: Sequence[str]) -> dict:
+    """Per-class precision / recall / F1 / support, macro-F1 (over the classes present in the
+    truth or the predictions), accuracy, and the confusion matrix (rows: truth) on the labelled
+    frames (y_true >= 0). scikit-learn metrics."""
+    from sklearn.metrics import confusion_matrix, precision_recall_fscore_support
+
+    from deformnet.classify_lit import macro_f1
+
+    m = np.asarray(y_true) >= 0
+    yt, yp = np.asarray(y_true)[m], np.asarray(y_pred)[m]
+    C = len(classes)
+    p, r, f, s = precision_recall_fscore_support(
+        yt, yp, labels=np.arange(C), average=None, zero_division=0
+    )
+    score, _ = macro_f1(yt, yp, C)
+    return {
+        "macro_f1": score,
+        "accuracy": float(np.mean(yt == yp)) if yt.size else float("nan"),
+        "frames": int(yt.size),
+        "per_class": {
+            name: {
+                "precision": float(p[c]),
+                "recall": float(r[c]),
+                "f1": float(f[c]),
+                "support": int(s[c]),
+            }
+            for c, name in enumerate(classes)
+        },
+        "confusion": confusion_matrix(yt, yp, labels=np.arange(C)).tolist(),
+    }
+
+
+def confusion_figure(confusion: Sequence[Sequence[int]], classes: Sequence[str], title: str = ""):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cm = np.asarray(confusion, dtype=np.float64)
+    norm = cm / np.maximum(cm.sum(1, keepdims=True), 1)
+    fig, ax = plt.subplots(figsize=(6, 5))
+    im = ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
+    C = len(classes)
+    ax.set_xticks(range(C), classes, rotation=45, ha="right")
+    ax.set_yticks(range(C), classes)
+    for i in range(C):
+        for j in range(C):
+            if cm[i, j]:
+                ax.text(j, i, int(cm[i, j]), ha="center", va="center", fontsize=7,
+                        color="w" if norm[i, j] > 0.5 else "k")  # fmt: skip
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true")
+    ax.set_title(title or "confusion (row-normalised colour, counts)")
+    fig.colorbar(im, ax=ax)
+    fig.tight_layout()
+    return fig
+
+
+def ethogram_figure(tracks: dict[str, np.ndarray], classes: Sequence[str], fps: float):
+    """One row per named label track (e.g. true, predicted), time in s."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    names = list(tracks)
+    T = max(len(v) for v in tracks.values())
+    img = np.full((len(names), T), np.nan)
+    for i, n in enumerate(names):
+        v = np.asarray(tracks[n], dtype=np.float64)
+        img[i, : len(v)] = np.where(v >= 0, v, np.nan)
+    C = len(classes)
+    cmap = ListedColormap(plt.get_cmap("tab10")(np.arange(C) % 10))
+    fig, ax = plt.subplots(figsize=(12, 0.6 * len(names) + 1.6))
+    ax.imshow(img, aspect="auto", interpolation="nearest", cmap=cmap, vmin=-0.5, vmax=C - 0.5,
+              extent=(0, T / fps, len(names) - 0.5, -0.5))  # fmt: skip
+    ax.set_yticks(range(len(names)), names)
+    ax.set_xlabel("time (s)")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=cmap(c)) for c in range(C)]
+    ax.legend(handles, classes, ncol=min(C, 8), loc="upper center", bbox_to_anchor=(0.5, -0.35),
+              fontsize=8, frameon=False)  # fmt: skip
+    fig.tight_layout()
+    return fig
+
+
+def _save_figure(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    from deformnet.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------------
+# the app
+# --------------------------------------------------------------------------------------------
+def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list[Session]:
+    d = cfg.data
+    interp = bool(d.get("interpolate", False))
+    if str(d.source) == "sim":
+        from deformnet import sim
+
+        seeds = list(d.sim.get(f"{split}_seeds") or [])
+        out = []
+        sim_cfg = cfg.get("sim")
+        for s in seeds:
+            data = sim.simulate(sim_cfg, num_frames=int(d.sim.num_frames), seed=int(s), body=body)
+            lut = {b: classes.index(b) if b in classes else -1 for b in data.behaviors}
+            labels = np.array([lut[data.behaviors[i]] for i in data.labels], dtype=np.int64)
+            obs = np.asarray(data.observed, bool)
+            rigid = np.asarray(data.rigid, np.float32)
+            deformed = np.where(obs[..., None], data.deformed, rigid).astype(np.float32)
+            fnum = np.arange(len(labels))
+            out.append(Session(f"sim_seed{s}", rigid, deformed, obs, fnum, labels))
+        return out
+    if str(d.source) != "files":
+        raise ValueError(f"data.source must be 'files' or 'sim', got '{d.source}'")
+    tracks = [str(p) for p in (d.get(f"{split}_tracks") or [])]
+    labels = [str(p) for p in (d.get(f"{split}_labels") or [])]
+    if len(tracks) != len(labels):
+        raise ValueError(
+            f"data.{split}_tracks has {len(tracks)} files but data.{split}_labels {len(labels)}"
+        )
+    out = []
+    for tp, lp in zip(tracks, labels):
+        tr = read_tracks(tp, body, interpolate=interp)
+        lab = read_labels(lp, tr["fnum"], classes, tracks=tp)
+        out.append(
+            Session(tp, tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], lab)
+        )  # fmt: skip
+    return out
+
+
+def _subsample(sessions: list[Session], fraction: float, segment: int, seed: int) -> None:
+    """Keep the labels of a random `fraction` of each session's labelled frames (in segments of
+    `segment` frames), unlabel the rest (in place)."""
+    if not 0 < fraction <= 1:
+        raise ValueError(f"labels.fraction must be in (0, 1], got {fraction}")
+    if fraction >= 1:
+        return
+    rng = np.random.default_rng(seed)
+    seg = max(1, int(segment))
+    for s in sessions:
+        lab = np.flatnonzero(s.labels >= 0)
+        if lab.size == 0:
+            continue
+        chunks = [lab[i : i + seg] for i in range(0, lab.size, seg)]
+        k = max(1, int(round(fraction * len(chunks))))
+        keep = np.concatenate([chunks[i] for i in rng.choice(len(chunks), k, replace=False)])
+        new = np.full_like(s.labels, -1)
+        new[keep] = s.labels[keep]
+        s.labels = new
+
+
+def _encoder_config(cfg: DictConfig, classes):
+    """(net config, body, half_window, pretrained-net state or None)."""
+    from deformnet.body import BodyModel
+    from deformnet.train import net_config
+
+    if cfg.get("pretrained"):
+        from deformnet.deformation import DeformationModel
+
+        dm = DeformationModel.from_checkpoint(str(cfg.pretrained))
+        log.info(
+            "encoder: %s from %s", dm.net_config.get("_target_"), cfg.pretrained
+        )  # fmt: skip
+        return dict(dm.net_config), dm.body, dm.half_window, dm.net.state_dict()
+    body = BodyModel.from_config(cfg.body)
+    _, ncfg = net_config(cfg, body.num_parts)
+    return ncfg, body, int(cfg.half_window), None
+
+
+def _train(cfg: DictConfig, out: Path) -> dict:
+    import lightning as L
+
+    from deformnet.atomic import write_text
+    from deformnet.classify_lit import ClassifyLit
+
+    classes = [str(c) for c in cfg.labels.classes]
+    C = len(classes)
+    net_cfg, body, hw, state = _encoder_config(cfg, classes)
+    head_cfg = dict(to_plain(cfg.head))
+    ff = bool(cfg.get("frame_features", True))
+    model = _build(net_cfg, body, hw, head_cfg, ff, C)
+    if state is not None:
+        model.encoder.net.load_state_dict(state)
+
+    train = _sessions(cfg, "train", body, classes)
+    val = _sessions(cfg, "val", body, classes)
+    test = _sessions(cfg, "test", body, classes)
+    if not train:
+        raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
+    frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
+    _subsample(train, frac, seg, int(cfg.labels.seed))
+    _subsample(val, frac, seg, int(cfg.labels.seed) + 1)
+    bank = SessionBank(train, hw)
+    idx = np.flatnonzero(bank.labels.numpy() >= 0)
+    if idx.size == 0:
+        raise ValueError("the training sessions have no labelled frames")
+    counts = np.bincount(bank.labels.numpy()[idx], minlength=C)
+    weights = None
+    if str(cfg.loss.class_weights) == "balanced":
+        weights = np.where(counts > 0, counts.sum() / np.maximum(C * counts, 1), 0.0)
+    elif str(cfg.loss.class_weights) != "none":
+        raise ValueError(f"loss.class_weights must be 'balanced' or 'none', got {cfg.loss}")
+    log.info("labelled training frames: %d (%s)", idx.size, dict(zip(classes, counts.tolist())))
+
+    d = cfg.data
+    bs = int(d.batch_size)
+    train_dl = _loader(bank, idx, bs, int(d.steps_per_epoch) * bs, int(cfg.seed))
+    val_dl = None
+    if val:
+        vbank = SessionBank(val, hw)
+        vidx = np.flatnonzero(vbank.labels.numpy() >= 0)
+        vmax = d.get("val_frames")
+        if vmax and vidx.size > int(vmax):
+            vidx = vidx[np.linspace(0, vidx.size - 1, int(vmax)).round().astype(int)]
+        if vidx.size:
+            val_dl = _loader(vbank, vidx, 512, None, 0)
+
+    lit = ClassifyLit(
+        model,
+        classes,
+        class_weights=None if weights is None else weights.tolist(),
+        freeze=bool(cfg.freeze),
+        lr=float(cfg.optim.lr),
+        encoder_lr=float(cfg.optim.encoder_lr),
+        weight_decay=float(cfg.optim.weight_decay),
+        token_dropout=float(d.get("token_dropout", 0.0)),
+    )
+    logger: Any = False
+    lcfg = to_plain(cfg.get("logger")) or {}
+    if lcfg.get("_target_"):
+        logger = hydra.utils.instantiate(lcfg)
+    tcfg = dict(to_plain(cfg.trainer))
+    if val_dl is None:
+        tcfg["limit_val_batches"] = 0
+        tcfg["num_sanity_val_steps"] = 0
+    trainer = L.Trainer(
+        **tcfg,
+        logger=logger,
+        enable_progress_bar=str(cfg.get("progress_bar", "none")) != "none",
+        enable_checkpointing=False,
+        default_root_dir=str(out),
+    )
+    trainer.fit(lit, train_dataloaders=train_dl, val_dataloaders=val_dl)
+    if lit.best_state is not None:
+        model.load_state_dict(lit.best_state)
+    model.eval()
+
+    smoothing = dict(to_plain(cfg.smoothing) or {})
+    meta = {
+        "net_config": net_cfg,
+        "body": body.to_mapping(),
+        "half_window": hw,
+        "head": head_cfg,
+        "frame_features": ff,
+        "classes": classes,
+        "smoothing": smoothing,
+        "pretrained": str(cfg.pretrained) if cfg.get("pretrained") else None,
+        "freeze": bool(cfg.freeze),
+        "label_fraction": frac,
+    }
+    ckpt = out / "classifier.pt"
+    from deformnet.atomic import atomic_path
+
+    with atomic_path(ckpt) as tmp:
+        torch.save(export_classifier(model, meta), tmp)
+
+    # --- reports on the test sessions (else validation, else training) -----------------------
+    eval_name, eval_sessions = (
+        ("test", test) if test else (("val", val) if val else ("train", train))
+    )  # noqa: E501
+    fps = float(cfg.get("fps", 30.0))
+    yt, yr, ys = [], [], []
+    first = None
+    for s in eval_sessions:
+        pr = predict_session(model, s, hw, smoothing)
+        yt.append(s.labels)
+        yr.append(pr["raw"])
+        ys.append(pr["labels"])
+        if first is None:
+            first = {"true": s.labels, "predicted": pr["raw"], "smoothed": pr["labels"]}
+    yt, yr, ys = np.concatenate(yt), np.concatenate(yr), np.concatenate(ys)
+    raw = evaluate(yt, yr, classes)
+    smoothed = evaluate(yt, ys, classes)
+    report = {
+        "split": eval_name,
+        "sessions": [s.name for s in eval_sessions],
+        "raw": raw,
+        "smoothed": smoothed,
+        "smoothing": smoothing,
+        "bouts": {
+            "true": bout_stats(yt, classes, fps),
+            "predicted": bout_stats(yr, classes, fps),
+            "smoothed": bout_stats(ys, classes, fps),
+        },
+        "labelled_training_frames": int(idx.size),
+        "best_val_macro_f1": lit.best_score if lit.best_state is not None else None,
+        "checkpoint": str(ckpt),
+    }
+    cm_fig = confusion_figure(
+        raw["confusion"], classes, f"{eval_name}: macro-F1 {raw['macro_f1']:.3f}"
+    )  # noqa: E501
+    eth_fig = ethogram_figure(first, classes, fps)
+    if logger and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_figure"):
+        logger.experiment.add_figure(
+            f"{eval_name}/confusion", cm_fig, global_step=trainer.global_step
+        )  # noqa: E501
+        logger.experiment.add_figure(
+            f"{eval_name}/ethogram", eth_fig, global_step=trainer.global_step
+        )  # noqa: E501
+        logger.experiment.flush()
+    _save_figure(cm_fig, out / "confusion.png")
+    _save_figure(eth_fig, out / "ethogram.png")
+    write_text(out / "report.json", json.dumps(_json_safe(report), indent=2) + "\n")
+    log.info(
+        "%s macro-F1 %.3f (smoothed %.3f); classifier %s",
+        eval_name,
+        raw["macro_f1"],
+        smoothed["macro_f1"],
+        ckpt,
+    )
+    return {
+        "output_dir": str(out),
+        "checkpoint": str(ckpt),
+        "report": report,
+        "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
+    }
+
+
+def _json_safe(x):
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
+def _predict(cfg: DictConfig, out: Path) -> dict:
+    from deformnet.atomic import atomic_path
+
+    if not cfg.get("checkpoint") or not cfg.get("tracks"):
+        raise ValueError("mode=predict needs checkpoint=CLASSIFIER.pt and tracks=points3d.csv")
+    model, meta = load_classifier(str(cfg.checkpoint))
+    classes = list(meta["classes"])
+    tr = read_tracks(str(cfg.tracks), meta["body"], interpolate=bool(cfg.data.get("interpolate")))
+    T = len(tr["fnum"])
+    s = Session(str(cfg.tracks), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
+                np.full(T, -1))  # fmt: skip
+    smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
+    pr = predict_session(model, s, int(meta["half_window"]), smoothing)
+    fnum = tr["fnum"]
+    names = np.asarray(classes, dtype=object)
+    df = pd.DataFrame(
+        {"fnum": fnum, "label": names[pr["labels"]], "label_raw": names[pr["raw"]]}
+        | {f"p_{c}": pr["probs"][:, i] for i, c in enumerate(classes)}
+    )
+    pred_path, bouts_path = out / "predictions.csv", out / "bouts.csv"
+    with atomic_path(pred_path) as tmp:
+        df.to_csv(tmp, index=False)
+    rows = [
+        {
+            "start": int(fnum[a]),
+            "stop": int(fnum[b]),
+            "label": classes[c],
+            "mean_probability": float(pr["probs"][a : b + 1, c].mean()),
+        }
+        for a, b, c in bouts(pr["labels"])
+    ]
+    with atomic_path(bouts_path) as tmp:
+        pd.DataFrame(rows, columns=["start", "stop", "label", "mean_probability"]).to_csv(
+            tmp, index=False
+        )
+    log.info("%d frames, %d bouts -> %s, %s", T, len(rows), pred_path, bouts_path)
+    return {
+        "output_dir": str(out),
+        "predictions": str(pred_path),
+        "bouts": str(bouts_path),
+        "frames": T,
+        "num_bouts": len(rows),
+    }
+
+
+def run(cfg: DictConfig) -> dict:
+    """mode=train: fine-tune and report (returns output_dir, checkpoint, report, metrics);
+    mode=predict: label a track (returns the written files)."""
+    import lightning as L
+
+    from deformnet.atomic import write_text
+
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    mode = str(cfg.get("mode", "train"))
+    if mode not in ("train", "predict"):
+        raise ValueError(f"mode must be 'train' or 'predict', got '{mode}'")
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    out = output_dir(cfg)
+    write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    return _train(cfg, out) if mode == "train" else _predict(cfg, out)
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="classify", version_base=None)
+def main(cfg: DictConfig) -> None:
+    try:
+        run(cfg)
+    except ValueError as exc:  # bad input or config: one line naming the file / row, exit 2
+        log.error("%s", exc)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,181 @@
+"""Behavior classification on the deformation nets' encoders (plain `nn.Module`s, no Lightning).
+
+The deformation nets (`deformnet.nets.LSTMPredictor`, `TransformerPredictor`) are pretrained to
+predict a window's masked mid frame; their encoder (everything before the per-part output layer)
+summarises the window around a frame. `WindowEncoder` runs that encoder on global windows:
+
+    WindowEncoder(net, body_points, half_window)(rigid, deformed, observed) -> (B, D)
+
+    rigid, deformed (B, W, K, 3) global mm, observed (B, W, K) bool; W = 2 half_window + 1.
+
+It canonicalises the window (the mid frame's rigid-model coordinates, `deformnet.tokens`), runs
+the net's encoder (the LSTM's mid-frame output and embedding plus its time-average; the
+transformer's normalised mid-frame output plus its time-average), and appends what the
+canonical frame removes but behavior depends on ("frame features"): the mid pose (rotation
+matrix, translation / pos_scale: height, pitch and place in the arena) and the mid frame's own
+deformation offsets (the net masks them when predicting them; here they are inputs).
+
+Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml).
+`BehaviorClassifier` = encoder + head.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from deformnet.nets import LSTMPredictor, TransformerPredictor
+from deformnet.tokens import canonicalize
+
+__all__ = ["WindowEncoder", "LinearHead", "MLPHead", "BehaviorClassifier", "build_head"]
+
+
+class WindowEncoder(nn.Module):
+    """The encoder of a deformation net, as a window -> feature-vector map (see module doc).
+
+    net: an `LSTMPredictor` or `TransformerPredictor` (its `head`, the per-part output layer, is
+    not used); body_points (K, 3) the rigid body model (mm); frame_features: append the mid pose
+    and the mid frame's offsets (12 + 4 K values).
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        body_points: Tensor,
+        half_window: int,
+        frame_features: bool = True,
+    ) -> None:
+        super().__init__()
+        if not isinstance(net, (LSTMPredictor, TransformerPredictor)):
+            raise TypeError(
+                f"WindowEncoder needs an LSTMPredictor or TransformerPredictor, got "
+                f"{type(net).__name__}"
+            )
+        if int(half_window) != net.half_window:
+            raise ValueError(f"half_window {half_window} != the net's {net.half_window}")
+        self.net = net
+        self.half_window = net.half_window
+        self.window = net.window
+        self.num_parts = net.num_parts
+        self.frame_features = bool(frame_features)
+        self.register_buffer("body_points", torch.tensor(np.array(body_points, dtype=np.float32)))
+        if isinstance(net, LSTMPredictor):
+            h, e = net.lstm.hidden_size, net.embed[0].out_features
+            d = 2 * (2 * h + e)
+        else:
+            d = 2 * net.norm.normalized_shape[0]
+        self.out_dim = d + (12 + 4 * self.num_parts if self.frame_features else 0)
+
+    def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
+        want = (self.window, self.num_parts, 3)
+        if rigid.dim() != 4 or tuple(rigid.shape[1:]) != want:
+            raise ValueError(f"rigid must have shape (B, {want}), got {tuple(rigid.shape)}")
+        if deformed.shape != rigid.shape or tuple(observed.shape) != tuple(rigid.shape[:-1]):
+            raise ValueError(
+                f"deformed {tuple(deformed.shape)} / observed {tuple(observed.shape)} do not fit "
+                f"rigid {tuple(rigid.shape)}"
+            )
+
+    def encoder_parameters(self) -> list[nn.Parameter]:
+        """The net's parameters this encoder uses (the unused per-part output layer excluded)."""
+        return [p for n, p in self.net.named_parameters() if not n.startswith("head.")]
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        self._check(rigid, deformed, observed)
+        observed = observed.bool()
+        deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
+        mid = self.half_window
+        rigid_c, deformed_c, R, t = canonicalize(
+            rigid, deformed, self.body_points.to(rigid.dtype), mid
+        )
+        net = self.net
+        feats, _ = net._features(rigid_c, deformed_c, observed)  # (B, W, K, F)
+        B, W, K, _ = feats.shape
+        if isinstance(net, LSTMPredictor):
+            e = net.embed(feats.reshape(B, W, -1))
+            h, _ = net.lstm(e)
+            seq = torch.cat((h, e), -1)  # (B, W, 2 hidden + embed)
+        else:
+            part = net.part_embedding.weight.to(feats.dtype).expand(B, W, K, -1)
+            tok = net.token_embed(torch.cat((feats, part), -1))
+            x = net.frame_embed(tok.reshape(B, W, -1))
+            if net.use_pos_enc:
+                x = x + net.pos_encoding.to(feats.dtype)[None]
+            seq = net.norm(net.encoder(x))  # (B, W, d_model)
+        out = [seq[:, mid], seq.mean(1)]
+        if self.frame_features:
+            obs_mid = observed[:, mid]
+            off = (deformed_c[:, mid] - rigid_c[:, mid]) / net.offset_scale
+            off = torch.where(obs_mid[..., None], off, torch.zeros_like(off))
+            out += [
+                R.reshape(B, 9),
+                t / (10.0 * net.pos_scale),
+                off.reshape(B, -1),
+                obs_mid.to(off.dtype),
+            ]
+        return torch.cat(out, -1)
+
+
+class LinearHead(nn.Module):
+    """Logits = W LayerNorm(x) + b.  x (B, in_dim) -> (B, num_classes)."""
+
+    def __init__(self, in_dim: int, num_classes: int, dropout: float = 0.0) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.LayerNorm(in_dim), nn.Dropout(dropout), nn.Linear(in_dim, num_classes)
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+class MLPHead(nn.Module):
+    """LayerNorm, then `layers` x (Linear(hidden), GELU, Dropout), then Linear(num_classes)."""
+
+    def __init__(
+        self,
+        in_dim: int,
+        num_classes: int,
+        hidden: int = 128,
+        layers: int = 1,
+        dropout: float = 0.1,
+    ) -> None:
+        super().__init__()
+        mods: list[nn.Module] = [nn.LayerNorm(in_dim)]
+        d = in_dim
+        for _ in range(max(1, int(layers))):
+            mods += [nn.Linear(d, hidden), nn.GELU(), nn.Dropout(dropout)]
+            d = hidden
+        mods.append(nn.Linear(d, num_classes))
+        self.net = nn.Sequential(*mods)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+HEADS = {"linear": LinearHead, "mlp": MLPHead}
+
+
+def build_head(config: Mapping[str, Any], in_dim: int, num_classes: int) -> nn.Module:
+    """A head from a plain config {"name": linear|mlp, ...constructor arguments}."""
+    cfg = dict(config)
+    name = str(cfg.pop("name", "linear"))
+    if name not in HEADS:
+        raise ValueError(f"head.name must be one of {sorted(HEADS)}, got '{name}'")
+    return HEADS[name](int(in_dim), int(num_classes), **cfg)
+
+
+class BehaviorClassifier(nn.Module):
+    """encoder (`WindowEncoder`) + head: windows (B, W, K, 3) x2, (B, W, K) -> logits (B, C)."""
+
+    def __init__(self, encoder: WindowEncoder, head: nn.Module) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self.head = head
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        return self.head(self.encoder(rigid, deformed, observed))

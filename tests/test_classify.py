@@ -1,0 +1,213 @@
+"""`deformnet-classify`: label files, fine-tuning on a separable toy problem, mode=predict."""
+
+from __future__ import annotations
+
+import hydra
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from helpers import tiny_deformation_model
+
+from adjust.io import write_points3d
+from deformnet.body import default_mouse
+from deformnet.classify import bouts, read_labels, read_tracks, smooth
+from deformnet.paths import CONF_DIR
+from deformnet.so3 import transform_points
+
+CLASSES = ["walk", "rear"]
+TINY = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
+
+
+def _toy_session(tmp_path, name: str, seed: int, T: int = 360, bout: int = 40):
+    """Alternating bouts: 'walk' (flat, moving) and 'rear' (standing, pitched up 45 deg)."""
+    rng = np.random.default_rng(seed)
+    body = default_mouse()
+    lab = (np.arange(T) // bout + seed) % 2
+    poses = np.zeros((T, 6))
+    yaw = np.cumsum(rng.normal(0, 0.05, T))
+    poses[:, 0] = np.where(lab == 1, 0.8, 0.0) * np.cos(yaw)  # pitch about the body x axis
+    poses[:, 1] = np.where(lab == 1, 0.8, 0.0) * np.sin(yaw)
+    poses[:, 2] = yaw
+    step = np.where(lab == 0, 2.0, 0.0)
+    poses[:, 3] = 150 + np.cumsum(step * -np.sin(yaw)) % 100
+    poses[:, 4] = 150 + np.cumsum(step * np.cos(yaw)) % 100
+    poses[:, 5] = 10.0
+    model = torch.tensor(np.asarray(body.points))
+    pts = transform_points(torch.tensor(poses), model.expand(T, -1, -1)).numpy()
+    pts = pts + rng.normal(0, 0.5, pts.shape)
+    K = body.num_parts
+    extra = {c: poses[:, i] for i, c in enumerate(("pose_rx", "pose_ry", "pose_rz"))}
+    extra |= {c: poses[:, 3 + i] for i, c in enumerate(("pose_tx", "pose_ty", "pose_tz"))}
+    tracks = write_points3d(
+        tmp_path / f"{name}.csv",
+        body.parts,
+        pts,
+        np.zeros((T, K)),
+        np.full((T, K), 2),
+        np.ones((T, K)),
+        extra=extra,
+        fnum=np.arange(T) + 5,
+    )
+    rows = [
+        {"start": a + 5, "stop": b + 5, "label": CLASSES[c]} for a, b, c in bouts(lab)
+    ]  # fmt: skip
+    labels = tmp_path / f"{name}_labels.csv"
+    pd.DataFrame(rows).to_csv(labels, index=False)
+    return tracks, labels, lab
+
+
+def _compose(overrides):
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return hydra.compose("classify", overrides=overrides)
+
+
+def _files(split: str, sessions) -> list[str]:
+    t = ",".join(str(s[0]) for s in sessions)
+    lab = ",".join(str(s[1]) for s in sessions)
+    return [f"data.{split}_tracks=[{t}]", f"data.{split}_labels=[{lab}]"]
+
+
+def test_read_labels_frames_and_bouts(tmp_path):
+    fnum = np.arange(10, 20)
+    p = tmp_path / "frames.csv"
+    p.write_text("fnum,label\n10,walk\n11,rear\n15,rear\n")
+    want = np.full(10, -1)
+    want[[0, 1, 5]] = [0, 1, 1]
+    np.testing.assert_array_equal(read_labels(p, fnum, CLASSES), want)
+    b = tmp_path / "bouts.csv"
+    b.write_text("start,stop,label\n10,12,walk\n13,19,rear\n")
+    np.testing.assert_array_equal(read_labels(b, fnum, CLASSES), [0] * 3 + [1] * 7)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("fnum,label\n10,walk\n11,swim\n", r"bad.csv: row 2: unknown label 'swim'"),
+        ("start,stop,label\n10,14,walk\n14,16,rear\n", r"bad.csv: row 2: bout 14-16 overlaps"),
+        ("start,stop,label\n10,25,walk\n", r"bad.csv: row 1: frame 25 is outside track.csv"),
+        ("fnum,label\n10,walk\n3,rear\n", r"bad.csv: row 2: frame 3 is outside"),
+        ("fnum,label\n10,walk\n10,rear\n", r"bad.csv: row 2: frame 10 is labelled again"),
+        ("start,stop,label\n14,12,walk\n", r"bad.csv: row 1: stop 12 < start 14"),
+        ("frame,behavior\n10,walk\n", r"bad.csv: expected columns"),
+    ],
+)
+def test_label_file_errors_name_file_and_row(tmp_path, text, match):
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        read_labels(p, np.arange(10, 20), CLASSES, tracks="track.csv")
+
+
+def test_read_tracks_needs_poses_or_complete_points(tmp_path):
+    tracks, _, _ = _toy_session(tmp_path, "s", 0, T=30)
+    body = default_mouse()
+    full = read_tracks(tracks, body)
+    df = pd.read_csv(tracks).drop(columns=[c for c in pd.read_csv(tracks) if c.startswith("pose")])
+    df.loc[3, "nose_tip_x"] = np.nan
+    p = tmp_path / "nopose.csv"
+    df.to_csv(p, index=False)
+    with pytest.raises(ValueError, match=r"nopose.csv: no pose columns and part 'nose_tip'"):
+        read_tracks(p, body)
+    # linear gap filling + Kabsch poses: rigid points close to those of the true poses
+    filled = read_tracks(p, body, interpolate=True)
+    assert np.abs(filled["rigid"] - full["rigid"]).max() < 3.0
+    assert filled["observed"].all()
+
+
+def test_smoothing_and_bouts():
+    probs = np.zeros((20, 2))
+    probs[:, 0] = 1.0
+    probs[8:10] = [0.0, 1.0]  # a 2-frame blip
+    assert bouts(probs.argmax(-1)) == [(0, 7, 0), (8, 9, 1), (10, 19, 0)]
+    assert (smooth(probs, min_bout=3) == 0).all()
+    assert (smooth(probs, median=5) == 0).all()
+    assert (smooth(probs) == probs.argmax(-1)).all()
+
+
+def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
+    from deformnet.classify import run
+
+    train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
+    val = [_toy_session(tmp_path, "val", 7)]
+    test = [_toy_session(tmp_path, "test", 8)]
+    out = tmp_path / "fit"
+    cfg = _compose(
+        [
+            *TINY,
+            f"labels.classes=[{','.join(CLASSES)}]",
+            "labels.fraction=0.25",
+            *_files("train", train),
+            *_files("val", val),
+            *_files("test", test),
+            "data.batch_size=32",
+            "data.steps_per_epoch=10",
+            "trainer.max_epochs=6",
+            "trainer.max_time=null",
+            "logger=none",
+            "smoothing.median=0",
+            "smoothing.min_bout=0",
+            f"output.dir={out}",
+        ]
+    )
+    res = run(cfg)
+    rep = res["report"]
+    assert rep["split"] == "test"
+    assert rep["labelled_training_frames"] == 2 * 90  # 25% of 360 frames per session
+    assert rep["raw"]["macro_f1"] >= 0.95, rep["raw"]
+    assert rep["raw"]["per_class"]["rear"]["recall"] >= 0.95
+    assert rep["bouts"]["true"]["walk"]["bouts"] == 5
+    for f in ("classifier.pt", "report.json", "confusion.png", "ethogram.png"):
+        assert (out / f).exists()
+
+    # mode=predict on the test track: labels + probabilities, and bouts that read back
+    pred_dir = tmp_path / "pred"
+    p = run(
+        _compose(
+            [
+                "mode=predict",
+                f"checkpoint={out / 'classifier.pt'}",
+                f"tracks={test[0][0]}",
+                f"output.dir={pred_dir}",
+            ]
+        )
+    )
+    df = pd.read_csv(p["predictions"])
+    assert df["fnum"].tolist() == list(range(5, 365))
+    np.testing.assert_allclose(df[["p_walk", "p_rear"]].sum(1), 1.0, atol=1e-5)
+    per_frame = read_labels(p["predictions"], df["fnum"].to_numpy(), CLASSES)
+    from_bouts = read_labels(p["bouts"], df["fnum"].to_numpy(), CLASSES)
+    np.testing.assert_array_equal(per_frame, from_bouts)
+    assert np.mean(per_frame == test[0][2]) >= 0.95
+    bdf = pd.read_csv(p["bouts"])
+    assert list(bdf.columns) == ["start", "stop", "label", "mean_probability"]
+    assert ((bdf["mean_probability"] > 0.5) & (bdf["mean_probability"] <= 1.0)).all()
+
+
+def test_pretrained_frozen_encoder_is_kept(tmp_path):
+    from deformnet.classify import load_classifier, run
+
+    ckpt = tmp_path / "net.ckpt"
+    pre = tiny_deformation_model(seed=3)
+    pre.save(ckpt)
+    train = [_toy_session(tmp_path, "train", 0, T=120)]
+    res = run(
+        _compose(
+            [
+                f"pretrained={ckpt}",
+                "freeze=true",
+                f"labels.classes=[{','.join(CLASSES)}]",
+                *_files("train", train),
+                "data.batch_size=16",
+                "data.steps_per_epoch=3",
+                "trainer.max_epochs=1",
+                "logger=none",
+                f"output.dir={tmp_path / 'fit'}",
+            ]
+        )
+    )
+    model, meta = load_classifier(res["checkpoint"])
+    assert meta["pretrained"] == str(ckpt) and meta["freeze"]
+    for k, v in pre.net.state_dict().items():
+        torch.testing.assert_close(model.encoder.net.state_dict()[k], v)
+    assert res["report"]["split"] == "train"
