@@ -320,7 +320,7 @@ def simulate(
     t_start = _time.perf_counter()
     cfg, body = _resolve(cfg, num_frames, seed, body)
     if cfg.body_scale != 1.0:
-        body = BodyModel(body.parts, body.points * cfg.body_scale, body.aliases, body.name)
+        body = body.scaled(cfg.body_scale)
     scene = build_scene(cfg, body)
     T, fps, K = cfg.num_frames, cfg.fps, body.num_parts
     ss = np.random.SeedSequence(cfg.seed)
