@@ -50,6 +50,7 @@ __all__ = [
     "read_labels",
     "bouts",
     "smooth",
+    "subsample_labels",
     "SessionBank",
     "load_classifier",
     "predict_session",
@@ -567,7 +568,7 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
     return out
 
 
-def _subsample(sessions: list[Session], fraction: float, segment: int, seed: int) -> None:
+def subsample_labels(sessions: list[Session], fraction: float, segment: int, seed: int) -> None:
     """Keep the labels of a random `fraction` of each session's labelled frames (in segments of
     `segment` frames), unlabel the rest (in place)."""
     if not 0 < fraction <= 1:
@@ -627,8 +628,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
-    _subsample(train, frac, seg, int(cfg.labels.seed))
-    _subsample(val, frac, seg, int(cfg.labels.seed) + 1)
+    subsample_labels(train, frac, seg, int(cfg.labels.seed))
+    subsample_labels(val, frac, seg, int(cfg.labels.seed) + 1)
     bank = SessionBank(train, hw)
     idx = np.flatnonzero(bank.labels.numpy() >= 0)
     if idx.size == 0:

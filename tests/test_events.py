@@ -117,6 +117,9 @@ def test_adjust_events_cli_writes_events_and_order(tmp_path):
                 f"tracks={tracks}",
                 f"mechanisms={mech}",
                 "parts=[nose_tip,left_front_paw]",
+                "contact.on_mm=8",
+                "contact.off_mm=12",
+                "contact.merge_gap=5",
                 f"output.dir={tmp_path / 'ev'}",
             ]
         )

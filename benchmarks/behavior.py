@@ -1,0 +1,494 @@
+"""Behavior benchmark: few-label behavior classification on the pretrained encoder, and lock-box
+events, on held-out simulated sessions tracked end to end.
+
+Sessions: `adjust-simulate` scenes (default rig and detector) with seeds no training uses
+(train 95000.., val 95100.., test 95200..; deformnet-train simulates seeds 0.. and 10000..),
+each tracked by `adjust-track` (default settings) and triangulated by `adjust-triangulate`
+(DLT; a user fills its gaps by linear interpolation: `data.interpolate=true`). Labels: the
+simulator's per-frame behavior (truth.npz) written as `fnum,label` CSVs.
+
+Classifiers (`deformnet-classify`, each `trainer.max_time` seconds), at label fractions 1%,
+10%, 100% of the training sessions' frames (and of the validation session's):
+- ``pretrained``: the encoder of a deformnet-train checkpoint (`--pretrained`, else a short
+  `deformnet-train` run here), fine-tuned with its head;
+- ``frozen``: the same encoder frozen, head only;
+- ``scratch``: the same architecture from random weights;
+- ``rf``: a random forest (scikit-learn, balanced class weights) on SimBA-style hand-made
+  per-frame features: centroid, body length, heading / elevation of the nose-tail axis, part
+  heights, all pairwise part distances, part speeds, each with rolling means and standard
+  deviations over 5, 15 and 33 frames.
+Input comparison: ``pretrained`` and ``rf`` at 10% on DLT (gap-filled) vs adjust-track output.
+Test macro-F1 over the test sessions (scikit-learn), raw and with the smoothing (median 9 +
+min bout 5) reported separately.
+
+Lock-box events (`adjust-events`, default settings; mechanism positions from the scenes'
+calibration metadata) on every session, from adjust-track output, from DLT (gap-filled) and,
+for reference, from the true 3D points: operations (events of a mechanism, any part) matched to
+the simulator's mechanism bouts (lever, splint, ball, slider labels) by overlap; precision,
+recall, mean absolute onset error (frames), and the fraction of sessions whose first-operation
+order of the mechanisms is right.
+
+Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained > scratch and
+> rf at 1%; event precision and recall >= 0.9 from adjust-track and better than from DLT.
+
+    .venv/bin/python benchmarks/behavior.py [--frames 3000] [--train 6] [--test 2]
+        [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--seconds 60]
+
+Prints tables; the last line is JSON, also written atomically to runs/benchmarks/behavior.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+import pandas as pd
+import torch
+
+from adjust.app import finite_or_none
+from deformnet.atomic import write_text
+from deformnet.paths import CONF_DIR
+
+log = logging.getLogger("benchmarks.behavior")
+
+ROOT = CONF_DIR.parent
+SEEDS = {"train": 95_000, "val": 95_100, "test": 95_200}
+FRACTIONS = (0.01, 0.1, 1.0)
+MECHANISMS = ("lever", "splint", "ball", "slider")
+
+
+def compose(name: str, overrides: list[str]):
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return hydra.compose(name, overrides=list(overrides))
+
+
+# --------------------------------------------------------------------------------------------
+# sessions
+# --------------------------------------------------------------------------------------------
+def make_session(work: Path, seed: int, frames: int) -> dict:
+    """Scene, adjust-track and DLT outputs and a labels CSV for one seed (cached in `work`)."""
+    from adjust.scene_cli import run as simulate
+    from adjust.track import run as track
+    from adjust.triangulate_cli import run as triangulate
+
+    d = work / f"session_{seed}_{frames}"
+    scene = d / "scene"
+    t0 = time.perf_counter()
+    if not (scene / "truth.npz").exists():
+        simulate(compose("scene", [f"output.dir={scene}", f"num_frames={frames}", f"seed={seed}"]))
+    inputs = [
+        f"input.calibration={scene / 'calibration.toml'}",
+        f"input.detections={scene / 'detections'}",
+    ]
+    if not (d / "track" / "points3d.csv").exists():
+        track(compose("track", [*inputs, f"output.dir={d / 'track'}", "progress=false"]))
+    if not (d / "dlt" / "points3d.csv").exists():
+        triangulate(compose("triangulate", [*inputs, f"output.dir={d / 'dlt'}", "body=mouse"]))
+    truth = np.load(scene / "truth.npz")
+    behaviors = [str(b) for b in truth["behaviors"]]
+    labels = d / "labels.csv"
+    if not labels.exists():
+        names = np.asarray(behaviors, dtype=object)[truth["labels"]]
+        pd.DataFrame({"fnum": np.arange(len(names)), "label": names}).to_csv(labels, index=False)
+    log.info("session %d: %d frames ready (%.1f s)", seed, frames, time.perf_counter() - t0)
+    return {
+        "seed": seed,
+        "dir": d,
+        "calibration": scene / "calibration.toml",
+        "track": d / "track" / "points3d.csv",
+        "dlt": d / "dlt" / "points3d.csv",
+        "labels": labels,
+        "truth_labels": truth["labels"],
+        "truth_points": truth["points"],
+        "parts": [str(p) for p in truth["parts"]],
+        "behaviors": behaviors,
+    }
+
+
+def pretrain(out: Path, seconds: int) -> tuple[str, float]:
+    from deformnet.train import run
+
+    t0 = time.perf_counter()
+    secs = f"00:00:{seconds // 60:02d}:{seconds % 60:02d}"
+    res = run(
+        compose(
+            "train",
+            [f"output.dir={out}", "logger=none", "progress_bar=none", f"trainer.max_time={secs}"],
+        )
+    )
+    ckpt = res.get("best_checkpoint") or res.get("last_checkpoint")
+    if not ckpt:
+        raise RuntimeError(f"deformnet-train wrote no checkpoint into {out}")
+    return str(ckpt), time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------------------------
+# classifiers
+# --------------------------------------------------------------------------------------------
+def _list(paths) -> str:
+    return "[" + ",".join(str(p) for p in paths) + "]"
+
+
+def run_classifier(
+    out: Path, sessions: dict, source: str, fraction: float, method: str, ckpt: str, seconds: int
+) -> dict:
+    from deformnet.classify import run
+
+    ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
+    ov.append(f"trainer.max_time=00:00:{seconds // 60:02d}:{seconds % 60:02d}")
+    for split in ("train", "val", "test"):
+        ov.append(f"data.{split}_tracks={_list(s[source] for s in sessions[split])}")
+        ov.append(f"data.{split}_labels={_list(s['labels'] for s in sessions[split])}")
+    if source == "dlt":
+        ov.append("data.interpolate=true")
+    if method == "scratch":
+        ov.append("pretrained=null")
+    else:
+        ov += [f"pretrained={ckpt}", f"freeze={'true' if method == 'frozen' else 'false'}"]
+    t0 = time.perf_counter()
+    rep = run(compose("classify", ov))["report"]
+    return {
+        "macro_f1": rep["raw"]["macro_f1"],
+        "macro_f1_smoothed": rep["smoothed"]["macro_f1"],
+        "f1": {c: v["f1"] for c, v in rep["raw"]["per_class"].items()},
+        "labelled_frames": rep["labelled_training_frames"],
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def window_features(path: Path, parts: list[str], interpolate: bool) -> np.ndarray:
+    """SimBA-style per-frame features (T, F) from a points3d CSV (see the module docstring)."""
+    df = pd.read_csv(path)
+    P = np.stack([df[[f"{p}_{a}" for a in "xyz"]].to_numpy(np.float64) for p in parts], 1)
+    if interpolate:
+        from deformnet.classify import _interpolate
+
+        P = _interpolate(P)
+    T, K = P.shape[:2]
+    nose, tail = P[:, parts.index("nose_tip")], P[:, parts.index("tail_root")]
+    axis = nose - tail
+    length = np.linalg.norm(axis, axis=-1)
+    heading = np.arctan2(axis[:, 1], axis[:, 0])
+    elevation = np.arcsin(np.clip(axis[:, 2] / np.maximum(length, 1e-9), -1, 1))
+    centroid = P.mean(1)
+    iu = np.triu_indices(K, 1)
+    dist = np.linalg.norm(P[:, :, None] - P[:, None, :], axis=-1)[:, iu[0], iu[1]]
+    speed = np.linalg.norm(np.diff(P, axis=0, prepend=P[:1]), axis=-1)
+    base = np.concatenate(
+        [
+            centroid,
+            length[:, None],
+            np.cos(heading)[:, None],
+            np.sin(heading)[:, None],
+            elevation[:, None],
+            P[:, :, 2],
+            dist,
+            speed,
+        ],
+        1,
+    )
+    frame = pd.DataFrame(base)
+    feats = [base]
+    for w in (5, 15, 33):
+        roll = frame.rolling(w, center=True, min_periods=1)
+        feats += [roll.mean().to_numpy(), roll.std().fillna(0.0).to_numpy()]
+    return np.nan_to_num(np.concatenate(feats, 1), nan=0.0)
+
+
+def run_rf(sessions: dict, source: str, fraction: float, seed: int = 0) -> dict:
+    from sklearn.ensemble import RandomForestClassifier
+
+    from deformnet.classify import Session, evaluate, subsample_labels
+
+    classes = sessions["train"][0]["behaviors"]
+    parts = sessions["train"][0]["parts"]
+    t0 = time.perf_counter()
+
+    def load(split):
+        X = [window_features(s[source], parts, source == "dlt") for s in sessions[split]]
+        y = [np.asarray(s["truth_labels"], np.int64) for s in sessions[split]]
+        return X, y
+
+    Xtr, ytr = load("train")
+    # the same labelled frames the nets get (deformnet.classify.subsample_labels)
+    dummy = [
+        Session(str(i), None, None, None, np.arange(len(y)), y.copy()) for i, y in enumerate(ytr)
+    ]  # fmt: skip
+    subsample_labels(dummy, fraction, 1, 0)
+    X = np.concatenate([x[s.labels >= 0] for x, s in zip(Xtr, dummy)])
+    y = np.concatenate([s.labels[s.labels >= 0] for s in dummy])
+    rf = RandomForestClassifier(
+        n_estimators=200, class_weight="balanced", n_jobs=1, random_state=seed, min_samples_leaf=2
+    )
+    rf.fit(X, y)
+    Xte, yte = load("test")
+    pred = rf.predict(np.concatenate(Xte))
+    ev = evaluate(np.concatenate(yte), pred, classes)
+    return {
+        "macro_f1": ev["macro_f1"],
+        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
+        "labelled_frames": int(len(y)),
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# events
+# --------------------------------------------------------------------------------------------
+def truth_bouts(labels: np.ndarray, behaviors: list[str]) -> list[dict]:
+    from deformnet.classify import bouts
+
+    out = []
+    for a, b, c in bouts(np.asarray(labels)):
+        if behaviors[c] in MECHANISMS:
+            out.append({"mechanism": behaviors[c], "start": a, "stop": b})
+    return out
+
+
+def match_events(ops: list[dict], truth: list[dict]) -> dict:
+    """Greedy one-to-one matching by overlap (same mechanism): tp, fp, fn, onset errors."""
+    used = set()
+    onset = []
+    tp = 0
+    for o in ops:
+        best, overlap = None, 0
+        for i, t in enumerate(truth):
+            if i in used or t["mechanism"] != o["mechanism"]:
+                continue
+            ov = min(o["stop"], t["stop"]) - max(o["start"], t["start"]) + 1
+            if ov > overlap:
+                best, overlap = i, ov
+        if best is not None:
+            used.add(best)
+            tp += 1
+            onset.append(abs(o["start"] - truth[best]["start"]))
+    return {"tp": tp, "fp": len(ops) - tp, "fn": len(truth) - len(used), "onset": onset}
+
+
+def first_order(items: list[dict]) -> list[str]:
+    first: dict[str, int] = {}
+    for e in items:
+        first.setdefault(e["mechanism"], e["start"])
+        first[e["mechanism"]] = min(first[e["mechanism"]], e["start"])
+    return sorted(first, key=first.get)
+
+
+#: how the simulated lab's mechanisms are operated (the simulator's effectors: a paw for the
+#: lever and the ball, the snout for the splint and the slider): adjust-events' mechanism_parts
+LAB_PARTS = (
+    "mechanism_parts={lever: [left_front_paw, right_front_paw], "
+    "ball: [left_front_paw, right_front_paw], splint: [nose_tip], slider: [nose_tip]}"
+)
+
+
+def event_scores(sessions: list[dict], overrides: list[str], tag: str) -> dict:
+    from adjust.events import detect_events, operations
+    from adjust.events_cli import mechanism_positions, run
+    from deformnet.confutil import to_plain
+
+    totals = {k: {"tp": 0, "fp": 0, "fn": 0, "onset": [], "order_ok": 0, "inferred": 0}
+              for k in ("track", "dlt", "truth3d")}  # fmt: skip
+    for s in sessions:
+        truth = truth_bouts(s["truth_labels"], s["behaviors"])
+        cfg_d = compose("events", ["tracks=x", *overrides])
+        for source in ("track", "dlt", "truth3d"):
+            if source == "truth3d":
+                c = cfg_d.contact
+                mech = mechanism_positions(compose("events", [f"calibration={s['calibration']}"]))
+                ev = detect_events(
+                    s["truth_points"], s["parts"], mech, list(cfg_d.parts), float(c.on_mm),
+                    float(c.off_mm), int(c.min_frames), int(c.merge_gap),
+                    mechanism_parts=to_plain(cfg_d.mechanism_parts),
+                )  # fmt: skip
+                ops = operations(ev, int(c.merge_gap))
+                inferred = 0
+            else:
+                ov = [
+                    f"tracks={s[source]}",
+                    f"calibration={s['calibration']}",
+                    f"output.dir={s['dir'] / f'events_{tag}_{source}'}",
+                    *overrides,
+                ]
+                if source == "dlt":
+                    ov.append("interpolate=true")
+                res = run(compose("events", ov))
+                ops, inferred = res["operation_list"], res["inferred_events"]
+            m = match_events(ops, truth)
+            t = totals[source]
+            for k in ("tp", "fp", "fn"):
+                t[k] += m[k]
+            t["onset"] += m["onset"]
+            t["inferred"] += inferred
+            t["order_ok"] += int(first_order(ops) == first_order(truth))
+    out = {}
+    for source, t in totals.items():
+        det, true = t["tp"] + t["fp"], t["tp"] + t["fn"]
+        out[source] = {
+            "precision": t["tp"] / det if det else float("nan"),
+            "recall": t["tp"] / true if true else float("nan"),
+            "onset_error_frames": float(np.mean(t["onset"])) if t["onset"] else float("nan"),
+            "order_correct": t["order_ok"] / len(sessions),
+            "true_operations": true,
+            "detected_operations": det,
+            "inferred_events": t["inferred"],
+        }
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "   n/a" if not math.isfinite(v) else f"{v:6.3f}"
+    return str(v)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=3000, help="frames per session")
+    ap.add_argument("--train", type=int, default=6, help="training sessions")
+    ap.add_argument("--val", type=int, default=1, help="validation sessions")
+    ap.add_argument("--test", type=int, default=2, help="test sessions")
+    ap.add_argument("--pretrained", default=None, help="deformnet-train checkpoint (else train)")
+    ap.add_argument("--pretrain-seconds", type=int, default=240)
+    ap.add_argument("--seconds", type=int, default=60, help="trainer.max_time per classifier")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    torch.set_num_threads(args.threads)
+    work = Path(args.work)
+    t_start = time.perf_counter()
+
+    counts = {"train": args.train, "val": args.val, "test": args.test}
+    sessions = {
+        split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
+        for split, n in counts.items()
+    }
+    t_sessions = time.perf_counter() - t_start
+    extra: dict = {"sessions_seconds": round(t_sessions, 1)}
+    ckpt = args.pretrained
+    if ckpt is None:
+        log.info(
+            "no --pretrained: a %d s deformnet-train run (default LSTM)", args.pretrain_seconds
+        )
+        ckpt, secs = pretrain(work / "pretrain", args.pretrain_seconds)
+        extra["pretrain_seconds"] = round(secs, 1)
+    extra["pretrained"] = str(ckpt)
+
+    results: dict[str, dict] = {}
+    for frac in FRACTIONS:
+        key = f"{frac:g}"
+        results[key] = {}
+        for method in ("pretrained", "frozen", "scratch"):
+            out = work / f"cls_track_{method}_{key}"
+            results[key][method] = run_classifier(
+                out, sessions, "track", frac, method, ckpt, args.seconds
+            )
+            log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
+        results[key]["rf"] = run_rf(sessions, "track", frac)
+        log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
+    inputs = {
+        "track": {
+            "pretrained": results["0.1"]["pretrained"]["macro_f1"],
+            "rf": results["0.1"]["rf"]["macro_f1"],
+        },
+        "dlt": {
+            "pretrained": run_classifier(
+                work / "cls_dlt_pretrained_0.1",
+                sessions,
+                "dlt",
+                0.1,
+                "pretrained",
+                ckpt,
+                args.seconds,
+            )["macro_f1"],  # fmt: skip
+            "rf": run_rf(sessions, "dlt", 0.1)["macro_f1"],
+        },
+    }
+    all_sessions = [s for split in ("train", "val", "test") for s in sessions[split]]
+    events = event_scores(all_sessions, [LAB_PARTS], "lab")
+    events_any = event_scores(all_sessions, [], "any")
+
+    print(
+        f"\nbehavior: {sum(counts.values())} sessions x {args.frames} frames (train "
+        f"{args.train}, val {args.val}, test {args.test}); test macro-F1 (raw / smoothed)"
+    )
+    methods = ("pretrained", "frozen", "scratch", "rf")
+    print(f"{'labels':<8}" + "".join(f"{m:>22}" for m in methods))
+    for key, r in results.items():
+        cells = []
+        for m in methods:
+            sm = r[m].get("macro_f1_smoothed")
+            cells.append(f"{_fmt(r[m]['macro_f1'])}" + (f" / {_fmt(sm)}" if sm is not None else ""))
+        print(f"{key:<8}" + "".join(f"{c:>22}" for c in cells))
+    print("\ninput (10% labels)  pretrained      rf")
+    for src, r in inputs.items():
+        print(f"{src:<18}{_fmt(r['pretrained']):>11}{_fmt(r['rf']):>9}")
+    print(
+        "\nevents (all sessions)  precision  recall  onset(frames)  order-correct  true  detected"
+    )
+    for src, r in events.items():
+        print(
+            f"{src:<22}{_fmt(r['precision']):>10}{_fmt(r['recall']):>8}"
+            f"{_fmt(r['onset_error_frames']):>15}{_fmt(r['order_correct']):>15}"
+            f"{r['true_operations']:>6}{r['detected_operations']:>10}"
+        )
+    r1 = results["0.01"]
+    checks = {
+        "pretrained_10pct_ge_0.9": results["0.1"]["pretrained"]["macro_f1"] >= 0.9,
+        "pretrained_beats_scratch_1pct": r1["pretrained"]["macro_f1"] > r1["scratch"]["macro_f1"],
+        "pretrained_beats_rf_1pct": r1["pretrained"]["macro_f1"] > r1["rf"]["macro_f1"],
+        "events_track_ge_0.9": events["track"]["precision"] >= 0.9
+        and events["track"]["recall"] >= 0.9,
+        "events_track_beat_dlt": events["track"]["precision"] >= events["dlt"]["precision"]
+        and events["track"]["recall"] >= events["dlt"]["recall"]
+        and (
+            events["track"]["precision"] + events["track"]["recall"]
+            > events["dlt"]["precision"] + events["dlt"]["recall"]
+        ),
+        "tracked_input_beats_dlt": inputs["track"]["pretrained"] > inputs["dlt"]["pretrained"],
+    }
+    print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
+    summary = {
+        "classification": results,
+        "input_comparison_10pct": inputs,
+        "events": events,
+        "events_any_part": events_any,
+        "checks": checks,
+        "setup": {
+            "frames": args.frames,
+            "sessions": counts,
+            "seeds": SEEDS,
+            "seconds_per_classifier": args.seconds,
+        },
+        **extra,
+        "total_seconds": round(time.perf_counter() - t_start, 1),
+        "threads": args.threads,
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    line = json.dumps(finite_or_none(_round(summary)))
+    write_text(args.out, line + "\n")
+    print(line, flush=True)
+    return summary
+
+
+def _round(x):
+    if isinstance(x, dict):
+        return {k: _round(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_round(v) for v in x]
+    return round(x, 4) if isinstance(x, float) and math.isfinite(x) else x
+
+
+if __name__ == "__main__":
+    main()
