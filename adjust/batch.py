@@ -1,0 +1,240 @@
+"""Batch runs: ``adjust-track -m input.session=glob(sessions/*)`` (or ``=DIR1,DIR2,...``).
+
+Hydra's multirun gives one job per session, through the launcher chosen on the command line:
+the basic one (sequential), ``hydra/launcher=joblib`` (local processes in parallel) or
+``hydra/launcher=slurm`` (SLURM array jobs through submitit, ``conf/hydra/launcher/slurm.yaml``).
+Each job runs `run_session`, which never raises: it tracks the session into its own folder
+(``runs/batch/<time>/<session name>/``), or records why it failed, or skips it when an earlier
+batch already tracked the same inputs with the same settings and its outputs are newer than the
+inputs (``force=true`` re-runs), and writes one status row (``batch_status.json``). After the
+last job the `BatchSummary` callback collects the rows into ``runs/batch/<time>/summary.csv``
+(`SUMMARY_COLUMNS`).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from adjust.session import SESSION_KEY, session_name, with_session
+from deformnet.atomic import write_text
+
+log = logging.getLogger(__name__)
+
+STATUS_FILE = "batch_status.json"
+SUMMARY_FILE = "summary.csv"
+SUMMARY_COLUMNS = (
+    "session",
+    "status",  # ok | failed | skipped
+    "error",
+    "frames",
+    "completeness",
+    "median_reprojection_error_px",
+    "seconds",
+    "output",
+)
+#: config keys that do not change a session's result (left out of the settings hash)
+_NOT_SETTINGS = ("force", "progress", "output.dir")
+
+
+def in_multirun() -> bool:
+    """True inside a Hydra multirun job (``-m``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def settings_hash(cfg: DictConfig) -> str:
+    """A hash of the resolved job config without the session, output folder and switches that
+    do not change the result: a re-run skips a session only when this is unchanged."""
+    c = OmegaConf.to_container(cfg, resolve=True)
+    c.pop("hydra", None)
+    for key in (SESSION_KEY, "input.calibration", "input.detections", *_NOT_SETTINGS):
+        node, *rest = key.split(".")
+        if rest and isinstance(c.get(node), dict):
+            c[node].pop(rest[0], None)
+        elif not rest:
+            c.pop(node, None)
+    return hashlib.sha256(json.dumps(c, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _input_mtime(calibration: Path, detections: Path) -> float:
+    times = [calibration.stat().st_mtime] if calibration.is_file() else []
+    if detections.is_dir():
+        times += [p.stat().st_mtime for p in detections.iterdir() if p.is_file()]
+    elif detections.is_file():
+        times.append(detections.stat().st_mtime)
+    return max(times) if times else float("inf")
+
+
+def _done(folder: Path, calibration: Path, detections: Path, settings: str) -> dict | None:
+    """The summary of a finished run of these inputs and settings in ``folder`` whose outputs
+    are newer than the inputs, else None."""
+    outputs = [folder / "points3d.csv", folder / "summary.json"]
+    status_path = folder / STATUS_FILE
+    if not all(p.is_file() for p in outputs) or not status_path.is_file():
+        return None
+    try:
+        status = json.loads(status_path.read_text())
+        summary = json.loads(outputs[1].read_text())
+    except (OSError, ValueError):
+        return None
+    inputs = summary.get("inputs", {})
+    if status.get("status") not in ("ok", "skipped") or status.get("settings") != settings:
+        return None
+    if inputs.get("calibration") != str(calibration.resolve()) or inputs.get("detections") != str(
+        detections.resolve()
+    ):
+        return None
+    if min(p.stat().st_mtime for p in outputs) <= _input_mtime(calibration, detections):
+        return None
+    return summary
+
+
+def previous_run(
+    out: Path, calibration: Path, detections: Path, settings: str
+) -> tuple[Path, dict] | None:
+    """An earlier finished run of this session: in its own output folder, or in the folder of
+    the same name of a sibling batch (``runs/batch/*/<name>``), newest first."""
+    candidates = [out]
+    batches = out.parent.parent
+    if batches.is_dir():
+        sib = [b / out.name for b in batches.iterdir() if b.is_dir() and b != out.parent]
+        candidates += sorted(
+            (p for p in sib if p.is_dir()), key=lambda p: p.stat().st_mtime, reverse=True
+        )
+    for folder in candidates:
+        summary = _done(folder, calibration, detections, settings)
+        if summary is not None:
+            return folder, summary
+    return None
+
+
+def _row_from_summary(row: dict, summary: dict) -> None:
+    row["frames"] = summary.get("num_frames")
+    row["completeness"] = summary.get("completeness")
+    row["median_reprojection_error_px"] = (summary.get("reprojection_error_px") or {}).get("median")
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if isinstance(exc, ValueError) else f"{type(exc).__name__}: {text}"
+
+
+def run_session(cfg: DictConfig, job_dir: str | Path | None = None) -> dict:
+    """The batch job: track one session (``adjust.track.run``), never raising.
+
+    ``job_dir``: where the status row goes (default: Hydra's job folder); the outputs go there
+    too, or to ``output.dir/<session name>`` when output.dir is set. Returns the status row
+    (`SUMMARY_COLUMNS` plus ``name``, ``settings``)."""
+    from adjust.track import run
+
+    t0 = time.perf_counter()
+    if job_dir is None:
+        from hydra.core.hydra_config import HydraConfig
+
+        hc = HydraConfig.get()
+        job_dir, num = Path(hc.runtime.output_dir), hc.job.num
+    else:
+        job_dir, num = Path(job_dir), None
+    job_dir.mkdir(parents=True, exist_ok=True)
+    session = OmegaConf.select(cfg, SESSION_KEY)
+    name = session_name(session, num)
+    given_out = OmegaConf.select(cfg, "output.dir")
+    out = Path(str(given_out)) / name if given_out else job_dir
+    row: dict[str, Any] = {c: None for c in SUMMARY_COLUMNS}
+    row.update(session=str(session) if session else name, name=name, output=str(out), error="")
+    try:
+        row["settings"] = settings_hash(cfg)
+        cfg = with_session(cfg)
+        calibration = Path(str(OmegaConf.select(cfg, "input.calibration")))
+        detections = Path(str(OmegaConf.select(cfg, "input.detections")))
+        prev = None
+        if not bool(cfg.get("force", False)):
+            prev = previous_run(out, calibration, detections, row["settings"])
+        if prev is not None:
+            folder, summary = prev
+            row.update(status="skipped", output=str(folder))
+            row["error"] = "outputs newer than the inputs (force=true re-runs)"
+            _row_from_summary(row, summary)
+            log.info("session %s: skipped, done in %s", name, folder)
+        else:
+            cfg = cfg.copy()
+            with open_dict(cfg):
+                cfg.output.dir = str(out)
+            summary = run(cfg)
+            row["status"] = "ok"
+            _row_from_summary(row, summary)
+    except Exception as exc:  # noqa: BLE001 - one failed session must not stop the batch
+        row.update(status="failed", error=_one_line(exc))
+        if isinstance(exc, ValueError):  # bad input: the message says it all
+            log.error("session %s failed: %s", name, row["error"])
+        else:
+            log.exception("session %s failed", name)
+    row["seconds"] = round(time.perf_counter() - t0, 3)
+    write_text(job_dir / STATUS_FILE, json.dumps(row, default=str) + "\n")
+    if out != job_dir and row["status"] == "ok":
+        write_text(out / STATUS_FILE, json.dumps(row, default=str) + "\n")
+    return row
+
+
+def collect(sweep_dir: str | Path) -> list[dict]:
+    """The status rows of a batch folder's jobs (sorted by session)."""
+    rows = []
+    for path in sorted(Path(sweep_dir).glob(f"*/{STATUS_FILE}")):
+        try:
+            rows.append(json.loads(path.read_text()))
+        except (OSError, ValueError) as exc:
+            rows.append({"session": path.parent.name, "status": "failed", "error": str(exc)})
+    return sorted(rows, key=lambda r: str(r.get("session")))
+
+
+def write_summary(sweep_dir: str | Path, rows: list[dict] | None = None) -> Path:
+    """Write ``summary.csv`` (`SUMMARY_COLUMNS`) of a batch folder atomically."""
+    rows = collect(sweep_dir) if rows is None else rows
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(SUMMARY_COLUMNS), extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: "" if r.get(k) is None else r.get(k) for k in SUMMARY_COLUMNS})
+    return write_text(Path(sweep_dir) / SUMMARY_FILE, buf.getvalue())
+
+
+def read_summary(path: str | Path) -> list[dict]:
+    """The rows of a batch ``summary.csv`` (strings; empty cells as '')."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+class BatchSummary(Callback):
+    """Hydra callback: after a multirun, ``summary.csv`` in the sweep folder, and one log line
+    per failed session."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        rows = collect(sweep_dir)
+        if not rows:
+            return
+        path = write_summary(sweep_dir, rows)
+        counts = {s: sum(r.get("status") == s for r in rows) for s in ("ok", "skipped", "failed")}
+        for r in rows:
+            if r.get("status") == "failed":
+                log.error("session %s failed: %s", r.get("session"), r.get("error"))
+        log.info(
+            "batch: %d sessions, %d ok, %d skipped, %d failed; %s",
+            len(rows),
+            counts["ok"],
+            counts["skipped"],
+            counts["failed"],
+            path,
+        )
