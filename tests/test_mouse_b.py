@@ -40,6 +40,14 @@ def test_config_loads_with_its_defaults(cfg):
         SimConfig.from_config({"body_scale": 0.0})
 
 
+def test_from_name_matches_hydra_composition(cfg):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        app = compose("simulate", overrides=["sim=mouse_b"])
+    assert SimConfig.from_config(app.sim) == cfg
+
+
 def test_deterministic_per_seed(cfg, run):
     again = simulate(cfg, num_frames=FRAMES, seed=0)
     np.testing.assert_array_equal(run.deformed, again.deformed)
