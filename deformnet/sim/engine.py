@@ -281,7 +281,7 @@ def _spine_bend(cfg: SimConfig, scene: Scene, yaw, R, tau, deformed, rng) -> Non
     ang = theta[:, None] * w[None]  # (T, K)
     local = np.einsum("tji,tkj->tki", R, deformed - tau[:, None])  # model frame
     c, s = np.cos(ang), np.sin(ang)
-    x, yy = local[..., 0], local[..., 1] - pivot
+    x, yy = local[..., 0].copy(), local[..., 1] - pivot
     local[..., 0] = c * x - s * yy
     local[..., 1] = s * x + c * yy + pivot
     deformed[:] = np.einsum("tij,tkj->tki", R, local) + tau[:, None]
