@@ -124,6 +124,23 @@ def test_spine_bends_with_turns_and_head_moves_on_its_own(run):
     assert np.percentile(np.abs(ang), 90) > 15.0
 
 
+def test_spine_bend_is_a_rotation_about_the_pivot(cfg):
+    import dataclasses
+
+    still = cfg.replace(deform=dataclasses.replace(cfg.deform, jitter=0.0))
+    d = simulate(still, num_frames=1500, seed=2)
+    R = _rot(d)
+    k = d.parts.index("tail_root")
+    local = np.einsum("tji,tj->ti", R, d.deformed[:, k] - d.poses[:, 3:])
+    pivot = np.array([0.0, cfg.deform.spine_pivot * cfg.body_scale])
+    walk = d.labels == 0
+    r = np.linalg.norm(local[walk, :2] - pivot, axis=1)
+    np.testing.assert_allclose(r, np.linalg.norm(d.model[k, :2] - pivot), atol=1e-9)
+    bend = np.degrees(np.arctan2(local[walk, 0], pivot[1] - local[walk, 1]))
+    assert np.abs(bend).max() <= cfg.deform.spine_max + 4 * cfg.deform.spine_wiggle
+    assert np.percentile(np.abs(bend), 90) > 5.0
+
+
 def _yaw(R):
     return np.unwrap(np.arctan2(-R[:, 0, 1], R[:, 1, 1]))
 
