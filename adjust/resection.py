@@ -108,8 +108,8 @@ def levenberg_marquardt(
     """Minimise ||fun(theta)||^2 with Marquardt-scaled Levenberg-Marquardt (small problems).
 
     fun: (P,) -> (M,) residuals (torch, differentiable); theta0: (P,) float64.
-    Returns (theta (P,), final cost sum r^2, iterations). Jacobians by vectorized reverse
-    mode autodiff.
+    Returns (theta (P,), final cost sum r^2, iterations). Jacobians by
+    central differences.
     """
     theta = theta0.detach().clone()
     r = fun(theta)
@@ -117,7 +117,16 @@ def levenberg_marquardt(
     lam = 1e-3
 
     def jac(p: Tensor) -> Tensor:
-        return torch.autograd.functional.jacobian(fun, p, vectorize=True)
+        # central differences: 2P (<= 32) evaluations, however many residuals (reverse-mode
+        # autodiff needs one pass per residual: minutes for a few thousand points)
+        with torch.no_grad():
+            h = 1e-6 * p.abs().clamp_min(1.0)
+            cols = []
+            for i in range(p.numel()):
+                d = torch.zeros_like(p)
+                d[i] = h[i]
+                cols.append((fun(p + d) - fun(p - d)) / (2 * h[i]))
+            return torch.stack(cols, -1)
 
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007

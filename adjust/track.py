@@ -427,6 +427,9 @@ def _run(cfg: DictConfig) -> dict:
     else:
         body = BodyModel.from_config(body_cfg)
         cameras, det = load_scene(calibration, detections, body, **kwargs)
+    from adjust.camera_check import check_from_config  # input.camera_check, exclude_cameras
+
+    cameras, det, camera_report = check_from_config(cameras, det, cfg.get("input"))
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     timings["load_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -572,6 +575,7 @@ def _run(cfg: DictConfig) -> dict:
         },
         "stochastic": None if cons is None else cons.facts(det.cameras),
         "cameras": list(det.cameras),
+        "camera_check": camera_report,
         "parts": list(det.parts),
         "num_frames": T,
         "settings": {

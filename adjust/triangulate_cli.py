@@ -13,7 +13,6 @@ compose API); it returns the summary.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -22,12 +21,21 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, load_kwargs, required, run_or_exit, stats
+from adjust.app import (
+    finite_or_none,
+    load_kwargs,
+    prepare_output,
+    required,
+    run_or_exit,
+    setting,
+    stats,
+    write_outputs,
+)
 from adjust.camera import CameraTensors
+from adjust.camera_check import check_from_config
 from adjust.io import load_scene, write_points3d
-from deformnet.atomic import write_text
 from deformnet.body import BodyModel
-from deformnet.paths import CONF_DIR, output_dir
+from deformnet.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
 
@@ -45,14 +53,15 @@ def run(cfg: DictConfig) -> dict:
     weight_mode = str(tri.get("weight", "likelihood"))
     if weight_mode not in WEIGHTS:
         raise ValueError(f"triangulate.weight must be one of {WEIGHTS}, got {weight_mode!r}")
+    robust = setting(cfg, "triangulate.robust", "bool", False)
+    max_error_px = setting(cfg, "triangulate.max_error_px", "float", 20.0, lo=0.0)
+    min_views = setting(cfg, "triangulate.min_views", "int", 2, lo=2)
+    kwargs = load_kwargs(inp)
+    out = prepare_output(cfg)  # before any computing
     body_cfg = cfg.get("body")
     body = BodyModel.from_config(body_cfg) if body_cfg else None
-    cameras, det = load_scene(
-        calibration,
-        detections,
-        body,
-        **load_kwargs(inp),
-    )
+    cameras, det = load_scene(calibration, detections, body, **kwargs)
+    cameras, det, camera_report = check_from_config(cameras, det, inp)
     weight = det.weight() if weight_mode == "likelihood" else det.observed.astype(np.float64)
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     with torch.no_grad():
@@ -60,9 +69,9 @@ def run(cfg: DictConfig) -> dict:
             torch.as_tensor(det.xy),
             torch.as_tensor(weight),
             cams,
-            robust=bool(tri.get("robust", False)),
-            max_error_px=float(tri.get("max_error_px", 20.0)),
-            min_views=int(tri.get("min_views", 2)),
+            robust=robust,
+            max_error_px=max_error_px,
+            min_views=min_views,
         )
     points = res.points.numpy()
     error = res.error.numpy()
@@ -72,8 +81,6 @@ def run(cfg: DictConfig) -> dict:
     score = np.where(used, det.likelihood, np.inf).min(-1)
     score = np.where(done & np.isfinite(score), score, np.nan)
 
-    out = output_dir(cfg)
-    points_path = write_points3d(out / "points3d.csv", det.parts, points, error, ncams, score)
     T, K, C = det.num_frames, det.num_parts, det.num_cameras
     observed = det.observed
     nviews = observed.sum(-1)
@@ -88,11 +95,15 @@ def run(cfg: DictConfig) -> dict:
         "parts": list(det.parts),
         "num_frames": T,
         "likelihood_threshold": det.threshold,
-        "individual": inp.get("individual"),
+        "individual": kwargs["individual"],
+        "camera_check": camera_report,
+        # the files' frame numbers (the fnum column), first and last
+        "frames": [det.frames[0].item(), det.frames[-1].item()] if T else [],
+        "detections_set_aside": det.notes.get("absurd_or_nonfinite", {}),
         "triangulate": {
-            "robust": bool(tri.get("robust", False)),
-            "max_error_px": float(tri.get("max_error_px", 20.0)),
-            "min_views": int(tri.get("min_views", 2)),
+            "robust": robust,
+            "max_error_px": max_error_px,
+            "min_views": min_views,
             "weight": weight_mode,
         },
         # fraction of keypoint-frames with a 3D point
@@ -115,10 +126,12 @@ def run(cfg: DictConfig) -> dict:
             "observed_views_histogram": np.bincount(nviews.reshape(-1), minlength=C + 1).tolist(),
             "used_views_histogram": np.bincount(ncams.reshape(-1), minlength=C + 1).tolist(),
         },
-        "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
     }
-    summary = finite_or_none(summary)
-    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    summary = write_outputs(
+        out,
+        lambda path: write_points3d(path, det.parts, points, error, ncams, score, fnum=det.frames),
+        finite_or_none(summary),
+    )
     err = summary["reprojection_error_px"]
     log.info(
         "triangulated %d of %d keypoint-frames (%.1f%%); reprojection error median %s px, "

@@ -1,6 +1,9 @@
 """Atomic file output: write to a temporary file beside the target, then rename over it.
 
-A reader never sees a half-written file, and a crash leaves the previous file (or none).
+A reader never sees a half-written file, and a crash leaves the previous file (or none); the
+temporary file is removed on any exception, KeyboardInterrupt and SystemExit included (the apps
+turn SIGTERM into SystemExit: `adjust.app.run_or_exit`). The file gets the permissions a plain
+``open()`` would give it (0666 less the umask).
 """
 
 from __future__ import annotations
@@ -30,10 +33,18 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        if tmp_path.exists():  # mkstemp's 0600 -> what a plain open() would give (umask)
+            os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, target)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

@@ -1,0 +1,302 @@
+"""Camera check: find a camera whose detections disagree with the others, say why, drop it.
+
+    cameras, det, report = check_cameras(cameras, det, mode="warn", exclude=())
+
+After loading, each camera is tested against the consensus of the others, leave one camera out:
+the parts are triangulated from the other cameras and projected into this one; its robust error
+is the median pixel distance between those projections and its own detections. A camera is
+*off* when that error exceeds ``min_px`` (25 px) and either ``ratio`` (3) times the median of
+the other cameras' leave-one-out errors (the consensus) or ``fit_ratio`` (10) times the error
+to which the other cameras fit each other (with three cameras, one bad camera spoils two of the
+three leave-one-out errors, but not the fit of the good pair). The camera with the largest
+ratio of its error to the others' fit is judged first, and the check is repeated on the rest
+while at least three cameras remain.
+
+For a camera that is off, the likely cause is diagnosed from the others' points:
+
+- ``scene behind the camera``: most of the points lie behind it (a sign or rotation error);
+- ``rows in reverse frame order`` / ``frames offset by N``: its detections fit after reversing
+  or shifting its rows in time (a wrong or truncated file, a wrong frame rate);
+- ``swapped with camera X``: its detections fit camera X's projection (two files swapped);
+- ``wrong pose``: a pose resected from the others' points with its own intrinsics
+  (`adjust.resection.resect`) fits it to a few pixels (the calibration's extrinsics are off);
+- else ``detections or intrinsics inconsistent``.
+
+Modes (``input.camera_check``): ``warn`` (default): a camera that is off is excluded and a
+warning names it with its error and likely cause; ``error``: an `InputError` instead; ``off``:
+no check. ``input.exclude_cameras=[name, ...]`` drops cameras by hand before the check. The
+returned report (the apps put it in ``summary.json`` as ``camera_check``) lists every camera's
+leave-one-out error, the threshold, and the excluded cameras with error and cause.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from adjust.camera import Camera, CameraTensors, project_cameras
+from adjust.io import Detections, InputError
+
+log = logging.getLogger(__name__)
+
+MODES = ("error", "warn", "off")
+MIN_PX = 25.0  #: a camera is off only above this median error (px) ...
+RATIO = 3.0  #: ... and above this multiple of the other cameras' (leave-one-out) errors ...
+FIT_RATIO = 10.0  #: ... or this multiple of the error to which the others fit each other
+MIN_POINTS = 10  #: fewer jointly usable points than this: the camera is not judged
+MAX_SHIFT = 5  #: frame offsets tried when diagnosing
+FIT_FRACTION = 0.35  #: a diagnosis must bring the camera's error below this fraction of it
+RESECTION_POINTS = 100  #: points (spread over the frames) a diagnostic resection uses
+
+
+def _tri(det: Detections, cams: Sequence[Camera], idx: Sequence[int]) -> np.ndarray:
+    """(T, K, 3) points triangulated from cameras `idx` (NaN where < 2 of them saw a part)."""
+    from adjust.triangulate import triangulate
+
+    ct = CameraTensors.from_cameras([cams[i] for i in idx], dtype=torch.float64)
+    with torch.no_grad():
+        res = triangulate(
+            torch.as_tensor(det.xy[:, :, list(idx)]),
+            torch.as_tensor(det.weight()[:, :, list(idx)]),
+            ct,
+            robust=len(idx) >= 3,
+        )
+    return res.points.numpy()
+
+
+def _project(X: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(T, K, 2) pixels and (T, K) depths of points X (T, K, 3) in one camera."""
+    ct = CameraTensors.from_cameras([cam], dtype=torch.float64)
+    with torch.no_grad():
+        uv = project_cameras(torch.as_tensor(np.nan_to_num(X)), ct)[..., 0, :]
+    depth = X @ cam.R[2] + cam.tvec[2]
+    return uv.numpy(), depth
+
+
+def _median_error(X: np.ndarray, xy: np.ndarray, cam: Camera) -> tuple[float, int]:
+    """Median pixel distance between the projections of X (T, K, 3) and detections xy
+    (T, K, 2) where both exist, and how many pairs that is."""
+    uv, depth = _project(X, cam)
+    ok = np.isfinite(X).all(-1) & np.isfinite(xy).all(-1) & (depth > 0)
+    if not ok.any():
+        return float("inf"), 0
+    return float(np.median(np.linalg.norm(uv - xy, axis=-1)[ok])), int(ok.sum())
+
+
+def _diagnose(det, cams, active, c, X, err) -> tuple[str, str]:
+    """(cause, detail) for camera c whose detections disagree with points X of the others."""
+    cam, xy = cams[c], det.xy[:, :, c]
+    seen = np.isfinite(X).all(-1) & det.observed[:, :, c]
+    _, depth = _project(X, cam)
+    if seen.any() and (depth[seen] <= 0).mean() > 0.5:
+        return "scene behind the camera", (
+            f"{100 * (depth[seen] <= 0).mean():.0f}% of the other cameras' points lie behind it "
+            "(a sign or rotation error in its extrinsics?)"
+        )
+    good = FIT_FRACTION * err  # an explanation must cut the error to this
+    rev, _ = _median_error(X, xy[::-1], cam)
+    if rev < good:
+        return "rows in reverse frame order", f"reversing its rows gives {rev:.1f} px"
+    T = xy.shape[0]
+    best = (float("inf"), 0)
+    for s in range(-MAX_SHIFT, MAX_SHIFT + 1):
+        if s == 0 or abs(s) >= T - MIN_POINTS:
+            continue
+        shifted = np.full_like(xy, np.nan)
+        if s > 0:
+            shifted[s:] = xy[:-s]  # its row t is frame t + s
+        else:
+            shifted[:s] = xy[-s:]
+        e, n = _median_error(X, shifted, cam)
+        if n >= MIN_POINTS and e < best[0]:
+            best = (e, s)
+    if best[0] < good:
+        return f"frames offset by {best[1]}", (
+            f"shifting its rows by {best[1]} frames gives {best[0]:.1f} px (a missing or extra "
+            "frame at the start of its file?)"
+        )
+    for d in range(len(cams)):  # excluded cameras too: the other half of a swap may be gone
+        if d == c:
+            continue
+        rest = [i for i in active if i not in (c, d)]
+        if len(rest) < 2:
+            continue
+        Xr = _tri(det, cams, rest)
+        e_cd, n = _median_error(Xr, xy, cams[d])
+        if n >= MIN_POINTS and e_cd < good:
+            e_dc, _ = _median_error(Xr, det.xy[:, :, d], cam)
+            both = e_dc < good
+            return f"swapped with camera '{cams[d].name}'" if both else (
+                f"holds camera '{cams[d].name}''s detections"
+            ), (
+                f"its detections fit camera '{cams[d].name}' to {e_cd:.1f} px"
+                + (f" and '{cams[d].name}''s fit it to {e_dc:.1f} px" if both else "")
+            )
+    if seen.sum() >= 6:
+        from adjust.resection import resect
+
+        idx = np.flatnonzero(seen.reshape(-1))
+        if idx.size > RESECTION_POINTS:
+            idx = idx[np.linspace(0, idx.size - 1, RESECTION_POINTS).astype(int)]
+        Xs, xs = X.reshape(-1, 3)[idx], xy.reshape(-1, 2)[idx]
+        quiet = logging.getLogger("adjust.resection")
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)  # its "large error" warning is expected here
+        try:
+            fit = resect(Xs, xs, K=cam.K, dist=cam.dist, name=cam.name, size=cam.size, max_iter=30)
+        except ValueError:
+            fit = None
+        finally:
+            quiet.setLevel(level)
+        if fit is not None:
+            e, _ = _median_error(X, xy, fit)
+            if e < good:
+                moved = float(np.linalg.norm(fit.center - cam.center))
+                dR = fit.R @ cam.R.T
+                angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+                twins = [
+                    o.name
+                    for o in cams
+                    if o is not cam and np.allclose(o.center, cam.center, rtol=0, atol=1e-6)
+                ]
+                return "wrong pose", (
+                    f"a pose resected from the other cameras' points fits it to {e:.1f} px; "
+                    f"the calibration's is {moved:.0f} mm and {angle:.0f} deg away from it"
+                    + (f"; it has the pose of camera {twins} (copied extrinsics?)" if twins else "")
+                    + "; recalibrate its extrinsics"
+                )
+    return "detections or intrinsics inconsistent", "no simple fix found"
+
+
+def drop_cameras(
+    cameras: Sequence[Camera], det: Detections, names: Sequence[str]
+) -> tuple[list[Camera], Detections]:
+    """The cameras and detections without the named cameras."""
+    keep = [i for i, c in enumerate(cameras) if c.name not in set(names)]
+    det = dataclasses.replace(
+        det,
+        cameras=tuple(det.cameras[i] for i in keep),
+        xy=det.xy[:, :, keep],
+        likelihood=det.likelihood[:, :, keep],
+        files=tuple(det.files[i] for i in keep),
+    )
+    return [cameras[i] for i in keep], det
+
+
+def check_cameras(
+    cameras: Sequence[Camera],
+    det: Detections,
+    mode: str = "warn",
+    exclude: Sequence[str] | None = (),
+    *,
+    min_px: float = MIN_PX,
+    ratio: float = RATIO,
+    fit_ratio: float = FIT_RATIO,
+) -> tuple[list[Camera], Detections, dict]:
+    """Drop the cameras named in `exclude`, then (mode warn/error) test each camera against the
+    others (see the module doc). Returns the kept cameras, their detections (T, K, C', 2) and
+    the report for the summary."""
+    if mode not in MODES:
+        raise InputError(f"input.camera_check must be one of {list(MODES)}, got {mode!r}")
+    names = [c.name for c in cameras]
+    if list(det.cameras) != names:
+        raise ValueError(f"detections' cameras {det.cameras} are not the cameras {names}")
+    exclude = [str(n) for n in (exclude or [])]
+    unknown = [n for n in exclude if n not in names]
+    if unknown:
+        raise InputError(f"input.exclude_cameras: unknown cameras {unknown} (cameras: {names})")
+    report: dict = {"mode": mode, "excluded_by_hand": exclude, "excluded": {}}
+    if exclude:
+        log.warning("cameras %s excluded by hand (input.exclude_cameras)", exclude)
+    cams, det = drop_cameras(cameras, det, exclude)
+    if len(cams) < 2:
+        raise InputError(f"fewer than 2 cameras left after excluding {exclude}: {names}")
+    if mode == "off":
+        return cams, det, report
+    report.update(min_px=min_px, ratio=ratio, leave_one_out_px={}, others_px={})
+    active = list(range(len(cams)))
+    excluded: list[str] = []
+    while len(active) >= 3:
+        loo, rest, npts, pts = {}, {}, {}, {}
+        for c in active:
+            others = [i for i in active if i != c]
+            X = _tri(det, cams, others)
+            loo[c], npts[c] = _median_error(X, det.xy[:, :, c], cams[c])
+            own = [_median_error(X, det.xy[:, :, d], cams[d])[0] for d in others]
+            rest[c] = float(np.median(own))
+            pts[c] = X
+            seen = np.isfinite(X).all(-1) & det.observed[:, :, c]
+            if npts[c] < MIN_POINTS and seen.sum() >= MIN_POINTS:
+                _, depth = _project(X, cams[c])
+                if (depth[seen] <= 0).mean() > 0.5:  # the scene is behind it: judge it
+                    loo[c], npts[c] = float("inf"), int(seen.sum())
+        if not report["leave_one_out_px"]:
+            report["leave_one_out_px"] = {cams[c].name: loo[c] for c in active}
+            report["others_px"] = {cams[c].name: rest[c] for c in active}
+        judged = [c for c in active if npts[c] >= MIN_POINTS and np.isfinite(rest[c])]
+        if not judged:
+            break
+        c = max(judged, key=lambda i: loo[i] / max(rest[i], 0.5))
+        consensus = float(np.median([loo[i] for i in active if i != c]))
+        threshold = max(min_px, min(ratio * consensus, fit_ratio * max(rest[c], 0.5)))
+        if not loo[c] > threshold:
+            break
+        cause, detail = _diagnose(det, cams, active, c, pts[c], loo[c])
+        name = cams[c].name
+        msg = (
+            f"camera '{name}' ({det.files[c]}) disagrees with the others: its detections lie "
+            f"{loo[c]:.1f} px (median) from the points the other cameras triangulate (they "
+            f"fit each other to {rest[c]:.1f} px; each of them, left out, {consensus:.1f} px); "
+            f"likely cause: {cause} ({detail})"
+        )
+        if mode == "error":
+            raise InputError(
+                msg + "; fix it, or exclude it (input.exclude_cameras=[" + name + "]) or set "
+                "input.camera_check=warn"
+            )
+        log.warning("%s; EXCLUDED from the solve (input.camera_check=warn)", msg)
+        report["excluded"][name] = {
+            "error_px": loo[c],
+            "others_px": rest[c],
+            "consensus_px": consensus,
+            "threshold_px": threshold,
+            "cause": cause,
+            "detail": detail,
+            "points": npts[c],
+        }
+        excluded.append(name)
+        active.remove(c)
+    cams, det = drop_cameras(cams, det, excluded)
+    kept = [c.name for c in cams]
+    report["cameras_used"] = kept
+    if not excluded:
+        log.info(
+            "camera check: all %d cameras agree (leave-one-out median %s px)",
+            len(kept),
+            ", ".join(f"{k} {v:.1f}" for k, v in report["leave_one_out_px"].items()),
+        )
+    return cams, det, report
+
+
+def check_from_config(
+    cameras: Sequence[Camera], det: Detections, inp
+) -> tuple[list[Camera], Detections, dict]:
+    """`check_cameras` with the settings of an app's ``input`` node: ``camera_check``
+    (error|warn|off, default warn) and ``exclude_cameras`` (a list of names, or one name)."""
+    get = inp.get if inp is not None and hasattr(inp, "get") else (lambda k, d=None: d)
+    mode = get("camera_check", "warn")
+    mode = "off" if mode is False else str(mode)
+    exclude = get("exclude_cameras", None) or []
+    if isinstance(exclude, str | int):
+        exclude = [exclude]
+    try:
+        exclude = [str(n) for n in exclude]
+    except TypeError:
+        raise InputError(
+            f"input.exclude_cameras must be a list of camera names, got {exclude!r}"
+        ) from None
+    return check_cameras(cameras, det, mode, exclude)
