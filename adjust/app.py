@@ -66,6 +66,7 @@ def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
     status 2, an unwritable output folder (OSError) too, never a traceback."""
     try:
         with _terminate_as_exit():
+            check_settings(cfg)
             return run(cfg)
     except (ValueError, OmegaConfBaseException) as exc:
         log.error("%s", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
@@ -138,6 +139,59 @@ def setting(
     if (lo is not None and out < lo) or (hi is not None and out > hi):
         raise bad
     return out
+
+
+#: typed settings of the apps, checked before any work: key -> (kind, lo, hi, may be null)
+SETTINGS = {
+    "threads": ("int", 0, None, True),
+    "progress": ("bool", None, None, False),
+    "input.likelihood_threshold": ("float", 0.0, 1.0, False),
+    "input.ignore_unknown_parts": ("bool", None, None, False),
+    "input.allow_missing_parts": ("bool", None, None, False),
+    "triangulate.robust": ("bool", None, None, False),
+    "triangulate.max_error_px": ("float", 0.0, None, False),
+    "triangulate.min_views": ("int", 2, None, False),
+    "deform.max_error_px": ("float", 0.0, None, False),
+    "deform.gate_mm": ("float", 0.0, None, False),
+    "deform.batch_size": ("int", 1, None, False),
+    "deform.max_iterations": ("int", 0, None, True),
+    "deform.rigid_first": ("bool", None, None, False),
+}
+#: lower bounds of solver settings beyond ">= 0" (SolverConfig checks the rest)
+_SOLVER_LO = {"grid_size": 3}
+
+
+def check_settings(cfg) -> None:
+    """Settings of the wrong type or range (``solver.max_iterations=abc``, ``=2.5``, ``=-3``,
+    ``threads=abc``) are a ValueError naming the setting and what it accepts. Checks the keys of
+    `SETTINGS` and every number of the ``solver`` node (typed by `adjust.lsq.SolverConfig`)."""
+    if not isinstance(cfg, DictConfig):
+        return
+    for key, (kind, lo, hi, nullable) in SETTINGS.items():
+        if OmegaConf.select(cfg, key, default="<absent>") == "<absent>":
+            continue
+        if OmegaConf.select(cfg, key, default=None) is None:
+            if not nullable:
+                raise ValueError(f"{key} must be set ({_KINDS[kind]})")
+            continue
+        setting(cfg, key, kind, lo=lo, hi=hi)
+    solver = cfg.get("solver")
+    if solver is None or not hasattr(solver, "keys"):
+        return
+    import dataclasses
+
+    from adjust.lsq.config import SolverConfig
+
+    for f in dataclasses.fields(SolverConfig):
+        if f.name not in solver:
+            continue
+        kind = {"int": "int", "float": "float", "float | None": "float", "bool": "bool"}.get(
+            str(f.type)
+        )
+        if kind is None:
+            continue
+        lo = _SOLVER_LO.get(f.name, 0) if kind != "bool" else None
+        setting(solver, f.name, kind, lo=lo, allow_none=True, prefix="solver.")
 
 
 def prepare_output(cfg) -> Path:

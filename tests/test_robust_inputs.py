@@ -202,3 +202,53 @@ def test_garbage_checkpoint_is_one_clear_error(tmp_path, content):
     assert "not a PyTorch checkpoint" in msg
     with pytest.raises(InputError, match="not found"):
         load_deformation(str(tmp_path / "missing.ckpt"))
+
+
+# --- solver and settings -------------------------------------------------------------------
+
+
+def test_nan_cost_is_never_converged():
+    from adjust.lsq.lm import levenberg_marquardt
+
+    def linearise(x):
+        return np.ones((1, 1, 1, 1)), np.zeros((1, 1)), float("nan"), None
+
+    res = levenberg_marquardt(np.zeros(1), linearise, lambda x, ctx: float("nan"), lambda x, d: x)
+    assert not res.converged and res.iterations == 1
+
+    def finite(x):  # cost x^2 - 2x + 2 at 1 row: converges
+        return np.full((1, 1, 1, 1), 2.0), np.array([[2.0 - 2.0 * x[0]]]), (x[0] - 1) ** 2 + 1, None
+
+    res = levenberg_marquardt(np.zeros(1), finite, lambda x, c: (x[0] - 1) ** 2 + 1,
+                              lambda x, d: x + d.reshape(-1))  # fmt: skip
+    assert res.converged and abs(res.x[0] - 1) < 1e-6
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "accepts"),
+    [
+        ("solver.max_iterations", "abc", "an integer >= 0"),
+        ("solver.max_iterations", 2.5, "an integer >= 0"),
+        ("solver.max_iterations", -3, "an integer >= 0"),
+        ("solver.chunk_size", "abc", "an integer >= 0"),
+        ("solver.sigma_det_px", "wide", "a number >= 0"),
+        ("threads", "abc", "an integer >= 0"),
+        ("triangulate.min_views", "abc", "an integer >= 2"),
+        ("input.likelihood_threshold", "abc", "a number from 0 to 1"),
+        ("input.likelihood_threshold", 2, "a number from 0 to 1"),
+        ("progress", "maybe", "true or false"),
+    ],
+)
+def test_settings_of_wrong_type_or_range(key, value, accepts):
+    from omegaconf import OmegaConf
+
+    from adjust.app import check_settings
+
+    cfg = OmegaConf.create({"solver": {"max_iterations": 30}, "threads": 1})
+    OmegaConf.update(cfg, key, value, force_add=True)
+    with pytest.raises(ValueError) as exc:
+        check_settings(cfg)
+    assert str(exc.value) == f"{key}={value!r} is not valid: {key} accepts {accepts}"
+    OmegaConf.update(cfg, key, 3 if "threshold" not in key else 0.5, force_add=True)
+    if key != "progress":
+        check_settings(cfg)  # a good value passes

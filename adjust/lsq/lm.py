@@ -9,6 +9,7 @@ Cholesky in O(T); a step is accepted if it does not increase the cost.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,6 +18,8 @@ from typing import Any
 import numpy as np
 
 from adjust.lsq import banded
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -72,6 +75,9 @@ def levenberg_marquardt(
     for it in range(1, max_iterations + 1):
         blocks, g, c, ctx = linearise(x)
         history.append(c)
+        if not math.isfinite(c):  # a NaN/inf cost is never "converged"
+            log.warning("Levenberg-Marquardt: the cost is %s at iteration %d; stopped", c, it)
+            break
         if ridge > 0:
             add_ridge(blocks, ridge)
         n = blocks.shape[-1]
