@@ -63,10 +63,13 @@ def _terminate_as_exit() -> Iterator[None]:
 def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
     """Call an app's `run(cfg)`; bad input or config (ValueError, whose message names the file,
     camera, part or frame, or an OmegaConf error about a setting) is one logged line and exit
-    status 2, an unwritable output folder (OSError) too, never a traceback."""
+    status 2, an unwritable output folder (OSError) too, never a traceback. Settings
+    (`check_settings`) and ``output.dir`` (`prepare_output`) are checked before `run`."""
     try:
         with _terminate_as_exit():
             check_settings(cfg)
+            if OmegaConf.select(cfg, "output.dir", default=None):
+                prepare_output(cfg)  # an unusable output folder before any computing
             return run(cfg)
     except (ValueError, OmegaConfBaseException) as exc:
         log.error("%s", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)

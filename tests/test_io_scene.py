@@ -37,7 +37,6 @@ def _write(folder: Path, name: str, parts, T=5, seed=0, lik=None) -> Path:
     return write_dlc_csv(folder / name, parts, xy, lik, scorer="DLC_test")
 
 
-@pytest.mark.skipif(not REAL.exists(), reason="real hand data not present")
 def test_real_hand_data_loads():
     cams, det = load_scene(REAL / "calibration.toml", REAL / "trial_000", None)
     names = ("08150951", "08151951", "08152151", "08154551")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import fields
 from types import SimpleNamespace
 
@@ -25,13 +24,6 @@ from adjust.scene import (
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import matrix_to_rodrigues
-
-
-def _has(module: str, attr: str) -> bool:
-    try:
-        return hasattr(importlib.import_module(module), attr)
-    except ImportError:
-        return False
 
 
 def standin_sim(T: int = 600, seed: int = 0, arena: float = 300.0) -> SimpleNamespace:
@@ -306,7 +298,6 @@ def test_standin_fractions_in_range(rig):
 
 
 # --- scene folder and adjust-simulate -------------------------------------------------------
-@pytest.mark.skipif(not _has("adjust.io", "load_scene"), reason="adjust.io not landed yet")
 def test_write_scene_reads_back(tmp_path, rig, sim):
     from adjust.io import load_scene
     from adjust.scene import write_scene
@@ -333,10 +324,6 @@ def test_write_scene_reads_back(tmp_path, rig, sim):
     assert list(truth["parts"]) == list(body.parts)
 
 
-@pytest.mark.skipif(
-    not (_has("deformnet.sim", "simulate") and _has("adjust.io", "load_scene")),
-    reason="simulator or adjust.io not landed yet",
-)
 def test_adjust_simulate_compose_run(tmp_path):
     from hydra import compose, initialize_config_dir
 
@@ -379,7 +366,6 @@ def test_dataclass_defaults_match_shipped_config():
             assert a == b, f.name
 
 
-@pytest.mark.skipif(not _has("deformnet.sim", "simulate"), reason="simulator not landed yet")
 def test_adjust_simulate_bad_config(tmp_path):
     from hydra import compose, initialize_config_dir
 

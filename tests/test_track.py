@@ -138,7 +138,6 @@ def _hand_subset(tmp_path: Path, start: int = 240, frames: int = 60) -> Path:
     return det
 
 
-@pytest.mark.skipif(not REAL.exists(), reason="real hand data not present")
 def test_body_auto_on_real_hand_data(tmp_path):
     det = _hand_subset(tmp_path)
     out = tmp_path / "out"
@@ -167,8 +166,7 @@ def test_body_auto_on_real_hand_data(tmp_path):
 
 
 def test_body_mouse_on_hand_data_is_an_input_error(tmp_path):
-    if not REAL.exists():
-        pytest.skip("real hand data not present")
+    assert REAL.exists(), f"shared data missing: {REAL}"
     cfg = _cfg(
         "track",
         [

@@ -23,7 +23,6 @@ def _cfg(overrides):
         return hydra.compose("triangulate", overrides=overrides)
 
 
-@pytest.mark.skipif(not REAL.exists(), reason="real hand data not present")
 def test_cli_on_real_hand_data(tmp_path):
     cfg = _cfg(
         [
