@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 PYTHON ?= python3
 
-.PHONY: demo test test-slow lint format install clean
+.PHONY: demo test test-slow lint format install clean bench-env
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,16 @@ lint: $(STAMP)
 
 format: $(STAMP)
 	$(VENV)/bin/ruff format . && $(VENV)/bin/ruff check --fix .
+
+# The peers the benchmarks run side by side (aniposelib pulls jax, numba and opencv-contrib-python,
+# whose cv2 would replace opencv-python-headless's): their own environment, .venv-bench.
+bench-env: .venv-bench/.installed
+
+.venv-bench/.installed:
+	$(PYTHON) -m venv .venv-bench
+	.venv-bench/bin/python -m pip install -q --upgrade pip
+	.venv-bench/bin/python -m pip install -q aniposelib==0.8.0
+	touch .venv-bench/.installed
 
 clean:
 	rm -rf $(VENV)

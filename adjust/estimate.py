@@ -75,8 +75,10 @@ def consensus(
     xy (T, K, C, 2) px, NaN missing; weight (T, K, C) (0 = missing). A view is outvoted when
     >= 3 cameras saw the part and robust triangulation (drop the worst view while the point
     reprojects worse than ``max_error_px``) left it out. The detector noise is estimated from
-    the residuals (`detector_sigma`) unless given; a triangulated point is an observation when
-    its mean view error is within ``gate_sigmas`` x that noise (+ 1 px).
+    the residuals (`detector_sigma`) unless given; the gate is ``gate_sigmas`` x that noise
+    (+ 1 px): the robust triangulation is repeated dropping views while one is off by more than
+    the gate, and a triangulated point is an observation when every view it rests on is within
+    the gate.
     """
     from adjust.triangulate import triangulate
 
@@ -98,8 +100,22 @@ def consensus(
     est, per = detector_sigma(ve, used)
     sig = float(sigma_det_px) if sigma_det_px else (est if math.isfinite(est) else 2.0)
     gate = gate_sigmas * sig + 1.0
-    err = tri.error.numpy()
-    obs = fin & (tri.ncams.numpy() >= 2) & (err <= gate)
+    if gate < max_error_px:  # again, dropping views while any disagrees by more than the gate
+        with torch.no_grad():
+            tri = triangulate(
+                torch.as_tensor(xy),
+                torch.as_tensor(weight),
+                cams,
+                robust=True,
+                max_error_px=gate,
+            )
+        X = tri.points.numpy().astype(np.float64)
+        used = tri.used.numpy()
+        ve = tri.view_error.numpy()
+        fin = np.isfinite(X).all(-1)
+        dropped = observed_views & ~used & (nviews >= 3)[..., None] & fin[..., None]
+    worst = np.where(used, np.nan_to_num(ve, nan=np.inf), 0.0).max(-1)
+    obs = fin & (tri.ncams.numpy() >= 2) & (worst <= gate)
     # triangulation covariance: (sum_c J^T J / sigma^2)^-1 over the used views
     Xt = torch.as_tensor(np.nan_to_num(X))
     u, v, _, A = project_components(Xt, cams, True)

@@ -192,6 +192,30 @@ def _measured_observation_class():
             self.data = data
             self.gate_mm = float(gate_mm)
             self.jacobian = jacobian
+            self.moments: torch.Tensor | None = None  # (K, 3) body-axis mm^2, once estimated
+
+        def deformation_cov(self, poses: torch.Tensor) -> torch.Tensor:
+            """How far the parts stray from the net's predictions: per part and body axis the
+            second moment of (measured - predicted) over the frames where the part was
+            measured (the net never sees a frame's own measurement, so this is a held-out
+            error), estimated once at the first call's poses and rotated into each frame."""
+            from adjust.lsq.geometry import so3_exp
+            from adjust.lsq.observation import _rotate_axes_var
+
+            R = so3_exp(poses[:, :3])
+            if self.moments is None:
+                if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
+                    self.prepare(poses)
+                X = self._forward(poses)
+                d = torch.einsum("tji,tkj->tki", R, self.data.to(X.dtype) - X)
+                m = self.observed & torch.isfinite(self.data).all(-1)
+                n = m.sum(0).clamp_min(1)[:, None]
+                mom = torch.where(m[..., None], d * d, torch.zeros_like(d)).sum(0) / n
+                if bool((m.sum(0) == 0).any()) and bool(m.any()):
+                    mom[m.sum(0) == 0] = mom[m.sum(0) > 0].max(0).values
+                self.moments = mom.clamp_min(0.25)
+            v = self.moments.to(poses.dtype).expand(poses.shape[0], -1, -1)
+            return _rotate_axes_var(R, v)
 
         def prepare(self, poses: torch.Tensor) -> None:
             Xr, _ = self.rigid.rigid_points(poses)
@@ -252,13 +276,19 @@ def _measured_observation_class():
     return MeasuredDeformation
 
 
-def make_deformable_observation(model, body_points: np.ndarray, det: Detections, cams, cfg_def):
+def make_deformable_observation(
+    model, body_points: np.ndarray, det: Detections, cams, cfg_def, cons=None
+):
     """The solver's deformable observation for this data: the net's ``deformed`` inputs for
-    observed tokens are the parts triangulated (robustly) from the detections, gated by their
-    distance from the rigid model (`deform.gate_mm`)."""
+    observed tokens are the parts triangulated (robustly) from the detections (the session's
+    gated 3D observations `cons` when given), gated by their distance from the rigid model
+    (`deform.gate_mm`)."""
     cfg_def = cfg_def if cfg_def is not None else {}
-    tri = _triangulate(det, cams, True, float(cfg_def.get("max_error_px", 20.0)))
-    X = tri.points.to(torch.float64)
+    if cons is not None:
+        X = torch.as_tensor(cons.points, dtype=torch.float64)
+    else:
+        tri = _triangulate(det, cams, True, float(cfg_def.get("max_error_px", 20.0)))
+        X = tri.points.to(torch.float64)
     observed = torch.isfinite(X).all(-1)
     jac = str(cfg_def.get("jacobian", "frozen"))
     # finite differences need float64 through the net; the frozen Jacobian does not
@@ -373,7 +403,7 @@ def run(cfg: DictConfig) -> dict:
 
 def _run(cfg: DictConfig) -> dict:
     from adjust.lsq.config import SolverConfig
-    from adjust.lsq.solver import adjust_poses
+    from adjust.lsq.solver import TRACK_OUTPUTS, adjust_poses
 
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
@@ -478,12 +508,18 @@ def _run(cfg: DictConfig) -> dict:
     def_facts: dict | None = None
     if model is not None:
         observation, def_facts = make_deformable_observation(
-            model, body.points, det, cams, cfg.get("deform")
+            model, body.points, det, cams, cfg.get("deform"), cons=cons
         )
     progress = bool(cfg.get("progress", True))
     init_poses = None
     rigid_iterations = 0
     deform_cfg = cfg.get("deform") or {}
+    # views of a unanimous camera consensus are fused without a gate; where the consensus had
+    # to outvote a camera, the track decides which views to believe (a consistent wrong pair,
+    # e.g. a left/right swap seen alike by two cameras, can outvote the right one)
+    trusted = None
+    if cons is not None:
+        trusted = cons.used & (cons.observed & ~cons.dropped.any(-1))[..., None]
     if observation is None or bool(deform_cfg.get("rigid_first", True)) or mode == "interp":
         # the rigid adjustment: the result itself, or the start of a deformable one
         rigid = adjust_poses(
@@ -494,6 +530,8 @@ def _run(cfg: DictConfig) -> dict:
             solver_cfg,
             observation=rigid_obs,
             progress=progress,
+            trusted=trusted,
+            outputs=TRACK_OUTPUTS,  # only what is written: long sessions in bounded memory
         )
         res = rigid
         init_poses, rigid_iterations = rigid.poses, int(rigid.iterations)
@@ -522,6 +560,8 @@ def _run(cfg: DictConfig) -> dict:
             init_poses=init_poses,
             observation=observation,
             progress=progress,
+            trusted=trusted,
+            outputs=TRACK_OUTPUTS,
         )
     if mode == "interp":
         def_facts = interp_facts(observation, body)
@@ -539,7 +579,7 @@ def _run(cfg: DictConfig) -> dict:
         error = np.nanmean(view_err, axis=-1) if C else np.full((T, K), np.nan)
     score = np.where(observed, det.likelihood, np.inf).min(-1)
     score = np.where((ncams > 0) & np.isfinite(score), score, np.nan)
-    sigma = np.sqrt(np.clip(np.trace(res.point_cov, axis1=-2, axis2=-1), 0, None))
+    sigma = res.point_sd  # root of the trace of each point's covariance (mm)
     pc = res.pose_cov
     extra: dict[str, np.ndarray] = {n: res.poses[:, i] for i, n in enumerate(POSE_COLUMNS)}
     extra["pose_sigma_r"] = np.sqrt(np.clip(np.trace(pc[:, :3, :3], axis1=-2, axis2=-1), 0, None))

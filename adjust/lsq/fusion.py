@@ -76,6 +76,48 @@ def fuse_points(
     return X, sym3_inverse(A)
 
 
+#: candidate inflation factors of a prior covariance (`prior_inflation`)
+INFLATIONS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 13.0, 16.0, 20.0, 25.0)
+
+
+def prior_inflation(
+    X_prior: Tensor,
+    prior_cov: Tensor,
+    xy: Tensor,
+    use: Tensor,
+    cams: CameraTensors,
+    sigma_px: float,
+    min_count: int = 30,
+) -> Tensor:
+    """Per part, the factor alpha >= 1 on the prior covariance that makes the prior agree with
+    the data: the mean over the detections ``use`` (T, K, C) (e.g. the single views, which
+    are independent of the prior) of the innovation's squared Mahalanobis distance under
+    S = alpha J P J^T + sigma^2 I, each clipped at 30 so that gross mis-detections do not
+    count, is at most the chi-square (2 dof) mean, 2 (the smallest candidate alpha that gets
+    there). Parts with fewer than ``min_count`` such detections keep 1. Returns (K,)."""
+    uv, J, _ = project_with_jacobian(X_prior, cams)
+    JPJ = J @ prior_cov[..., None, :, :] @ J.transpose(-1, -2)  # (T, K, C, 2, 2)
+    e = torch.where(use[..., None], xy - uv, torch.zeros_like(uv))
+    K = use.shape[1]
+    out = torch.ones(K, dtype=X_prior.dtype)
+    eye = torch.eye(2, dtype=JPJ.dtype)
+    for k in range(K):
+        m = use[:, k]
+        if int(m.sum()) < min_count:
+            continue
+        Pk, ek = JPJ[:, k][m], e[:, k][m]
+        best = None
+        for a in INFLATIONS:
+            S = a * Pk + sigma_px**2 * eye
+            d2 = (ek[..., None, :] @ torch.linalg.solve(S, ek[..., None]))[..., 0, 0]
+            stat = float(d2.clamp_max(30.0).mean())
+            best = a
+            if stat <= 2.0:
+                break
+        out[k] = best
+    return out
+
+
 def innovation_gate(
     X_prior: Tensor,
     prior_cov: Tensor,

@@ -170,7 +170,7 @@ class InterpObservation:
             if (new == good).all():
                 break
             good = new
-        self.outliers = m & ~good
+        self.outliers = torch.as_tensor(m & ~good)
         dt = poses.dtype
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
@@ -199,6 +199,8 @@ class InterpObservation:
         return self.rigid.rigid_points(poses)
 
     def window(self, start: int, stop: int) -> InterpObservation:
+        if start == 0 and stop == self.observed.shape[0]:
+            return self
         nc = None if self.noise_cov is None else self.noise_cov[start:stop]
         return InterpObservation(self.body, self.data[start:stop], self.observed[start:stop], nc)
 

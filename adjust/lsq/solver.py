@@ -19,7 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,7 +30,7 @@ from adjust.camera import CameraTensors
 from adjust.lsq import banded
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.constraint import add_track_normal, default_rho, make_grid, track_residuals
-from adjust.lsq.fusion import fuse_points, innovation_gate
+from adjust.lsq.fusion import fuse_points, innovation_gate, prior_inflation
 from adjust.lsq.geometry import (
     normal_blocks_3d,
     project_components,
@@ -49,7 +49,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class AdjustmentResult:
-    """Output of `adjust_poses` (numpy float64; T frames, K parts, C cameras).
+    """Output of `adjust_poses` (numpy float64, but weights, residuals and pose_cov float32; T
+    frames, K parts, C cameras). An array not asked for (`adjust_poses`'s ``outputs``) is None.
 
     poses (T, 6): Rodrigues vector (angle in [0, pi]) + translation mm, model -> global.
     points (T, K, 3): fused part positions (own detections + model), mm; point_cov (T, K, 3, 3)
@@ -60,25 +61,27 @@ class AdjustmentResult:
     residuals (T, K, C, 2) px: detection minus projected model point (NaN: no detection).
     weights (T, K, C): final relative weight of each detection (robust kernel x mixture, scaled
     so that a clean detection of the narrow Gaussian has 1; 0: no detection).
+    point_sd (T, K) mm: root of the trace of point_cov (a point's 3D standard error).
     ncams (T, K): accepted detections per part; observed (T,): frame had any detection;
     fitted (T,): frame had its own initial fit; init_poses (T, 6).
     iterations: LM iterations (max over chunks); cost_history: one list of costs per chunk;
     converged: all chunks converged; mixture_share: final share of the narrow Gaussian.
     """
 
-    poses: np.ndarray
-    points: np.ndarray
-    point_cov: np.ndarray
-    point_sigma: np.ndarray
-    model_points: np.ndarray
-    model_sigma: np.ndarray
-    pose_cov: np.ndarray
-    residuals: np.ndarray
-    weights: np.ndarray
-    ncams: np.ndarray
-    observed: np.ndarray
-    fitted: np.ndarray
-    init_poses: np.ndarray
+    poses: np.ndarray | None = None
+    points: np.ndarray | None = None
+    point_cov: np.ndarray | None = None
+    point_sigma: np.ndarray | None = None
+    model_points: np.ndarray | None = None
+    model_sigma: np.ndarray | None = None
+    pose_cov: np.ndarray | None = None
+    residuals: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    ncams: np.ndarray | None = None
+    observed: np.ndarray | None = None
+    fitted: np.ndarray | None = None
+    init_poses: np.ndarray | None = None
+    point_sd: np.ndarray | None = None
     iterations: int = 0
     cost_history: list[list[float]] = field(default_factory=list)
     converged: bool = False
@@ -99,6 +102,52 @@ class AdjustmentResult:
             return np.nanmean(err, axis=-1)
 
 
+#: the per-frame arrays `adjust_poses` can return (``outputs``); poses, pose_cov and fitted
+#: always come back
+RESULT_ARRAYS = (
+    "points",
+    "point_cov",
+    "point_sigma",
+    "model_points",
+    "model_sigma",
+    "residuals",
+    "weights",
+    "ncams",
+    "observed",
+    "point_sd",
+    "init_poses",
+)
+#: what adjust-track writes: fused points, their 3D standard error, the detection weights
+TRACK_OUTPUTS = ("points", "point_sd", "weights")
+#: stored in float32 (diagnostics; halves the largest arrays of long sessions; pose_cov too)
+_FLOAT32_OUTPUTS = ("residuals", "weights")
+
+
+class _MaskedRows:
+    """``x`` where ``mask``, else 0, made per block of frames on indexing (``[a:b]``) in
+    ``dtype``: the problem's inputs without a full-length copy (x: (T, ...) as stored)."""
+
+    def __init__(self, x: Tensor, mask: Tensor, dtype: torch.dtype) -> None:
+        self.x, self.mask, self.dtype = x, mask, dtype
+
+    def __getitem__(self, s: slice) -> Tensor:
+        x = self.x[s].to(self.dtype)
+        return torch.where(self.mask[s], x, torch.zeros_like(x))
+
+    def full(self) -> Tensor:
+        return self[:]
+
+
+def _as_stored(x, dtype: torch.dtype) -> Tensor:
+    """Inputs as the caller stores them when that is float32 (converted per chunk), else in
+    ``dtype``: float32 detections of a long session are not copied to float64 whole."""
+    if isinstance(x, Tensor) and x.dtype == torch.float32:
+        return x
+    if not isinstance(x, Tensor) and np.asarray(x).dtype == np.float32:
+        return _as_tensor(x, torch.float32)
+    return _as_tensor(x, dtype)
+
+
 @dataclass
 class _Problem:
     """One (chunk of the) adjustment problem in torch."""
@@ -115,6 +164,8 @@ class _Problem:
     W6: Tensor | None = None  # (C 6, 9): camera-frame 3x3 (6 unique) -> world, summed over C
     Wg: Tensor | None = None  # (C 3, 3): camera-frame gradient -> world, summed over C
     defvar: Tensor | None = None  # (T, K) mm^2 per-part-frame deformation variance (per axis)
+    trusted: Tensor | None = None  # (T, K, C) bool: views of a camera consensus (no gate)
+    inflation: Tensor | None = None  # (K,) prior covariance inflation found by the fusion
 
     def __post_init__(self) -> None:
         self.xu, self.xv = self.xy[..., 0], self.xy[..., 1]
@@ -330,6 +381,8 @@ def adjust_poses(
     init_poses: Tensor | np.ndarray | None = None,
     observation: ObservationModel | None = None,
     progress: bool = True,
+    trusted: Tensor | np.ndarray | None = None,
+    outputs: Sequence[str] | None = None,
 ) -> AdjustmentResult:
     """Complete 3D pose track and part positions from incomplete multi-camera detections.
 
@@ -339,11 +392,17 @@ def adjust_poses(
     config.init); observation: observation function (default: rigid body_points); progress: a
     rich progress bar over the iterations. Never returns NaN in poses, points or covariances:
     frames without detections get their pose from the track constraint (or, with nothing to
-    go by, from the initialisation with a huge covariance).
+    go by, from the initialisation with a huge covariance). trusted: (T, K, C) bool, optional:
+    views of a camera consensus (e.g. `adjust.estimate.consensus`), fused without being gated
+    against the model's prediction (used only with an observation model that states its
+    deformation covariance). outputs: names from `RESULT_ARRAYS` to return (None: all; the others
+    are None; `TRACK_OUTPUTS`: what adjust-track needs): long sessions keep only what they use.
     """
     cfg = config if config is not None else SolverConfig()
     with _threads(cfg.num_threads):
-        return _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, progress)
+        return _adjust_poses(
+            xy, weight, cams, body_points, cfg, init_poses, observation, progress, trusted, outputs
+        )
 
 
 @contextlib.contextmanager
@@ -360,9 +419,11 @@ def _threads(n: int) -> Iterator[None]:
         torch.set_num_threads(old)
 
 
-def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, progress):
+def _adjust_poses(
+    xy, weight, cams, body_points, cfg, init_poses, observation, progress, trusted, outputs=None
+):
     dt = cfg.torch_dtype
-    xy_t = _as_tensor(xy, dt)
+    xy_t = _as_stored(xy, dt)
     if xy_t.dim() != 4 or xy_t.shape[-1] != 2:
         raise ValueError(f"xy must have shape (T, K, C, 2), got {tuple(xy_t.shape)}")
     T, K, C, _ = xy_t.shape
@@ -374,13 +435,13 @@ def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, p
         )
     if cams.num_cameras != C:
         raise ValueError(f"xy has {C} cameras, cams has {cams.num_cameras}")
-    w_t = torch.ones((T, K, C), dtype=dt) if weight is None else _as_tensor(weight, dt)
+    w_t = torch.ones((T, K, C), dtype=dt) if weight is None else _as_stored(weight, dt)
     if w_t.shape != (T, K, C):
         raise ValueError(f"weight must have shape ({T}, {K}, {C}), got {tuple(w_t.shape)}")
     cams = CameraTensors(cams.K.to(dt), cams.R.to(dt), cams.t.to(dt), cams.dist.to(dt), cams.names)
     valid = torch.isfinite(xy_t).all(-1) & torch.isfinite(w_t) & (w_t > cfg.min_weight)
-    xy0 = torch.where(valid[..., None], xy_t, torch.zeros_like(xy_t))
-    base = torch.where(valid, w_t, torch.zeros_like(w_t))
+    xy0 = _MaskedRows(xy_t, valid[..., None], dt)  # xy0[a:b]: one chunk's, made on demand
+    base = _MaskedRows(w_t, valid, dt)
     obs = observation if observation is not None else RigidObservation(body)
     # initialisation
     if init_poses is not None:
@@ -391,16 +452,22 @@ def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, p
         fitted = torch.ones(T, dtype=torch.bool)
     else:
         p0, fitted = initial_poses(
-            xy0, valid, cams, body, cfg.init, (cfg.kalman_accel_rad, cfg.kalman_accel_mm)
+            xy0.full(), valid, cams, body, cfg.init, (cfg.kalman_accel_rad, cfg.kalman_accel_mm)
         )
     rho = cfg.rotation_scale_mm if cfg.rotation_scale_mm is not None else default_rho(body)
     grid = make_grid(body, cfg.grid_size) if cfg.constraint == "grid" else None
     focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs())
 
+    tr = None if trusted is None else torch.as_tensor(np.asarray(trusted, dtype=bool))
+    if tr is not None and tr.shape != (T, K, C):
+        raise ValueError(f"trusted must have shape ({T}, {K}, {C}), got {tuple(tr.shape)}")
+
     def problem(a: int, b: int) -> _Problem:
-        return _Problem(
+        pb = _Problem(
             xy0[a:b], base[a:b], valid[a:b], cams, obs.window(a, b), cfg, rho, grid, focal
         )
+        pb.trusted = None if tr is None else tr[a:b]
+        return pb
 
     # chunks: cores [a, b) solved with `overlap` extra frames each side, the core kept
     ov = cfg.overlap
@@ -409,7 +476,7 @@ def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, p
     else:
         cores = [(0, T)]
     poses = p0.clone()
-    pose_cov = np.zeros((T, 6, 6))
+    pose_cov = np.zeros((T, 6, 6), dtype=np.float32)  # float32: 144 B per frame, not 288
     histories, iters, conv, shares = [], 0, True, []
     for i, (a, b) in enumerate(cores):
         ea, eb = (max(0, a - ov), min(T, b + ov)) if len(cores) > 1 else (a, b)
@@ -423,20 +490,31 @@ def _adjust_poses(xy, weight, cams, body_points, cfg, init_poses, observation, p
         shares.append(out["share"])
     share = float(np.mean(shares)) if shares else 1.0
     # per-frame outputs, chunk by chunk (cache-friendly; neighbours for windowed models)
-    parts = []
+    # ... each chunk's core written into arrays of all frames (only those asked for)
+    keep = set(RESULT_ARRAYS if outputs is None else outputs)
+    unknown = keep - set(RESULT_ARRAYS)
+    if unknown:
+        raise ValueError(f"unknown outputs {sorted(unknown)} (known: {list(RESULT_ARRAYS)})")
+    init_out = p0.detach().cpu().numpy().astype(np.float64) if "init_poses" in keep else None
+    del p0  # not needed past the solve
+    arrays: dict[str, np.ndarray] = {}
     for a, b in cores:
         ea, eb = (max(0, a - ov), min(T, b + ov)) if len(cores) > 1 else (a, b)
         out = _frame_outputs(poses[ea:eb], pose_cov[ea:eb], problem(ea, eb), share)
-        parts.append({k: v[a - ea : b - ea] for k, v in out.items()})
-    arrays = {k: np.concatenate([p[k] for p in parts], 0) for k in parts[0]}
-
-    def np_(x: Tensor) -> np.ndarray:
-        return x.detach().cpu().numpy().astype(np.float64)
-
+        if "point_sd" in keep:  # (T, K) mm: root of the trace of each point's covariance
+            tr = np.trace(out["point_cov"], axis1=-2, axis2=-1)
+            out["point_sd"] = np.sqrt(np.clip(tr, 0, None))
+        for k, v in out.items():
+            if k == "poses" or k in keep:
+                if k not in arrays:
+                    dtype = np.float32 if k in _FLOAT32_OUTPUTS else v.dtype
+                    arrays[k] = np.empty((T, *v.shape[1:]), dtype=dtype)
+                arrays[k][a:b] = v[a - ea : b - ea]
+        del out
     return AdjustmentResult(
-        pose_cov=np.asarray(pose_cov, dtype=np.float64),
+        pose_cov=pose_cov,
         fitted=fitted.cpu().numpy(),
-        init_poses=np_(p0),
+        init_poses=init_out,
         iterations=iters,
         cost_history=histories,
         converged=conv,
@@ -474,7 +552,19 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: _Problem, share: flo
         )
     else:  # estimated: each part-frame's own prior, detections gated against it, to convergence
         prior = model_cov + dcov + 1e-6 * eye
+        # calibrate the prior on the single detections (independent of it): per part inflation
+        single = pb.valid & (pb.valid.sum(-1, keepdim=True) == 1)
+        alpha = prior_inflation(lin.X, prior, pb.xy, single, pb.cams, cfg.sigma_det_px)
+        pb.inflation = alpha
+        # ... applied where the part is predicted across a gap (no camera consensus in the frame)
+        gap = torch.ones_like(single[..., 0]) if pb.trusted is None else ~pb.trusted.any(-1)
+        prior = (
+            prior
+            * torch.where(gap, alpha[None, :], torch.ones_like(alpha)[None, :])[..., None, None]
+        )
         accepted, _ = innovation_gate(lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px)
+        if pb.trusted is not None:  # cameras that agree with each other outvote the prior
+            accepted = accepted | (pb.trusted & pb.valid)
         w_fuse = accepted.to(dt) / cfg.sigma_det_px**2
         pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, 50, pb.W6, pb.Wg, tol=1e-4)
         rob = rob * accepted.to(dt)

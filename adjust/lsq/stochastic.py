@@ -11,9 +11,9 @@ Nothing here is a fixed constant: every variance is estimated from the session i
   (the nugget) and its empirical semivariogram gamma(h) = E |o_{t+h} - o_t|^2 / 2 over lags h
   in frames, estimated from the part-frames triangulated from >= 2 cameras.
 - `krige_offsets`: each part-frame's offset predicted from the nearest observed frames before
-  and after it, *excluding the frame itself* (simple kriging with the estimated covariance
-  C(h) = var - gamma(h)): the prediction and its variance. On a gap this is the interpolation
-  of the offsets across the gap (held towards the mean at the ends); on an observed frame it is
+  and after it, *excluding the frame itself*: linear interpolation across a gap (held at the
+  ends), its error variance from the semivariogram (or the part's mean where that is the
+  better guess). On a gap this is the interpolation of the offsets; on an observed frame it is
   the prediction from its neighbours, an independent prior to fuse with the frame's own
   detections. The variance is what makes the reported uncertainty calibrated.
 
@@ -192,10 +192,15 @@ def krige_offsets(
     """Predict every part-frame's offset from its nearest observed neighbours in time.
 
     offsets (T, K, 3) (any value where not observed), observed (T, K) -> prediction (T, K, 3)
-    mm and its variance (T, K, 3) mm^2 per body axis. Simple kriging on the previous and the
-    next observed frame (strictly before / after t with ``skip_self``; both the same frame t
-    without it), with the noise-free covariance ``cov.covariance`` plus the nugget on the
-    observations. With no neighbour: the mean, variance = sill.
+    mm and its variance (T, K, 3) mm^2 per body axis. Between the previous and the next
+    observed frame (strictly before / after t with ``skip_self``) the offset is interpolated
+    linearly (the ordinary-kriging weights of two neighbours under a power-law semivariogram;
+    exact for a part moving linearly in body coordinates), beyond the last one it is held. Its
+    error variance follows from the semivariogram of the noise-free offsets and the nugget of
+    the observations: for weights l_p + l_n = 1 at lags d_p, d_n,
+    2 (l_p g(d_p) + l_n g(d_n)) - 2 l_p l_n g(d_p + d_n) + (l_p^2 + l_n^2) nugget.
+    Where that exceeds the part's variance about its mean (far from any observation), the mean
+    is the better prediction and is used, with variance = sill; so is it with no neighbour.
     """
     o = np.asarray(offsets, dtype=np.float64)
     m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
@@ -203,31 +208,23 @@ def krige_offsets(
     prev, nxt = _neighbours(m, skip_self)
     t = np.arange(T)[:, None]
     has_p, has_n = prev >= 0, nxt < T
-    same = has_p & has_n & (prev == nxt)  # (only without skip_self) the frame itself
     dp = np.where(has_p, t - prev, 0).astype(np.float64)
     dn = np.where(has_n, nxt - t, 0).astype(np.float64)
-    mu = cov.mean[None]  # (1, K, 3)
-    op = np.where(has_p[..., None], o[np.clip(prev, 0, T - 1), np.arange(K)[None]], 0.0) - mu
-    on = np.where(has_n[..., None], o[np.clip(nxt, 0, T - 1), np.arange(K)[None]], 0.0) - mu
-    # covariances, (T, K, 3) each: c_p = C(dp), c_n = C(dn), c_pn = C(dp + dn)
-    Cp, Cn, Cpn = cov.covariance(dp), cov.covariance(dn), cov.covariance(dp + dn)
-    s0 = cov.sill[None] + cov.nugget[None]  # variance of one observation
-    sill = np.broadcast_to(cov.sill[None], (T, K, 3))
-    hp, hn = has_p[..., None], has_n[..., None]
-    both = hp & hn & ~same[..., None]
-    # two neighbours: solve [[s0, Cpn], [Cpn, s0]] lam = [Cp, Cn]
-    det = s0 * s0 - Cpn * Cpn
-    det = np.where(det > 1e-12, det, 1e-12)
-    l1 = (s0 * Cp - Cpn * Cn) / det
-    l2 = (s0 * Cn - Cpn * Cp) / det
-    pred2 = l1 * op + l2 * on
-    var2 = sill - (l1 * Cp + l2 * Cn)
-    # one neighbour (or the frame itself)
-    c1 = np.where(hp, Cp, Cn)
-    o1 = np.where(hp, op, on)
-    l = c1 / s0
-    pred1 = l * o1
-    var1 = sill - l * c1
-    pred = np.where(both, pred2, np.where(hp | hn, pred1, 0.0)) + mu
-    var = np.where(both, var2, np.where(hp | hn, var1, sill))
+    kk = np.arange(K)[None]
+    op = np.where(has_p[..., None], o[np.clip(prev, 0, T - 1), kk], 0.0)
+    on = np.where(has_n[..., None], o[np.clip(nxt, 0, T - 1), kk], 0.0)
+    both = has_p & has_n
+    span = np.where(both, dp + dn, 1.0)
+    lp = np.where(both, dn / span, has_p.astype(np.float64))  # weight of the previous frame
+    ln = np.where(both, dp / span, has_n.astype(np.float64))
+    sill = cov.sill[None]
+    gp = sill - cov.covariance(dp)  # noise-free semivariogram at the lags, (T, K, 3)
+    gn = sill - cov.covariance(dn)
+    gpn = sill - cov.covariance(dp + dn)
+    lp3, ln3 = lp[..., None], ln[..., None]
+    pred = lp3 * op + ln3 * on
+    var = 2 * (lp3 * gp + ln3 * gn) - 2 * lp3 * ln3 * gpn + (lp3**2 + ln3**2) * cov.nugget[None]
+    use_mean = ~(has_p | has_n)[..., None] | (var > sill)
+    pred = np.where(use_mean, cov.mean[None], pred)
+    var = np.where(use_mean, np.broadcast_to(sill, var.shape), var)
     return pred, np.maximum(var, 1e-6)

@@ -1,0 +1,243 @@
+"""Domain-gap benchmark: the sim-to-real gap reproduced in simulation, with the peer side by side.
+
+A `sim=mouse_b` scene (the second simulated mouse: 1.2x Table 1, 100 fps, trot, spine bending,
+free head, rearing; not the mouse any net is trained on) filmed by the default rig and detector,
+with a seed nothing trains on. Against its truth, for every method: completeness, RMSE all /
+seen by >= 2 cameras / occluded (< 2) / fraction within 5 mm (missing = miss), and seconds:
+
+- ``dlt``: `adjust-triangulate` (linear, >= 2 views);
+- ``robust_tri``: robust triangulation (`adjust.triangulate.triangulate(robust=True)`);
+- ``aniposelib``: aniposelib's `triangulate_optim` with anipose's settings and length
+  constraints (head triangle strong, trunk weak), run in its own environment (`make bench-env`);
+- ``rigid``: `adjust-track deformation=rigid` (Table 1 scaled to the data, stochastic model
+  estimated from the data);
+- ``interp``: `adjust-track` (its default, `deformation=interp`);
+- ``net_sim``: `adjust-track deformation=CKPT` with a net trained on the default simulator only
+  (``--checkpoint``, or trained here for ``--train-minutes``; ``--no-net`` skips it).
+
+Also printed: the scene's rigid floor (generalized Procrustes against the truth), and per
+adjust-track variant the uncertainty calibration ratios rms error / rms ``{part}_sigma`` on seen
+and occluded part-frames. Targets: interp beats aniposelib on every column; seen >= 2 RMSE of
+every adjust-track variant <= robust triangulation's; calibration ratios within 0.8-1.25.
+
+    .venv/bin/python benchmarks/domain_gap.py [--frames 1500] [--seed 92000] [--checkpoint CKPT]
+        [--train-minutes 3] [--no-net] [--no-anipose]
+
+Last line JSON, also written to runs/benchmarks/domain_gap.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from peers.anipose import (  # noqa: E402
+    MOUSE_CONSTRAINTS,
+    MOUSE_CONSTRAINTS_WEAK,
+    bench_python,
+    constraint_indices,
+    run_anipose,
+)
+from tracking import compose, run_dlt, run_track, train_net  # noqa: E402
+
+from adjust.app import finite_or_none  # noqa: E402
+from adjust.metrics import point_errors  # noqa: E402
+from deformnet.atomic import write_text  # noqa: E402
+from deformnet.paths import CONF_DIR  # noqa: E402
+from deformnet.shape import rigid_floor  # noqa: E402
+
+log = logging.getLogger("benchmarks.domain_gap")
+ROOT = CONF_DIR.parent
+SCENE_SEED = 92_000  # held out: no training run uses it
+
+
+def make_scene(out: Path, frames: int, seed: int) -> None:
+    from adjust.scene_cli import run
+
+    run(
+        compose(
+            "scene", [f"output.dir={out}", f"num_frames={frames}", f"seed={seed}", "sim=mouse_b"]
+        )
+    )
+
+
+def evaluate(est: np.ndarray, truth: np.ndarray, nviews: np.ndarray) -> dict:
+    m = point_errors(est, truth, nviews)
+    return {
+        "completeness": m["completeness"],
+        "rmse_all": m["rmse_all"],
+        "rmse_seen2": m["rmse_seen"],
+        "rmse_occluded": m["rmse_occluded"],
+        "within5": m["within5_strict_all"],
+    }
+
+
+def calibration(out: Path, est: np.ndarray, truth: np.ndarray, nviews: np.ndarray, parts) -> dict:
+    """rms error / rms sigma on seen (>= 2 cameras) and occluded part-frames."""
+    df = pd.read_csv(out / "points3d.csv")
+    sig = np.stack([df[f"{p}_sigma"].to_numpy(float) for p in parts], 1)
+    err = np.linalg.norm(est - truth, axis=-1)
+    res = {}
+    for name, m in (("seen", nviews >= 2), ("occluded", nviews < 2)):
+        res[f"calib_{name}"] = float(np.sqrt(np.mean(err[m] ** 2)) / np.sqrt(np.mean(sig[m] ** 2)))
+    return res
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "n/a" if not math.isfinite(v) else f"{v:.3f}" if abs(v) < 10 else f"{v:.2f}"
+    return "n/a" if v is None else str(v)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=1500)
+    ap.add_argument("--seed", type=int, default=SCENE_SEED)
+    ap.add_argument("--checkpoint", default=None, help="simulator-trained net (else train one)")
+    ap.add_argument("--train-minutes", type=float, default=3.0)
+    ap.add_argument("--no-net", action="store_true")
+    ap.add_argument("--no-anipose", action="store_true")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "domain_gap"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "domain_gap.json"))
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(1)
+    work = Path(args.work)
+    scene = work / f"scene_mouse_b_{args.frames}_{args.seed}"
+    if not (scene / "truth.npz").exists():
+        make_scene(scene, args.frames, args.seed)
+    tr = np.load(scene / "truth.npz")
+    truth, nviews = tr["points"], tr["nviews"]
+    parts = [str(p) for p in tr["parts"]]
+    floor = rigid_floor(truth, parts=parts)
+    fractions = {
+        "seen_ge2": float((nviews >= 2).mean()),
+        "seen_1": float((nviews == 1).mean()),
+        "seen_0": float((nviews == 0).mean()),
+    }
+    results: dict[str, dict] = {}
+    extra: dict = {"rigid_floor": floor.as_dict()}
+
+    est, secs = run_dlt(scene, work / "dlt")
+    results["dlt"] = {**evaluate(est, truth, nviews), "seconds": round(secs, 2)}
+
+    from adjust.camera import CameraTensors
+    from adjust.io import load_scene
+    from adjust.triangulate import triangulate
+    from deformnet.body import default_mouse
+
+    cameras, det = load_scene(scene / "calibration.toml", scene / "detections", default_mouse())
+    cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        rt = triangulate(torch.as_tensor(det.xy), torch.as_tensor(det.weight()), cams, robust=True)
+    secs = time.perf_counter() - t0
+    results["robust_tri"] = {
+        **evaluate(rt.points.numpy(), truth, nviews),
+        "seconds": round(secs, 2),
+    }
+
+    if not args.no_anipose:
+        if bench_python() is None:
+            log.warning("aniposelib not installed (make bench-env): its row is skipped")
+        else:
+            pts, secs = run_anipose(
+                scene / "calibration.toml",
+                det.cameras,
+                det.xy,
+                det.likelihood,
+                constraint_indices(parts, MOUSE_CONSTRAINTS),
+                constraint_indices(parts, MOUSE_CONSTRAINTS_WEAK),
+            )
+            results["aniposelib"] = {**evaluate(pts, truth, nviews), "seconds": round(secs, 2)}
+
+    variants = {"rigid": ["deformation=rigid"], "interp": []}
+    if not args.no_net:
+        ckpt = args.checkpoint
+        if ckpt is None:
+            mins = args.train_minutes
+            ckpt, tsecs, _ = train_net(
+                work / "net_sim",
+                [f"trainer.max_time=00:00:{int(mins):02d}:{int(60 * (mins % 1)):02d}"],
+            )
+            extra["net_training_s"] = round(tsecs, 1)
+        extra["checkpoint"] = str(ckpt)
+        variants["net_sim"] = [f"deformation={ckpt}"]
+    for name, ov in variants.items():
+        est, secs, summ = run_track(scene, work / name, ["threads=1", *ov])
+        results[name] = {
+            **evaluate(est, truth, nviews),
+            "seconds": round(secs, 2),
+            **calibration(work / name, est, truth, nviews, parts),
+        }
+        if name == "interp":
+            extra["stochastic"] = summ.get("stochastic")
+            extra["body"] = {k: summ["body"].get(k) for k in ("scale", "rigid_rms_mm")}
+
+    cols = [
+        ("completeness", "complete"),
+        ("rmse_all", "rmse all"),
+        ("rmse_seen2", "rmse >=2"),
+        ("rmse_occluded", "rmse occl"),
+        ("within5", "<=5mm"),
+        ("seconds", "seconds"),
+        ("calib_seen", "calib seen"),
+        ("calib_occluded", "calib occl"),
+    ]
+    print(f"\nmouse_b scene {scene}: {args.frames} frames, seed {args.seed}")
+    print(
+        f"part-frames seen by >=2 cameras {fractions['seen_ge2']:.3f}, by 1 "
+        f"{fractions['seen_1']:.3f}, by none {fractions['seen_0']:.3f}; rigid floor "
+        f"{floor.rms:.2f} mm rms ("
+        + ", ".join(f"{p} {v:.1f}" for p, v in zip(parts, floor.per_part))
+        + ")"
+    )
+    print(f"{'method':<12}" + "".join(f"{h:>12}" for _, h in cols))
+    for name, r in results.items():
+        print(f"{name:<12}" + "".join(f"{_fmt(r.get(k)):>12}" for k, _ in cols))
+    checks: dict = {}
+    if "aniposelib" in results:
+        a, b = results["interp"], results["aniposelib"]
+        checks["interp_beats_aniposelib_every_column"] = bool(
+            a["rmse_all"] < b["rmse_all"]
+            and a["rmse_seen2"] < b["rmse_seen2"]
+            and a["rmse_occluded"] < b["rmse_occluded"]
+            and a["within5"] > b["within5"]
+            and a["completeness"] >= b["completeness"]
+        )
+        checks["interp_over_aniposelib_all"] = round(a["rmse_all"] / b["rmse_all"], 3)
+    for v in variants:
+        checks[f"{v}_seen2_le_robust_tri"] = bool(
+            results[v]["rmse_seen2"] <= results["robust_tri"]["rmse_seen2"]
+        )
+        checks[f"{v}_calibrated"] = bool(
+            0.8 <= results[v]["calib_seen"] <= 1.25 and 0.8 <= results[v]["calib_occluded"] <= 1.25
+        )
+    print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
+    summary = {
+        **results,
+        "scene": {"frames": args.frames, "seed": args.seed, "sim": "mouse_b", **fractions},
+        "checks": checks,
+        **extra,
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    line = json.dumps(finite_or_none(summary))
+    write_text(args.out, line + "\n")
+    print(line, flush=True)
+    return summary
+
+
+if __name__ == "__main__":
+    main()

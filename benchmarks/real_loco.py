@@ -1,0 +1,239 @@
+"""Leave-one-camera-out on real data: the accuracy measure that needs no 3D truth.
+
+For every real session in shared/data (the 4-camera hand, DeepLabCut CSVs; the 3-camera fly,
+DeepLabCut-style CSVs with extreme long-lens intrinsics; the 4-camera SLEAP mouse, whose `side`
+camera has a wrong pose in its calibration, so it is left out of that rig and the leave-outs run
+over the three good cameras) and every camera of it: track with the *other* cameras only,
+project the 3D points into the left-out camera and measure the pixel distance to its confident
+detections (likelihood >= 0.9). Methods, side by side on the same subsets:
+
+- ``dlt``: `adjust-triangulate` (linear, >= 2 views);
+- ``aniposelib``: aniposelib's `triangulate_optim` (anipose's settings; no skeleton constraints:
+  these keypoint sets have none we could state), in its own environment (`make bench-env`);
+- ``rigid``: `adjust-track body=auto deformation=rigid`;
+- ``interp``: `adjust-track body=auto` (default `deformation=interp`).
+
+Per session and left-out camera: coverage (fraction of the confident detections the method gave
+a 3D point for), median and 90th percentile pixel error over those, and the same on the part-
+frames every method covers (``common``). Every leave-out must run.
+
+    .venv/bin/python benchmarks/real_loco.py [--sessions hand,fly,mouse_sleap] [--no-anipose]
+
+Last line JSON, also written to runs/benchmarks/real_loco.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from peers.anipose import bench_python, run_anipose  # noqa: E402
+from tracking import compose  # noqa: E402
+
+from adjust.app import finite_or_none  # noqa: E402
+from adjust.camera import CameraTensors, project_cameras  # noqa: E402
+from adjust.io import load_calibration, load_scene, read_points3d, save_calibration  # noqa: E402
+from deformnet.atomic import write_text  # noqa: E402
+from deformnet.paths import CONF_DIR, shared_dir  # noqa: E402
+
+log = logging.getLogger("benchmarks.real_loco")
+ROOT = CONF_DIR.parent
+CONFIDENT = 0.9
+METHODS = ("dlt", "aniposelib", "rigid", "interp")
+
+
+def sessions() -> dict[str, dict]:
+    d = shared_dir() / "data"
+    return {
+        "hand": {"dir": d / "real-hand-4cam", "detections": "trial_000", "exclude": []},
+        "fly": {"dir": d / "real-fly-3cam", "detections": ".", "exclude": []},
+        "mouse_sleap": {"dir": d / "real-mouse-sleap-4cam", "detections": ".", "exclude": ["side"]},
+    }
+
+
+def subset_session(src_cal: Path, files: dict[str, Path], keep: list[str], out: Path) -> Path:
+    """A session folder with only the cameras `keep`: calibration.toml + detections/<files>."""
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "detections").mkdir(parents=True)
+    cams = [c for c in load_calibration(src_cal) if c.name in keep]
+    save_calibration(out / "calibration.toml", cams)
+    for name in keep:
+        f = files[name]
+        (out / "detections" / f.name).symlink_to(f.resolve())
+    return out
+
+
+def _run(app: str, session: Path, out: Path, overrides: list[str]):
+    if app == "track":
+        from adjust.track import run
+    else:
+        from adjust.triangulate_cli import run
+    cfg = compose(
+        app,
+        [
+            f"input.calibration={session / 'calibration.toml'}",
+            f"input.detections={session / 'detections'}",
+            f"output.dir={out}",
+            "input.camera_check=off",
+            *(["progress=false", "threads=1"] if app == "track" else []),
+            *overrides,
+        ],
+    )
+    t0 = time.perf_counter()
+    run(cfg)
+    d = read_points3d(out / "points3d.csv")
+    return d["parts"], d["points"], time.perf_counter() - t0
+
+
+def loco(name: str, spec: dict, work: Path, anipose: bool) -> dict:
+    base = spec["dir"]
+    cal = base / "calibration.toml"
+    cameras, det = load_scene(cal, base / spec["detections"], None)
+    files = dict(zip(det.cameras, det.files))
+    good = [c for c in det.cameras if c not in spec["exclude"]]
+    parts = list(det.parts)
+    out: dict = {"cameras": good, "excluded": spec["exclude"], "parts": len(parts), "leave_out": {}}
+    for left in good:
+        keep = [c for c in good if c != left]
+        sess = subset_session(cal, files, keep, work / name / f"without_{left}" / "session")
+        ci = det.cameras.index(left)
+        cam = CameraTensors.from_cameras([cameras[ci]], dtype=torch.float64)
+        target = det.xy[:, :, ci]  # (T, K, 2)
+        conf = np.isfinite(target).all(-1) & (det.likelihood[:, :, ci] >= CONFIDENT)
+        preds: dict[str, np.ndarray] = {}
+        secs: dict[str, float] = {}
+        for m in METHODS:
+            mo = work / name / f"without_{left}" / m
+            try:
+                if m == "dlt":
+                    p, X, s = _run("triangulate", sess, mo, [])
+                elif m == "aniposelib":
+                    if not anipose:
+                        continue
+                    _, dsub = load_scene(sess / "calibration.toml", sess / "detections", None)
+                    X, s = run_anipose(
+                        sess / "calibration.toml",
+                        dsub.cameras,
+                        dsub.xy,
+                        dsub.likelihood,
+                        np.zeros((0, 2), dtype=np.int64),
+                        np.zeros((0, 2), dtype=np.int64),
+                    )
+                    p = list(dsub.parts)
+                else:
+                    ov = ["body=auto"] + (["deformation=rigid"] if m == "rigid" else [])
+                    p, X, s = _run("track", sess, mo, ov)
+            except Exception as exc:  # every leave-out must run: record, do not hide
+                log.error("%s without %s: %s failed: %s", name, left, m, exc)
+                out["leave_out"].setdefault(left, {})[m] = {"error": str(exc)}
+                continue
+            idx = [list(p).index(q) for q in parts]
+            preds[m] = np.asarray(X)[:, idx]
+            secs[m] = s
+        res: dict = {}
+        errs = {}
+        for m, X in preds.items():
+            with torch.no_grad():
+                uv = project_cameras(torch.as_tensor(np.nan_to_num(X)), cam).numpy()[:, :, 0]
+            e = np.linalg.norm(uv - target, axis=-1)
+            has = np.isfinite(X).all(-1) & conf
+            errs[m] = np.where(has, e, np.nan)
+            v = e[has]
+            res[m] = {
+                "coverage": float(has.sum() / max(conf.sum(), 1)),
+                "median_px": float(np.median(v)) if v.size else float("nan"),
+                "p90_px": float(np.percentile(v, 90)) if v.size else float("nan"),
+                "seconds": round(secs[m], 2),
+            }
+        common = conf.copy()
+        for e in errs.values():
+            common &= np.isfinite(e)
+        for m, e in errs.items():
+            v = e[common]
+            res[m]["common_median_px"] = float(np.median(v)) if v.size else float("nan")
+            res[m]["common_p90_px"] = float(np.percentile(v, 90)) if v.size else float("nan")
+        res["confident_detections"] = int(conf.sum())
+        res["common_fraction"] = float(common.sum() / max(conf.sum(), 1))
+        out["leave_out"].setdefault(left, {}).update(res)
+    return out
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "n/a" if not math.isfinite(v) else f"{v:.2f}"
+    return "n/a" if v is None else str(v)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sessions", default="hand,fly,mouse_sleap")
+    ap.add_argument("--no-anipose", action="store_true")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_loco"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "real_loco.json"))
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(1)
+    anipose = not args.no_anipose and bench_python() is not None
+    if not args.no_anipose and not anipose:
+        log.warning("aniposelib not installed (make bench-env): its rows are skipped")
+    work = Path(args.work)
+    results = {}
+    all_specs = sessions()
+    for name in args.sessions.split(","):
+        results[name] = loco(name, all_specs[name], work, anipose)
+    cols = ["coverage", "median_px", "p90_px", "common_median_px", "common_p90_px", "seconds"]
+    failures = 0
+    for name, r in results.items():
+        print(f"\n{name}: cameras {r['cameras']} (excluded {r['excluded']}), {r['parts']} parts")
+        print(f"{'left out':<12}{'method':<12}" + "".join(f"{c:>18}" for c in cols))
+        for left, res in r["leave_out"].items():
+            for m in METHODS:
+                if m not in res:
+                    continue
+                if "error" in res[m]:
+                    failures += 1
+                    print(f"{left:<12}{m:<12}FAILED: {res[m]['error']}")
+                    continue
+                print(f"{left:<12}{m:<12}" + "".join(f"{_fmt(res[m].get(c)):>18}" for c in cols))
+    # medians over all leave-outs of each method's common-subset median
+    overall = {}
+    for m in METHODS:
+        vals = [
+            res[m]["common_median_px"]
+            for r in results.values()
+            for res in r["leave_out"].values()
+            if m in res and "common_median_px" in res[m]
+        ]
+        if vals:
+            overall[m] = float(np.median(vals))
+    print(
+        "\nmedian over leave-outs of the common-subset median error (px): "
+        + ", ".join(f"{m} {v:.2f}" for m, v in overall.items())
+    )
+    summary = {
+        **results,
+        "overall_common_median_px": overall,
+        "failures": failures,
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    line = json.dumps(finite_or_none(summary))
+    write_text(args.out, line + "\n")
+    print(line, flush=True)
+    return summary
+
+
+if __name__ == "__main__":
+    main()
