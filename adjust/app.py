@@ -22,9 +22,11 @@ log = logging.getLogger(__name__)
 
 def _output_or(given, default: str) -> str:
     """Hydra run folder: ``output.dir`` when it is set and usable (an existing folder, or one
-    that can be created, writable), else `default` (under runs/) so that the app itself reports
-    the unusable folder in one line (`prepare_output`) instead of Hydra failing with a
-    traceback. Used as ``hydra.run.dir: ${output_or:${oc.select:output.dir,null},runs/...}``."""
+    that can be created, writable); else `default` (under runs/) when it is not set, or, when it
+    is set but unusable, `default` under the system's temporary folder, so that the app itself
+    reports the unusable folder in one line (`prepare_output`) instead of Hydra failing with a
+    traceback, and nothing lands in the working directory. Used as
+    ``hydra.run.dir: ${output_or:${oc.select:output.dir,null},runs/...}``."""
     if given is None or str(given) in ("", "None", "null"):
         return default
     p = Path(str(given))
@@ -33,8 +35,8 @@ def _output_or(given, default: str) -> str:
         fd, tmp = tempfile.mkstemp(prefix=".write-test.", dir=p)
         os.close(fd)
         os.unlink(tmp)
-    except OSError:
-        return default
+    except OSError:  # Hydra's files go to a scratch folder, not the working directory
+        return str(Path(tempfile.gettempdir()) / "mousetrack" / default)
     return str(p)
 
 
