@@ -24,6 +24,7 @@ from deformnet.atomic import atomic_path
 log = logging.getLogger(__name__)
 
 FIELDS = ("x", "y", "z", "error", "ncams", "score")
+ROWS_PER_BLOCK = 50_000  # write_points3d: rows formatted at a time
 
 
 def write_points3d(
@@ -83,9 +84,12 @@ def write_points3d(
     if f.shape != (T,):
         raise ValueError(f"fnum must have shape ({T},), got {f.shape}")
     cols["fnum"] = f
-    df = pd.DataFrame(cols)
-    with atomic_path(path) as tmp:
-        df.to_csv(tmp, index=False)
+    # streamed in blocks of rows: a long session's table is never built whole in memory
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        pd.DataFrame(columns=list(cols)).to_csv(fh, index=False)
+        for a in range(0, T, ROWS_PER_BLOCK):
+            block = pd.DataFrame({n: v[a : a + ROWS_PER_BLOCK] for n, v in cols.items()})
+            block.to_csv(fh, index=False, header=False)
     return Path(path)
 
 
