@@ -110,8 +110,8 @@ def test_rigid_track_complete_and_better_than_dlt(scene, rigid_run):
     rmse_adj = np.sqrt(np.mean(err_adj[can] ** 2))
     rmse_dlt = np.sqrt(np.mean(err_dlt[can] ** 2))
     assert rmse_adj < rmse_dlt, (rmse_adj, rmse_dlt)
-    # and the parts DLT cannot do are tracked within a body length
-    assert np.sqrt(np.mean(err_adj[~can] ** 2)) < 30.0
+    # and the parts DLT cannot do are tracked about as well (measured 3.8 mm rms)
+    assert np.sqrt(np.mean(err_adj[~can] ** 2)) < 6.0
 
 
 def test_grid_and_spline_constraints(scene, rigid_run, tmp_path):
@@ -121,8 +121,8 @@ def test_grid_and_spline_constraints(scene, rigid_run, tmp_path):
     assert spline["completeness"] == 1.0
     a = read_points3d(rigid_run[0] / "points3d.csv")["points"]
     b = read_points3d(tmp_path / "points3d.csv")["points"]
-    # two forms of the same constraint: close, not identical
-    assert 0 < np.sqrt(np.mean(np.sum((a - b) ** 2, -1))) < 10.0
+    # two forms of the same constraint: close, not identical (measured 0.056 mm rms)
+    assert 0 < np.sqrt(np.mean(np.sum((a - b) ** 2, -1))) < 0.5
     assert grid["iterations"] >= 1 and spline["iterations"] >= 1
 
 
@@ -245,7 +245,7 @@ def test_deformable_run_with_tiny_checkpoint(scene, rigid_run, tmp_path):
     truth = np.load(scene / "truth.npz")["points"]
     rmse = np.sqrt(np.mean(np.sum((d["points"] - truth) ** 2, -1)))
     rmse_rigid = np.sqrt(np.mean(np.sum((rigid - truth) ** 2, -1)))
-    assert rmse < 2 * rmse_rigid + 5.0
+    assert rmse < rmse_rigid + 2.0  # measured 4.66 vs 3.36 mm
 
 
 @pytest.mark.slow
