@@ -17,7 +17,10 @@ For a camera that is off, the likely cause is diagnosed from the others' points:
 - ``scene behind the camera``: most of the points lie behind it (a sign or rotation error);
 - ``rows in reverse frame order`` / ``frames offset by N``: its detections fit after reversing
   or shifting its rows in time (a wrong or truncated file, a wrong frame rate);
-- ``swapped with camera X``: its detections fit camera X's projection (two files swapped);
+- ``swapped with camera X``: its detections fit camera X's projection (two files swapped); when
+  there is no consensus at all (the median leave-one-out error above ``min_px``), every pair of
+  cameras is swapped back in turn, and a pair whose swap makes every camera agree is named (an
+  error when fewer than two cameras would be left, e.g. with three cameras);
 - ``wrong pose``: a pose resected from the others' points with its own intrinsics
   (`adjust.resection.resect`) fits it to a few pixels (the calibration's extrinsics are off);
 - else ``detections or intrinsics inconsistent``.
@@ -172,6 +175,35 @@ def _diagnose(det, cams, active, c, X, err) -> tuple[str, str]:
     return "detections or intrinsics inconsistent", "no simple fix found"
 
 
+def _loo(det: Detections, cams: Sequence[Camera], active: Sequence[int]) -> dict[int, float]:
+    """{camera: median error of its detections against the others' points}."""
+    out = {}
+    for c in active:
+        X = _tri(det, cams, [i for i in active if i != c])
+        out[c] = _median_error(X, det.xy[:, :, c], cams[c])[0]
+    return out
+
+
+def _find_swap(det, cams, active, loo, min_px) -> tuple[int, int, float] | None:
+    """Two cameras whose detection files are swapped: swapping their columns makes every
+    camera agree (all leave-one-out errors below min_px and a third of today's median)."""
+    now = float(np.median(list(loo.values())))
+    best = None
+    for a in active:
+        for b in active:
+            if b <= a:
+                continue
+            xy = det.xy.copy()
+            xy[:, :, [a, b]] = xy[:, :, [b, a]]
+            w = det.likelihood.copy()
+            w[:, :, [a, b]] = w[:, :, [b, a]]
+            after = _loo(dataclasses.replace(det, xy=xy, likelihood=w), cams, active)
+            worst = max(after.values())
+            if worst < min_px and worst < now / 3 and (best is None or worst < best[2]):
+                best = (a, b, worst)
+    return best
+
+
 def drop_cameras(
     cameras: Sequence[Camera], det: Detections, names: Sequence[str]
 ) -> tuple[list[Camera], Detections]:
@@ -237,6 +269,35 @@ def check_cameras(
         if not report["leave_one_out_px"]:
             report["leave_one_out_px"] = {cams[c].name: loo[c] for c in active}
             report["others_px"] = {cams[c].name: rest[c] for c in active}
+        if float(np.median(list(loo.values()))) > min_px:  # no consensus: two files swapped?
+            swap = _find_swap(det, cams, active, loo, min_px)
+            if swap is not None:
+                a, b, after = swap
+                na, nb = cams[a].name, cams[b].name
+                msg = (
+                    f"cameras '{na}' ({det.files[a]}) and '{nb}' ({det.files[b]}) disagree with "
+                    f"the others ({loo[a]:.1f} and {loo[b]:.1f} px median): their detection "
+                    f"files look swapped (swapped back, every camera agrees to {after:.1f} px)"
+                )
+                if mode == "error" or len(active) - 2 < 2:
+                    raise InputError(
+                        msg
+                        + "; swap the files (or rename them) and run again"
+                        + ("" if mode == "error" else " (too few cameras would be left)")
+                    )
+                log.warning("%s; both EXCLUDED from the solve (input.camera_check=warn)", msg)
+                for c, other in ((a, nb), (b, na)):
+                    report["excluded"][cams[c].name] = {
+                        "error_px": loo[c],
+                        "others_px": rest[c],
+                        "threshold_px": min_px,
+                        "cause": f"swapped with camera '{other}'",
+                        "detail": f"swapped back, every camera agrees to {after:.1f} px",
+                        "points": npts[c],
+                    }
+                    excluded.append(cams[c].name)
+                active = [i for i in active if i not in (a, b)]
+                continue
         judged = [c for c in active if npts[c] >= MIN_POINTS and np.isfinite(rest[c])]
         if not judged:
             break

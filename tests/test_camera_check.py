@@ -98,14 +98,14 @@ def test_bad_camera_named_diagnosed_excluded(kind, cause, caplog):
     assert "side" in rep["excluded"], rep
     assert rep["excluded"]["side"]["cause"].startswith(cause), rep["excluded"]
     assert rep["excluded"]["side"]["error_px"] > 20.0
-    assert "camera 'side'" in caplog.text and "EXCLUDED" in caplog.text
+    assert "'side' (side.csv)" in caplog.text and "EXCLUDED" in caplog.text
     assert "side" not in [c.name for c in kept] and "side" not in d2.cameras
     if kind == "swap":  # both swapped cameras go, each diagnosed as swapped with the other
         assert set(rep["excluded"]) == {"side", "front"}
         assert "swapped with camera 'side'" in rep["excluded"]["front"]["cause"]
     else:
         assert len(kept) == 3
-    with pytest.raises(InputError, match=r"camera 'side'.*disagrees"):
+    with pytest.raises(InputError, match=r"cameras? 'side'.*disagree"):
         check_cameras(cams, det, mode="error")
 
 
@@ -120,6 +120,17 @@ def test_rotated_sign_camera_behind():
     cams = [*cams[:c], bad, *cams[c + 1 :]]
     _, _, rep = check_cameras(cams, det)
     assert rep["excluded"]["side"]["cause"] == "scene behind the camera"
+
+
+def test_swapped_files_with_three_cameras_is_an_error():
+    """Three cameras, two files swapped: no camera can be left out (one good camera would be
+    left); the swap is named instead of excluding the one good camera."""
+    cams = default_rig()
+    det = _scene(cams)
+    xy = det.xy.copy()
+    xy[:, :, [1, 2]] = xy[:, :, [2, 1]]
+    with pytest.raises(InputError, match=r"'side'.*and 'front'.*look swapped"):
+        check_cameras(cams, dataclasses.replace(det, xy=xy))
 
 
 def test_settings_by_hand_and_off():
