@@ -151,8 +151,8 @@ def deformation_moments(
     z = np.where(m[..., None], o, 0.0)
     mean = z.sum(0) / np.maximum(n, 1)[:, None]
     mom = (z**2).sum(0) / np.maximum(n, 1)[:, None]
-    if (n > 0).any():
-        mom[n == 0] = mom[n > 0].max(0)
+    if (n > 0).any():  # never observed in 3D: much less certain than any observed part
+        mom[n == 0] = 4.0 * mom[n > 0].max(0)
     else:
         mom[:] = 100.0  # nothing observed in 3D: 10 mm per axis, and say so elsewhere
     return np.maximum(mom, floor_mm**2), mean

@@ -59,7 +59,12 @@ def sessions() -> dict[str, dict]:
     return {
         "hand": {"dir": d / "real-hand-4cam", "detections": "trial_000", "exclude": []},
         "fly": {"dir": d / "real-fly-3cam", "detections": ".", "exclude": []},
-        "mouse_sleap": {"dir": d / "real-mouse-sleap-4cam", "detections": ".", "exclude": ["side"]},
+        "mouse_sleap": {
+            "dir": d / "real-mouse-sleap-4cam",
+            "detections": ".",
+            "exclude": ["side"],
+            "pattern": "*.analysis.h5",
+        },
     }
 
 
@@ -101,7 +106,7 @@ def _run(app: str, session: Path, out: Path, overrides: list[str]):
 def loco(name: str, spec: dict, work: Path, anipose: bool) -> dict:
     base = spec["dir"]
     cal = base / "calibration.toml"
-    cameras, det = load_scene(cal, base / spec["detections"], None)
+    cameras, det = load_scene(cal, base / spec["detections"], None, pattern=spec.get("pattern"))
     files = dict(zip(det.cameras, det.files))
     good = [c for c in det.cameras if c not in spec["exclude"]]
     parts = list(det.parts)

@@ -7,7 +7,9 @@ measured fractions are reported) with a seed no training run uses. Methods, each
 through its CLI's `run(cfg)` on the scene folder (the files a user has):
 
 - ``dlt``: `adjust-triangulate` (likelihood-weighted linear triangulation, >= 2 views);
-- ``rigid``: `adjust-track` (rigid body model, default solver settings);
+- ``rigid``: `adjust-track deformation=rigid` (rigid body model, default solver settings);
+- ``interp``: `adjust-track` (its default, ``deformation=interp``: each part's body-frame
+  offset interpolated across its gaps, fused with the frame's detections);
 - ``deformable``: `adjust-track deformation=CHECKPOINT`; without ``--checkpoint`` a net is
   first trained with `deformnet-train`'s default CPU config (its `run()`), time reported apart.
 
@@ -187,12 +189,15 @@ def main(argv: list[str] | None = None) -> dict:
     dltable = np.isfinite(dlt).all(-1)
     results["dlt"] = {**evaluate(dlt, P, nviews, dltable), "seconds": round(secs, 2)}
 
-    est, secs, summ = run_track(scene, work / "rigid", threads + args.override)
-    results["rigid"] = {
-        **evaluate(est, P, nviews, dltable),
-        "seconds": round(secs, 2),
-        "iterations": summ["iterations"],
-    }
+    for name in ("rigid", "interp"):
+        est, secs, summ = run_track(
+            scene, work / name, [f"deformation={name}", *threads, *args.override]
+        )
+        results[name] = {
+            **evaluate(est, P, nviews, dltable),
+            "seconds": round(secs, 2),
+            "iterations": summ["iterations"],
+        }
 
     if not args.no_deformable:
         ckpt = args.checkpoint

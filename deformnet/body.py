@@ -201,11 +201,36 @@ class BodyModel:
             known = S & placed[None]
             cand = (known.sum(1) >= 3) & (S & ~placed[None]).any(1)
             if not cand.any():
-                never = [names[i] for i in np.flatnonzero(~placed)]
-                raise ValueError(
-                    "cannot estimate a body model: parts never observed together with >= 3 "
-                    "other placed parts: " + ", ".join(never)
+                # no frame relates these parts rigidly to the placed ones: place each by the
+                # mean translation from the placed parts it was seen with (no rotation known),
+                # loudly; a tracker then gives them a large deformation variance
+                rough = [i for i in np.flatnonzero(~placed)]
+                never = []
+                for i in rough:
+                    with_placed = S[:, i] & (S & placed[None]).any(1)
+                    if not with_placed.any():
+                        never.append(names[i])
+                        continue
+                    f = np.flatnonzero(with_placed)
+                    wp = (S[f] & placed[None]).astype(np.float64)
+                    cen_frame = (Xf[f] * wp[..., None]).sum(1) / wp.sum(1, keepdims=True)
+                    cen_model = (wp @ mean) / wp.sum(1, keepdims=True)
+                    mean[i] = np.mean(Xf[f, i] - cen_frame + cen_model, axis=0)
+                if never:  # nothing relates them to the rest: at the centre, said loudly
+                    idx = [names.index(n) for n in never]
+                    mean[idx] = mean[placed].mean(0)
+                    log.warning(
+                        "body model: parts %s are never observed in 3D together with another "
+                        "part; placed at the body's centre (their model positions are unknown)",
+                        ", ".join(never),
+                    )
+                log.warning(
+                    "body model: parts %s are never seen together with >= 3 other placed parts; "
+                    "placed by translation only (their positions are rough)",
+                    ", ".join(names[i] for i in rough),
                 )
+                placed[:] = True
+                break
             al = _align_to(Xf[cand], known[cand].astype(np.float64), mean)
             new = S[cand] & ~placed[None]
             tot = new.sum(0)
