@@ -98,7 +98,7 @@ def run(cfg: DictConfig) -> dict:
         "individual": kwargs["individual"],
         "camera_check": camera_report,
         # the files' frame numbers (the fnum column), first and last
-        "frames": [det.frames[0].item(), det.frames[-1].item()] if T else [],
+        "frames": np.asarray(det.frames)[[0, -1]].tolist() if T else [],
         "detections_set_aside": det.notes.get("absurd_or_nonfinite", {}),
         "triangulate": {
             "robust": robust,

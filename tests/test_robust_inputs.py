@@ -252,3 +252,33 @@ def test_settings_of_wrong_type_or_range(key, value, accepts):
     OmegaConf.update(cfg, key, 3 if "threshold" not in key else 0.5, force_add=True)
     if key != "progress":
         check_settings(cfg)  # a good value passes
+
+
+@pytest.mark.parametrize("frames", [list(range(100, 120)), [f"img{i:03d}.png" for i in range(20)]])
+def test_triangulate_fnum_is_the_files_frame_number(tmp_path, frames):
+    import hydra
+    import torch
+
+    from adjust.camera import CameraTensors, project_cameras
+    from adjust.io import read_points3d
+    from adjust.triangulate_cli import run
+    from deformnet.paths import CONF_DIR
+
+    cams = _rig()
+    X = np.random.default_rng(0).uniform(-50, 50, (20, 3, 3))
+    uv = project_cameras(torch.as_tensor(X), CameraTensors.from_cameras(cams, torch.float64))
+    det = tmp_path / "det"
+    det.mkdir()
+    for c, cam in enumerate(cams):
+        write_dlc_csv(det / f"{cam.name}.csv", ["p0", "p1", "p2"], uv[:, :, c].numpy(),
+                      np.ones((20, 3)), frames=frames)  # fmt: skip
+    save_calibration(tmp_path / "calibration.toml", cams)
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cal = tmp_path / "calibration.toml"
+        cfg = hydra.compose("triangulate", [f"input.calibration={cal}", f"input.detections={det}",
+                                            f"output.dir={tmp_path / 'out'}"])  # fmt: skip
+    summary = run(cfg)
+    d = read_points3d(tmp_path / "out" / "points3d.csv")
+    assert [str(f) for f in d["fnum"]] == [str(f) for f in frames]
+    assert summary["frames"] == [frames[0], frames[-1]]
+    np.testing.assert_allclose(d["points"], X, atol=1e-6)

@@ -97,7 +97,8 @@ def read_points3d(path: str | os.PathLike) -> dict:
     """Read a points3d CSV (ours or anipose's).
 
     Returns a dict: ``parts`` (tuple), ``points`` (T, K, 3), ``error``, ``ncams``, ``score``
-    (T, K) float64 (NaN where a column is absent), ``fnum`` (T,), ``extra`` {column: (T,)} for
+    (T, K) float64 (NaN where a column is absent), ``fnum`` (T,) (the detection files' frame
+    numbers; strings for labelled images), ``extra`` {column: (T,)} for
     every other column (anipose's ``M_00``.., ``center_0``.. included), in file order.
     """
     path = Path(path)
@@ -108,6 +109,8 @@ def read_points3d(path: str | os.PathLike) -> dict:
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read CSV: {exc}") from None
     for col in df.columns:
+        if col == "fnum":  # a frame number, or a labelled image's name
+            continue
         if not pd.api.types.is_numeric_dtype(df[col]):
             num = pd.to_numeric(df[col], errors="coerce")
             bad = num.isna() & df[col].notna()
