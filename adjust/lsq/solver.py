@@ -138,6 +138,25 @@ class _MaskedRows:
         return self[:]
 
 
+def _release_freed_memory() -> None:
+    """Hand the heap memory freed by a chunk back to the OS (glibc ``malloc_trim``; elsewhere a
+    no-op). Without it the chunks' freed temporaries stay resident, fragmented between longer
+    lived allocations, and the resident size of a long session grows by ~0.6 KB per frame."""
+    global _malloc_trim
+    if _malloc_trim is None:
+        try:
+            import ctypes
+
+            _malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):  # not glibc
+            _malloc_trim = False
+    if _malloc_trim:
+        _malloc_trim(0)
+
+
+_malloc_trim = None
+
+
 def _as_stored(x, dtype: torch.dtype) -> Tensor:
     """Inputs as the caller stores them when that is float32 (converted per chunk), else in
     ``dtype``: float32 detections of a long session are not copied to float64 whole."""
@@ -488,6 +507,9 @@ def _adjust_poses(
         iters = max(iters, out["iterations"])
         conv = conv and out["converged"]
         shares.append(out["share"])
+        del out
+        if len(cores) > 1:
+            _release_freed_memory()
     share = float(np.mean(shares)) if shares else 1.0
     # per-frame outputs, chunk by chunk (cache-friendly; neighbours for windowed models)
     # ... each chunk's core written into arrays of all frames (only those asked for)
@@ -511,6 +533,8 @@ def _adjust_poses(
                     arrays[k] = np.empty((T, *v.shape[1:]), dtype=dtype)
                 arrays[k][a:b] = v[a - ea : b - ea]
         del out
+        if len(cores) > 1:
+            _release_freed_memory()
     return AdjustmentResult(
         pose_cov=pose_cov,
         fitted=fitted.cpu().numpy(),
