@@ -31,8 +31,8 @@ order of the mechanisms is right.
 Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained > scratch and
 > rf at 1%; event precision and recall >= 0.9 from adjust-track and better than from DLT.
 
-    .venv/bin/python benchmarks/behavior.py [--frames 3000] [--train 6] [--test 2]
-        [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--seconds 60]
+    .venv/bin/python benchmarks/behavior.py [--frames 3000] [--train 6] [--test 4]
+        [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--seconds 75]
 
 Prints tables; the last line is JSON, also written atomically to runs/benchmarks/behavior.json.
 """
@@ -159,6 +159,7 @@ def run_classifier(
         "macro_f1_smoothed": rep["smoothed"]["macro_f1"],
         "f1": {c: v["f1"] for c, v in rep["raw"]["per_class"].items()},
         "labelled_frames": rep["labelled_training_frames"],
+        "steps": rep["training_steps"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
 
@@ -354,10 +355,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=3000, help="frames per session")
     ap.add_argument("--train", type=int, default=6, help="training sessions")
     ap.add_argument("--val", type=int, default=1, help="validation sessions")
-    ap.add_argument("--test", type=int, default=2, help="test sessions")
+    ap.add_argument("--test", type=int, default=4, help="test sessions")
     ap.add_argument("--pretrained", default=None, help="deformnet-train checkpoint (else train)")
     ap.add_argument("--pretrain-seconds", type=int, default=240)
-    ap.add_argument("--seconds", type=int, default=60, help="trainer.max_time per classifier")
+    ap.add_argument("--seconds", type=int, default=75, help="trainer.max_time per classifier")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))

@@ -343,7 +343,27 @@ class _Frames(torch.utils.data.Dataset):
         return self.bank.batch(torch.as_tensor(items, dtype=torch.long))
 
 
-def _loader(bank: SessionBank, idx: np.ndarray, batch_size: int, samples: int | None, seed: int):
+class _FeatureBank:
+    """Encoder features (N, D) of some frames of a bank, computed once (frozen encoder)."""
+
+    @torch.no_grad()
+    def __init__(self, encoder, bank: SessionBank, idx: np.ndarray, batch_size: int = 512):
+        encoder.eval()
+        feats = []
+        for chunk in torch.as_tensor(idx, dtype=torch.long).split(batch_size):
+            b = bank.batch(chunk)
+            feats.append(encoder(b["rigid"], b["deformed"], b["observed"]))
+        self.features = torch.cat(feats)
+        self.labels = bank.labels[torch.as_tensor(idx, dtype=torch.long)]
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def batch(self, idx: Tensor) -> dict:
+        return {"features": self.features[idx], "label": self.labels[idx]}
+
+
+def _loader(bank, idx: np.ndarray, batch_size: int, samples: int | None, seed: int):
     ds = _Frames(bank, idx)
     sampler = None
     if samples:
@@ -669,18 +689,45 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     lcfg = to_plain(cfg.get("logger")) or {}
     if lcfg.get("_target_"):
         logger = hydra.utils.instantiate(lcfg)
-    tcfg = dict(to_plain(cfg.trainer))
-    if val_dl is None:
-        tcfg["limit_val_batches"] = 0
-        tcfg["num_sanity_val_steps"] = 0
-    trainer = L.Trainer(
-        **tcfg,
-        logger=logger,
-        enable_progress_bar=str(cfg.get("progress_bar", "none")) != "none",
-        enable_checkpointing=False,
-        default_root_dir=str(out),
-    )
-    trainer.fit(lit, train_dataloaders=train_dl, val_dataloaders=val_dl)
+
+    def fit(train_loader, val_loader, **changes) -> Any:
+        tcfg = {**dict(to_plain(cfg.trainer)), **changes}
+        if val_loader is None:
+            tcfg["limit_val_batches"] = 0
+            tcfg["num_sanity_val_steps"] = 0
+        trainer = L.Trainer(
+            **tcfg,
+            logger=logger,
+            enable_progress_bar=str(cfg.get("progress_bar", "none")) != "none",
+            enable_checkpointing=False,
+            default_root_dir=str(out),
+        )
+        trainer.fit(lit, train_dataloaders=train_loader, val_dataloaders=val_loader)
+        return trainer
+
+    # A frozen encoder's features are computed once (no token dropout) and the head trains on
+    # them; a pretrained encoder that is fine-tuned gets such a probing phase first
+    # (`probe_epochs`, linear probing then fine-tuning), then trains with the encoder.
+    probe = int(cfg.get("probe_epochs") or 0) if state is not None else 0
+    steps = 0
+    if bool(cfg.freeze) or probe > 0:
+        fbank = _FeatureBank(model.encoder, bank, idx)
+        fval = None
+        if val_dl is not None:
+            fv = _FeatureBank(model.encoder, vbank, vidx)
+            fval = _loader(fv, np.arange(len(fv)), 512, None, 0)
+        floader = _loader(fbank, np.arange(len(fbank)), bs, int(d.steps_per_epoch) * bs, cfg.seed)
+        lit.head_only = True
+        if bool(cfg.freeze):
+            trainer = fit(floader, fval)
+        else:
+            trainer = fit(floader, fval, max_epochs=probe, max_time=None)
+            steps += int(trainer.global_step)
+            lit.head_only = False
+            trainer = fit(train_dl, val_dl)
+    else:
+        trainer = fit(train_dl, val_dl)
+    steps += int(trainer.global_step)
     if lit.best_state is not None:
         model.load_state_dict(lit.best_state)
     model.eval()
@@ -733,6 +780,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
             "smoothed": bout_stats(ys, classes, fps),
         },
         "labelled_training_frames": int(idx.size),
+        "training_steps": steps,
         "best_val_macro_f1": lit.best_score if lit.best_state is not None else None,
         "checkpoint": str(ckpt),
     }

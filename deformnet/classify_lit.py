@@ -40,7 +40,8 @@ def macro_f1(y_true: np.ndarray, y_pred: np.ndarray, num_classes: int) -> tuple[
 
 class ClassifyLit(L.LightningModule):
     """model: encoder + head; classes: names (C,); class_weights: (C,) loss weights or None;
-    freeze: train the head only; lr (head), encoder_lr, weight_decay: AdamW;
+    freeze: train the head only (`head_only` switches this per fit, e.g. a probing phase on
+    cached encoder features before fine-tuning); lr (head), encoder_lr, weight_decay: AdamW;
     token_dropout: during training, hide each input token (frame, part) with this probability
     (robustness to missing parts); hparams: extra hyper-parameters to log."""
 
@@ -63,6 +64,7 @@ class ClassifyLit(L.LightningModule):
         w = None if class_weights is None else torch.as_tensor(class_weights, dtype=torch.float32)
         self.register_buffer("class_weights", w, persistent=False)
         self.freeze = bool(freeze)
+        self._head_only = False
         if self.freeze:
             self.model.encoder.requires_grad_(False)
         self._val_true: list[Tensor] = []
@@ -70,11 +72,31 @@ class ClassifyLit(L.LightningModule):
         self.best_score = -1.0
         self.best_state: dict[str, Tensor] | None = None
 
+    @property
+    def head_only(self) -> bool:
+        return self.freeze or self._head_only
+
+    @head_only.setter
+    def head_only(self, value: bool) -> None:
+        """Train the head only (the encoder frozen) until set back; with `freeze` always."""
+        self._head_only = bool(value)
+        self.model.encoder.requires_grad_(not self.head_only)
+
     def train(self, mode: bool = True):
         super().train(mode)
-        if self.freeze:
+        if self.head_only:
             self.model.encoder.eval()
         return self
+
+    def _logits(self, batch: Mapping[str, Tensor], augment: bool) -> Tensor:
+        """Logits of a window batch, or of a batch of cached encoder `features` (B, D)."""
+        if "features" in batch:
+            return self.model.head(batch["features"])
+        observed = batch["observed"]
+        p = float(self.hparams.token_dropout)
+        if augment and p > 0:
+            observed = observed & (torch.rand(observed.shape, device=observed.device) >= p)
+        return self.model(batch["rigid"], batch["deformed"], observed)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
         return self.model(rigid, deformed, observed)
@@ -84,11 +106,7 @@ class ClassifyLit(L.LightningModule):
         return nn.functional.cross_entropy(logits, label, weight=w)
 
     def training_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
-        observed = batch["observed"]
-        p = float(self.hparams.token_dropout)
-        if p > 0:
-            observed = observed & (torch.rand(observed.shape, device=observed.device) >= p)
-        logits = self.model(batch["rigid"], batch["deformed"], observed)
+        logits = self._logits(batch, augment=True)
         loss = self._loss(logits, batch["label"])
         self.log("train/loss", loss, prog_bar=True, batch_size=logits.shape[0])
         return loss
@@ -97,7 +115,7 @@ class ClassifyLit(L.LightningModule):
         self._val_true, self._val_pred = [], []
 
     def validation_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
-        logits = self.model(batch["rigid"], batch["deformed"], batch["observed"])
+        logits = self._logits(batch, augment=False)
         loss = self._loss(logits, batch["label"])
         self.log("val/loss", loss, batch_size=logits.shape[0])
         self._val_true.append(batch["label"].detach().cpu())
@@ -124,7 +142,7 @@ class ClassifyLit(L.LightningModule):
     def configure_optimizers(self):
         hp = self.hparams
         groups = [{"params": list(self.model.head.parameters()), "lr": float(hp.lr)}]
-        if not self.freeze:
+        if not self.head_only:
             groups.append(
                 {"params": self.model.encoder.encoder_parameters(), "lr": float(hp.encoder_lr)}
             )

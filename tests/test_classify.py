@@ -211,3 +211,37 @@ def test_pretrained_frozen_encoder_is_kept(tmp_path):
     for k, v in pre.net.state_dict().items():
         torch.testing.assert_close(model.encoder.net.state_dict()[k], v)
     assert res["report"]["split"] == "train"
+
+
+def test_pretrained_probe_then_fine_tune_changes_the_encoder(tmp_path):
+    from deformnet.classify import load_classifier, run
+
+    ckpt = tmp_path / "net.ckpt"
+    pre = tiny_deformation_model(seed=3)
+    pre.save(ckpt)
+    train = [_toy_session(tmp_path, "train", 0, T=120)]
+    res = run(
+        _compose(
+            [
+                f"pretrained={ckpt}",
+                "freeze=false",
+                "probe_epochs=2",
+                f"labels.classes=[{','.join(CLASSES)}]",
+                *_files("train", train),
+                "data.batch_size=16",
+                "data.steps_per_epoch=3",
+                "trainer.max_epochs=2",
+                "logger=none",
+                f"output.dir={tmp_path / 'fit'}",
+            ]
+        )
+    )
+    assert res["report"]["training_steps"] == 2 * 3 + 2 * 3  # probing, then fine-tuning
+    # no validation sessions: the last state is kept (not a best-validation one)
+    model, _ = load_classifier(res["checkpoint"])
+    changed = [
+        k
+        for k, v in pre.net.state_dict().items()
+        if not torch.equal(model.encoder.net.state_dict()[k], v)
+    ]
+    assert any(k.startswith("lstm.") for k in changed)
