@@ -348,12 +348,12 @@ def rigid_observation(body: BodyModel, cons) -> tuple:
     """The rigid observation with each part's deformation second moment estimated from the
     session (Kabsch poses on its 3D observations, `adjust.estimate.deformation_moments`)."""
     from adjust.estimate import deformation_moments
-    from adjust.lsq.init import kabsch_robust
+    from adjust.lsq.init import kabsch_poses
     from adjust.lsq.observation import RigidObservation
 
     B = torch.tensor(np.array(body.points))
-    seen = torch.as_tensor(cons.observed)
-    poses, ok = kabsch_robust(B, torch.as_tensor(np.nan_to_num(cons.points)), seen)
+    seen = torch.as_tensor(cons.observed)  # gated by the cameras' consensus already
+    poses, ok = kabsch_poses(B, torch.as_tensor(np.nan_to_num(cons.points)), seen)
     okn = ok.numpy()
     mom, mean = deformation_moments(
         poses.numpy(), cons.points, cons.observed & okn[:, None], np.array(body.points)

@@ -114,10 +114,11 @@ def _fit_errors(body: Tensor, X: Tensor, poses: Tensor) -> Tensor:
 
 
 def kabsch_robust(
-    body: Tensor, X: Tensor, mask: Tensor, max_error_mm: float = 10.0
+    body: Tensor, X: Tensor, mask: Tensor, max_error_mm: float = 10.0, max_triplets: int = 120
 ) -> tuple[Tensor, Tensor]:
     """Outlier-resistant `kabsch_poses`: frames whose plain fit leaves a part off by more than
-    `max_error_mm` are refitted by RANSAC over all part triplets (scored by the number of parts
+    `max_error_mm` are refitted by RANSAC over the part triplets (all of them, or a fixed random
+    `max_triplets` of them for many parts; scored by the number of parts
     within `max_error_mm`, ties by rms), then on the winner's inliers. Frames with fewer than 3
     inliers are not ok. Shapes as `kabsch_poses`."""
     import itertools
@@ -130,7 +131,12 @@ def kabsch_robust(
         K = mask.shape[1]
         best = torch.full((sus.numel(),), -1.0, dtype=X.dtype)
         best_in = torch.zeros_like(ms)
-        for tri in itertools.combinations(range(K), 3):
+        triplets = list(itertools.combinations(range(K), 3))
+        if len(triplets) > max_triplets:  # many parts: a fixed random sample (RANSAC proper)
+            rng = np.random.default_rng(0)
+            pick = rng.choice(len(triplets), max_triplets, replace=False)
+            triplets = [triplets[i] for i in sorted(pick)]
+        for tri in triplets:
             sel = torch.zeros(K, dtype=torch.bool)
             sel[list(tri)] = True
             use = ms & sel
