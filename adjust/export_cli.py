@@ -76,8 +76,9 @@ def _main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console script: a first bare word (``adjust-export nwb ...``) is ``format=...``."""
-    if len(sys.argv) > 1 and sys.argv[1] in FORMATS:
-        sys.argv[1] = f"format={sys.argv[1]}"
+    first = sys.argv[1] if len(sys.argv) > 1 else ""
+    if first and "=" not in first and not first.startswith("-"):
+        sys.argv[1] = f"format={first}"
     _main()
 
 
