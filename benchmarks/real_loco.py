@@ -13,7 +13,9 @@ detections (likelihood >= 0.9). Methods, side by side on the same subsets:
 - ``rigid``: `adjust-track body=auto deformation=rigid`;
 - ``interp``: `adjust-track body=auto` (default `deformation=interp`).
 
-Per session and left-out camera: coverage (fraction of the confident detections the method gave
+The first ``--frames`` (200) frames of each session, the same for every method (aniposelib's
+optimisation takes minutes per leave-out on the whole hand session on 2 cores). Per session and
+left-out camera: coverage (fraction of the confident detections the method gave
 a 3D point for), median and 90th percentile pixel error over those, and the same on the part-
 frames every method covers (``common``). Every leave-out must run.
 
@@ -45,6 +47,7 @@ from tracking import compose  # noqa: E402
 from adjust.app import finite_or_none  # noqa: E402
 from adjust.camera import CameraTensors, project_cameras  # noqa: E402
 from adjust.io import load_calibration, load_scene, read_points3d, save_calibration  # noqa: E402
+from adjust.io.dlc import write_dlc_csv  # noqa: E402
 from deformnet.atomic import write_text  # noqa: E402
 from deformnet.paths import CONF_DIR, shared_dir  # noqa: E402
 
@@ -68,16 +71,23 @@ def sessions() -> dict[str, dict]:
     }
 
 
-def subset_session(src_cal: Path, files: dict[str, Path], keep: list[str], out: Path) -> Path:
-    """A session folder with only the cameras `keep`: calibration.toml + detections/<files>."""
+def subset_session(src_cal: Path, det, keep: list[str], frames: int, out: Path) -> Path:
+    """A session folder with only the cameras `keep` and the first `frames` frames:
+    calibration.toml + detections/<camera>.csv (DeepLabCut CSVs written from the loaded
+    detections, whatever their original format; likelihoods below the threshold included)."""
     if out.exists():
         shutil.rmtree(out)
     (out / "detections").mkdir(parents=True)
     cams = [c for c in load_calibration(src_cal) if c.name in keep]
     save_calibration(out / "calibration.toml", cams)
     for name in keep:
-        f = files[name]
-        (out / "detections" / f.name).symlink_to(f.resolve())
+        c = det.cameras.index(name)
+        write_dlc_csv(
+            out / "detections" / f"{name}.csv",
+            list(det.parts),
+            det.xy[:frames, :, c],
+            np.nan_to_num(det.likelihood[:frames, :, c]),
+        )
     return out
 
 
@@ -103,21 +113,20 @@ def _run(app: str, session: Path, out: Path, overrides: list[str]):
     return d["parts"], d["points"], time.perf_counter() - t0
 
 
-def loco(name: str, spec: dict, work: Path, anipose: bool) -> dict:
+def loco(name: str, spec: dict, work: Path, anipose: bool, frames: int) -> dict:
     base = spec["dir"]
     cal = base / "calibration.toml"
     cameras, det = load_scene(cal, base / spec["detections"], None, pattern=spec.get("pattern"))
-    files = dict(zip(det.cameras, det.files))
     good = [c for c in det.cameras if c not in spec["exclude"]]
     parts = list(det.parts)
     out: dict = {"cameras": good, "excluded": spec["exclude"], "parts": len(parts), "leave_out": {}}
     for left in good:
         keep = [c for c in good if c != left]
-        sess = subset_session(cal, files, keep, work / name / f"without_{left}" / "session")
+        sess = subset_session(cal, det, keep, frames, work / name / f"without_{left}" / "session")
         ci = det.cameras.index(left)
         cam = CameraTensors.from_cameras([cameras[ci]], dtype=torch.float64)
-        target = det.xy[:, :, ci]  # (T, K, 2)
-        conf = np.isfinite(target).all(-1) & (det.likelihood[:, :, ci] >= CONFIDENT)
+        target = det.xy[:frames, :, ci]  # (T, K, 2)
+        conf = np.isfinite(target).all(-1) & (det.likelihood[:frames, :, ci] >= CONFIDENT)
         preds: dict[str, np.ndarray] = {}
         secs: dict[str, float] = {}
         for m in METHODS:
@@ -186,6 +195,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", default="hand,fly,mouse_sleap")
     ap.add_argument("--no-anipose", action="store_true")
+    ap.add_argument("--frames", type=int, default=200, help="first N frames of each session")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_loco"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "real_loco.json"))
     args = ap.parse_args(argv)
@@ -198,7 +208,7 @@ def main(argv: list[str] | None = None) -> dict:
     results = {}
     all_specs = sessions()
     for name in args.sessions.split(","):
-        results[name] = loco(name, all_specs[name], work, anipose)
+        results[name] = loco(name, all_specs[name], work, anipose, args.frames)
     cols = ["coverage", "median_px", "p90_px", "common_median_px", "common_p90_px", "seconds"]
     failures = 0
     for name, r in results.items():
