@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m deformnet.demo
+	$(PY) -m adjust.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"

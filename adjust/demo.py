@@ -1,0 +1,280 @@
+"""`adjust-demo` (`make demo`): the main job end to end on the embedded default, then a report.
+
+    adjust-demo                    # runs/demo/<time>/report.md and report.html
+    adjust-demo preset=quick       # a few hundred frames, seconds of training
+
+Each step is the app a user runs, called through Hydra's compose API (`run(cfg)`), writing into
+``OUT = runs/demo/<time>/`` (or ``output.dir``):
+
+1. ``adjust-simulate``        OUT/scene: calibration.toml, detections/<camera>.csv, truth.npz
+2. ``deformnet-train``        the LSTM and the transformer, side by side (OUT/train/<net>,
+                              one TensorBoard root OUT/tb)
+3. ``adjust-triangulate``     OUT/dlt (the DLT baseline)
+4. ``adjust-track``           OUT/rigid (deformation=rigid), OUT/interp (the default), OUT/net
+                              (deformation=<the trained LSTM checkpoint>)
+5. ``deformnet-classify``     OUT/classify: fine-tune the LSTM's encoder on simulated labelled
+                              sessions, then label the primary tracks (OUT/classify/predict)
+6. ``adjust-events``          OUT/events: lock-box contacts on the primary tracks
+7. `adjust.report`            OUT/report.json, report.md, report.html, figures/
+
+`run(cfg) -> dict` is the plain function behind the Hydra app. The last lines printed say where
+the report is.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from adjust.app import run_or_exit
+from deformnet.atomic import write_text
+from deformnet.paths import CONF_DIR, output_dir
+
+log = logging.getLogger(__name__)
+
+METHODS = ("dlt", "rigid", "interp", "net")
+
+
+def compose(name: str, overrides: list[str]) -> DictConfig:
+    """An app's config (conf/<name>.yaml) with overrides, inside a running Hydra app or not."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        return hydra_compose(config_name=name, overrides=overrides)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return hydra_compose(config_name=name, overrides=overrides)
+
+
+def max_time(minutes: float) -> str:
+    """Lightning's DD:HH:MM:SS from minutes (at least 1 s)."""
+    s = max(1, int(round(float(minutes) * 60)))
+    return f"00:{s // 3600:02d}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+class _Steps:
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    def __call__(self, key: str, title: str, fn, cfg: DictConfig):
+        log.info("== %s", title)
+        t0 = time.perf_counter()
+        res = fn(cfg)
+        self.seconds[key] = round(time.perf_counter() - t0, 2)
+        log.info("== %s: %.1f s", title, self.seconds[key])
+        return res
+
+
+def run(cfg: DictConfig) -> dict:
+    """Run the pipeline and write the report; returns {"output_dir", "report" (paths), the
+    tracking table, timings}."""
+    import torch
+
+    from adjust import events_cli, scene_cli, track, triangulate_cli
+    from adjust.report import write_report
+
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    name = str(cfg.preset)
+    if name not in cfg.presets:
+        raise ValueError(f"preset={name} is not one of {list(cfg.presets)}")
+    p = cfg.presets[name]
+    primary = str(cfg.primary)
+    if primary not in METHODS:
+        raise ValueError(f"primary={primary} is not one of {list(METHODS)}")
+    nets = [str(n) for n in cfg.nets]
+    deform_net = str(cfg.deformable_net)
+    if deform_net not in nets:
+        raise ValueError(f"deformable_net={deform_net} is not among nets={nets}")
+    out = output_dir(cfg).resolve()
+    step = _Steps()
+    seed = int(cfg.seed)
+
+    # 1. the scene
+    scene = out / "scene"
+    step(
+        "scene",
+        "adjust-simulate: the scene",
+        scene_cli.run,
+        compose("scene", [f"num_frames={int(p.frames)}", f"seed={seed}", f"output.dir={scene}"]),
+    )
+
+    # 2. the nets, side by side, one TensorBoard root
+    from deformnet import train
+
+    tb = out / "tb"
+    trained = {}
+    for net in nets:
+        tcfg = compose(
+            "train",
+            [
+                f"net={net}",
+                f"trainer.max_time={max_time(p.train_minutes)}",
+                f"trainer.max_epochs={int(p.max_epochs)}",
+                "trainer.enable_model_summary=false",
+                f"data.train_sequences={int(p.train_sequences)}",
+                f"data.num_frames={int(p.train_frames)}",
+                f"data.steps_per_epoch={int(p.steps_per_epoch)}",
+                f"data.val_windows={int(p.val_windows)}",
+                "progress_bar=none",
+                f"threads={int(cfg.threads)}",
+                f"logger.save_dir={tb}",
+                f"output.dir={out / 'train' / net}",
+            ],
+        )
+        trained[net] = step(f"train_{net}", f"deformnet-train net={net}", train.run, tcfg)
+    ckpt = trained[deform_net]["best_checkpoint"] or trained[deform_net]["last_checkpoint"]
+    if not ckpt:
+        raise RuntimeError(f"deformnet-train net={deform_net} wrote no checkpoint")
+
+    # 3-4. tracking: DLT, rigid, interp, the deformable net
+    inputs = [
+        f"input.calibration={scene / 'calibration.toml'}",
+        f"input.detections={scene / 'detections'}",
+    ]
+    step(
+        "dlt",
+        "adjust-triangulate (DLT)",
+        triangulate_cli.run,
+        compose("triangulate", [*inputs, "body=mouse", f"output.dir={out / 'dlt'}"]),
+    )
+    for method, deformation in (("rigid", "rigid"), ("interp", "interp"), ("net", ckpt)):
+        tcfg = compose(
+            "track",
+            [
+                *inputs,
+                f"deformation={deformation}",
+                "progress=false",
+                f"threads={int(cfg.threads)}",
+                f"output.dir={out / method}",
+            ],
+        )
+        step(method, f"adjust-track deformation={deformation}", track.run, tcfg)
+    tracks = out / primary / "points3d.csv"
+
+    # 5. behavior
+    classify = None
+    if bool(cfg.behavior):
+        from deformnet import classify as cls_app
+
+        seeds = "[" + ",".join(str(int(s)) for s in p.classify_train_seeds) + "]"
+        ccfg = compose(
+            "classify",
+            [
+                f"pretrained={ckpt}",
+                "data.source=sim",
+                f"data.sim.num_frames={int(p.classify_frames)}",
+                f"data.sim.train_seeds={seeds}",
+                f"data.steps_per_epoch={int(p.classify_steps_per_epoch)}",
+                f"trainer.max_time={max_time(p.classify_minutes)}",
+                f"trainer.max_epochs={int(p.classify_max_epochs)}",
+                f"probe_epochs={int(p.probe_epochs)}",
+                f"threads={int(cfg.threads)}",
+                f"logger.save_dir={tb}",
+                f"output.dir={out / 'classify'}",
+            ],
+        )
+        res = step("classify", "deformnet-classify (fine-tune)", cls_app.run, ccfg)
+        pcfg = compose(
+            "classify",
+            [
+                "mode=predict",
+                f"checkpoint={res['checkpoint']}",
+                f"tracks={tracks}",
+                f"output.dir={out / 'classify' / 'predict'}",
+            ],
+        )
+        pred = step("classify_predict", "deformnet-classify mode=predict", cls_app.run, pcfg)
+        classify = {"dir": str(out / "classify"), "predictions": pred["predictions"]}
+
+    # 6. events
+    events = None
+    if bool(cfg.events):
+        ecfg = compose(
+            "events",
+            [
+                f"tracks={tracks}",
+                f"calibration={scene / 'calibration.toml'}",
+                f"output.dir={out / 'events'}",
+            ],
+        )
+        step("events", "adjust-events", events_cli.run, ecfg)
+        events = {"dir": str(out / "events")}
+
+    # 7. the report
+    record = {
+        "scene": str(scene),
+        "methods": {m: str(out / m) for m in METHODS},
+        "primary": primary,
+        "tensorboard": str(tb),
+        "train": trained,
+        "classify": classify,
+        "events": events,
+        "timings_s": step.seconds,
+        "settings": {
+            "preset": name,
+            **OmegaConf.to_container(p, resolve=True),
+            "seed": seed,
+            "nets": nets,
+            "deformable_net": deform_net,
+            "deformation_checkpoint": str(ckpt),
+            "tensorboard": str(tb),
+        },
+    }
+    # the run's record first: `adjust.report.write_report(out, record)` can redo the report
+    write_text(out / "demo.json", json.dumps(record, indent=2, default=str) + "\n")
+    t0 = time.perf_counter()
+    written = write_report(out, record)
+    log.info("report written in %.1f s", time.perf_counter() - t0)
+    rep = written["report"]
+    return {
+        "output_dir": str(out),
+        "report": {k: str(v) for k, v in written.items() if k != "report"},
+        "tracking": rep["tracking"],
+        "timings_s": step.seconds,
+        "tensorboard": str(tb),
+    }
+
+
+def table(tracking: dict) -> str:
+    """The accuracy table as text."""
+    head = f"{'method':<8}{'complete':>9}{'rmse all':>10}{'seen>=2':>9}{'occluded':>10}{'<=5mm':>7}"
+    lines = [head, "-" * len(head)]
+    for m, r in tracking.items():
+
+        def f(x, d=2):
+            return "-" if x is None else f"{x:.{d}f}"
+
+        lines.append(
+            f"{m:<8}{f(r['completeness'], 3):>9}{f(r['rmse_all']):>10}{f(r['rmse_seen']):>9}"
+            f"{f(r['rmse_occluded']):>10}{f(r['within5_all'], 3):>7}"
+        )
+    return "\n".join(lines)
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="demo", version_base=None)
+def _app(cfg: DictConfig) -> None:
+    t0 = time.perf_counter()
+    res = run_or_exit(run, cfg)
+    print("\nmousetrack demo: 3D error (mm) against the simulated truth\n")
+    print(table(res["tracking"]))
+    print(f"\nTensorBoard: tensorboard --logdir {res['tensorboard']}")
+    print(
+        f"Demo finished in {(time.perf_counter() - t0) / 60:.1f} min; all outputs: "
+        f"{res['output_dir']}"
+    )
+    print(f"Report: {res['report']['markdown']}")
+    print(f"        {res['report']['html']} (self-contained: open it in a browser)")
+
+
+def main() -> None:
+    _app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""`adjust-demo preset=quick`: the whole pipeline (scene, two nets, DLT / rigid / interp / net
+tracking, behavior, events) and the report, once per test session (~40 s on 2 cores)."""
+
+from __future__ import annotations
+
+import ast
+import json
+import re
+from pathlib import Path
+
+import hydra
+import numpy as np
+import pandas as pd
+import pytest
+
+from adjust.io import read_points3d
+from adjust.metrics import point_errors
+from deformnet.paths import CONF_DIR, REPO_DIR
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    from adjust.demo import run
+
+    out = tmp_path_factory.mktemp("demo")
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose("demo", overrides=["preset=quick", f"output.dir={out}"])
+    res = run(cfg)
+    return out, res, json.loads((out / "report.json").read_text())
+
+
+def test_every_picture_exists_and_is_a_png(demo):
+    out, res, rep = demo
+    names = set(rep["figures"])
+    expected = {"scene", "body3d", "errors", "curves", "confusion", "ethogram", "events"}
+    assert expected <= names
+    assert sum(n.startswith("reprojection_frame") for n in names) >= 2
+    md = (out / "report.md").read_text()
+    referenced = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    assert sorted(referenced) == sorted(set(referenced))  # each picture once
+    assert set(referenced) == set(rep["figures"].values())
+    for rel in referenced:
+        with open(out / rel, "rb") as fh:
+            assert fh.read(8) == PNG, rel
+    html = (out / "report.html").read_text()
+    srcs = re.findall(r'<img src="([^"]+)"', html)
+    assert len(srcs) == len(referenced)
+    assert all(s.startswith("data:image/png;base64,iVBORw0KGgo") for s in srcs)  # embedded
+    assert Path(res["report"]["html"]) == out / "report.html"
+
+
+def test_tracking_numbers_equal_the_run_files(demo):
+    out, _, rep = demo
+    with np.load(out / "scene" / "truth.npz") as z:
+        truth, nviews, parts = z["points"], z["nviews"], [str(p) for p in z["parts"]]
+    assert set(rep["tracking"]) == {"dlt", "rigid", "interp", "net"}
+    md = (out / "report.md").read_text()
+    for method, row in rep["tracking"].items():
+        tr = read_points3d(out / method / "points3d.csv")
+        est = tr["points"][:, [tr["parts"].index(p) for p in parts]]
+        ref = point_errors(est, truth, nviews, part_names=parts)
+        for key in ("completeness", "rmse_all", "rmse_seen", "rmse_occluded", "within5_all"):
+            assert row[key] == pytest.approx(ref[key], rel=1e-12, abs=1e-12), (method, key)
+        summary = json.loads((out / method / "summary.json").read_text())
+        assert row["median_reprojection_px"] == summary["reprojection_error_px"]["median"]
+        assert row["completeness"] == pytest.approx(summary["completeness"], abs=1e-12)
+        line = next(ln for ln in md.splitlines() if ln.startswith(f"| {method} |"))
+        assert f"{row['rmse_all']:.2f}" in line and f"{row['completeness']:.3f}" in line
+    # DLT leaves the occluded part-frames empty; the adjustments fill every one
+    assert rep["tracking"]["dlt"]["completeness"] < 0.9
+    for m in ("rigid", "interp", "net"):
+        assert rep["tracking"][m]["completeness"] == 1.0
+
+
+def test_training_behavior_events_numbers_equal_the_run_files(demo):
+    out, _, rep = demo
+    for net in ("lstm", "transformer"):
+        metrics = json.loads((out / "train" / net / "metrics.json").read_text())["metrics"]
+        assert rep["training"][net]["best_val_rmse_mm"] == metrics["best/val_rmse_mm"]
+        assert rep["training"][net]["validations"] >= 1  # read from the event files
+        assert (out / "tb" / net).is_dir()
+    cls = json.loads((out / "classify" / "report.json").read_text())
+    beh = rep["behavior"]
+    assert beh["classifier"]["macro_f1"] == cls["raw"]["macro_f1"]
+    assert beh["classifier"]["training_steps"] == cls["training_steps"]
+    pred = pd.read_csv(out / "classify" / "predict" / "predictions.csv")
+    with np.load(out / "scene" / "truth.npz") as z:
+        names = [str(b) for b in z["behaviors"]]
+        y = np.array([names[i] for i in z["labels"]])
+    acc = float(np.mean(pred["label"].to_numpy() == y[pred["fnum"].to_numpy()]))
+    assert beh["session"]["accuracy"] == pytest.approx(acc, abs=1e-12)
+    assert np.asarray(beh["session"]["confusion"]).sum() == len(pred)
+    ev = json.loads((out / "events" / "summary.json").read_text())
+    assert rep["events"]["order"] == ev["order"]
+    assert rep["events"]["count"] == ev["events"] == len(rep["events"]["list"])
+    md = (out / "report.md").read_text()
+    assert f"macro-F1 {beh['session']['macro_f1']:.3f}" in md
+    assert "Order of first operation: " + (" > ".join(ev["order"]) or "none") in md
+    assert set(rep["timings_s"]) >= {"scene", "train_lstm", "train_transformer", "dlt", "net"}
+
+
+def test_deformnet_never_imports_adjust():
+    """The layering rule: deformnet/ (the demo moved to adjust/) has no `adjust` import."""
+    for path in (REPO_DIR / "deformnet").rglob("*.py"):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                mods = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                mods = [node.module or ""]
+            else:
+                continue
+            assert not any(m == "adjust" or m.startswith("adjust.") for m in mods), path
+
+
+def test_unknown_preset_is_one_clear_error(tmp_path):
+    from adjust.demo import run
+
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose("demo", overrides=["preset=huge", f"output.dir={tmp_path}"])
+    with pytest.raises(ValueError, match="preset=huge is not one of"):
+        run(cfg)
