@@ -82,38 +82,29 @@ def consensus(
     """
     from adjust.triangulate import triangulate
 
-    with torch.no_grad():
-        tri = triangulate(
-            torch.as_tensor(xy),
-            torch.as_tensor(weight),
-            cams,
-            robust=True,
-            max_error_px=max_error_px,
-        )
-    X = tri.points.numpy().astype(np.float64)
-    used = tri.used.numpy()
-    ve = tri.view_error.numpy()
-    nviews = tri.nviews.numpy()
     observed_views = np.isfinite(xy).all(-1) & (weight > 0)
-    fin = np.isfinite(X).all(-1)
-    dropped = observed_views & ~used & (nviews >= 3)[..., None] & fin[..., None]
-    est, per = detector_sigma(ve, used)
-    sig = float(sigma_det_px) if sigma_det_px else (est if math.isfinite(est) else 2.0)
-    gate = gate_sigmas * sig + 1.0
-    if gate < max_error_px:  # again, dropping views while any disagrees by more than the gate
+
+    def robust(threshold: float):
         with torch.no_grad():
             tri = triangulate(
                 torch.as_tensor(xy),
                 torch.as_tensor(weight),
                 cams,
                 robust=True,
-                max_error_px=gate,
+                max_error_px=threshold,
             )
         X = tri.points.numpy().astype(np.float64)
         used = tri.used.numpy()
-        ve = tri.view_error.numpy()
         fin = np.isfinite(X).all(-1)
-        dropped = observed_views & ~used & (nviews >= 3)[..., None] & fin[..., None]
+        dropped = observed_views & ~used & (tri.nviews.numpy() >= 3)[..., None] & fin[..., None]
+        return tri, X, used, tri.view_error.numpy(), fin, dropped
+
+    tri, X, used, ve, fin, dropped = robust(max_error_px)
+    est, per = detector_sigma(ve, used)
+    sig = float(sigma_det_px) if sigma_det_px else (est if math.isfinite(est) else 2.0)
+    gate = gate_sigmas * sig + 1.0
+    if gate < max_error_px:  # again, dropping views while any disagrees by more than the gate
+        tri, X, used, ve, fin, dropped = robust(gate)
     worst = np.where(used, np.nan_to_num(ve, nan=np.inf), 0.0).max(-1)
     obs = fin & (tri.ncams.numpy() >= 2) & (worst <= gate)
     # triangulation covariance: (sum_c J^T J / sigma^2)^-1 over the used views

@@ -29,7 +29,6 @@ Last line JSON, also written to runs/benchmarks/domain_gap.json.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -50,11 +49,9 @@ from peers.anipose import (  # noqa: E402
     constraint_indices,
     run_anipose,
 )
-from tracking import compose, run_dlt, run_track, train_net  # noqa: E402
+from tracking import compose, emit, run_dlt, run_track, train_net  # noqa: E402
 
-from adjust.app import finite_or_none  # noqa: E402
 from adjust.metrics import point_errors  # noqa: E402
-from deformnet.atomic import write_text  # noqa: E402
 from deformnet.paths import CONF_DIR  # noqa: E402
 from deformnet.shape import rigid_floor  # noqa: E402
 
@@ -233,10 +230,7 @@ def main(argv: list[str] | None = None) -> dict:
         **extra,
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
-    line = json.dumps(finite_or_none(summary))
-    write_text(args.out, line + "\n")
-    print(line, flush=True)
-    return summary
+    return emit(summary, args.out)
 
 
 if __name__ == "__main__":

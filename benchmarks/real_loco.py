@@ -27,7 +27,6 @@ Last line JSON, also written to runs/benchmarks/real_loco.json.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -42,13 +41,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from peers.anipose import bench_python, run_anipose  # noqa: E402
-from tracking import compose  # noqa: E402
+from tracking import compose, emit  # noqa: E402
 
-from adjust.app import finite_or_none  # noqa: E402
 from adjust.camera import CameraTensors, project_cameras  # noqa: E402
 from adjust.io import load_calibration, load_scene, read_points3d, save_calibration  # noqa: E402
 from adjust.io.dlc import write_dlc_csv  # noqa: E402
-from deformnet.atomic import write_text  # noqa: E402
 from deformnet.paths import CONF_DIR, shared_dir  # noqa: E402
 
 log = logging.getLogger("benchmarks.real_loco")
@@ -244,10 +241,7 @@ def main(argv: list[str] | None = None) -> dict:
         "failures": failures,
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
-    line = json.dumps(finite_or_none(summary))
-    write_text(args.out, line + "\n")
-    print(line, flush=True)
-    return summary
+    return emit(summary, args.out)
 
 
 if __name__ == "__main__":

@@ -261,8 +261,14 @@ def main(argv: list[str] | None = None) -> dict:
         "threads": args.threads or torch.get_num_threads(),
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
+    return emit(summary, args.out)
+
+
+def emit(summary: dict, out: str | Path) -> dict:
+    """The benchmarks' last line: the summary as JSON (non-finite -> null), printed and written
+    atomically to `out`."""
     line = json.dumps(finite_or_none(summary))
-    write_text(args.out, line + "\n")
+    write_text(out, line + "\n")
     print(line, flush=True)
     return summary
 
