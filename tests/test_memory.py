@@ -21,8 +21,8 @@ from deformnet.body import default_mouse
 ROOT = Path(__file__).resolve().parents[1]
 
 #: bounds of the slow test at 200,000 frames x 8 parts x 3 cameras (float32 detections, the
-#: arrays adjust-track keeps). Measured: peak 0.81 GB, 0.42 GB above the RSS before the call
-#: (before the bounded-memory changes: 2.0 GB and 1.5 GB).
+#: arrays adjust-track keeps). Measured: peak 0.78 GB, 0.39 GB above the RSS before the call
+#: (before the bounded-memory changes, float64 detections and every output: 1.85 GB, 1.41 GB).
 PEAK_MB_200K = 1100.0
 GROWTH_MB_200K = 600.0
 

@@ -131,11 +131,13 @@ class _MaskedRows:
         self.x, self.mask, self.dtype = x, mask, dtype
 
     def __getitem__(self, s: slice) -> Tensor:
-        x = self.x[s].to(self.dtype)
-        return torch.where(self.mask[s], x, torch.zeros_like(x))
+        x = self.x[s].to(self.dtype, copy=True)  # one copy, zeroed in place (no temporaries)
+        return x.masked_fill_(~self.mask[s], 0.0)
 
     def full(self) -> Tensor:
-        return self[:]
+        """All frames in the stored dtype (float32 detections stay float32: the initialisation
+        computes in the cameras' dtype, with the same result)."""
+        return self.x.clone().masked_fill_(~self.mask, 0.0)
 
 
 def _release_freed_memory() -> None:
