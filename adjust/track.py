@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, load_kwargs, required, run_or_exit, stats
+from adjust.app import load_kwargs, required, run_or_exit, stats, write_outputs
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import Detections, InputError, load_scene, write_points3d
 from adjust.session import expand_session_globs, with_session
@@ -410,8 +410,6 @@ def _run(cfg: DictConfig) -> dict:
     cfg = with_session(cfg)  # input.session=DIR: DIR/calibration.toml, DIR[/detections]
     calibration = required(cfg, "input.calibration", "track")
     detections = required(cfg, "input.detections", "track")
-    if not Path(calibration).is_file():
-        raise InputError(f"calibration file not found: {calibration}")
     kwargs = load_kwargs(cfg.input)
     body_cfg = cfg.get("body")
     deformation = cfg.get("deformation")
@@ -587,9 +585,11 @@ def _run(cfg: DictConfig) -> dict:
     extra["{part}_sigma"] = sigma
     fnum = det.frames if det.frames is not None else None
     out = output_dir(cfg)
-    points_path = write_points3d(
-        out / "points3d.csv", det.parts, points, error, ncams, score, extra=extra, fnum=fnum
-    )
+    points_path = out / "points3d.csv"
+
+    def write_points(path: Path) -> Path:
+        return write_points3d(path, det.parts, points, error, ncams, score, extra=extra, fnum=fnum)
+
     done = np.isfinite(points).all(-1)
     seen2 = ncams >= 2
     costs = [c for chunk in res.cost_history for c in chunk[-1:]]
@@ -662,16 +662,17 @@ def _run(cfg: DictConfig) -> dict:
         "time_s": {},
         "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
     }
+    timings["write_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
+    # points3d.csv and summary.json as a pair: the summary last, with the points' sha256
+    summary = write_outputs(out, write_points, summary)
     if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
         from adjust.export import write_nwb
 
         nwb = write_nwb(out / "tracks.nwb", points_path, calibration, fps=cfg.output.get("fps"))
         summary["outputs"]["nwb"] = str(nwb)
-    timings["write_s"] = time.perf_counter() - t0
-    timings["total_s"] = time.perf_counter() - t_start
-    summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
-    summary = finite_or_none(summary)
-    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+        write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     err = summary["reprojection_error_px"]
     log.info(
         "tracked %d frames x %d parts (completeness %.1f%%) in %d iterations (%.1f s); "

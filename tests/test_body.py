@@ -60,8 +60,16 @@ def test_from_observations_errors():
         BodyModel.from_observations(np.zeros((10, 8, 3)), parts=["a", "b"])
     Y = _observe(default_mouse().points, 20, 0.1, 0.0, 2)
     Y[:, 3] = np.nan
-    with pytest.raises(ValueError, match="part3"):
-        BodyModel.from_observations(Y, min_parts=6)
+
+
+def test_from_observations_part_never_observed_is_placed_loudly(caplog):
+    Y = _observe(default_mouse().points, 20, 0.1, 0.0, 2)
+    Y[:, 3] = np.nan  # never observed in 3D: at the body's centre, with a warning naming it
+    with caplog.at_level("WARNING"):
+        body = BodyModel.from_observations(Y, min_parts=6)
+    assert "part3" in caplog.text and "unknown" in caplog.text
+    others = np.delete(body.points, 3, axis=0)
+    assert np.allclose(body.points[3], others.mean(0), atol=1e-6)
 
 
 def test_alias_lookup():

@@ -12,23 +12,14 @@ from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
 
 T = 50
 LINE = np.stack([3 + 2.0 * np.arange(T), -1 - 0.5 * np.arange(T)], -1)
-DIFFUSE = pytest.mark.xfail(
-    strict=True,
-    reason="kalman_smooth's initial state prior (variance r^2*100 + 1 around z[first], velocity "
-    "0) is not diffuse: it biases a constant-velocity signal by 1.6e-3 (0.13 with leading "
-    "missing frames); variances of 1e8 give 1e-9. Fix in adjust/lsq/init.py, then drop this "
-    "xfail",
-)
 
 
-@DIFFUSE
 @pytest.mark.parametrize(("meas", "accel"), [(1.0, 0.1), (2.0, 50.0), (0.01, 1.0)])
 def test_kalman_constant_velocity_is_exact(meas, accel):
     out = kalman_smooth(LINE, np.ones(T, bool), np.full(2, meas), np.full(2, accel))
     np.testing.assert_allclose(out, LINE, rtol=0, atol=1e-6)
 
 
-@DIFFUSE
 def test_kalman_bridges_gaps_and_leading_frames():
     ok = np.ones(T, bool)
     ok[:5] = False  # before the first measurement: extrapolated back
