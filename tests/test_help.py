@@ -1,0 +1,119 @@
+"""Every app's `--help` (as a new user runs it, a subprocess): what the app does first, its
+required arguments, an example, and only the config groups it uses, with their real options
+(conf/hydra/help/<app>.yaml, selected in each app's primary config)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from deformnet.paths import CONF_DIR, REPO_DIR
+
+#: console script -> its primary config (conf/<name>.yaml)
+APPS = {
+    "deformnet-simulate": "simulate",
+    "deformnet-train": "train",
+    "adjust-simulate": "scene",
+    "adjust-triangulate": "triangulate",
+    "adjust-track": "track",
+    "adjust-calibrate": "calibrate",
+    "adjust-export": "export",
+    "adjust-events": "events",
+    "deformnet-classify": "classify",
+    "adjust-plot": "plot",
+    "adjust-demo": "demo",
+}
+
+
+def _script(name: str) -> str:
+    for folder in (REPO_DIR / ".venv" / "bin", Path(sys.executable).parent):
+        if (folder / name).exists():
+            return str(folder / name)
+    raise AssertionError(f"console script {name} is not installed (pip install -e .)")
+
+
+@pytest.fixture(scope="module")
+def helps() -> dict[str, subprocess.CompletedProcess]:
+    """All the apps' --help, run side by side."""
+    procs = {
+        app: subprocess.Popen(
+            [_script(app), "--help"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for app in APPS
+    }
+    out = {}
+    for app, p in procs.items():
+        stdout, stderr = p.communicate(timeout=120)
+        out[app] = subprocess.CompletedProcess(p.args, p.returncode, stdout, stderr)
+    return out
+
+
+def test_every_console_script_has_a_help_page():
+    import tomllib
+
+    scripts = tomllib.loads((REPO_DIR / "pyproject.toml").read_text())["project"]["scripts"]
+    assert set(scripts) == set(APPS)
+    for name in APPS.values():
+        assert (CONF_DIR / "hydra" / "help" / f"{name}.yaml").is_file()
+
+
+def _required(node, prefix: str = "") -> list[str]:
+    """Keys whose value is ``???`` (mandatory), dotted."""
+    keys = []
+    for k, v in node.items():
+        if k in ("hydra", "defaults"):
+            continue
+        if v == "???":
+            keys.append(prefix + str(k))
+        elif isinstance(v, dict):
+            keys += _required(v, f"{prefix}{k}.")
+    return keys
+
+
+def _groups(name: str) -> dict[str, set[str]]:
+    """The config groups conf/<name>.yaml's defaults list uses -> the options in conf/."""
+    cfg = OmegaConf.load(CONF_DIR / f"{name}.yaml")
+    groups = {}
+    for entry in cfg.get("defaults") or []:
+        if isinstance(entry, str):
+            continue
+        (key,) = list(entry.keys())
+        if key.startswith("override"):
+            continue
+        groups[key] = {p.stem for p in (CONF_DIR / key).glob("*.yaml")}
+    return groups
+
+
+@pytest.mark.parametrize("app", list(APPS))
+def test_help_says_what_needs_and_uses(app, helps):
+    res = helps[app]
+    assert res.returncode == 0, res.stderr
+    text = res.stdout
+    first = text.strip().splitlines()[0]
+    assert first.startswith(f"{app}:") or first.startswith(f"{app} ("), first
+    assert len(text.splitlines()) < 45  # a page, not a dump of the whole config
+    assert "Required arguments:" in text
+    name = APPS[app]
+    cfg = OmegaConf.load(CONF_DIR / f"{name}.yaml")
+    required = _required(OmegaConf.to_container(cfg, resolve=False))
+    for key in required:
+        assert f"{key}=" in text, f"{app} --help does not name its required {key}"
+    if not required and app not in ("deformnet-classify",):
+        assert "Required arguments: none" in text or "Required arguments:\n" in text
+    assert "Example" in text and f"\n  {app} " in text  # an example command line
+    # the groups: exactly those of the app's defaults list, each with its real options
+    section = text.split("Config groups", 1)[1]
+    listed = dict(re.findall(r"^ {2}([a-z_]+)=([\w|]+)\s", section, re.M))
+    groups = _groups(name)
+    assert set(listed) == set(groups), (app, listed, groups)
+    for g, options in listed.items():
+        assert set(options.split("|")) == groups[g], (app, g)
+    if not groups:
+        assert "Config groups: none" in text
+    # not the default template: no list of every group in conf/, no config dump
+    assert "== Config ==" not in text and "Powered by Hydra" not in text
