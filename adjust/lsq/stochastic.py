@@ -123,7 +123,7 @@ class OffsetCovariance:
         observed: np.ndarray,
         lags=DEFAULT_LAGS,
         min_pairs: int = 20,
-        floor_mm: float = 0.05,
+        floor_mm: float = 0.3,
         nugget: np.ndarray | None = None,
     ) -> OffsetCovariance:
         """From offsets (T, K, 3) observed where ``observed`` (T, K) (>= 2 views, gated).
@@ -133,7 +133,9 @@ class OffsetCovariance:
         triangulation variance per body axis) is given, or else extrapolated to lag 0 as for a
         smooth (quadratic near 0) motion, (4 g(1) - g(2)) / 3; it is removed from every lag.
         gamma is made non-decreasing and capped at the sill. A part with too few pairs at
-        a lag uses the sill there (no temporal information is claimed where none was seen).
+        a lag uses the sill there (no temporal information is claimed where none was seen); a
+        part observed fewer than ``min_pairs`` times gets mean 0 and 4x the largest second
+        moment of the others (it is barely known).
         """
         o = np.asarray(offsets, dtype=np.float64)
         m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
@@ -161,9 +163,17 @@ class OffsetCovariance:
         g2 = raw[:, :, 1] if lags.size > 1 and lags[1] == 2 else np.full_like(g1, np.nan)
         nug = np.where(np.isfinite(g2), (4.0 * g1 - g2) / 3.0, 0.5 * g1)
         nug = np.clip(np.nan_to_num(nug, nan=0.0), 0.0, np.nan_to_num(g1, nan=0.0))
-        if nugget is not None:
-            nug = np.broadcast_to(np.asarray(nugget, dtype=np.float64), (K, 3)).copy()
+        if nugget is not None:  # ... but never more than the lag-1 semivariogram it is part of
+            given = np.broadcast_to(np.asarray(nugget, dtype=np.float64), (K, 3))
+            nug = np.where(np.isfinite(g1), np.minimum(given, np.nan_to_num(g1)), given)
         sill = np.maximum(var - nug, floor_mm**2)
+        few = counts < min_pairs  # too few 3D observations to say how the part moves
+        if few.any():
+            known = ~few
+            wide = 4.0 * (sill[known] + mean[known] ** 2).max(0) if known.any() else 100.0
+            sill[few] = wide
+            mean[few] = 0.0
+            raw[few] = np.nan
         gamma = raw - nug[..., None]
         gamma = np.where(np.isfinite(gamma), gamma, sill[..., None])
         gamma = np.clip(np.maximum.accumulate(gamma, axis=-1), 0.0, sill[..., None])
