@@ -402,7 +402,9 @@ def load_classifier(path: str | os.PathLike):
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"classifier checkpoint not found: {path}")
-    blob = torch.load(os.fspath(path), map_location="cpu", weights_only=False)
+    from deformnet.deformation import load_checkpoint_data
+
+    blob = load_checkpoint_data(path)  # weights_only: a checkpoint is data, never code
     if not isinstance(blob, dict) or blob.get("kind") != CHECKPOINT_KIND:
         raise ValueError(f"{path} is not a behavior classifier (write it with deformnet-classify)")
     b = blob["body"]
