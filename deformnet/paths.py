@@ -6,7 +6,22 @@ import os
 from pathlib import Path
 
 REPO_DIR = Path(__file__).resolve().parents[1]
-CONF_DIR = REPO_DIR / "conf"
+
+
+def _conf_dir() -> Path:
+    """conf/ of the checkout (editable install, development); in a non-editable install the
+    configs ship as the package ``mousetrack_conf``."""
+    if (REPO_DIR / "conf" / "track.yaml").is_file():
+        return REPO_DIR / "conf"
+    import importlib.util
+
+    spec = importlib.util.find_spec("mousetrack_conf")
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError("mousetrack's Hydra configs are missing: reinstall the package")
+    return Path(next(iter(spec.submodule_search_locations)))
+
+
+CONF_DIR = _conf_dir()
 
 
 def shared_dir() -> Path:
