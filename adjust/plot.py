@@ -551,3 +551,46 @@ def events_figure(
     ax.set_title("lock-box contacts per mechanism (pale: inferred, the part mostly unseen)")
     fig.tight_layout()
     return fig
+
+
+def key_figure(
+    truth: np.ndarray,
+    tracks: Mapping[str, np.ndarray],
+    part: str,
+    occluded: np.ndarray,
+    fps: float | None = None,
+    window: tuple[int, int] | None = None,
+):
+    """One part's x, y, z over time: the truth, the DLT triangulation (empty where fewer than
+    2 cameras saw it) and the tracked estimates, occluded stretches shaded.
+
+    truth: (T, 3) mm; tracks: method -> (T, 3) mm (NaN = none); occluded: (T,) bool;
+    window: (start, stop) frames to show (default: all)."""
+    T = len(truth)
+    a, b = window or (0, T)
+    t, unit = _time_axis(T, fps)
+    dt = t[1] - t[0] if T > 1 else 1.0
+    fig, axes = plt.subplots(3, 1, figsize=(12, 6.5), sharex=True)
+    colors = plt.get_cmap("tab10")
+    occ = np.asarray(occluded, bool)
+    for i, ax in enumerate(axes):
+        for s, e in runs_of(occ[a:b]):
+            ax.axvspan(t[a + s] - dt / 2, t[a + e - 1] + dt / 2, color="0.88", lw=0)
+        ax.plot(t[a:b], truth[a:b, i], color="k", lw=2.2, alpha=0.35, label="truth")
+        for j, (name, x) in enumerate(tracks.items()):
+            x = np.asarray(x, dtype=np.float64)
+            if name == "dlt":
+                ax.plot(t[a:b], x[a:b, i], ".", ms=3, color=colors(j % 10), label=name)
+            else:
+                ax.plot(t[a:b], x[a:b, i], lw=1.0, color=colors(j % 10), label=name)
+        ax.set_ylabel(f"{'xyz'[i]} (mm)")
+        ax.tick_params(labelsize=8)
+    axes[0].legend(fontsize=8, ncol=len(tracks) + 1, loc="upper right")
+    axes[-1].set_xlabel(unit)
+    axes[0].set_title(
+        f"{part}: complete 3D track from incomplete detections (grey: seen by fewer than 2 "
+        "cameras, where triangulation has nothing)",
+        fontsize=10,
+    )
+    fig.subplots_adjust(left=0.07, right=0.98, top=0.93, bottom=0.08, hspace=0.12)
+    return fig

@@ -189,7 +189,26 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
     errors = {
         m: np.linalg.norm(tr["points"] - truth["points"], axis=-1) for m, tr in tracks.items()
     }
-    keep("errors", plot.error_figure(errors, parts, np.asarray(truth["nviews"]) < 2, fps=fps))
+    occ = np.asarray(truth["nviews"]) < 2
+    keep("errors", plot.error_figure(errors, parts, occ, fps=fps))
+    # the key figure: the part occluded most often (not always), in the most occluded window
+    frac = occ.mean(0)
+    k = int(np.argmax(np.where(frac < 0.8, frac, -1.0)))
+    T = len(occ)
+    span = min(T, 600)
+    dens = np.convolve(occ[:, k].astype(float), np.ones(span), mode="valid")
+    a = int(np.argmax(dens))
+    shown = {m: tracks[m]["points"][:, k] for m in ("dlt", primary, "net") if m in tracks}
+    keep(
+        "key",
+        plot.key_figure(truth["points"][:, k], shown, parts[k], occ[:, k], fps, (a, a + span)),
+    )
+    data["key"] = {
+        "part": parts[k],
+        "occluded_fraction": float(frac[k]),
+        "window_frames": [a, a + span],
+        "methods": list(shown),
+    }
 
     # sample frames: the primary tracks reprojected over every camera's detections
     import torch
@@ -505,10 +524,22 @@ def blocks(rep: Mapping) -> list[tuple]:
             "with the simulator's DeepLabCut-like detector: part-frames seen by >= 2 "
             f"cameras {100 * sc['fractions']['ge2_views']:.1f}%, by one "
             f"{100 * sc['fractions']['one_view']:.1f}%, by none "
-            f"{100 * sc['fractions']['no_view']:.1f}%. Total time {tot / 60:.1f} min.",
+            f"{100 * sc['fractions']['no_view']:.1f}%. Pipeline time {tot / 60:.1f} min.",
         )
     )
 
+    key = rep.get("key")
+    if key and "key" in fig:
+        b.append(
+            (
+                "img",
+                fig["key"],
+                f"{key['part']} (seen by fewer than 2 cameras in "
+                f"{100 * key['occluded_fraction']:.0f}% of the frames), frames "
+                f"{key['window_frames'][0]}-{key['window_frames'][1]}: the truth, the DLT "
+                f"triangulation and the tracked estimates ({', '.join(key['methods'][1:])}).",
+            )
+        )
     b.append(("h", 2, "Scene and rig"))
     b.append(
         (
@@ -737,7 +768,7 @@ def to_markdown(bl: Sequence[tuple]) -> str:
         elif kind == "p":
             lines += [blk[1], ""]
         elif kind == "img":
-            lines += [f"![{blk[2]}]({blk[1]})", "", f"*{blk[2]}*", ""]
+            lines += [f"![{Path(blk[1]).stem}]({blk[1]})", "", f"*{blk[2]}*", ""]
         elif kind == "table":
             header, rows = blk[1], blk[2]
             lines.append("| " + " | ".join(header) + " |")

@@ -34,7 +34,7 @@ def demo(tmp_path_factory):
 def test_every_picture_exists_and_is_a_png(demo):
     out, res, rep = demo
     names = set(rep["figures"])
-    expected = {"scene", "body3d", "errors", "curves", "confusion", "ethogram", "events"}
+    expected = {"key", "scene", "body3d", "errors", "curves", "confusion", "ethogram", "events"}
     assert expected <= names
     assert sum(n.startswith("reprojection_frame") for n in names) >= 2
     md = (out / "report.md").read_text()
