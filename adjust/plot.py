@@ -15,6 +15,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from deformnet.atomic import atomic_path  # noqa: E402
@@ -521,6 +522,8 @@ def curves_figure(curves: Mapping[str, Mapping[str, tuple[Sequence[float], Seque
         ax.set_ylabel("validation RMSE of hidden parts (mm)")
         ax.legend(fontsize=8)
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.grid(alpha=0.3, which="both")
     fig.suptitle("deformation nets: validation curves (from the TensorBoard event files)")
     fig.tight_layout()
