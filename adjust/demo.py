@@ -257,19 +257,29 @@ def table(tracking: dict) -> str:
     return "\n".join(lines)
 
 
+def closing_lines(res: dict, minutes: float) -> str:
+    """What `adjust-demo` prints at the end: the accuracy table, then where everything is; the
+    last lines name the report."""
+    return "\n".join(
+        [
+            "",
+            "mousetrack demo: 3D error (mm) against the simulated truth",
+            "",
+            table(res["tracking"]),
+            "",
+            f"TensorBoard: tensorboard --logdir {res['tensorboard']}",
+            f"Demo finished in {minutes:.1f} min; all outputs: {res['output_dir']}",
+            f"Report: {res['report']['markdown']}",
+            f"        {res['report']['html']} (self-contained: open it in a browser)",
+        ]
+    )
+
+
 @hydra.main(config_path=str(CONF_DIR), config_name="demo", version_base=None)
 def _app(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     res = run_or_exit(run, cfg)
-    print("\nmousetrack demo: 3D error (mm) against the simulated truth\n")
-    print(table(res["tracking"]))
-    print(f"\nTensorBoard: tensorboard --logdir {res['tensorboard']}")
-    print(
-        f"Demo finished in {(time.perf_counter() - t0) / 60:.1f} min; all outputs: "
-        f"{res['output_dir']}"
-    )
-    print(f"Report: {res['report']['markdown']}")
-    print(f"        {res['report']['html']} (self-contained: open it in a browser)")
+    print(closing_lines(res, (time.perf_counter() - t0) / 60))
 
 
 def main() -> None:

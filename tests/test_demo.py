@@ -49,6 +49,11 @@ def test_every_picture_exists_and_is_a_png(demo):
     assert len(srcs) == len(referenced)
     assert all(s.startswith("data:image/png;base64,iVBORw0KGgo") for s in srcs)  # embedded
     assert Path(res["report"]["html"]) == out / "report.html"
+    from adjust.demo import closing_lines
+
+    last = closing_lines(res, 1.0).splitlines()[-2:]
+    assert last[0] == f"Report: {out / 'report.md'}"
+    assert last[1].strip().startswith(str(out / "report.html"))
 
 
 def test_tracking_numbers_equal_the_run_files(demo):
