@@ -633,6 +633,11 @@ def _run(cfg: DictConfig) -> dict:
         "mixture_share": float(res.mixture_share),
         "initial_fit_frames": int(np.asarray(res.fitted).sum()),
         "frames_without_detections": int((ncams.sum(-1) == 0).sum()),
+        # how much of the output rests on no accepted detection at all (the model alone)
+        "from_model_only": {
+            "fraction": float((ncams == 0).mean()) if ncams.size else 0.0,
+            "per_part": {p: float((ncams[:, k] == 0).mean()) for k, p in enumerate(det.parts)},
+        },
         # fraction of part-frames with a finite 3D point
         "completeness": float(done.mean()) if done.size else 0.0,
         "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},
@@ -673,6 +678,15 @@ def _run(cfg: DictConfig) -> dict:
         nwb = write_nwb(out / "tracks.nwb", points_path, calibration, fps=cfg.output.get("fps"))
         summary["outputs"]["nwb"] = str(nwb)
         write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    alone = summary["from_model_only"]["fraction"]
+    if alone > 0.25:
+        worst = sorted(summary["from_model_only"]["per_part"].items(), key=lambda kv: -kv[1])[:3]
+        log.warning(
+            "%.0f%% of the part-frames rest on no accepted detection (tracked from the model "
+            "alone; their _ncams is 0 and their _sigma large): most for %s",
+            100 * alone,
+            ", ".join(f"{p} {100 * v:.0f}%" for p, v in worst),
+        )
     err = summary["reprojection_error_px"]
     log.info(
         "tracked %d frames x %d parts (completeness %.1f%%) in %d iterations (%.1f s); "

@@ -8,6 +8,7 @@ from pathlib import Path
 import hydra
 import numpy as np
 import pandas as pd
+import pytest
 import torch
 
 from adjust.camera import CameraTensors, project_cameras
@@ -339,3 +340,12 @@ def test_body_auto_with_22_real_keypoints_on_three_cameras(tmp_path):
     s = track(session, tmp_path / "out", ["body=auto", "deformation=rigid"])
     assert s["completeness"] == 1.0 and len(s["parts"]) == 22
     assert s["body"]["frames_used"] >= 80
+
+
+def test_summary_says_how_much_rests_on_no_detection(tmp_path):
+    session, _, nviews = _deforming_session(tmp_path, 3, np.full(8, 1.0), 0.6, seed=10)
+    s = track(session, tmp_path / "out")
+    d = read_points3d(tmp_path / "out" / "points3d.csv")
+    alone = s["from_model_only"]
+    assert alone["fraction"] == pytest.approx(float((d["ncams"] == 0).mean()))
+    assert set(alone["per_part"]) == set(s["parts"]) and 0 < alone["fraction"] < 1
