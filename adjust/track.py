@@ -48,17 +48,14 @@ from omegaconf import DictConfig
 from adjust.app import load_kwargs, required, run_or_exit, stats, write_outputs
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import Detections, InputError, load_scene, write_points3d
+from adjust.lsq.observation import NetObservation
 from adjust.session import expand_session_globs, with_session
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, output_dir
-from deformnet.so3 import skew
 
 log = logging.getLogger(__name__)
 
-#: finite-difference steps of the deformable Jacobian: rotation (rad), translation (mm)
-FD_STEP = {"forward": (1e-6, 1e-4), "central": (1e-5, 1e-3)}  # (rad, mm) steps
-JACOBIANS = ("frozen", *FD_STEP)
 POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
 
 
@@ -166,116 +163,6 @@ def load_deformation(path: str):
         raise InputError(f"{p}: cannot load a deformation model: {exc}") from None
 
 
-def _measured_observation_class():
-    from adjust.lsq.geometry import retract
-    from adjust.lsq.observation import DeformableObservation
-
-    class MeasuredDeformation(DeformableObservation):
-        """`DeformableObservation` whose ``deformed`` window inputs are measurements.
-
-        The net was trained with the observed tokens' deformed halves being the measured
-        (true) part positions. Here they are the parts triangulated from the detections,
-        ``data (T, K, 3)`` with ``observed (T, K)``; a measurement farther than ``gate_mm``
-        from the current rigid model point (a mis-detection) is treated as unobserved. The
-        solver's base class feeds back the net's own predictions instead, which carries no
-        information about occluded frames' neighbours beyond the poses.
-        """
-
-        def __init__(
-            self, model, body_points, window, data, observed, gate_mm, batch_size, jacobian
-        ):
-            super().__init__(model, body_points, window, observed, batch_size)
-            if jacobian not in JACOBIANS:
-                raise ValueError(
-                    f"deform.jacobian must be one of {list(JACOBIANS)}, got {jacobian!r}"
-                )
-            self.data = data
-            self.gate_mm = float(gate_mm)
-            self.jacobian = jacobian
-            self.moments: torch.Tensor | None = None  # (K, 3) body-axis mm^2, once estimated
-
-        def deformation_cov(self, poses: torch.Tensor) -> torch.Tensor:
-            """How far the parts stray from the net's predictions: per part and body axis the
-            second moment of (measured - predicted) over the frames where the part was
-            measured (the net never sees a frame's own measurement, so this is a held-out
-            error), estimated once at the first call's poses and rotated into each frame."""
-            from adjust.lsq.geometry import so3_exp
-            from adjust.lsq.observation import _rotate_axes_var
-
-            R = so3_exp(poses[:, :3])
-            if self.moments is None:
-                if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
-                    self.prepare(poses)
-                X = self._forward(poses)
-                d = torch.einsum("tji,tkj->tki", R, self.data.to(X.dtype) - X)
-                m = self.observed & torch.isfinite(self.data).all(-1)
-                n = m.sum(0).clamp_min(1)[:, None]
-                mom = torch.where(m[..., None], d * d, torch.zeros_like(d)).sum(0) / n
-                if bool((m.sum(0) == 0).any()) and bool(m.any()):
-                    mom[m.sum(0) == 0] = mom[m.sum(0) > 0].max(0).values
-                self.moments = mom.clamp_min(0.25)
-            v = self.moments.to(poses.dtype).expand(poses.shape[0], -1, -1)
-            return _rotate_axes_var(R, v)
-
-        def prepare(self, poses: torch.Tensor) -> None:
-            Xr, _ = self.rigid.rigid_points(poses)
-            Xr = Xr.detach()
-            data = self.data.to(Xr.dtype)
-            obs = self.observed & torch.isfinite(data).all(-1)
-            if self.gate_mm > 0:
-                obs = obs & ((data - Xr).norm(dim=-1) <= self.gate_mm)
-            self._rigid_win = self._windows(Xr)
-            self._deformed_win = self._windows(torch.where(obs[..., None], data, Xr))
-            self._observed_win = self._windows(obs[..., None].to(Xr.dtype))[..., 0] > 0.5
-
-        def points(self, poses: torch.Tensor, jacobian: bool = True):
-            """X (T, K, 3) and, if asked, dX_t/d(delta_t) (T, K, 3, 6).
-
-            ``jacobian="frozen"`` (default): the net's prediction in the frame's own body
-            coordinates, c_t = R_t^T (X_t - tau_t), is held fixed within an iteration (it is
-            re-predicted at every linearisation and cost evaluation), so dX_t/d(delta_t) =
-            [-[X_t - tau_t]_x, I] as for a rigid point: one forward pass per evaluation; it
-            neglects how the prediction changes with the frame's pose relative to its fixed
-            neighbours (a Gauss-Newton with that approximate Jacobian). ``"forward"`` /
-            ``"central"``: the full Jacobian by finite differences through the net; frames are
-            independent given the fixed neighbour inputs, so one batched forward pass per
-            perturbed pose component gives every frame's column at once (6 or 12 passes)."""
-            if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
-                self.prepare(poses)
-            X = self._forward(poses)
-            if not jacobian:
-                return X, None
-            if self.jacobian == "frozen":
-                a = X - poses[:, None, 3:]
-                eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
-                return X, torch.cat((-skew(a), eye), -1)
-            J = poses.new_zeros((*X.shape, 6))
-            for j in range(6):
-                h = FD_STEP[self.jacobian][j // 3]
-                d = torch.zeros_like(poses)
-                d[:, j] = h
-                Xp = self._forward(retract(poses, d))
-                if self.jacobian == "central":
-                    J[..., j] = (Xp - self._forward(retract(poses, -d))) / (2 * h)
-                else:
-                    J[..., j] = (Xp - X) / h
-            return X, J
-
-        def window(self, start: int, stop: int):
-            return MeasuredDeformation(
-                self.model,
-                self.rigid.body,
-                self.W,
-                self.data[start:stop],
-                self.observed[start:stop],
-                self.gate_mm,
-                self.batch_size,
-                self.jacobian,
-            )
-
-    return MeasuredDeformation
-
-
 def make_deformable_observation(
     model, body_points: np.ndarray, det: Detections, cams, cfg_def, cons=None
 ):
@@ -295,8 +182,7 @@ def make_deformable_observation(
     net = (model.float() if jac == "frozen" else model.double()).eval()
     for p in net.parameters():
         p.requires_grad_(False)
-    cls = _measured_observation_class()
-    obs = cls(
+    obs = NetObservation(
         net,
         torch.tensor(np.asarray(body_points), dtype=torch.float64),
         int(model.window),

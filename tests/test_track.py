@@ -282,8 +282,7 @@ def test_deformable_run_with_trained_tiny_checkpoint(scene, tmp_path):
 def test_measured_deformation_matches_autograd(tmp_path):
     """The finite-difference Jacobian of the deformable observation equals the solver's
     reverse-mode one, and measured inputs reach the net (gated by distance)."""
-    from adjust.lsq.observation import DeformableObservation
-    from adjust.track import _measured_observation_class
+    from adjust.lsq.observation import DeformableObservation, NetObservation
     from deformnet.deformation import DeformationModel
 
     model = DeformationModel.from_checkpoint(_tiny_checkpoint(tmp_path / "t.ckpt")).double()
@@ -296,8 +295,7 @@ def test_measured_deformation_matches_autograd(tmp_path):
     data = body[None] + poses[:, None, 3:] + 2 * rand(T, 8, 3)
     data[3, 2] += 100.0  # a mis-detection: gated out
     observed = torch.rand(T, 8, generator=gen) > 0.3
-    cls = _measured_observation_class()
-    obs = cls(model, body, model.window, data, observed, 30.0, 4096, "central")
+    obs = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "central")
     ref = DeformableObservation(model, body, model.window, observed)
     obs.prepare(poses)
     ref.prepare(poses)
@@ -307,7 +305,7 @@ def test_measured_deformation_matches_autograd(tmp_path):
     Xr, Jr = ref.points(poses)
     torch.testing.assert_close(X, Xr)
     torch.testing.assert_close(J, Jr, atol=1e-6, rtol=1e-5)
-    fwd = cls(model, body, model.window, data, observed, 30.0, 4096, "forward")
+    fwd = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "forward")
     fwd.prepare(poses)
     torch.testing.assert_close(fwd.points(poses)[1], Jr, atol=1e-4, rtol=1e-4)
     sub = obs.window(5, 15)

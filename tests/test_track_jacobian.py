@@ -39,13 +39,12 @@ def _problem(T: int = 12):
 
 
 def test_frozen_jacobian_is_exact_for_the_frozen_prediction():
-    from adjust.track import _measured_observation_class
+    from adjust.lsq.observation import NetObservation
 
     model = _model()
     body, poses, data, observed = _problem()
-    cls = _measured_observation_class()
-    frozen = cls(model, body, model.window, data, observed, 30.0, 4096, "frozen")
-    central = cls(model, body, model.window, data, observed, 30.0, 4096, "central")
+    frozen = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "frozen")
+    central = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "central")
     frozen.prepare(poses)
     central.prepare(poses)
     X, J = frozen.points(poses)
@@ -73,13 +72,12 @@ def test_frozen_jacobian_is_exact_for_the_frozen_prediction():
 
 def test_frozen_jacobian_equals_full_one_for_a_rigid_prediction():
     """An untrained net (zero-initialised head) predicts the rigid model: nothing is neglected."""
-    from adjust.track import _measured_observation_class
+    from adjust.lsq.observation import NetObservation
 
     model = _model(perturb=False)
     body, poses, data, observed = _problem()
-    cls = _measured_observation_class()
-    frozen = cls(model, body, model.window, data, observed, 30.0, 4096, "frozen")
-    central = cls(model, body, model.window, data, observed, 30.0, 4096, "central")
+    frozen = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "frozen")
+    central = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "central")
     frozen.prepare(poses)
     central.prepare(poses)
     torch.testing.assert_close(
@@ -90,12 +88,12 @@ def test_frozen_jacobian_equals_full_one_for_a_rigid_prediction():
 def test_unknown_jacobian_mode_is_refused():
     import pytest
 
-    from adjust.track import _measured_observation_class
+    from adjust.lsq.observation import NetObservation
 
     model = _model()
     body, _, data, observed = _problem()
     with pytest.raises(ValueError, match="deform.jacobian"):
-        _measured_observation_class()(model, body, model.window, data, observed, 30.0, 64, "exact")
+        NetObservation(model, body, model.window, data, observed, 30.0, 64, "exact")
 
 
 def test_frozen_solve_reaches_the_central_difference_solution(tmp_path):

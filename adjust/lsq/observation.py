@@ -7,6 +7,17 @@ rigid positions around t) hold the neighbours' inputs fixed per outer iteration:
 called with the current poses at the start of every Gauss-Newton iteration, so the normal
 equations keep their block-banded structure and the deformation is re-evaluated as the poses
 converge (a fixed-point / block-Jacobi treatment of the cross-frame coupling).
+
+The models (the app, `adjust.track`, only picks one):
+- `RigidObservation`: the rigid body moved by the pose (eq. 4), optionally with each part's
+  estimated deformation variance;
+- `InterpObservation` (``deformation=interp``): plus each part's body-frame offset interpolated
+  from its own 3D observations in the neighbouring frames;
+- `DeformableObservation`: the learned net (eq. 11) with its own predictions fed back as the
+  window's deformed inputs;
+- `NetObservation` (``deformation=CKPT``): the learned net with the measured (triangulated,
+  gated) parts as its deformed inputs, a frozen or finite-difference Jacobian, and its
+  deformation variance estimated from its held-out error.
 """
 
 from __future__ import annotations
@@ -17,6 +28,7 @@ import torch
 from torch import Tensor
 
 from adjust.lsq.geometry import retract, rigid_points, so3_exp
+from deformnet.so3 import skew
 
 
 @runtime_checkable
@@ -186,8 +198,6 @@ class InterpObservation:
         X = a + poses[:, None, 3:]
         if not jacobian:
             return X, None
-        from deformnet.so3 import skew
-
         eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
         return X, torch.cat((-skew(a), eye), -1)
 
@@ -313,3 +323,109 @@ class DeformableObservation:
     def window(self, start: int, stop: int) -> DeformableObservation:
         obs = None if self.observed is None else self.observed[start:stop]
         return DeformableObservation(self.model, self.rigid.body, self.W, obs, self.batch_size)
+
+
+#: finite-difference steps of the deformable Jacobian: rotation (rad), translation (mm)
+FD_STEP = {"forward": (1e-6, 1e-4), "central": (1e-5, 1e-3)}  # (rad, mm) steps
+JACOBIANS = ("frozen", *FD_STEP)
+
+
+class NetObservation(DeformableObservation):
+    """``deformation=CKPT``: the learned net inside the observation function, a
+    `DeformableObservation` whose ``deformed`` window inputs are measurements.
+
+    The net was trained with the observed tokens' deformed halves being the measured
+    (true) part positions. Here they are the parts triangulated from the detections,
+    ``data (T, K, 3)`` with ``observed (T, K)``; a measurement farther than ``gate_mm``
+    from the current rigid model point (a mis-detection) is treated as unobserved. The
+    solver's base class feeds back the net's own predictions instead, which carries no
+    information about occluded frames' neighbours beyond the poses.
+    """
+
+    def __init__(self, model, body_points, window, data, observed, gate_mm, batch_size, jacobian):
+        super().__init__(model, body_points, window, observed, batch_size)
+        if jacobian not in JACOBIANS:
+            raise ValueError(f"deform.jacobian must be one of {list(JACOBIANS)}, got {jacobian!r}")
+        self.data = data
+        self.gate_mm = float(gate_mm)
+        self.jacobian = jacobian
+        self.moments: torch.Tensor | None = None  # (K, 3) body-axis mm^2, once estimated
+
+    def deformation_cov(self, poses: torch.Tensor) -> torch.Tensor:
+        """How far the parts stray from the net's predictions: per part and body axis the
+        second moment of (measured - predicted) over the frames where the part was
+        measured (the net never sees a frame's own measurement, so this is a held-out
+        error), estimated once at the first call's poses and rotated into each frame."""
+        from adjust.lsq.geometry import so3_exp
+        from adjust.lsq.observation import _rotate_axes_var
+
+        R = so3_exp(poses[:, :3])
+        if self.moments is None:
+            if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
+                self.prepare(poses)
+            X = self._forward(poses)
+            d = torch.einsum("tji,tkj->tki", R, self.data.to(X.dtype) - X)
+            m = self.observed & torch.isfinite(self.data).all(-1)
+            n = m.sum(0).clamp_min(1)[:, None]
+            mom = torch.where(m[..., None], d * d, torch.zeros_like(d)).sum(0) / n
+            if bool((m.sum(0) == 0).any()) and bool(m.any()):
+                mom[m.sum(0) == 0] = mom[m.sum(0) > 0].max(0).values
+            self.moments = mom.clamp_min(0.25)
+        v = self.moments.to(poses.dtype).expand(poses.shape[0], -1, -1)
+        return _rotate_axes_var(R, v)
+
+    def prepare(self, poses: torch.Tensor) -> None:
+        Xr, _ = self.rigid.rigid_points(poses)
+        Xr = Xr.detach()
+        data = self.data.to(Xr.dtype)
+        obs = self.observed & torch.isfinite(data).all(-1)
+        if self.gate_mm > 0:
+            obs = obs & ((data - Xr).norm(dim=-1) <= self.gate_mm)
+        self._rigid_win = self._windows(Xr)
+        self._deformed_win = self._windows(torch.where(obs[..., None], data, Xr))
+        self._observed_win = self._windows(obs[..., None].to(Xr.dtype))[..., 0] > 0.5
+
+    def points(self, poses: torch.Tensor, jacobian: bool = True):
+        """X (T, K, 3) and, if asked, dX_t/d(delta_t) (T, K, 3, 6).
+
+        ``jacobian="frozen"`` (default): the net's prediction in the frame's own body
+        coordinates, c_t = R_t^T (X_t - tau_t), is held fixed within an iteration (it is
+        re-predicted at every linearisation and cost evaluation), so dX_t/d(delta_t) =
+        [-[X_t - tau_t]_x, I] as for a rigid point: one forward pass per evaluation; it
+        neglects how the prediction changes with the frame's pose relative to its fixed
+        neighbours (a Gauss-Newton with that approximate Jacobian). ``"forward"`` /
+        ``"central"``: the full Jacobian by finite differences through the net; frames are
+        independent given the fixed neighbour inputs, so one batched forward pass per
+        perturbed pose component gives every frame's column at once (6 or 12 passes)."""
+        if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
+            self.prepare(poses)
+        X = self._forward(poses)
+        if not jacobian:
+            return X, None
+        if self.jacobian == "frozen":
+            a = X - poses[:, None, 3:]
+            eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
+            return X, torch.cat((-skew(a), eye), -1)
+        J = poses.new_zeros((*X.shape, 6))
+        for j in range(6):
+            h = FD_STEP[self.jacobian][j // 3]
+            d = torch.zeros_like(poses)
+            d[:, j] = h
+            Xp = self._forward(retract(poses, d))
+            if self.jacobian == "central":
+                J[..., j] = (Xp - self._forward(retract(poses, -d))) / (2 * h)
+            else:
+                J[..., j] = (Xp - X) / h
+        return X, J
+
+    def window(self, start: int, stop: int):
+        return NetObservation(
+            self.model,
+            self.rigid.body,
+            self.W,
+            self.data[start:stop],
+            self.observed[start:stop],
+            self.gate_mm,
+            self.batch_size,
+            self.jacobian,
+        )
