@@ -182,7 +182,8 @@ def measure_memory(T: int, threads: int, dtype: str = "float32") -> dict:
 
 
 def run_deformable(T: int, checkpoint: str | None, threads: int, work: Path) -> dict:
-    """Time adjust-track rigid and deformable on a simulated T-frame scene (see module doc)."""
+    """Time adjust-track rigid, interp (the default) and deformable on a simulated T-frame
+    scene (see module doc)."""
     import tracking  # benchmarks/tracking.py: scene, training and adjust-track helpers
 
     scene = work / f"scene_{T}"
@@ -196,6 +197,7 @@ def run_deformable(T: int, checkpoint: str | None, threads: int, work: Path) -> 
     row: dict = {"frames": T, "checkpoint": str(checkpoint)}
     for name, overrides in (
         ("rigid", ["deformation=rigid"]),
+        ("interp", ["deformation=interp"]),  # adjust-track's default
         ("deformable", [f"deformation={checkpoint}"]),
     ):
         points, seconds, summary = tracking.run_track(scene, work / name, overrides + extra)
