@@ -11,8 +11,10 @@ from dataclasses import dataclass
 
 import torch
 
+from adjust.lsq.robust import KERNELS
+
 _CONSTRAINTS = ("spline", "grid", "none")
-_KERNELS = ("none", "huber", "cauchy")
+_KERNELS = tuple(KERNELS)
 _INITS = ("fit", "kalman")
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 

@@ -19,27 +19,73 @@ import torch
 from torch import Tensor
 
 
-def kernel_weight(u: Tensor, kind: str, scale: float) -> Tensor:
-    """IRLS weight rho'(u)/u of a robust kernel on whitened residual norms u >= 0 (any shape)."""
-    if kind == "none":
+class Kernel:
+    """A robust kernel on whitened residual norms u >= 0: ``cost(u2)`` = rho(u^2) / 2 and the
+    IRLS ``weight(u)`` = rho'(u) / u (pypose's `optim/kernel.py` in spirit). A new kernel is a
+    new subclass registered in `KERNELS`."""
+
+    def __init__(self, scale: float = 1.0) -> None:
+        self.scale = float(scale)
+
+    def weight(self, u: Tensor) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def cost(self, u2: Tensor) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class NoKernel(Kernel):
+    """Plain least squares."""
+
+    def weight(self, u: Tensor) -> Tensor:
         return torch.ones_like(u)
-    if kind == "huber":
-        return torch.where(u <= scale, torch.ones_like(u), scale / u.clamp_min(1e-300))
-    if kind == "cauchy":
-        return 1.0 / (1.0 + (u / scale) ** 2)
-    raise ValueError(f"unknown robust kernel {kind!r} (none, huber, cauchy)")
+
+    def cost(self, u2: Tensor) -> Tensor:
+        return 0.5 * u2
+
+
+class Huber(Kernel):
+    """Quadratic up to ``scale``, linear beyond."""
+
+    def weight(self, u: Tensor) -> Tensor:
+        return torch.where(u <= self.scale, torch.ones_like(u), self.scale / u.clamp_min(1e-300))
+
+    def cost(self, u2: Tensor) -> Tensor:
+        u, c = u2.sqrt(), self.scale
+        return torch.where(u <= c, 0.5 * u2, c * u - 0.5 * c * c)
+
+
+class Cauchy(Kernel):
+    """rho = c^2 log(1 + u^2 / c^2): mis-detections far out weigh almost nothing."""
+
+    def weight(self, u: Tensor) -> Tensor:
+        return 1.0 / (1.0 + (u / self.scale) ** 2)
+
+    def cost(self, u2: Tensor) -> Tensor:
+        c2 = self.scale * self.scale
+        return 0.5 * c2 * torch.log1p(u2 / c2)
+
+
+#: the kernels by their config name (`solver.robust`)
+KERNELS: dict[str, type[Kernel]] = {"none": NoKernel, "huber": Huber, "cauchy": Cauchy}
+
+
+def make_kernel(kind: str, scale: float) -> Kernel:
+    """The kernel named `kind` (a key of `KERNELS`) with its scale."""
+    try:
+        return KERNELS[kind](scale)
+    except KeyError:
+        raise ValueError(f"unknown robust kernel {kind!r} ({', '.join(KERNELS)})") from None
+
+
+def kernel_weight(u: Tensor, kind: str, scale: float) -> Tensor:
+    """IRLS weight rho'(u)/u of the kernel `kind` on whitened residual norms u >= 0."""
+    return make_kernel(kind, scale).weight(u)
 
 
 def kernel_cost(u2: Tensor, kind: str, scale: float) -> Tensor:
     """rho(u^2)/2 per residual (the robust cost; = u^2/2 without kernel).  u2 (...) -> (...)."""
-    if kind == "none":
-        return 0.5 * u2
-    if kind == "huber":
-        u = u2.sqrt()
-        return torch.where(u <= scale, 0.5 * u2, scale * u - 0.5 * scale * scale)
-    if kind == "cauchy":
-        return 0.5 * scale * scale * torch.log1p(u2 / (scale * scale))
-    raise ValueError(f"unknown robust kernel {kind!r} (none, huber, cauchy)")
+    return make_kernel(kind, scale).cost(u2)
 
 
 def mixture_weights(
