@@ -277,14 +277,10 @@ def run(cfg: DictConfig) -> dict:
     """Load, adjust, write points3d.csv and summary.json; returns the summary.
 
     ``threads`` (torch's intra-op threads) applies for the call and is restored after it."""
-    threads = cfg.get("threads")
-    before = torch.get_num_threads()
-    if threads:
-        torch.set_num_threads(int(threads))
-    try:
+    from deformnet.threads import torch_threads
+
+    with torch_threads(cfg.get("threads")):
         return _run(cfg)
-    finally:
-        torch.set_num_threads(before)
 
 
 def _run(cfg: DictConfig) -> dict:

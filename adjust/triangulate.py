@@ -207,10 +207,9 @@ def triangulate(
     if bool((weight < 0).any()):
         raise ValueError("weights must be >= 0 (0 = missing)")
 
-    threads_before = torch.get_num_threads()
-    if num_threads is not None:
-        torch.set_num_threads(num_threads)
-    try:
+    from deformnet.threads import torch_threads
+
+    with torch_threads(num_threads):
         parts = [
             _triangulate_flat(
                 xy[s : s + chunk_size],
@@ -224,8 +223,6 @@ def triangulate(
             )
             for s in range(0, max(xy.shape[0], 1), chunk_size)
         ]
-    finally:
-        torch.set_num_threads(threads_before)
     X, error, ncams, used, nviews, view_error = (torch.cat(z) for z in zip(*parts))
     return TriangulationResult(
         points=X.reshape(*lead, 3),

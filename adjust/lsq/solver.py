@@ -43,6 +43,7 @@ from adjust.lsq.init import initial_poses
 from adjust.lsq.lm import add_ridge, levenberg_marquardt
 from adjust.lsq.observation import ObservationModel, RigidObservation
 from adjust.lsq.robust import kernel_cost, kernel_weight, mixture_weights
+from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -420,24 +421,10 @@ def adjust_poses(
     are None; `TRACK_OUTPUTS`: what adjust-track needs): long sessions keep only what they use.
     """
     cfg = config if config is not None else SolverConfig()
-    with _threads(cfg.num_threads):
+    with torch_threads(cfg.num_threads):
         return _adjust_poses(
             xy, weight, cams, body_points, cfg, init_poses, observation, progress, trusted, outputs
         )
-
-
-@contextlib.contextmanager
-def _threads(n: int) -> Iterator[None]:
-    """Run with n torch threads (0: unchanged), restoring the previous setting."""
-    if n <= 0:
-        yield
-        return
-    old = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 def _adjust_poses(
