@@ -117,3 +117,21 @@ def test_help_says_what_needs_and_uses(app, helps):
         assert "Config groups: none" in text
     # not the default template: no list of every group in conf/, no config dump
     assert "== Config ==" not in text and "Powered by Hydra" not in text
+
+
+def test_readme_lists_the_config_groups_as_they_are():
+    """README's "Configuration groups" table: every group in conf/ with its real options."""
+    text = (REPO_DIR / "README.md").read_text()
+    section = text.split("## Configuration groups", 1)[1].split("\n## ", 1)[0]
+    rows = dict(re.findall(r"^\| `([a-z_/]+)` \| ([\w, ]+) \|", section, re.M))
+    groups = {
+        p.name: {f.stem for f in p.glob("*.yaml")}
+        for p in CONF_DIR.iterdir()
+        if p.is_dir() and p.name != "hydra"
+    }
+    assert set(rows) == set(groups) | {"hydra/launcher"}
+    for g, options in groups.items():
+        assert {o.strip() for o in rows[g].split(",")} == options, g
+    # joblib comes with hydra-joblib-launcher; slurm is ours
+    launchers = {f.stem for f in (CONF_DIR / "hydra" / "launcher").glob("*.yaml")} | {"joblib"}
+    assert {o.strip() for o in rows["hydra/launcher"].split(",")} == launchers
