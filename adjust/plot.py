@@ -388,18 +388,38 @@ def classify_detections(
 
     xy: (..., K, C, 2) detections (NaN where absent or below the threshold); likelihood:
     (..., K, C); uv: (..., K, C, 2) the tracked points reprojected; ncams: (..., K) cameras used
-    (the points3d ``_ncams`` column; NaN: all present). The track records how many detections
-    it used, not which: the ``ncams`` detections nearest the reprojection count as accepted
-    (the tracker's gate drops the detections far from it), any others as rejected."""
+    (the points3d ``_ncams`` column; NaN: all present), or (..., K, C) bool: exactly which
+    detections the track used (adjust-track's ``accepted.npz``, `load_accepted`). With counts
+    only, the ``ncams`` detections nearest the reprojection count as accepted (the tracker's
+    gate drops the detections far from it), any others as rejected."""
     xy, uv = np.asarray(xy, dtype=np.float64), np.asarray(uv, dtype=np.float64)
     lik = np.asarray(likelihood, dtype=np.float64)
     present = np.isfinite(xy).all(-1) & (lik >= threshold)
+    if np.asarray(ncams).dtype == bool and np.shape(ncams) == present.shape:
+        # exact: adjust-track's accepted.npz says which detections it used
+        return np.where(present, np.where(np.asarray(ncams), 1, 2), 0).astype(np.int64)
     d = np.linalg.norm(xy - uv, axis=-1)
     d = np.where(present & np.isfinite(d), d, np.inf)
     rank = np.argsort(np.argsort(d, axis=-1, kind="stable"), axis=-1, kind="stable")
     nc = np.asarray(ncams, dtype=np.float64)
     n = np.where(np.isfinite(nc), nc, present.sum(-1))[..., None]
     return np.where(present, np.where(rank < n, 1, 2), 0).astype(np.int64)
+
+
+def load_accepted(tracks_path, parts: Sequence[str], cameras: Sequence) -> np.ndarray | None:
+    """(T, K, C) bool: which detections adjust-track used, from ``accepted.npz`` beside its
+    ``points3d.csv`` (parts and cameras reordered by name), or None when there is none."""
+    from pathlib import Path
+
+    f = Path(tracks_path).parent / "accepted.npz"
+    if not f.is_file():
+        return None
+    with np.load(f, allow_pickle=False) as z:
+        acc, fp, fc = z["accepted"], [str(p) for p in z["parts"]], [str(c) for c in z["cameras"]]
+    names = [getattr(c, "name", c) for c in cameras]
+    if not (set(parts) <= set(fp) and set(names) <= set(fc)):
+        return None
+    return acc[:, [fp.index(p) for p in parts]][:, :, [fc.index(c) for c in names]]
 
 
 def reprojection_figure(

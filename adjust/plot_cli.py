@@ -227,7 +227,10 @@ def run(cfg: DictConfig) -> dict:
             )
         uv = _project(points, cameras)
         d = np.linalg.norm(det_xy - uv, axis=-1)  # (T, K, C)
-        codes_all = plot.classify_detections(det_xy, det_lik, det.threshold, uv, tr["ncams"])
+        used_views = plot.load_accepted(tracks_path, parts, cameras)  # exact, when written
+        if used_views is None or used_views.shape[0] != T:
+            used_views = tr["ncams"]
+        codes_all = plot.classify_detections(det_xy, det_lik, det.threshold, uv, used_views)
         used = np.where(codes_all == 1, d, np.nan)
         per_camera = {c.name: used[..., i] for i, c in enumerate(cameras)}
         if not np.isfinite(error).any():
@@ -246,7 +249,7 @@ def run(cfg: DictConfig) -> dict:
                     det_lik[r],
                     det.threshold,
                     uv[r],
-                    tr["ncams"][r],
+                    used_views[r],
                     parts,
                 ),
             )

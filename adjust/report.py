@@ -222,6 +222,9 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
     det_xy, det_lik = det.xy[:, order], det.likelihood[:, order]
     raw, _ = _raw_positions(scene, cameras, parts)
     ncams = tracks[primary]["ncams"]
+    acc = plot.load_accepted(Path(record["methods"][primary]) / "points3d.csv", parts, cameras)
+    if acc is not None and acc.shape[0] == ncams.shape[0]:
+        ncams = acc  # exactly which detections the track used
 
     def codes(f: int) -> np.ndarray:
         return plot.classify_detections(det_xy[f], det_lik[f], det.threshold, uv_all[f], ncams[f])
@@ -617,8 +620,8 @@ def blocks(rep: Mapping) -> list[tuple]:
             "p",
             "Sample frames: each camera's detections (green: accepted by the tracker, "
             "red X: rejected, grey ring: below the likelihood threshold) and the tracked "
-            "parts reprojected (blue +). The track records how many detections of a part "
-            "it used (`_ncams`); those nearest the reprojection are drawn accepted.",
+            "parts reprojected (blue +). Which detections the track used comes from "
+            "adjust-track's `accepted.npz`.",
         )
     )
     b.append(

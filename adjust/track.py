@@ -552,6 +552,17 @@ def _run(cfg: DictConfig) -> dict:
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
+    # which detections every point rests on (for figures: adjust-plot, the demo report)
+    from deformnet.atomic import atomic_path
+
+    with atomic_path(out / "accepted.npz") as tmp:
+        np.savez_compressed(
+            tmp,
+            accepted=observed,
+            parts=np.asarray(det.parts),
+            cameras=np.asarray(det.cameras),
+        )
+    summary["outputs"]["accepted"] = str(out / "accepted.npz")
     # points3d.csv and summary.json as a pair: the summary last, with the points' sha256
     summary = write_outputs(out, write_points, summary)
     if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export

@@ -349,3 +349,18 @@ def test_summary_says_how_much_rests_on_no_detection(tmp_path):
     alone = s["from_model_only"]
     assert alone["fraction"] == pytest.approx(float((d["ncams"] == 0).mean()))
     assert set(alone["per_part"]) == set(s["parts"]) and 0 < alone["fraction"] < 1
+
+
+def test_accepted_npz_says_which_detections_the_track_used(tmp_path):
+    from adjust.plot import classify_detections, load_accepted
+
+    session, _, _ = _deforming_session(tmp_path, 3, np.full(8, 1.0), 0.2, seed=11)
+    track(session, tmp_path / "out")
+    d = read_points3d(tmp_path / "out" / "points3d.csv")
+    cams = [c.name for c in ring_cameras(3, radius=600.0, height=450.0)]
+    acc = load_accepted(tmp_path / "out" / "points3d.csv", list(d["parts"]), cams)
+    assert acc is not None and acc.dtype == bool and acc.shape == (*d["ncams"].shape, 3)
+    assert (acc.sum(-1) == d["ncams"]).all()  # the same detections _ncams counts
+    xy = np.zeros((*acc.shape, 2))
+    codes = classify_detections(xy, np.ones(acc.shape), 0.5, xy, acc)
+    assert ((codes == 1) == acc).all() and ((codes == 2) == ~acc).all()
