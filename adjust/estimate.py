@@ -37,8 +37,9 @@ class Consensus:
     """points (T, K, 3) mm robustly triangulated (NaN: < 2 agreeing views); observed (T, K)
     bool: gated 3D observations (>= 2 views, reprojection error within the gate); used
     (T, K, C) the views they rest on; dropped (T, K, C): detections outvoted by the other
-    cameras; sigma_det_px (pooled) and sigma_det_per_camera (C,); noise_cov (T, K, 3, 3) mm^2
-    triangulation covariance (identity * 1e6 where not observed); gate_px."""
+    cameras; sigma_det_px (pooled) and sigma_det_per_camera (C,); noise_var (T, K) float32 mm^2
+    the triangulation variance per axis (trace / 3 of its covariance; 1e6 where not observed);
+    gate_px."""
 
     points: np.ndarray
     observed: np.ndarray
@@ -46,7 +47,7 @@ class Consensus:
     dropped: np.ndarray
     sigma_det_px: float
     sigma_det_per_camera: np.ndarray
-    noise_cov: np.ndarray
+    noise_var: np.ndarray
     gate_px: float
 
     def facts(self, cameras) -> dict:
@@ -107,15 +108,23 @@ def consensus(
         tri, X, used, ve, fin, dropped = robust(gate)
     worst = np.where(used, np.nan_to_num(ve, nan=np.inf), 0.0).max(-1)
     obs = fin & (tri.ncams.numpy() >= 2) & (worst <= gate)
-    # triangulation covariance: (sum_c J^T J / sigma^2)^-1 over the used views
-    Xt = torch.as_tensor(np.nan_to_num(X))
-    u, v, _, A = project_components(Xt, cams, True)
+    # triangulation variance: trace / 3 of (sum_c J^T J / sigma^2)^-1 over the used views,
+    # in blocks of frames (bounded memory on long sessions), stored as float32 (T, K)
     W6, Wg = rotation_gemm_weights(cams.R)
-    w = torch.as_tensor(used & obs[..., None], dtype=Xt.dtype) / sig**2
-    H, _ = normal_blocks_3d(A, torch.zeros_like(u), torch.zeros_like(v), w, W6, Wg)
-    eye = torch.eye(3, dtype=Xt.dtype)
-    H = torch.where(torch.as_tensor(obs)[..., None, None], H, eye * 1e-6)
-    cov = sym3_inverse(H + 1e-9 * eye).numpy()
+    eye = torch.eye(3, dtype=torch.float64)
+    T = X.shape[0]
+    noise_var = np.full(obs.shape, 1e6, dtype=np.float32)
+    for s0 in range(0, T, 20000):
+        sl = slice(s0, min(T, s0 + 20000))
+        Xt = torch.as_tensor(np.nan_to_num(X[sl]))
+        u, v, _, A = project_components(Xt, cams, True)
+        w = torch.as_tensor(used[sl] & obs[sl][..., None], dtype=Xt.dtype) / sig**2
+        H, _ = normal_blocks_3d(A, torch.zeros_like(u), torch.zeros_like(v), w, W6, Wg)
+        ob = torch.as_tensor(obs[sl])
+        H = torch.where(ob[..., None, None], H, eye * 1e-6)
+        cov = sym3_inverse(H + 1e-9 * eye)
+        var = torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1) / 3.0
+        noise_var[sl] = np.where(obs[sl], var.numpy(), 1e6).astype(np.float32)
     log.info(
         "consensus: detector noise %.2f px (estimated %.2f), %.1f%% of part-frames observed in "
         "3D, %d detections outvoted by the other cameras",
@@ -124,7 +133,9 @@ def consensus(
         100 * obs.mean() if obs.size else 0.0,
         int(dropped.sum()),
     )
-    return Consensus(np.where(obs[..., None], X, np.nan), obs, used, dropped, sig, per, cov, gate)
+    return Consensus(
+        np.where(obs[..., None], X, np.nan), obs, used, dropped, sig, per, noise_var, gate
+    )
 
 
 def deformation_moments(

@@ -423,7 +423,7 @@ def _run(cfg: DictConfig) -> dict:
             torch.tensor(np.array(body.points)),
             torch.as_tensor(cons.points),
             torch.as_tensor(cons.observed),
-            torch.as_tensor(cons.noise_cov),
+            torch.as_tensor(cons.noise_var),
         )
     if observation is not None:
         dcfg = solver_cfg

@@ -105,12 +105,14 @@ class InterpObservation:
     predicted from the part's own observations in the neighbouring frames.
 
     data (T, K, 3) global mm: the parts triangulated from >= 2 cameras (gated against
-    mis-detections), observed (T, K) bool where they are; noise_cov (T, K, 3, 3) mm^2 (global)
-    their triangulation covariance, or None. At every `prepare` (each outer iteration, with the
-    current poses) the offsets o_t = R_t^T (X_t - tau_t) - B are formed, their covariance in
-    time is estimated (`adjust.lsq.stochastic.OffsetCovariance`: mean, per-part deformation
-    variance, semivariogram) and each part-frame's offset is predicted by simple kriging from
-    the previous and next observed frame, excluding the frame itself (`krige_offsets`). The
+    mis-detections), observed (T, K) bool where they are; noise_var (T, K) mm^2 their
+    triangulation variance per axis (trace / 3 of the covariance), or None. At every
+    `prepare` (each outer iteration, with the current poses) the offsets
+    o_t = R_t^T (X_t - tau_t) - B are formed, their covariance in time is estimated
+    (`adjust.lsq.stochastic.OffsetCovariance`: mean, per-part deformation variance, nugget,
+    semivariogram), observations their neighbours contradict are dropped, and each
+    part-frame's offset is interpolated from the previous and next observed frame, excluding
+    the frame itself, with the variance the semivariogram gives (`krige_offsets`). The
     model point is X_t = R_t (B + o_hat_t) + tau_t, its Jacobian the rigid-point one with the
     prediction held fixed (as the net's "frozen" Jacobian), and `deformation_cov` the kriging
     variance rotated to global coordinates: on a gap the interpolation across it, on an
@@ -122,7 +124,7 @@ class InterpObservation:
         body_points: Tensor,
         data: Tensor,
         observed: Tensor,
-        noise_cov: Tensor | None = None,
+        noise_var: Tensor | None = None,
     ) -> None:
         self.rigid = RigidObservation(body_points)
         T, K = observed.shape
@@ -131,11 +133,11 @@ class InterpObservation:
                 f"data must be (T, K, 3) for observed {tuple(observed.shape)} and "
                 f"{body_points.shape[0]} body points, got {tuple(data.shape)}"
             )
-        if noise_cov is not None and tuple(noise_cov.shape) != (T, K, 3, 3):
-            raise ValueError(f"noise_cov must be (T, K, 3, 3), got {tuple(noise_cov.shape)}")
+        if noise_var is not None and tuple(noise_var.shape) != (T, K):
+            raise ValueError(f"noise_var must be (T, K), got {tuple(noise_var.shape)}")
         self.data = torch.nan_to_num(data)
         self.observed = observed & torch.isfinite(data).all(-1)
-        self.noise_cov = noise_cov
+        self.noise_var = noise_var
         self.cov = None  # the last OffsetCovariance
         self.outlier_rounds = 2
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
@@ -163,12 +165,10 @@ class InterpObservation:
         B = self.body.cpu().numpy().astype(np.float64)
         o = np.einsum("tji,tkj->tki", Rn, X - tn[:, None, :]) - B[None]
         nugget = None
-        if self.noise_cov is not None and m.any():
-            nc = self.noise_cov.cpu().numpy().astype(np.float64)
-            nb = np.einsum("tji,tkjl,tlm->tkim", Rn, nc, Rn)  # R^T S R
-            d = np.diagonal(nb, axis1=-2, axis2=-1)  # (T, K, 3)
-            cnt = np.maximum(m.sum(0), 1)[:, None]
-            nugget = np.where(m[..., None], d, 0.0).sum(0) / cnt
+        if self.noise_var is not None and m.any():  # per part: the mean over its observations
+            nv = self.noise_var.cpu().numpy().astype(np.float64)
+            per = np.where(m, nv, 0.0).sum(0) / np.maximum(m.sum(0), 1)
+            nugget = np.repeat(per[:, None], 3, axis=1)
         # robust: an observation its own neighbours contradict (chi-square, 3 dof, p = 0.001)
         # is a mis-detection, not deformation; re-estimate without it
         good = m
@@ -211,7 +211,7 @@ class InterpObservation:
     def window(self, start: int, stop: int) -> InterpObservation:
         if start == 0 and stop == self.observed.shape[0]:
             return self
-        nc = None if self.noise_cov is None else self.noise_cov[start:stop]
+        nc = None if self.noise_var is None else self.noise_var[start:stop]
         return InterpObservation(self.body, self.data[start:stop], self.observed[start:stop], nc)
 
 
