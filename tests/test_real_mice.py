@@ -364,3 +364,14 @@ def test_accepted_npz_says_which_detections_the_track_used(tmp_path):
     xy = np.zeros((*acc.shape, 2))
     codes = classify_detections(xy, np.ones(acc.shape), 0.5, xy, acc)
     assert ((codes == 1) == acc).all() and ((codes == 2) == ~acc).all()
+
+
+def test_chunked_long_session_matches_one_piece(tmp_path):
+    """Long sessions run in overlapping chunks (solver.chunk_size) with the same result."""
+    session, X, _ = _deforming_session(tmp_path, 3, np.full(8, 2.0), 0.2, seed=12)
+    track(session, tmp_path / "one")
+    track(session, tmp_path / "chunks", ["solver.chunk_size=150", "solver.overlap=32"])
+    a = read_points3d(tmp_path / "one" / "points3d.csv")["points"]
+    b = read_points3d(tmp_path / "chunks" / "points3d.csv")["points"]
+    ea, eb = (np.sqrt(np.mean(np.sum((p - X) ** 2, -1))) for p in (a, b))
+    assert eb < 1.1 * ea + 0.05, (ea, eb)

@@ -466,15 +466,15 @@ def _adjust_poses(
     grid = make_grid(body, cfg.grid_size) if cfg.constraint == "grid" else None
     focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs())
 
-    tr = None if trusted is None else torch.as_tensor(np.asarray(trusted, dtype=bool))
-    if tr is not None and tr.shape != (T, K, C):
-        raise ValueError(f"trusted must have shape ({T}, {K}, {C}), got {tuple(tr.shape)}")
+    trusted_t = None if trusted is None else torch.as_tensor(np.asarray(trusted, dtype=bool))
+    if trusted_t is not None and trusted_t.shape != (T, K, C):
+        raise ValueError(f"trusted must have shape ({T}, {K}, {C}), got {tuple(trusted_t.shape)}")
 
     def problem(a: int, b: int) -> _Problem:
         pb = _Problem(
             xy0[a:b], base[a:b], valid[a:b], cams, obs.window(a, b), cfg, rho, grid, focal
         )
-        pb.trusted = None if tr is None else tr[a:b]
+        pb.trusted = None if trusted_t is None else trusted_t[a:b]
         return pb
 
     # chunks: cores [a, b) solved with `overlap` extra frames each side, the core kept
