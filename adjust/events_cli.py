@@ -29,6 +29,7 @@ from adjust.io import InputError, load_calibration_metadata, read_points3d
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.series import interpolate_gaps
 
 log = logging.getLogger(__name__)
 
@@ -70,16 +71,6 @@ def mechanism_positions(cfg: DictConfig) -> dict[str, list[float]]:
     return out
 
 
-def _interpolate(x: np.ndarray) -> np.ndarray:
-    flat = x.reshape(len(x), -1).copy()
-    t = np.arange(len(x))
-    for j in range(flat.shape[1]):
-        ok = np.isfinite(flat[:, j])
-        if ok.any() and not ok.all():
-            flat[:, j] = np.interp(t, t[ok], flat[ok, j])
-    return flat.reshape(x.shape)
-
-
 def run(cfg: DictConfig) -> dict:
     """Detect events, write events.csv, operations.csv and summary.json; returns the summary
     plus the events and operations (frame numbers)."""
@@ -93,7 +84,7 @@ def run(cfg: DictConfig) -> dict:
         raise InputError(f"{tracks}: no columns for part(s) {missing} (the file has {parts})")
     pts = tr["points"]
     if bool(cfg.get("interpolate", False)):
-        pts = _interpolate(pts)
+        pts = interpolate_gaps(pts)
     sigma = None
     if all(f"{p}_sigma" in tr["extra"] for p in parts):
         sigma = np.stack([np.asarray(tr["extra"][f"{p}_sigma"], float) for p in parts], -1)

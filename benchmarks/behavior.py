@@ -169,9 +169,9 @@ def window_features(path: Path, parts: list[str], interpolate: bool) -> np.ndarr
     df = pd.read_csv(path)
     P = np.stack([df[[f"{p}_{a}" for a in "xyz"]].to_numpy(np.float64) for p in parts], 1)
     if interpolate:
-        from deformnet.classify import _interpolate
+        from deformnet.series import interpolate_gaps
 
-        P = _interpolate(P)
+        P = interpolate_gaps(P)
     T, K = P.shape[:2]
     nose, tail = P[:, parts.index("nose_tip")], P[:, parts.index("tail_root")]
     axis = nose - tail

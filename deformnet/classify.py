@@ -41,6 +41,7 @@ from torch import Tensor
 
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.series import interpolate_gaps
 
 log = logging.getLogger(__name__)
 
@@ -80,17 +81,6 @@ class Session:
 
     def __len__(self) -> int:
         return len(self.fnum)
-
-
-def _interpolate(x: np.ndarray) -> np.ndarray:
-    """Fill NaN runs of each column of x (T, ...) by linear interpolation in time (ends held)."""
-    flat = x.reshape(len(x), -1).copy()
-    t = np.arange(len(x))
-    for j in range(flat.shape[1]):
-        ok = np.isfinite(flat[:, j])
-        if ok.any() and not ok.all():
-            flat[:, j] = np.interp(t, t[ok], flat[ok, j])
-    return flat.reshape(x.shape)
 
 
 def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dict:
@@ -141,7 +131,7 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
     )
     observed = np.isfinite(pts).all(-1)
     if interpolate:
-        pts = _interpolate(pts)
+        pts = interpolate_gaps(pts)
         never = [p for k, p in enumerate(body.parts) if not np.isfinite(pts[:, k]).all()]
         if never:
             raise ValueError(f"{path}: part(s) {never} have no finite value to interpolate from")
