@@ -1,5 +1,10 @@
 """Pinhole cameras with OpenCV's 5-coefficient distortion, as pure batched torch functions.
 
+The distortion polynomial, its derivative and its inverse live in `adjust.distortion` (re-exported
+here); `camera_to_pixels` is the one forward projection (camera coordinates -> pixels, optionally
+with its Jacobian) that `project_points`, `project_cameras` and the solver's
+`adjust.lsq.geometry.project_components` all call.
+
 Conventions (stated once): world -> camera ``x_cam = R X + t``; pixels with the origin at the
 centre of the top-left pixel (OpenCV's convention); distortion (k1, k2, p1, p2, k3) as in
 OpenCV; 3D in mm, angles in radians. Shapes: C cameras, leading dims ``...`` broadcast.
@@ -13,7 +18,34 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from adjust.distortion import (
+    check_shape,
+    distort_components,
+    distort_normalized,
+    distort_points,
+    normalized_to_pixels,
+    pixels_to_normalized,
+    undistort_normalized,
+    undistort_points,
+)
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
+
+__all__ = [
+    "Camera",
+    "CameraTensors",
+    "camera_to_pixels",
+    "decompose_projection_matrix",
+    "depth",
+    "distort_normalized",
+    "distort_points",
+    "normalized_to_pixels",
+    "pixels_to_normalized",
+    "project_cameras",
+    "project_points",
+    "projection_matrix",
+    "undistort_normalized",
+    "undistort_points",
+]
 
 
 @dataclass(frozen=True)
@@ -147,24 +179,6 @@ class CameraTensors:
         )
 
 
-def distort_normalized(xy: Tensor, dist: Tensor) -> Tensor:
-    """Apply OpenCV distortion to normalized image points.
-
-    xy: (..., 2) normalized coordinates (x/z, y/z); dist: (..., 5) k1 k2 p1 p2 k3 -> (..., 2).
-    """
-    if xy.shape[-1] != 2 or dist.shape[-1] != 5:
-        raise ValueError(
-            f"xy must be (..., 2) and dist (..., 5), got {tuple(xy.shape)}, {tuple(dist.shape)}"
-        )
-    x, y = xy.unbind(-1)
-    k1, k2, p1, p2, k3 = dist.unbind(-1)
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return torch.stack((xd, yd), -1)
-
-
 def project_points(
     X: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor | None = None
 ) -> Tensor:
@@ -181,14 +195,60 @@ def project_points(
             f"{tuple(K.shape)}, {tuple(R.shape)}, {tuple(t.shape)}"
         )
     Xc = (R @ X[..., None]).squeeze(-1) + t
-    z = Xc[..., 2:]
-    z = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
-    xy = Xc[..., :2] / z
-    if dist is not None:
-        xy = distort_normalized(xy, dist)
-    u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
-    v = K[..., 1, 1] * xy[..., 1] + K[..., 1, 2]
+    u, v, _ = camera_to_pixels(Xc, K, dist)
     return torch.stack((u, v), -1)
+
+
+def camera_to_pixels(
+    Xc: Tensor, K: Tensor, dist: Tensor | None = None, jacobian: bool = False, skew: bool = True
+) -> tuple[Tensor, Tensor, tuple[Tensor, ...] | None]:
+    """The one forward projection: camera coordinates -> pixels (pinhole, OpenCV distortion
+    (`adjust.distortion`), skew), optionally with its analytic derivative.
+
+    Xc: (..., 3) mm in camera coordinates; K: (..., 3, 3); dist: (..., 5) or None (no
+    distortion); the leading dims of K and dist broadcast against Xc's (e.g. Xc (T, K, C, 3)
+    with K (C, 3, 3)). Returns u, v (...) px and, with `jacobian`, the six entries
+    (A00, A01, A02, A10, A11, A12) (...) of d(u, v)/dXc (px/mm), else None. Depths below
+    1e-9 mm in magnitude are clamped to 1e-9 (points at or behind the camera give finite but
+    meaningless pixels: test visibility with `depth`). ``skew=False`` drops the K[0, 1] terms
+    (exact where they are zero: the solver's fast path); so does ``dist=None`` for all-zero
+    distortion. Differentiable.
+    """
+    check_shape(Xc, (3,), "Xc")
+    check_shape(K, (3, 3), "K")
+    z = Xc[..., 2]
+    z = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
+    iz = 1.0 / z
+    x, y = Xc[..., 0] * iz, Xc[..., 1] * iz
+    fx, s, cx = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2]
+    fy, cy = K[..., 1, 1], K[..., 1, 2]
+    if dist is not None:
+        xd, yd, D = distort_components(x, y, dist, jacobian)
+    else:
+        xd, yd, D = x, y, None
+    u = fx * xd + cx
+    if skew:
+        u = u + s * yd
+    v = fy * yd + cy
+    if not jacobian:
+        return u, v, None
+    if D is not None:
+        jxx, jxy, jyy = D
+        du_dx, du_dy = fx * jxx, fx * jxy
+        dv_dx, dv_dy = fy * jxy, fy * jyy
+        if skew:
+            du_dx = du_dx + s * jxy
+            du_dy = du_dy + s * jyy
+    else:
+        shape = torch.broadcast_shapes(x.shape, fx.shape)
+        du_dx = fx.expand(shape)
+        du_dy = s.expand(shape) if skew else x.new_zeros(shape)
+        dv_dx, dv_dy = x.new_zeros(shape), fy.expand(shape)
+    a00, a01 = du_dx * iz, du_dy * iz
+    a10, a11 = dv_dx * iz, dv_dy * iz
+    a02 = -(a00 * x + a01 * y)
+    a12 = -(a10 * x + a11 * y)
+    return u, v, (a00, a01, a02, a10, a11, a12)
 
 
 def depth(X: Tensor, R: Tensor, t: Tensor) -> Tensor:
@@ -204,24 +264,11 @@ def project_cameras(X: Tensor, cams: CameraTensors) -> Tensor:
     return project_points(X[..., None, :], cams.K, cams.R, cams.t, cams.dist)
 
 
-def _check_K(K: Tensor, name: str = "K") -> None:
-    if not isinstance(K, Tensor) or K.dim() < 2 or K.shape[-2:] != (3, 3):
-        shape = tuple(K.shape) if isinstance(K, Tensor) else type(K).__name__
-        raise ValueError(f"{name} must be a tensor of shape (..., 3, 3), got {shape}")
-
-
-def _check_last2(x: Tensor, name: str) -> None:
-    if not isinstance(x, Tensor) or x.dim() < 1 or x.shape[-1] != 2:
-        shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-        raise ValueError(f"{name} must be a tensor of shape (..., 2), got {shape}")
-
-
 def projection_matrix(K: Tensor, R: Tensor, t: Tensor) -> Tensor:
     """P = K [R | t].  K: (..., 3, 3), R: (..., 3, 3), t: (..., 3) -> (..., 3, 4)."""
-    _check_K(K)
-    _check_K(R, "R")
-    if not isinstance(t, Tensor) or t.dim() < 1 or t.shape[-1] != 3:
-        raise ValueError(f"t must be a tensor of shape (..., 3), got {getattr(t, 'shape', t)}")
+    check_shape(K, (3, 3), "K")
+    check_shape(R, (3, 3), "R")
+    check_shape(t, (3,), "t")
     batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
     Rt = torch.cat((R.expand(*batch, 3, 3), t.expand(*batch, 3)[..., None]), -1)
     return K @ Rt
@@ -256,91 +303,3 @@ def decompose_projection_matrix(P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     t = torch.linalg.solve(K, p4[..., None]).squeeze(-1)
     K = K / K[..., 2:3, 2:3]
     return K, R, t
-
-
-def pixels_to_normalized(uv: Tensor, K: Tensor) -> Tensor:
-    """Invert the intrinsics (with skew): pixels -> (distorted) normalized coordinates.
-
-    uv: (..., 2) px; K: (..., 3, 3) (broadcast) -> (..., 2).
-    """
-    _check_last2(uv, "uv")
-    _check_K(K)
-    y = (uv[..., 1] - K[..., 1, 2]) / K[..., 1, 1]
-    x = (uv[..., 0] - K[..., 0, 2] - K[..., 0, 1] * y) / K[..., 0, 0]
-    return torch.stack((x, y), -1)
-
-
-def normalized_to_pixels(xy: Tensor, K: Tensor) -> Tensor:
-    """Apply the intrinsics: normalized coordinates (..., 2), K (..., 3, 3) -> pixels (..., 2)."""
-    _check_last2(xy, "xy")
-    _check_K(K)
-    u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
-    v = K[..., 1, 1] * xy[..., 1] + K[..., 1, 2]
-    return torch.stack((u, v), -1)
-
-
-def _newton_step(
-    x: Tensor, y: Tensor, xd: Tensor, yd: Tensor, k: tuple[Tensor, ...]
-) -> tuple[Tensor, Tensor]:
-    """One Newton step for distort(x, y) = (xd, yd), on planar components (no stacking)."""
-    k1, k2, p1, p2, k3 = k
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2 * k2 + 3 * r2 * k3)  # d radial / d r2
-    xy2 = 2 * x * y
-    fx = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) - xd
-    fy = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 - yd
-    cross = xy2 * dradial + 2 * (p1 * x + p2 * y)  # Jacobian [[a, cross], [cross, d]]
-    a = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-    d = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-    det = a * d - cross * cross
-    det = torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
-    return x - (d * fx - cross * fy) / det, y - (a * fy - cross * fx) / det
-
-
-def undistort_normalized(xyd: Tensor, dist: Tensor, iters: int = 10) -> Tensor:
-    """Invert OpenCV distortion: distorted normalized points -> ideal normalized points.
-
-    xyd: (..., 2); dist: (..., 5) (broadcast) -> (..., 2). Newton's method from xd (at most
-    ``iters`` steps, stopping once converged to machine precision; no graph), then one more
-    step with the graph, so gradients w.r.t. xyd and dist are
-    the exact implicit-function derivatives at the solution. Valid where the distortion is
-    invertible (inside the lens's calibrated field); NaN inputs give NaN outputs.
-    """
-    _check_last2(xyd, "xyd")
-    if not isinstance(dist, Tensor) or dist.dim() < 1 or dist.shape[-1] != 5:
-        raise ValueError(
-            f"dist must be a tensor of shape (..., 5), got {getattr(dist, 'shape', dist)}"
-        )
-    if iters < 0:
-        raise ValueError(f"iters must be >= 0, got {iters}")
-    xd, yd = xyd.unbind(-1)
-    k = dist.unbind(-1)
-    with torch.no_grad():
-        x, y = xd.detach(), yd.detach()
-        kd = tuple(c.detach() for c in k)
-        tol = 4 * torch.finfo(x.dtype).eps
-        for _ in range(iters):
-            x_new, y_new = _newton_step(x, y, xd.detach(), yd.detach(), kd)
-            step = torch.maximum((x_new - x).abs(), (y_new - y).abs()).nan_to_num(0.0, 0.0, 0.0)
-            x, y = x_new, y_new
-            size = 1 + torch.maximum(x.abs(), y.abs()).nan_to_num(0.0, 0.0, 0.0)
-            if x.numel() == 0 or bool((step <= tol * size).all()):
-                break
-    return torch.stack(_newton_step(x, y, xd, yd, k), -1)
-
-
-def undistort_points(
-    uv: Tensor, K: Tensor, dist: Tensor | None = None, iters: int = 10, pixels: bool = False
-) -> Tensor:
-    """Undistort pixel coordinates (like ``cv2.undistortPoints``).
-
-    uv: (..., 2) px; K: (..., 3, 3); dist: (..., 5) or None (leading dims broadcast, e.g. uv
-    (T, K, C, 2) with K (C, 3, 3)). Returns ideal normalized coordinates (..., 2), or, with
-    ``pixels=True``, ideal (undistorted) pixels in the same K. Differentiable (see
-    `undistort_normalized`).
-    """
-    xy = pixels_to_normalized(uv, K)
-    if dist is not None:
-        xy = undistort_normalized(xy, dist, iters)
-    return normalized_to_pixels(xy, K) if pixels else xy

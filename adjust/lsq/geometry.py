@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors
+from adjust.camera import CameraTensors, camera_to_pixels
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix, skew
 
 _SMALL2 = 1e-6
@@ -141,44 +141,12 @@ def project_with_jacobian(X: Tensor, cams: CameraTensors) -> tuple[Tensor, Tenso
     """Project points into every camera with the analytic Jacobian d(pixel)/dX.
 
     X: (..., 3) mm -> uv (..., C, 2) px, J (..., C, 2, 3) px/mm, depth z (..., C) mm.
-    Matches `adjust.camera.project_points` (OpenCV pinhole + k1 k2 p1 p2 k3 distortion, skew).
+    `project_components` stacked, its camera-frame derivative chained through x_cam = R X + t.
     """
     _check(X, (3,), "X")
-    Rc, tc, Kc, dist = cams.R, cams.t, cams.K, cams.dist
-    Xc = torch.einsum("cij,...j->...ci", Rc, X) + tc  # (..., C, 3)
-    z = Xc[..., 2]
-    z = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
-    iz = 1.0 / z
-    x, y = Xc[..., 0] * iz, Xc[..., 1] * iz
-    k1, k2, p1, p2, k3 = dist.unbind(-1)  # (C,)
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    dxd_dx = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-    dxd_dy = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-    dyd_dx = dxd_dy
-    dyd_dy = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-    fx, s, cx = Kc[:, 0, 0], Kc[:, 0, 1], Kc[:, 0, 2]
-    fy, cy = Kc[:, 1, 1], Kc[:, 1, 2]
-    u = fx * xd + s * yd + cx
-    v = fy * yd + cy
-    # d(u, v)/d(x, y)
-    du_dx = fx * dxd_dx + s * dyd_dx
-    du_dy = fx * dxd_dy + s * dyd_dy
-    dv_dx = fy * dyd_dx
-    dv_dy = fy * dyd_dy
-    # d(x, y)/dXc = [[1/z, 0, -x/z], [0, 1/z, -y/z]]
-    A = torch.stack(
-        (
-            torch.stack((du_dx * iz, du_dy * iz, -(du_dx * x + du_dy * y) * iz), -1),
-            torch.stack((dv_dx * iz, dv_dy * iz, -(dv_dx * x + dv_dy * y) * iz), -1),
-        ),
-        -2,
-    )  # (..., C, 2, 3) w.r.t. camera coordinates
-    J = A @ Rc  # chain through Xc = R X + t
-    return torch.stack((u, v), -1), J, Xc[..., 2]
+    u, v, z, A = project_components(X, cams, True)
+    Ac = torch.stack((torch.stack(A[:3], -1), torch.stack(A[3:], -1)), -2)  # (..., C, 2, 3)
+    return torch.stack((u, v), -1), Ac @ cams.R, z
 
 
 def left_jacobian(phi: Tensor) -> Tensor:
@@ -202,51 +170,15 @@ def project_components(
 
     X: (..., 3) -> u, v, z (..., C) and, if `jacobian`, the six entries (A00, A01, A02, A10, A11,
     A12) of d(u, v)/d(X_cam) (..., C) each, the derivative w.r.t. *camera* coordinates (chain
-    with the camera rotation: d(u, v)/dX = A R_c). Skips the distortion terms for cameras
-    without distortion. Same model as `adjust.camera.project_points`.
+    with the camera rotation: d(u, v)/dX = A R_c). Skips the distortion terms when no camera
+    has distortion and the skew terms when none has skew. The model is
+    `adjust.camera.camera_to_pixels`, the one projection.
     """
-    Rc, tc, Kc, dist = cams.R, cams.t, cams.K, cams.dist
-    Xc = torch.einsum("...j,cij->...ci", X, Rc) + tc  # (..., C, 3)
-    z = Xc[..., 2]
-    z = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
-    iz = 1.0 / z
-    x, y = Xc[..., 0] * iz, Xc[..., 1] * iz
-    fx, s, cx = Kc[:, 0, 0], Kc[:, 0, 1], Kc[:, 0, 2]
-    fy, cy = Kc[:, 1, 1], Kc[:, 1, 2]
-    skewed = bool((s != 0).any())
-    if bool((dist != 0).any()):
-        k1, k2, p1, p2, k3 = dist.unbind(-1)
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xy2 = 2 * x * y
-        xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
-        if jacobian:
-            dr = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
-            cross = xy2 * 0.5 * dr + 2 * p1 * x + 2 * p2 * y
-            dxd_dx = radial + x * x * dr + 2 * p1 * y + 6 * p2 * x
-            dyd_dy = radial + y * y * dr + 6 * p1 * y + 2 * p2 * x
-            du_dx, du_dy = fx * dxd_dx, fx * cross
-            dv_dx, dv_dy = fy * cross, fy * dyd_dy
-            if skewed:
-                du_dx = du_dx + s * cross
-                du_dy = du_dy + s * dyd_dy
-    else:
-        xd, yd = x, y
-        if jacobian:
-            du_dx, du_dy = fx.expand_as(x), s.expand_as(x)
-            dv_dx, dv_dy = torch.zeros_like(x), fy.expand_as(x)
-    u = fx * xd + cx
-    if skewed:
-        u = u + s * yd
-    v = fy * yd + cy
-    if not jacobian:
-        return u, v, Xc[..., 2], None
-    a00, a01 = du_dx * iz, du_dy * iz
-    a10, a11 = dv_dx * iz, dv_dy * iz
-    a02 = -(a00 * x + a01 * y)
-    a12 = -(a10 * x + a11 * y)
-    return u, v, Xc[..., 2], (a00, a01, a02, a10, a11, a12)
+    Xc = torch.einsum("...j,cij->...ci", X, cams.R) + cams.t  # (..., C, 3)
+    dist = cams.dist if bool((cams.dist != 0).any()) else None
+    skewed = bool((cams.K[:, 0, 1] != 0).any())
+    u, v, A = camera_to_pixels(Xc, cams.K, dist, jacobian, skew=skewed)
+    return u, v, Xc[..., 2], A
 
 
 def sym3_inverse(M: Tensor) -> Tensor:

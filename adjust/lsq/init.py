@@ -10,33 +10,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors, project_cameras
+from adjust.camera import CameraTensors, project_cameras, undistort_points
 from adjust.lsq.geometry import project_components, so3_exp, so3_log
 
 log = logging.getLogger(__name__)
-
-
-def undistort_normalized(
-    u: Tensor, v: Tensor, cams: CameraTensors, iterations: int = 8
-) -> tuple[Tensor, Tensor]:
-    """Pixels (..., C) -> undistorted normalized coordinates (..., C) (fixed-point inversion of
-    OpenCV's model, as cv2.undistortPoints)."""
-    Kc, dist = cams.K, cams.dist
-    fx, s, cx, fy, cy = Kc[:, 0, 0], Kc[:, 0, 1], Kc[:, 0, 2], Kc[:, 1, 1], Kc[:, 1, 2]
-    yd = (v - cy) / fy
-    xd = (u - cx - s * yd) / fx
-    if not bool((dist != 0).any()):
-        return xd, yd
-    k1, k2, p1, p2, k3 = dist.unbind(-1)
-    x, y = xd, yd
-    for _ in range(iterations):
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        x = (xd - dx) / radial
-        y = (yd - dy) / radial
-    return x, y
 
 
 def _reprojection_errors(X: Tensor, xy: Tensor, cams: CameraTensors) -> Tensor:
@@ -74,7 +51,7 @@ def triangulate_linear(xy: Tensor, valid: Tensor, cams: CameraTensors) -> tuple[
     xy: (T, K, C, 2) px; valid: (T, K, C) bool -> X (T, K, 3) mm (zeros where not ok),
     ok (T, K) bool (>= 2 views, well conditioned, in front of the cameras).
     """
-    xn, yn = undistort_normalized(xy[..., 0], xy[..., 1], cams)
+    xn, yn = undistort_points(xy, cams.K, cams.dist).unbind(-1)
     R, t = cams.R, cams.t
     w = valid.to(xy.dtype)
     # rows (R_0 - x R_2) X = x t_2 - t_0 and (R_1 - y R_2) X = y t_2 - t_1, per camera
