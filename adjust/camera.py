@@ -36,6 +36,7 @@ __all__ = [
     "camera_to_pixels",
     "decompose_projection_matrix",
     "depth",
+    "look_at_pose",
     "distort_normalized",
     "distort_points",
     "normalized_to_pixels",
@@ -262,6 +263,43 @@ def depth(X: Tensor, R: Tensor, t: Tensor) -> Tensor:
 def project_cameras(X: Tensor, cams: CameraTensors) -> Tensor:
     """Project points into every camera.  X: (..., 3) -> (..., C, 2) pixels."""
     return project_points(X[..., None, :], cams.K, cams.R, cams.t, cams.dist)
+
+
+def look_at_pose(
+    position: np.ndarray,
+    target: np.ndarray,
+    up: np.ndarray = (0.0, 0.0, 1.0),
+    name: str = "camera",
+) -> tuple[np.ndarray, np.ndarray]:
+    """World -> camera pose of a camera at `position` looking at `target` (numpy, float64).
+
+    position, target, up: (3,) mm (up: any length). Camera axes (OpenCV): z along the viewing
+    direction, x to the image right, y down the image, so the image "up" leans towards `up`.
+    Returns R (3, 3), a proper rotation, and t (3,) with x_cam = R X + t. Raises ValueError
+    (naming camera `name`) when position and target coincide or `up` is parallel to the view.
+    """
+    pos = np.asarray(position, dtype=np.float64)
+    upv = np.asarray(up, dtype=np.float64)
+    fwd = np.asarray(target, dtype=np.float64) - pos
+    if pos.shape != (3,) or fwd.shape != (3,) or upv.shape != (3,):
+        raise ValueError(
+            f"camera '{name}': position, target and up must be (3,), got {pos.shape}, "
+            f"{np.shape(target)}, {upv.shape}"
+        )
+    if np.linalg.norm(fwd) < 1e-9:
+        raise ValueError(f"camera '{name}': position and look_at coincide ({pos.tolist()})")
+    z = fwd / np.linalg.norm(fwd)
+    x = np.cross(z, upv)
+    if np.linalg.norm(x) < 1e-6 * max(np.linalg.norm(upv), 1e-12):
+        raise ValueError(
+            f"camera '{name}': up vector {upv.tolist()} is parallel to the viewing direction "
+            f"{z.round(6).tolist()}; give the camera its own 'up' (e.g. [0, 1, 0] for a camera "
+            "looking straight down)"
+        )
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ pos
 
 
 def projection_matrix(K: Tensor, R: Tensor, t: Tensor) -> Tensor:

@@ -29,9 +29,9 @@ import torch
 from scipy.ndimage import convolve1d
 from scipy.special import ndtri
 
-from adjust.camera import Camera, CameraTensors, depth, project_cameras
+from adjust.camera import Camera, CameraTensors, depth, look_at_pose, project_cameras
 from deformnet.confutil import to_plain
-from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
+from deformnet.so3 import kabsch, matrix_to_rodrigues, rodrigues_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -87,21 +87,7 @@ def camera_look_at(
     pos = _vec(position, 3, f"camera '{name}': position")
     target = _vec(look_at, 3, f"camera '{name}': look_at")
     upv = _vec(up, 3, f"camera '{name}': up")
-    fwd = target - pos
-    if np.linalg.norm(fwd) < 1e-9:
-        raise ValueError(f"camera '{name}': position and look_at coincide ({pos.tolist()})")
-    z = fwd / np.linalg.norm(fwd)
-    x = np.cross(z, upv)
-    if np.linalg.norm(x) < 1e-6 * max(np.linalg.norm(upv), 1e-12):
-        raise ValueError(
-            f"camera '{name}': up vector {upv.tolist()} is parallel to the viewing direction "
-            f"{z.round(6).tolist()}; give the camera its own 'up' (e.g. [0, 1, 0] for a camera "
-            "looking straight down)"
-        )
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    t = -R @ pos
+    R, t = look_at_pose(pos, target, upv, name)
     w_h = tuple(int(s) for s in np.asarray(size).reshape(-1))
     if len(w_h) != 2 or min(w_h) <= 0:
         raise ValueError(f"camera '{name}': size must be [width, height] > 0 px, got {size!r}")
@@ -259,20 +245,6 @@ class Ellipsoid:
         object.__setattr__(self, "parts", parts)
 
 
-def _kabsch(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid fits B_t ~ R_t A + t_t.  A (n, 3), B (T, n, 3) -> R (T, 3, 3), t (T, 3)."""
-    ca, cb = A.mean(0), B.mean(1)
-    H = np.einsum("ni,tnj->tij", A - ca, B - cb[:, None, :])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("tji,tkj->tik", Vt, U)))
-    d = np.where(d == 0, 1.0, d)
-    D = np.zeros((len(B), 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = np.einsum("tji,tjk,tlk->til", Vt, D, U)  # V D U^T
-    return R, cb - np.einsum("tij,j->ti", R, ca)
-
-
 def occluded_by_ellipsoids(
     points: np.ndarray,
     poses: np.ndarray,
@@ -314,7 +286,8 @@ def occluded_by_ellipsoids(
             if missing:
                 raise ValueError(f"ellipsoid '{e.name}': parts {missing} are not among {names}")
             idx = [names.index(p) for p in e.parts]
-            R, tau = _kabsch(np.asarray(model, dtype=np.float64)[idx], P[:, idx])
+            ref = torch.as_tensor(np.asarray(model, dtype=np.float64)[idx])
+            R, tau = (a.numpy() for a in kabsch(torch.as_tensor(P[:, idx]), ref))
         else:
             R, tau = R_body, tau_body
         centre = np.einsum("tij,j->ti", R, e.center) + tau  # (T, 3)

@@ -12,6 +12,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
+
+from deformnet.so3 import kabsch
 
 log = logging.getLogger(__name__)
 
@@ -270,17 +273,9 @@ def _masked_mean_shape(X: np.ndarray, w: np.ndarray, fill: np.ndarray) -> np.nda
 
 def _align_to(X: np.ndarray, w: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Rigidly align each frame of X (F, K, 3), weights w (F, K), onto ref (K, 3) (Kabsch)."""
-    ws = w.sum(1, keepdims=True)[..., None]
-    cx = (X * w[..., None]).sum(1, keepdims=True) / ws
-    cr = (ref[None] * w[..., None]).sum(1, keepdims=True) / ws
-    A = (X - cx) * w[..., None]
-    H = np.einsum("fki,fkj->fij", A, ref[None] - cr)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("fij,fjk->fik", U, Vt)))
-    D = np.ones((len(X), 3))
-    D[:, 2] = d
-    R = np.einsum("fij,fj,fjk->fik", U, D, Vt)  # maps (X - cx) row vectors: (X - cx) @ R
-    return np.einsum("fki,fij->fkj", X - cx, R) + cr
+    Xt = torch.as_tensor(X)
+    R, t = kabsch(torch.as_tensor(ref), Xt, torch.as_tensor(w))  # ref ~ X R^T + t, per frame
+    return (Xt @ R.transpose(-1, -2) + t[:, None, :]).numpy()
 
 
 def default_mouse() -> BodyModel:

@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 _SMALL2 = 1e-8  # squared angle below which Taylor series replace sin/cos ratios
+_SMALL_QUAT = 1e-12  # (|v| / w)^2 below which a series replaces atan2 in the quaternion log
 
 
 def _check_last(x: Tensor, size: int | tuple[int, ...], name: str) -> None:
@@ -82,17 +83,19 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:
 
 
 def quaternion_to_rodrigues(q: Tensor) -> Tensor:
-    """Rotation vector (angle in [0, pi]) from a unit quaternion (w, x, y, z).
+    """Rotation vector (angle in [0, pi]) from a quaternion (w, x, y, z), unit or not.
 
-    q: (..., 4) -> (..., 3).
+    q: (..., 4) -> (..., 3). Scale-invariant: the series replaces 2 atan2(s, w) / s where
+    s^2 < 1e-12 w^2 (s = |(x, y, z)|), so any non-zero multiple of a unit quaternion gives the
+    same vector (the one implementation; `adjust.lsq.geometry.rotvec_from_quat` is this).
     """
     _check_last(q, 4, "q")
     q = torch.where(q[..., :1] < 0, -q, q)
     w, v = q[..., :1], q[..., 1:]
     s2 = (v * v).sum(-1, keepdim=True)
-    small = s2 < _SMALL2
+    small = s2 < _SMALL_QUAT * (w * w)
     s = torch.where(small, torch.ones_like(s2), s2).sqrt()
-    # angle / s = 2 atan2(s, w) / s; series for small s (w ~ 1): 2/w (1 - s^2 / (3 w^2))
+    # angle / s = 2 atan2(s, w) / s; series for small s / w: 2/w (1 - s^2 / (3 w^2))
     w_safe = torch.where(small, w, torch.ones_like(w))
     factor = torch.where(
         small, 2.0 / w_safe * (1.0 - s2 / (3.0 * w_safe * w_safe)), 2.0 * torch.atan2(s, w) / s
@@ -145,3 +148,50 @@ def inverse_transform_points(p: Tensor, X: Tensor) -> Tensor:
     _check_last(X, 3, "X")
     R = rodrigues_to_matrix(p[..., :3])
     return (X - p[..., None, 3:]) @ R
+
+
+def kabsch(
+    src: Tensor, dst: Tensor, weights: Tensor | None = None, *, spread: bool = False
+) -> tuple[Tensor, Tensor] | tuple[Tensor, Tensor, Tensor]:
+    """Least-squares rigid transform mapping `dst` onto `src`: src ≈ dst @ R^T + t (Kabsch).
+
+    src: (..., K, 3) points (e.g. a frame's rigid points in global mm); dst: (..., K, 3) or
+    (K, 3) reference points (e.g. the body model), broadcast against src; weights: (..., K)
+    >= 0 per point or None (all 1): points of zero weight may hold any value, NaN included.
+    Returns R (..., 3, 3) (a proper rotation) and t (..., 3); with ``spread=True`` also the
+    singular values (..., 3) (descending) of the weighted cross-covariance, which tell a
+    degenerate (collinear, < 3 points) fit. Differentiable; the SVD gradient is well defined
+    when the reference's principal spreads are distinct (true for a mouse body model). The one
+    implementation (the tokens' canonicalisation, the initial poses, occluders following
+    parts, the body model's Procrustes fit).
+    """
+    _check_last(src, 3, "src")
+    _check_last(dst, 3, "dst")
+    src, dst = torch.broadcast_tensors(src, dst.to(src.dtype))
+    if weights is None:
+        cs = src.mean(-2, keepdim=True)
+        cd = dst.mean(-2, keepdim=True)
+        H = (src - cs).transpose(-1, -2) @ (dst - cd)  # (..., 3, 3) = sum (s_i)(d_i)^T
+    else:
+        if weights.shape != src.shape[:-1]:
+            raise ValueError(
+                f"weights must have shape {tuple(src.shape[:-1])}, got {tuple(weights.shape)}"
+            )
+        w = weights.to(src.dtype)[..., None]  # (..., K, 1)
+        keep = w > 0
+        src = torch.where(keep, src, torch.zeros_like(src))
+        dst = torch.where(keep, dst, torch.zeros_like(dst))
+        ws = w.sum(-2, keepdim=True)
+        ws = torch.where(ws > 0, ws, torch.ones_like(ws))
+        cs = (src * w).sum(-2, keepdim=True) / ws
+        cd = (dst * w).sum(-2, keepdim=True) / ws
+        H = ((src - cs) * w).transpose(-1, -2) @ (dst - cd)
+    U, S, Vh = torch.linalg.svd(H)
+    with torch.no_grad():
+        d = torch.sign(torch.linalg.det(U @ Vh))
+        d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.ones(H.shape[:-1], dtype=H.dtype, device=H.device)
+    D = torch.cat((D[..., :2], d[..., None]), -1)
+    R = (U * D[..., None, :]) @ Vh
+    t = cs.squeeze(-2) - (cd.squeeze(-2)[..., None, :] @ R.transpose(-1, -2)).squeeze(-2)
+    return (R, t, S) if spread else (R, t)

@@ -20,6 +20,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from deformnet.so3 import kabsch
+
 __all__ = [
     "kabsch",
     "canonicalize",
@@ -32,29 +34,6 @@ __all__ = [
 ]
 
 NUM_FEATURES = 7  # rigid_c (3), deformation offset in the frame's own body frame (3), observed (1)
-
-
-def kabsch(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor]:
-    """Least-squares rigid transform mapping `dst` onto `src`: src ≈ dst @ R^T + t.
-
-    src: (..., K, 3) points (e.g. a frame's rigid points in global mm); dst: (..., K, 3) or (K, 3)
-    reference points (e.g. the body model). Returns R (..., 3, 3) (proper rotation) and
-    t (..., 3). Differentiable; the SVD gradient is well defined when the reference's principal
-    spreads are distinct (true for a mouse body model).
-    """
-    dst = dst.to(src.dtype).expand_as(src)
-    cs = src.mean(-2, keepdim=True)
-    cd = dst.mean(-2, keepdim=True)
-    H = (src - cs).transpose(-1, -2) @ (dst - cd)  # (..., 3, 3) = sum (s_i)(d_i)^T
-    U, _, Vh = torch.linalg.svd(H)
-    with torch.no_grad():
-        d = torch.sign(torch.linalg.det(U @ Vh))
-        d = torch.where(d == 0, torch.ones_like(d), d)
-    D = torch.ones(H.shape[:-1], dtype=H.dtype, device=H.device)
-    D = torch.cat((D[..., :2], d[..., None]), -1)
-    R = (U * D[..., None, :]) @ Vh
-    t = cs.squeeze(-2) - (cd.squeeze(-2)[..., None, :] @ R.transpose(-1, -2)).squeeze(-2)
-    return R, t
 
 
 def canonicalize(

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from deformnet.body import BodyModel, default_mouse
+from deformnet.so3 import kabsch
 
 
 def _pairwise(P: np.ndarray) -> np.ndarray:
@@ -31,11 +33,7 @@ def test_from_observations_recovers_rigid_model_up_to_rigid_transform():
     assert err.max() < 0.5, err.max()
     # a proper rigid transform maps the estimate onto the truth (not a mirror image)
     a, b = est.points - est.points.mean(0), truth.points - truth.points.mean(0)
-    U, _, Vt = np.linalg.svd(a.T @ b)
-    R = (U @ Vt).T
-    if np.linalg.det(R) < 0:
-        D = np.diag([1.0, 1.0, -1.0])
-        R = (U @ D @ Vt).T
+    R = kabsch(torch.as_tensor(b), torch.as_tensor(a))[0].numpy()  # b ~ a R^T, det R = +1
     rms = np.sqrt(np.mean(np.sum((a @ R.T - b) ** 2, -1)))
     assert rms < 0.3, rms
     # model frame conventions: centroid at the origin, largest spread along Y

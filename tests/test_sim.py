@@ -7,12 +7,14 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
 from deformnet.body import BodyModel, default_mouse
 from deformnet.paths import CONF_DIR
 from deformnet.sim import BEHAVIORS, MECHANISMS, SimConfig, SimData, load_sim, save_sim, simulate
+from deformnet.so3 import kabsch
 
 FPS = 30.0
 PAIR_A = ("right_front_paw", "left_hind_paw")  # the paper: stance together
@@ -57,15 +59,8 @@ def _head_angles(data: SimData) -> np.ndarray:
     R, tau = _rot(data), data.poses[:, 3:]
     h = _idx(data, "nose_tip", "left_ear", "right_ear")
     local = np.einsum("tji,tkj->tki", R, data.deformed[:, h] - tau[:, None])  # R^T (X - tau)
-    ref = data.model[h]
-    a = local - local.mean(1, keepdims=True)
-    b = ref - ref.mean(0)
-    H = np.einsum("ki,tkj->tij", b, a)  # maps ref -> local
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
-    D = np.ones((len(a), 3))
-    D[:, 2] = d
-    Rh = np.einsum("tji,tj,tkj->tik", Vt, D, U)  # V D U^T
+    Rh, _ = kabsch(torch.as_tensor(local), torch.as_tensor(data.model[h]))  # ref -> local
+    Rh = Rh.numpy()
     return Rotation.from_matrix(Rh).as_euler("ZXY", degrees=True)
 
 
@@ -365,13 +360,7 @@ def test_kabsch_fit_keeps_left_on_the_left(long_run):
     walk = np.flatnonzero(d.labels == 0)[::50]
     X = d.deformed[walk]
     m = d.model - d.model.mean(0)
-    Xc = X - X.mean(1, keepdims=True)
-    H = np.einsum("ki,tkj->tij", m, Xc)
-    U, _, Vt = np.linalg.svd(H)
-    dsign = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
-    D = np.ones((len(walk), 3))
-    D[:, 2] = dsign
-    R = np.einsum("tji,tj,tkj->tik", Vt, D, U)
+    R = kabsch(torch.as_tensor(X), torch.as_tensor(m))[0].numpy()  # model -> global
     assert np.allclose(np.linalg.det(R), 1.0)
     fit = np.einsum("tij,kj->tki", R, m) + X.mean(1, keepdims=True)
     assert (

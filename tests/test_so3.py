@@ -10,9 +10,12 @@ import pytest
 import torch
 
 from deformnet.so3 import (
+    kabsch,
     matrix_to_pose,
+    matrix_to_quaternion,
     matrix_to_rodrigues,
     pose_to_matrix,
+    quaternion_to_rodrigues,
     rodrigues_to_matrix,
     skew,
     transform_points,
@@ -147,3 +150,69 @@ def test_pose_helpers():
     X = torch.randn(4, 5, 3, generator=g, dtype=D)
     Xh = torch.cat((X, torch.ones(4, 5, 1, dtype=D)), -1)
     torch.testing.assert_close(transform_points(p, X), (Xh @ H.transpose(-1, -2))[..., :3])
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 0.7, math.pi - 1e-6])
+def test_quaternion_to_rodrigues_any_scale(angle):
+    r = _axis(12) * angle
+    q = matrix_to_quaternion(rodrigues_to_matrix(r))
+    assert q.shape == (4,)
+    for scale in (1.0, 1e-3, 7.0, -2.0):  # any non-zero multiple of a unit quaternion
+        torch.testing.assert_close(quaternion_to_rodrigues(scale * q), r, atol=1e-12, rtol=1e-9)
+    q = q.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(quaternion_to_rodrigues, (q,), eps=1e-8, atol=1e-6)
+    with pytest.raises(ValueError):
+        quaternion_to_rodrigues(torch.zeros(3, dtype=D))
+
+
+def _fit_problem(seed: int = 13):
+    g = torch.Generator().manual_seed(seed)
+    ref = torch.randn(7, 3, generator=g, dtype=D) * torch.tensor([30.0, 10.0, 5.0], dtype=D)
+    R = rodrigues_to_matrix(_random_rvecs(4, seed=seed))  # (4, 3, 3)
+    t = torch.randn(4, 3, generator=g, dtype=D) * 100
+    return ref, R, t, ref @ R.transpose(-1, -2) + t[:, None, :]  # src (4, 7, 3)
+
+
+def test_kabsch_shapes_values_weights():
+    ref, R, t, src = _fit_problem()
+    Rk, tk = kabsch(src, ref)
+    assert Rk.shape == (4, 3, 3) and tk.shape == (4, 3)
+    torch.testing.assert_close(Rk, R, atol=1e-12, rtol=0)
+    torch.testing.assert_close(tk, t, atol=1e-10, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(Rk), torch.ones(4, dtype=D))
+    # a mirror image still gives a proper rotation
+    Rm, _ = kabsch(src * torch.tensor([-1.0, 1.0, 1.0], dtype=D), ref)
+    torch.testing.assert_close(torch.linalg.det(Rm), torch.ones(4, dtype=D))
+    # weights: zero-weight points may be anything (NaN), and do not move the fit
+    w = torch.ones(4, 7, dtype=D)
+    w[:, :2] = 0.0
+    bad = src.clone()
+    bad[:, :2] = float("nan")
+    Rw, tw, S = kabsch(bad, ref, w, spread=True)
+    torch.testing.assert_close(Rw, R, atol=1e-12, rtol=0)
+    torch.testing.assert_close(tw, t, atol=1e-10, rtol=0)
+    assert S.shape == (4, 3) and bool((S[:, :-1] >= S[:, 1:]).all())
+    # bool weights = a mask; equal to dropping the points; weights rescale-invariant
+    R2, t2 = kabsch(src[:, 2:], ref[2:])
+    R3, t3 = kabsch(src, ref, w > 0)
+    torch.testing.assert_close(R3, R2, atol=1e-13, rtol=0)
+    torch.testing.assert_close(t3, t2, atol=1e-11, rtol=0)
+    R4, t4 = kabsch(src, ref, 5.0 * w)
+    torch.testing.assert_close(R4, R3, atol=1e-13, rtol=0)
+    # collinear points: the second singular value vanishes
+    line = torch.arange(5, dtype=D)[:, None] * torch.tensor([1.0, 2.0, 3.0], dtype=D)
+    _, _, Sl = kabsch(line + 1.0, line, spread=True)
+    assert float(Sl[1]) < 1e-10 * float(Sl[0])
+    with pytest.raises(ValueError):
+        kabsch(src[..., :2], ref)
+    with pytest.raises(ValueError):
+        kabsch(src, ref, w[:, :3])
+
+
+def test_gradcheck_kabsch():
+    ref, _, _, src = _fit_problem(14)
+    g = torch.Generator().manual_seed(15)
+    src = (src + torch.randn(src.shape, generator=g, dtype=D))[:2].requires_grad_(True)
+    w = (torch.rand(2, 7, generator=g, dtype=D) + 0.5).requires_grad_(True)
+    assert torch.autograd.gradcheck(kabsch, (src, ref.requires_grad_(True)))
+    assert torch.autograd.gradcheck(kabsch, (src, ref, w))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from adjust.camera import Camera, CameraTensors, project_cameras
+from adjust.camera import Camera, CameraTensors, look_at_pose, project_cameras
 from adjust.triangulate import TriangulationResult, reprojection_errors, triangulate
 from deformnet.so3 import matrix_to_rodrigues
 
@@ -17,16 +17,12 @@ DIST = np.array([-0.21, 0.08, 1.2e-3, -7e-4, -0.015])
 def look_at(name: str, center, target=(0.0, 0.0, 0.0), dist=DIST, f=1200.0) -> Camera:
     """A camera at `center` (mm) looking at `target`, OpenCV axes (x right, y down, z forward)."""
     c, tgt = np.asarray(center, float), np.asarray(target, float)
-    z = tgt - c
-    z /= np.linalg.norm(z)
+    z = (tgt - c) / np.linalg.norm(tgt - c)
     up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack((x, y, z))
+    R, t = look_at_pose(c, tgt, up, name)
     K = np.array([[f, 0.0, 640.0], [0.0, f * 0.99, 512.0], [0.0, 0.0, 1.0]])
     rvec = matrix_to_rodrigues(torch.as_tensor(R)).numpy()
-    return Camera(name, K, dist, rvec, -R @ c, (1280, 1024))
+    return Camera(name, K, dist, rvec, t, (1280, 1024))
 
 
 def rig(n: int = 3) -> CameraTensors:

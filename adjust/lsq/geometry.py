@@ -13,6 +13,7 @@ from torch import Tensor
 
 from adjust.camera import CameraTensors, camera_to_pixels
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix, skew
+from deformnet.so3 import quaternion_to_rodrigues as rotvec_from_quat  # the one quaternion log
 
 _SMALL2 = 1e-6
 
@@ -87,21 +88,6 @@ def quat_mul(a: Tensor, b: Tensor) -> Tensor:
 
 def quat_conj(q: Tensor) -> Tensor:
     return torch.cat((q[..., :1], -q[..., 1:]), -1)
-
-
-def rotvec_from_quat(q: Tensor) -> Tensor:
-    """Rotation vector (angle in [0, pi]) of (not necessarily unit) quaternions.
-
-    (..., 4) -> (..., 3).
-    """
-    q = torch.where(q[..., :1] < 0, -q, q)
-    w, v = q[..., :1], q[..., 1:]
-    s2 = (v * v).sum(-1, keepdim=True)
-    small = s2 < 1e-12 * (w * w)
-    s = torch.where(small, torch.ones_like(s2), s2).sqrt()
-    ws = torch.where(small, w, torch.ones_like(w))
-    f = torch.where(small, 2.0 / ws * (1.0 - s2 / (3.0 * ws * ws)), 2.0 * torch.atan2(s, w) / s)
-    return f * v
 
 
 def retract(poses: Tensor, delta: Tensor) -> Tensor:

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from adjust.camera import CameraTensors, project_cameras, undistort_points
 from adjust.lsq.geometry import project_components, so3_exp, so3_log
+from deformnet.so3 import kabsch
 
 log = logging.getLogger(__name__)
 
@@ -144,22 +145,9 @@ def kabsch_poses(
             f"X (T, K, 3), mask (T, K) for body {tuple(body.shape)}; "
             f"got {tuple(X.shape)}, {tuple(mask.shape)}"
         )
-    w = mask.to(X.dtype)
-    n = w.sum(1)
-    ok = n >= min_parts
-    Xz = torch.where(mask[..., None], X, torch.zeros_like(X))
-    ws = n.clamp_min(1.0)[:, None]
-    cx = (Xz * w[..., None]).sum(1) / ws
-    cm = (body[None] * w[..., None]).sum(1) / ws
-    A = (body[None] - cm[:, None]) * w[..., None]
-    H = torch.einsum("tki,tkj->tij", A, Xz - cx[:, None])  # model -> global cross-covariance
-    U, S, Vh = torch.linalg.svd(H)
-    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
-    D = torch.ones_like(S)
-    D[:, 2] = torch.where(d == 0, torch.ones_like(d), d)
-    R = Vh.transpose(-1, -2) @ torch.diag_embed(D) @ U.transpose(-1, -2)
+    R, tau, S = kabsch(X, body, mask, spread=True)  # model -> global
+    ok = mask.sum(1) >= min_parts
     ok = ok & (S[:, 1] > 1e-6 * S[:, 0].clamp_min(1e-300)) & torch.isfinite(S).all(-1)
-    tau = cx - (R @ cm[..., None])[..., 0]
     poses = torch.cat((so3_log(R), tau), -1)
     return torch.where(ok[:, None], poses, torch.zeros_like(poses)), ok
 

@@ -6,21 +6,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from adjust.camera import Camera, CameraTensors, project_cameras
+from adjust.camera import Camera, CameraTensors, look_at_pose, project_cameras
 from deformnet.so3 import matrix_to_rodrigues, transform_points
-
-
-def look_at(
-    center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)
-) -> tuple[np.ndarray, np.ndarray]:
-    """World -> camera (rvec (3,), tvec (3,)) of a camera at `center` looking at `target`."""
-    z = np.asarray(target, float) - np.asarray(center, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, float))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return matrix_to_rodrigues(torch.as_tensor(R)).numpy(), -R @ np.asarray(center, float)
 
 
 def ring_cameras(
@@ -34,7 +21,8 @@ def ring_cameras(
     cams = []
     for i in range(n):
         a = 2 * np.pi * i / n + 0.3
-        r, t = look_at(np.array([radius * np.cos(a), radius * np.sin(a), height]), np.zeros(3))
+        R, t = look_at_pose(np.array([radius * np.cos(a), radius * np.sin(a), height]), np.zeros(3))
+        r = matrix_to_rodrigues(torch.as_tensor(R)).numpy()
         K = np.array([[focal, 0.0, 640.0], [0.0, focal, 480.0], [0.0, 0.0, 1.0]])
         dist = np.array([distortion, -0.5 * distortion, 0.0005 * (distortion != 0), 0.0, 0.0])
         cams.append(Camera(f"cam{i}", K, dist, r, t, (1280, 960)))
