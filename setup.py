@@ -7,5 +7,8 @@ from setuptools import find_packages, setup
 setup(
     packages=[*find_packages(include=["deformnet*", "adjust*"]), "mousetrack_conf"],
     package_dir={"mousetrack_conf": "conf"},
-    package_data={"mousetrack_conf": ["*.yaml", "**/*.yaml"]},
+    package_data={
+        "mousetrack_conf": ["*.yaml", "**/*.yaml"],
+        "deformnet.pretrained": ["*.pt"],  # the shipped default net
+    },
 )

@@ -182,6 +182,7 @@ def make_deformable_observation(
     net = (model.float() if jac == "frozen" else model.double()).eval()
     for p in net.parameters():
         p.requires_grad_(False)
+    noise = None if cons is None else torch.as_tensor(cons.noise_var)
     obs = NetObservation(
         net,
         torch.tensor(np.asarray(body_points), dtype=torch.float64),
@@ -191,18 +192,90 @@ def make_deformable_observation(
         float(cfg_def.get("gate_mm", 30.0)),
         int(cfg_def.get("batch_size", 4096)),
         jac,
+        noise_var=noise,
+        refresh=int(cfg_def.get("refresh", 2)),
+        beyond_window=str(cfg_def.get("beyond_window", "interp")),
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
 
 def deformation_mode(deformation) -> str:
     """``deformation=``: null / ``rigid`` (the rigid model), ``interp`` (each part's body-frame
-    offset interpolated from its own observations, `InterpObservation`), else a checkpoint."""
+    offset interpolated from its own observations, `InterpObservation`), ``default`` (the
+    shipped pretrained net, `deformnet.pretrained`), ``self`` (that net fine-tuned on this
+    recording's own tokens, `adapt_net`), else a checkpoint (``net``)."""
     if deformation is None or str(deformation).lower() in ("", "none", "null", "rigid"):
         return "rigid"
-    if str(deformation).lower() == "interp":
-        return "interp"
+    if str(deformation).lower() in ("interp", "default", "self"):
+        return str(deformation).lower()
     return "net"
+
+
+def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
+    """``deformation=self``: fine-tune the default pretrained net on this recording's tokens
+    (`deformnet-train data=sessions pretrained=default`, split by time blocks) for
+    ``adapt.max_time``; a skeleton the shipped net does not know gets a net of the same
+    architecture trained from scratch. Writes ``out/adapt/`` (deformnet-train's folder) and
+    the adapted model ``out/deformation.ckpt``; returns (model, facts)."""
+    from deformnet.confutil import compose
+    from deformnet.deformation import DeformationModel
+    from deformnet.pretrained import load_default
+    from deformnet.train import run as train
+
+    a = dict(adapt_cfg or {})
+    work = out / "adapt"
+    work.mkdir(parents=True, exist_ok=True)
+    tok_path = tokens.save(work / "tokens.npz")
+    default = load_default()
+    same = tuple(default.body.parts) == tuple(tokens.parts)
+    pretrained = str(a.get("pretrained", "default")) if same else "null"
+    if not same:
+        log.warning(
+            "deformation=self: the shipped net knows the parts %s, this recording has %s: "
+            "training a net of its architecture from scratch (%s)",
+            list(default.body.parts),
+            list(tokens.parts),
+            a.get("max_time"),
+        )
+    ov = [
+        "data=sessions",
+        f"data.sessions=[{tok_path}]",
+        f"data.val_fraction={float(a.get('val_fraction', 0.2))}",
+        f"data.block_frames={int(a.get('block_frames', 500))}",
+        f"data.batch_size={int(a.get('batch_size', 128))}",
+        f"data.steps_per_epoch={int(a.get('steps_per_epoch', 50))}",
+        f"pretrained={pretrained}",
+        "net=lstm_small",
+        f"half_window={int(default.half_window)}",
+        f"optim.lr={float(a.get('lr', 1e-3))}",
+        f"optim.warmup_steps={int(a.get('warmup_steps', 20))}",
+        f"seed={int(a.get('seed', 0))}",
+        f"trainer.max_time={a.get('max_time', '00:00:03:00')}",
+        f"trainer.accelerator={a.get('accelerator', 'auto')}",
+        "trainer.enable_model_summary=false",
+        "trainer.num_sanity_val_steps=0",
+        f"threads={a['threads']}" if a.get("threads") is not None else "threads=null",
+        f"progress_bar={'rich' if progress else 'none'}",
+        "logger=tensorboard" if a.get("tensorboard", True) else "logger=none",
+        f"logger.save_dir={work / 'tb'}" if a.get("tensorboard", True) else "",
+        f"output.dir={work}",
+    ]
+    res = train(compose("train", [o for o in ov if o]))
+    ckpt = res.get("best_checkpoint") or res.get("last_checkpoint")
+    if not ckpt:
+        raise ValueError(f"deformation=self: training wrote no checkpoint into {work}")
+    model = DeformationModel.from_checkpoint(ckpt)
+    model.save(out / "deformation.ckpt")
+    m = res.get("metrics", {})
+    facts = {
+        "pretrained": pretrained if pretrained != "null" else None,
+        "checkpoint": str(out / "deformation.ckpt"),
+        "val_rmse_mm": m.get("best/val_rmse_mm", m.get("val/rmse_mm")),
+        "val_rmse_mm_rigid": m.get("val/rmse_mm_rigid"),
+        "val_rmse_mm_linear": m.get("val/rmse_mm_linear"),
+        "data": res.get("data"),
+    }
+    return model, facts
 
 
 def scale_body(body: BodyModel, body_cfg, cons) -> tuple[BodyModel, dict]:
@@ -307,8 +380,8 @@ def _run(cfg: DictConfig) -> dict:
     mode = deformation_mode(deformation)
     est_cfg = cfg.get("stochastic") or {}
     estimate = bool(est_cfg.get("estimate", True))
-    if mode == "interp" and not estimate:
-        raise ValueError("deformation=interp needs stochastic.estimate=true (its 3D observations)")
+    if mode in ("interp", "self", "default") and not estimate:
+        raise ValueError(f"deformation={mode} needs stochastic.estimate=true (its 3D observations)")
 
     # --- inputs and body model ----------------------------------------------------------
     t0 = time.perf_counter()
@@ -376,6 +449,19 @@ def _run(cfg: DictConfig) -> dict:
     if not auto and model is None:
         body, scale_facts = scale_body(body, body_cfg, cons)
         body_facts.update(scale_facts)
+    if mode == "default":
+        from deformnet.pretrained import load_default
+
+        model = load_default()
+        if tuple(model.body.parts) != tuple(body.parts):
+            raise InputError(
+                f"deformation=default: the shipped net knows the parts {list(model.body.parts)}, "
+                f"this recording has {list(body.parts)}; use deformation=self (it trains a net "
+                "for this skeleton)"
+            )
+        # the net predicts in canonical coordinates; it runs on this session's (scaled) body
+        model.body = body
+        model.body_points = torch.tensor(np.array(body.points), dtype=torch.float32)
     rigid_obs = None
     if cons is not None:
         rigid_obs, moment_facts = rigid_observation(body, cons)
@@ -386,10 +472,6 @@ def _run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     observation = None
     def_facts: dict | None = None
-    if model is not None:
-        observation, def_facts = make_deformable_observation(
-            model, body.points, det, cams, cfg.get("deform"), cons=cons
-        )
     progress = bool(cfg.get("progress", True))
     init_poses = None
     rigid_iterations = 0
@@ -400,7 +482,8 @@ def _run(cfg: DictConfig) -> dict:
     trusted = None
     if cons is not None:
         trusted = cons.used & (cons.observed & ~cons.dropped.any(-1))[..., None]
-    if observation is None or bool(deform_cfg.get("rigid_first", True)) or mode == "interp":
+    staged = mode != "rigid" and cons is not None  # rigid -> interp -> (net)
+    if mode == "rigid" or staged or bool(deform_cfg.get("rigid_first", True)):
         # the rigid adjustment: the result itself, or the start of a deformable one
         rigid = adjust_poses(
             det.xy,
@@ -416,15 +499,52 @@ def _run(cfg: DictConfig) -> dict:
         res = rigid
         init_poses, rigid_iterations = rigid.poses, int(rigid.iterations)
         timings["rigid_s"] = time.perf_counter() - t0
-    if mode == "interp":
+    if staged:
         from adjust.lsq.observation import InterpObservation
 
-        observation = InterpObservation(
+        interp_obs = InterpObservation(
             torch.tensor(np.array(body.points)),
             torch.as_tensor(cons.points),
             torch.as_tensor(cons.observed),
             torch.as_tensor(cons.noise_var),
         )
+        if mode == "interp":
+            observation = interp_obs
+        else:  # the net starts from the interp poses
+            t1 = time.perf_counter()
+            res = adjust_poses(
+                det.xy,
+                weight,
+                cams,
+                np.array(body.points),
+                solver_cfg,
+                init_poses=init_poses,
+                observation=interp_obs,
+                progress=progress,
+                trusted=trusted,
+                outputs=TRACK_OUTPUTS,
+            )
+            init_poses = res.poses
+            timings["interp_s"] = time.perf_counter() - t1
+    adapt_facts = None
+    if mode == "self":
+        from adjust.tokens import session_tokens
+
+        t1 = time.perf_counter()
+        tokens = session_tokens(
+            init_poses, body.points, cons, body.parts, body.name, source=str(detections)
+        )
+        model, adapt_facts = adapt_net(tokens, output_dir(cfg), cfg.get("adapt"), progress)
+        timings["adapt_s"] = time.perf_counter() - t1
+    if model is not None:
+        t1 = time.perf_counter()
+        observation, def_facts = make_deformable_observation(
+            model, body.points, det, cams, cfg.get("deform"), cons=cons
+        )
+        if adapt_facts is not None:
+            def_facts["adapt"] = adapt_facts
+    if observation is not None and mode != "interp":
+        t_net = time.perf_counter()
     if observation is not None:
         dcfg = solver_cfg
         if deform_cfg.get("max_iterations") is not None:
@@ -445,7 +565,14 @@ def _run(cfg: DictConfig) -> dict:
         )
     if mode == "interp":
         def_facts = interp_facts(observation, body)
-    timings["adjust_s"] = time.perf_counter() - t0
+    elif model is not None:
+        timings["net_s"] = time.perf_counter() - t_net
+        def_facts["net_passes"] = int(observation.evaluations)
+        def_facts["held_out_ratio_net_over_interp"] = {
+            p: float(v) for p, v in zip(body.parts, observation.factor)
+        }
+        def_facts["net_reach_fraction"] = float(observation.reach.double().mean())
+    timings["adjust_s"] = time.perf_counter() - t0 - timings.get("adapt_s", 0.0)
 
     # --- outputs ------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -491,7 +618,11 @@ def _run(cfg: DictConfig) -> dict:
         if model is None
         else {
             "mode": mode,
-            "checkpoint": str(Path(str(deformation)).resolve()),
+            "checkpoint": str(
+                Path(str(deformation)).resolve()
+                if mode == "net"
+                else (out / "deformation.ckpt" if mode == "self" else "default")
+            ),
             "window": int(model.window),
             **(def_facts or {}),
         },
@@ -563,6 +694,13 @@ def _run(cfg: DictConfig) -> dict:
             cameras=np.asarray(det.cameras),
         )
     summary["outputs"]["accepted"] = str(out / "accepted.npz")
+    if cons is not None:  # self-supervised tokens for deformnet-train data=sessions
+        from adjust.tokens import session_tokens
+
+        session_tokens(res.poses, body.points, cons, body.parts, body.name, source=str(out)).save(
+            out / "tokens.npz"
+        )
+        summary["outputs"]["tokens"] = str(out / "tokens.npz")
     # points3d.csv and summary.json as a pair: the summary last, with the points' sha256
     summary = write_outputs(out, write_points, summary)
     if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export

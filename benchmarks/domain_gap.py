@@ -13,15 +13,24 @@ seen by >= 2 cameras / occluded (< 2) / fraction within 5 mm (missing = miss), a
   estimated from the data);
 - ``interp``: `adjust-track` (its default, `deformation=interp`);
 - ``net_sim``: `adjust-track deformation=CKPT` with a net trained on the default simulator only
-  (``--checkpoint``, or trained here for ``--train-minutes``; ``--no-net`` skips it).
+  (``--checkpoint``, or trained here for ``--train-minutes``; ``--no-net`` skips it);
+- ``default``: `adjust-track deformation=default` (the shipped net, pretrained on the default
+  simulator only, not adapted);
+- ``self``: `adjust-track deformation=self`: the shipped net fine-tuned on this scene's own
+  detections (self-supervised tokens, no truth) for ``--adapt-minutes``, then used;
+- ``sessions``: `deformnet-train data=sessions pretrained=default` on three *other* mouse_b
+  sessions (seeds + 1..3, tracked with adjust-track), ``--adapt-minutes`` of training, then
+  `adjust-track deformation=CKPT` on this scene (``--no-self`` skips the last three).
 
 Also printed: the scene's rigid floor (generalized Procrustes against the truth), and per
 adjust-track variant the uncertainty calibration ratios rms error / rms ``{part}_sigma`` on seen
 and occluded part-frames. Targets: interp beats aniposelib on every column; seen >= 2 RMSE of
-every adjust-track variant <= robust triangulation's; calibration ratios within 0.8-1.25.
+every adjust-track variant <= robust triangulation's; calibration ratios within 0.8-1.25;
+``self`` beats aniposelib on every column with occluded RMSE <= 0.6x rigid's, <= 0.7x
+aniposelib's and below interp's. ``self``'s fine-tuning time is reported apart (``adapt_s``).
 
     .venv/bin/python benchmarks/domain_gap.py [--frames 1500] [--seed 92000] [--checkpoint CKPT]
-        [--train-minutes 3] [--no-net] [--no-anipose]
+        [--train-minutes 3] [--adapt-minutes 3] [--no-net] [--no-self] [--no-anipose]
 
 Last line JSON, also written to runs/benchmarks/domain_gap.json.
 """
@@ -92,6 +101,56 @@ def calibration(out: Path, est: np.ndarray, truth: np.ndarray, nviews: np.ndarra
     return res
 
 
+def _hms(minutes: float) -> str:
+    secs = int(round(60 * minutes))
+    return f"00:{secs // 3600:02d}:{secs % 3600 // 60:02d}:{secs % 60:02d}"
+
+
+def train_on_sessions(work: Path, frames: int, seed: int, budget: str) -> tuple[str, dict]:
+    """``deformnet-train data=sessions pretrained=default`` on three other mouse_b sessions
+    (seeds seed+1..seed+3, tracked by adjust-track's default): split by session."""
+    from deformnet.train import run
+
+    folders = []
+    for i in (1, 2, 3):
+        sc = work / f"scene_mouse_b_{frames}_{seed + i}"
+        if not (sc / "truth.npz").exists():
+            make_scene(sc, frames, seed + i)
+        tr = work / f"sessions_track_{seed + i}"
+        if not (tr / "tokens.npz").exists():
+            run_track(sc, tr, ["threads=1"])
+        folders.append(str(tr))
+    out = work / "sessions_net"
+    t0 = time.perf_counter()
+    res = run(
+        compose(
+            "train",
+            [
+                "data=sessions",
+                f"data.sessions=[{','.join(folders)}]",
+                "data.val_fraction=0.34",
+                "pretrained=default",
+                "optim.lr=1e-3",
+                "optim.warmup_steps=20",
+                "data.steps_per_epoch=50",
+                f"trainer.max_time={budget}",
+                "logger=none",
+                "progress_bar=none",
+                f"output.dir={out}",
+            ],
+        )
+    )
+    ckpt = res.get("best_checkpoint") or res.get("last_checkpoint")
+    facts = {
+        "seconds": round(time.perf_counter() - t0, 1),
+        "data": res.get("data"),
+        "val_rmse_mm": res["metrics"].get("best/val_rmse_mm"),
+        "val_rmse_mm_linear": res["metrics"].get("val/rmse_mm_linear"),
+        "val_rmse_mm_rigid": res["metrics"].get("val/rmse_mm_rigid"),
+    }
+    return str(ckpt), facts
+
+
 def _fmt(v) -> str:
     if isinstance(v, float):
         return "n/a" if not math.isfinite(v) else f"{v:.3f}" if abs(v) < 10 else f"{v:.2f}"
@@ -106,6 +165,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--train-minutes", type=float, default=3.0)
     ap.add_argument("--no-net", action="store_true")
     ap.add_argument("--no-anipose", action="store_true")
+    ap.add_argument("--no-self", action="store_true")
+    ap.add_argument("--adapt-minutes", type=float, default=3.0)
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "domain_gap"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "domain_gap.json"))
     args = ap.parse_args(argv)
@@ -172,6 +233,13 @@ def main(argv: list[str] | None = None) -> dict:
             extra["net_training_s"] = round(tsecs, 1)
         extra["checkpoint"] = str(ckpt)
         variants["net_sim"] = [f"deformation={ckpt}"]
+    budget = _hms(args.adapt_minutes)
+    if not args.no_self:
+        variants["default"] = ["deformation=default"]
+        variants["self"] = ["deformation=self", f"adapt.max_time={budget}"]
+        ckpt, facts = train_on_sessions(work, args.frames, args.seed, budget)
+        extra["sessions_training"] = facts
+        variants["sessions"] = [f"deformation={ckpt}"]
     for name, ov in variants.items():
         est, secs, summ = run_track(scene, work / name, ["threads=1", *ov])
         results[name] = {
@@ -179,6 +247,12 @@ def main(argv: list[str] | None = None) -> dict:
             "seconds": round(secs, 2),
             **calibration(work / name, est, truth, nviews, parts),
         }
+        t = summ.get("time_s", {})
+        if "adapt_s" in t:
+            results[name]["adapt_s"] = t["adapt_s"]
+            results[name]["seconds"] = round(secs - t["adapt_s"], 2)  # the tracking alone
+        if summ["deformation"].get("adapt"):
+            extra[f"{name}_adapt"] = summ["deformation"]["adapt"]
         if name == "interp":
             extra["stochastic"] = summ.get("stochastic")
             extra["body"] = {k: summ["body"].get(k) for k in ("scale", "rigid_rms_mm")}
@@ -190,6 +264,7 @@ def main(argv: list[str] | None = None) -> dict:
         ("rmse_occluded", "rmse occl"),
         ("within5", "<=5mm"),
         ("seconds", "seconds"),
+        ("adapt_s", "adapt s"),
         ("calib_seen", "calib seen"),
         ("calib_occluded", "calib occl"),
     ]
@@ -221,6 +296,24 @@ def main(argv: list[str] | None = None) -> dict:
         )
         checks[f"{v}_calibrated"] = bool(
             0.8 <= results[v]["calib_seen"] <= 1.25 and 0.8 <= results[v]["calib_occluded"] <= 1.25
+        )
+    if "self" in results and "aniposelib" in results:
+        a, b, r, i = (results[k] for k in ("self", "aniposelib", "rigid", "interp"))
+        checks["self_beats_aniposelib_every_column"] = bool(
+            a["rmse_all"] < b["rmse_all"]
+            and a["rmse_seen2"] < b["rmse_seen2"]
+            and a["rmse_occluded"] < b["rmse_occluded"]
+            and a["within5"] > b["within5"]
+            and a["completeness"] >= b["completeness"]
+        )
+        checks["self_occl_over_rigid"] = round(a["rmse_occluded"] / r["rmse_occluded"], 3)
+        checks["self_occl_over_aniposelib"] = round(a["rmse_occluded"] / b["rmse_occluded"], 3)
+        checks["self_occl_over_interp"] = round(a["rmse_occluded"] / i["rmse_occluded"], 3)
+        checks["self_targets_met"] = bool(
+            checks["self_beats_aniposelib_every_column"]
+            and checks["self_occl_over_rigid"] <= 0.6
+            and checks["self_occl_over_aniposelib"] <= 0.7
+            and checks["self_occl_over_interp"] < 1.0
         )
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {

@@ -11,7 +11,10 @@ detections (likelihood >= 0.9). Methods, side by side on the same subsets:
 - ``aniposelib``: aniposelib's `triangulate_optim` (anipose's settings; no skeleton constraints:
   these keypoint sets have none we could state), in its own environment (`make bench-env`);
 - ``rigid``: `adjust-track body=auto deformation=rigid`;
-- ``interp``: `adjust-track body=auto` (default `deformation=interp`).
+- ``interp``: `adjust-track body=auto` (default `deformation=interp`);
+- ``self``: `adjust-track body=auto deformation=self`: a net trained on the leave-out's own
+  recording (self-supervised; these skeletons are not the shipped net's, so from scratch) for
+  ``--adapt-seconds`` (30), then used in the adjustment (``--no-self`` skips it).
 
 The first ``--frames`` (200) frames of each session, the same for every method (aniposelib's
 optimisation takes minutes per leave-out on the whole hand session on 2 cores). Per session and
@@ -51,7 +54,7 @@ from deformnet.paths import CONF_DIR, shared_dir  # noqa: E402
 log = logging.getLogger("benchmarks.real_loco")
 ROOT = CONF_DIR.parent
 CONFIDENT = 0.9
-METHODS = ("dlt", "aniposelib", "rigid", "interp")
+METHODS = ("dlt", "aniposelib", "rigid", "interp", "self")
 
 
 def sessions() -> dict[str, dict]:
@@ -110,7 +113,8 @@ def _run(app: str, session: Path, out: Path, overrides: list[str]):
     return d["parts"], d["points"], time.perf_counter() - t0
 
 
-def loco(name: str, spec: dict, work: Path, anipose: bool, frames: int) -> dict:
+def loco(name: str, spec: dict, work: Path, anipose: bool, frames: int, adapt: str | None) -> dict:
+    """All leave-outs of one session; ``adapt``: deformation=self's max_time (None: skip)."""
     base = spec["dir"]
     cal = base / "calibration.toml"
     cameras, det = load_scene(cal, base / spec["detections"], None, pattern=spec.get("pattern"))
@@ -145,7 +149,13 @@ def loco(name: str, spec: dict, work: Path, anipose: bool, frames: int) -> dict:
                     )
                     p = list(dsub.parts)
                 else:
-                    ov = ["body=auto"] + (["deformation=rigid"] if m == "rigid" else [])
+                    ov = ["body=auto"] + {
+                        "rigid": ["deformation=rigid"],
+                        "interp": [],
+                        "self": ["deformation=self", f"adapt.max_time={adapt}"],
+                    }[m]
+                    if m == "self" and adapt is None:
+                        continue
                     p, X, s = _run("track", sess, mo, ov)
             except Exception as exc:  # every leave-out must run: record, do not hide
                 log.error("%s without %s: %s failed: %s", name, left, m, exc)
@@ -193,6 +203,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sessions", default="hand,fly,mouse_sleap")
     ap.add_argument("--no-anipose", action="store_true")
     ap.add_argument("--frames", type=int, default=200, help="first N frames of each session")
+    ap.add_argument("--adapt-seconds", type=int, default=30, help="deformation=self budget")
+    ap.add_argument("--no-self", action="store_true")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_loco"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "real_loco.json"))
     args = ap.parse_args(argv)
@@ -205,7 +217,12 @@ def main(argv: list[str] | None = None) -> dict:
     results = {}
     all_specs = sessions()
     for name in args.sessions.split(","):
-        results[name] = loco(name, all_specs[name], work, anipose, args.frames)
+        adapt = (
+            None
+            if args.no_self
+            else f"00:00:{args.adapt_seconds // 60:02d}:" + (f"{args.adapt_seconds % 60:02d}")
+        )
+        results[name] = loco(name, all_specs[name], work, anipose, args.frames, adapt)
     cols = ["coverage", "median_px", "p90_px", "common_median_px", "common_p90_px", "seconds"]
     failures = 0
     for name, r in results.items():
@@ -235,9 +252,24 @@ def main(argv: list[str] | None = None) -> dict:
         "\nmedian over leave-outs of the common-subset median error (px): "
         + ", ".join(f"{m} {v:.2f}" for m, v in overall.items())
     )
+    checks = {}
+    if "self" in overall:
+        checks["self_below_rigid"] = bool(overall["self"] < overall["rigid"])
+        checks["self_below_interp"] = bool(overall["self"] < overall["interp"])
+        # per leave-out: how often self's common-subset median is below rigid's and interp's
+        wins = [
+            (res["self"]["common_median_px"] < res["rigid"]["common_median_px"])
+            + (res["self"]["common_median_px"] < res["interp"]["common_median_px"])
+            for r in results.values()
+            for res in r["leave_out"].values()
+            if all(m in res and "common_median_px" in res[m] for m in ("self", "rigid", "interp"))
+        ]
+        checks["self_wins_per_leave_out_of_2"] = wins
+        print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {
         **results,
         "overall_common_median_px": overall,
+        "checks": checks,
         "failures": failures,
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }

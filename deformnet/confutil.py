@@ -12,3 +12,17 @@ def to_plain(cfg: Any) -> Any:
     except ImportError:  # pragma: no cover - omegaconf ships with hydra-core
         return cfg
     return OmegaConf.to_container(cfg, resolve=True) if OmegaConf.is_config(cfg) else cfg
+
+
+def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> Any:
+    """The project's Hydra config `name` with `overrides`, from inside a running Hydra app (its
+    config search path is the project's) or from plain Python (a temporary initialisation)."""
+    import hydra
+    from hydra.core.global_hydra import GlobalHydra
+
+    from deformnet.paths import CONF_DIR
+
+    if GlobalHydra.instance().is_initialized():
+        return hydra.compose(name, overrides=list(overrides))
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return hydra.compose(name, overrides=list(overrides))

@@ -339,7 +339,9 @@ class DeformDataModule(L.LightningDataModule):
     """Simulated training / validation windows.
 
     source: "sim" (simulate with deformnet.sim from `sim` config and seeds), "files" (load
-    `train_files` / `val_files` with deformnet.sim.dataset.load_sim) or "toy" (`toy_sequence`).
+    `train_files` / `val_files` with deformnet.sim.dataset.load_sim), "toy" (`toy_sequence`)
+    or "arrays" (given `train_data` / `val_data` sequences, e.g. a lab's session tokens,
+    `deformnet.sessions`).
     Train and validation sequences use disjoint seeds (seed + i, seed + 10_000 + i).
     """
 
@@ -360,10 +362,17 @@ class DeformDataModule(L.LightningDataModule):
         val_windows: int = 2048,
         noise_mm: float = 0.0,
         masking: Mapping[str, Any] | MaskConfig | None = None,
+        train_data: Sequence[SequenceArrays] | None = None,
+        val_data: Sequence[SequenceArrays] | None = None,
     ) -> None:
         super().__init__()
-        if source not in ("sim", "files", "toy"):
-            raise ValueError(f"data.source must be 'sim', 'files' or 'toy', got '{source}'")
+        if source not in ("sim", "files", "toy", "arrays"):
+            raise ValueError(
+                f"data.source must be 'sim', 'files', 'toy' or 'arrays', got '{source}'"
+            )
+        if source == "arrays" and (not train_data or not val_data):
+            raise ValueError("data.source=arrays needs train_data and val_data sequences")
+        self.train_data, self.val_data = list(train_data or []), list(val_data or [])
         self.body = body
         self.half_window = int(half_window)
         self.source = source
@@ -381,6 +390,8 @@ class DeformDataModule(L.LightningDataModule):
         self.val_set: FixedWindowBatches | None = None
 
     def sequences(self, split: str) -> list[SequenceArrays]:
+        if self.source == "arrays":
+            return self.train_data if split == "train" else self.val_data
         count = self.train_sequences if split == "train" else self.val_sequences
         base = self.seed + (0 if split == "train" else 10_000)
         seeds = [base + i for i in range(count)]

@@ -1,6 +1,8 @@
-"""`deformnet-train`: train a deformation net on simulated data (Hydra app over `run(cfg)`).
+"""`deformnet-train`: train a deformation net (Hydra app over `run(cfg)`).
 
-    deformnet-train net=transformer                 # one net
+    deformnet-train net=transformer                 # one net, on simulated mice
+    deformnet-train data=sessions data.sessions=[runs/track/a,runs/track/b]   # a lab's own
+        [pretrained=default|CKPT]                   # recordings (self-supervised), fine-tuned
     deformnet-train -m net=lstm,transformer         # both, sequentially (multirun)
     deformnet-train trainer.accelerator=auto        # a GPU when there is one
     deformnet-train trainer=ddp                     # Lightning DDP
@@ -64,19 +66,53 @@ def net_config(cfg: DictConfig, num_parts: int) -> tuple[str, dict]:
     return name, net
 
 
-def build_model(cfg: DictConfig):
-    """The LightningModule (and the body model, net name) for a run config."""
+def load_pretrained(spec) -> Any:
+    """``pretrained=``: null, ``default`` (the shipped net, `deformnet.pretrained`) or a
+    checkpoint path -> a `DeformationModel` (or None)."""
+    from deformnet.deformation import DeformationModel
+
+    if spec is None or str(spec).lower() in ("", "none", "null"):
+        return None
+    if str(spec).lower() == "default":
+        from deformnet.pretrained import load_default
+
+        return load_default()
+    p = Path(str(spec))
+    if not p.is_file():
+        raise ValueError(f"pretrained={spec}: no such checkpoint")
+    return DeformationModel.from_checkpoint(p)
+
+
+def build_model(cfg: DictConfig, body=None, pretrained=None):
+    """The LightningModule (and the body model, net name) for a run config.
+
+    body: the body model (default: ``cfg.body``); pretrained: a `DeformationModel` whose net
+    (config, window and weights) is fine-tuned instead of a fresh ``cfg.net``."""
     from deformnet.body import BodyModel
     from deformnet.deformation import build_net
     from deformnet.lit import DeformLit
 
-    body = BodyModel.from_config(cfg.body)
+    body = BodyModel.from_config(cfg.body) if body is None else body
     name, ncfg = net_config(cfg, body.num_parts)
+    half_window = int(cfg.half_window)
+    if pretrained is not None:
+        if pretrained.num_parts != body.num_parts:
+            raise ValueError(
+                f"pretrained net has {pretrained.num_parts} parts "
+                f"({', '.join(pretrained.body.parts)}), the data {body.num_parts} "
+                f"({', '.join(body.parts)}): train from scratch (pretrained=null)"
+            )
+        ncfg = dict(pretrained.net_config)
+        half_window = int(pretrained.half_window)
+        name = f"{name}_ft"
     hp = {k: v for k, v in _flatten(to_plain(cfg)).items() if not k.startswith(("sim/", "body/"))}
+    net = build_net(ncfg)
+    if pretrained is not None:
+        net.load_state_dict(pretrained.net.state_dict())
     lit = DeformLit(
-        build_net(ncfg),
+        net,
         body,
-        int(cfg.half_window),
+        half_window,
         net_config=ncfg,
         lr=float(cfg.optim.lr),
         weight_decay=float(cfg.optim.weight_decay),
@@ -87,18 +123,73 @@ def build_model(cfg: DictConfig):
     return lit, body, name
 
 
-def build_datamodule(cfg: DictConfig, body):
+def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arrays=None):
+    """The data module; ``arrays`` = (train, val) sequences for ``data.source=sessions``."""
     from deformnet.data import DeformDataModule
 
     data = dict(to_plain(cfg.data))
     data.pop("_target_", None)
+    for key in ("sessions", "val_fraction", "block_frames", "builder"):
+        data.pop(key, None)
+    if arrays is not None:
+        data["source"] = "arrays"
+        data["train_data"], data["val_data"] = arrays
     return DeformDataModule(
         body=body,
-        half_window=int(cfg.half_window),
+        half_window=int(cfg.half_window if half_window is None else half_window),
         sim=to_plain(cfg.get("sim")),
         seed=int(cfg.seed),
         **data,
     )
+
+
+def session_data(cfg: DictConfig, out: Path, window: int):
+    """``data=sessions``: the sessions' tokens, their body model and the train/val split."""
+    from deformnet.body import BodyModel
+    from deformnet.sessions import (
+        check_compatible,
+        load_session_tokens,
+        resolve_sessions,
+        split_sessions,
+    )
+
+    dcfg = cfg.data
+    paths = resolve_sessions(list(dcfg.get("sessions") or []))
+    if not paths:
+        raise ValueError("data=sessions needs data.sessions=[DIR_OR_GLOB, ...]")
+    builder = None
+    if dcfg.get("builder") is not None and dcfg.builder.get("_target_"):
+        partial = hydra.utils.instantiate(dcfg.builder)
+        root = out / "sessions"
+
+        def builder(session: Path) -> Path:
+            return partial(session, root)
+
+    tokens = [load_session_tokens(p, builder) for p in paths]
+    check_compatible(tokens)
+    first = tokens[0]
+    body = BodyModel.from_mapping(
+        {p: [float(c) for c in xyz] for p, xyz in zip(first.parts, first.body_points)},
+        name=first.body_name,
+    )
+    train, val, facts = split_sessions(
+        tokens,
+        float(dcfg.get("val_fraction", 0.2)),
+        int(dcfg.get("block_frames", 500)),
+        min_frames=window,
+    )
+    facts["sessions"] = [t.source for t in tokens]
+    log.info(
+        "data=sessions: %d session(s), split %s: %d train / %d val frames (%d / %d measured "
+        "targets)",
+        len(tokens),
+        facts["split"],
+        facts["train_frames"],
+        facts["val_frames"],
+        facts["train_targets"],
+        facts["val_targets"],
+    )
+    return body, (train, val), facts
 
 
 def _progress_bar(kind: str):
@@ -130,8 +221,13 @@ def run(cfg: DictConfig) -> dict:
     out = output_dir(cfg)
     write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
-    lit, body, name = build_model(cfg)
-    dm = build_datamodule(cfg, body)
+    pretrained = load_pretrained(cfg.get("pretrained"))
+    body, arrays, data_facts = None, None, None
+    window = 2 * int(pretrained.half_window if pretrained is not None else cfg.half_window) + 1
+    if str(cfg.data.get("source")) == "sessions":
+        body, arrays, data_facts = session_data(cfg, out, window)
+    lit, body, name = build_model(cfg, body, pretrained)
+    dm = build_datamodule(cfg, body, lit.mid, arrays)
 
     tcfg = dict(to_plain(cfg.trainer))
     ckpt_dir = out / "checkpoints"
@@ -179,6 +275,8 @@ def run(cfg: DictConfig) -> dict:
         "best_checkpoint": best,
         "last_checkpoint": last,
         "metrics": {k: v for k, v in sorted(metrics.items()) if math.isfinite(v)},
+        "pretrained": None if pretrained is None else str(cfg.get("pretrained")),
+        "data": data_facts,
     }
     if trainer.is_global_zero:
         write_text(out / "metrics.json", json.dumps(result, indent=2) + "\n")

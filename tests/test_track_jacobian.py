@@ -123,7 +123,15 @@ def test_frozen_solve_reaches_the_central_difference_solution(tmp_path):
     pts = {}
     for name, ov in (
         ("rigid", ["deformation=rigid"]),
-        ("frozen", [f"deformation={ckpt}", "deform.jacobian=frozen", "deform.max_iterations=30"]),
+        (
+            "frozen",
+            [
+                f"deformation={ckpt}",
+                "deform.jacobian=frozen",
+                "deform.max_iterations=30",
+                "deform.refresh=30",  # the fixed point of the frozen iteration
+            ],
+        ),
         ("central", [f"deformation={ckpt}", "deform.jacobian=central", "deform.max_iterations=30"]),
     ):
         out = tmp_path / name

@@ -331,50 +331,66 @@ JACOBIANS = ("frozen", *FD_STEP)
 
 
 class NetObservation(DeformableObservation):
-    """``deformation=CKPT``: the learned net inside the observation function, a
+    """``deformation=CKPT|self|default``: the learned net inside the observation function, a
     `DeformableObservation` whose ``deformed`` window inputs are measurements.
 
-    The net was trained with the observed tokens' deformed halves being the measured
-    (true) part positions. Here they are the parts triangulated from the detections,
-    ``data (T, K, 3)`` with ``observed (T, K)``; a measurement farther than ``gate_mm``
-    from the current rigid model point (a mis-detection) is treated as unobserved. The
-    solver's base class feeds back the net's own predictions instead, which carries no
-    information about occluded frames' neighbours beyond the poses.
+    The net was trained with the observed tokens' deformed halves being the measured part
+    positions. Here they are the parts triangulated from the detections, ``data (T, K, 3)``
+    with ``observed (T, K)``; a measurement farther than ``gate_mm`` from the current rigid
+    model point (a mis-detection) is treated as unobserved.
+
+    Cost: the net runs once per `prepare` (each outer iteration), for at most ``refresh``
+    iterations; its prediction is kept in each frame's body coordinates,
+    M_t = R_t^T (X_t - tau_t), so the model point between net passes is R_t M_t + tau_t (as
+    `InterpObservation`'s) and after the last refresh the prediction is held while the poses
+    converge (the poses start from the rigid/interp adjustment; they move little).
+
+    A window reaches only ``half_window`` frames to each side. ``beyond_window="interp"``
+    (default): a part-frame whose window holds no observation of the part on one side of
+    the mid frame takes ``deformation=interp``'s prediction (kriged across the whole gap,
+    `InterpObservation`) instead of the net's; ``"net"``: the net everywhere.
+
+    `deformation_cov`: the interpolation's kriging variance (how uncertainty grows with the
+    distance to the part's observations), scaled per part by how the net's held-out error
+    compares with the interpolation's on the same measured part-frames (the net never sees
+    the mid frame's measurement; the kriging skips it too): both are one-frame-gap errors.
     """
 
-    def __init__(self, model, body_points, window, data, observed, gate_mm, batch_size, jacobian):
+    def __init__(
+        self,
+        model,
+        body_points,
+        window,
+        data,
+        observed,
+        gate_mm,
+        batch_size,
+        jacobian,
+        noise_var: Tensor | None = None,
+        refresh: int = 2,
+        beyond_window: str = "interp",
+    ):
         super().__init__(model, body_points, window, observed, batch_size)
         if jacobian not in JACOBIANS:
             raise ValueError(f"deform.jacobian must be one of {list(JACOBIANS)}, got {jacobian!r}")
+        if beyond_window not in ("interp", "net"):
+            raise ValueError(f"deform.beyond_window must be interp or net, got {beyond_window!r}")
+        if int(refresh) < 1:
+            raise ValueError(f"deform.refresh must be >= 1, got {refresh}")
         self.data = data
         self.gate_mm = float(gate_mm)
         self.jacobian = jacobian
-        self.moments: torch.Tensor | None = None  # (K, 3) body-axis mm^2, once estimated
+        self.noise_var = noise_var
+        self.refresh = int(refresh)
+        self.beyond_window = beyond_window
+        self.interp = InterpObservation(body_points, data, observed, noise_var)
+        self.evaluations = 0  # net passes over the whole sequence so far
+        self.factor: Tensor | None = None  # (K,) net / interp held-out mean-square error
+        self.reach: Tensor | None = None  # (T, K) the window sees the part on both sides
+        self._M: Tensor | None = None  # (T, K, 3) body-frame model points
+        self._var: Tensor | None = None  # (T, K, 3) body-axis variances
 
-    def deformation_cov(self, poses: torch.Tensor) -> torch.Tensor:
-        """How far the parts stray from the net's predictions: per part and body axis the
-        second moment of (measured - predicted) over the frames where the part was
-        measured (the net never sees a frame's own measurement, so this is a held-out
-        error), estimated once at the first call's poses and rotated into each frame."""
-        from adjust.lsq.geometry import so3_exp
-        from adjust.lsq.observation import _rotate_axes_var
-
-        R = so3_exp(poses[:, :3])
-        if self.moments is None:
-            if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
-                self.prepare(poses)
-            X = self._forward(poses)
-            d = torch.einsum("tji,tkj->tki", R, self.data.to(X.dtype) - X)
-            m = self.observed & torch.isfinite(self.data).all(-1)
-            n = m.sum(0).clamp_min(1)[:, None]
-            mom = torch.where(m[..., None], d * d, torch.zeros_like(d)).sum(0) / n
-            if bool((m.sum(0) == 0).any()) and bool(m.any()):
-                mom[m.sum(0) == 0] = mom[m.sum(0) > 0].max(0).values
-            self.moments = mom.clamp_min(0.25)
-        v = self.moments.to(poses.dtype).expand(poses.shape[0], -1, -1)
-        return _rotate_axes_var(R, v)
-
-    def prepare(self, poses: torch.Tensor) -> None:
+    def _net_inputs(self, poses: Tensor) -> None:
         Xr, _ = self.rigid.rigid_points(poses)
         Xr = Xr.detach()
         data = self.data.to(Xr.dtype)
@@ -384,28 +400,78 @@ class NetObservation(DeformableObservation):
         self._rigid_win = self._windows(Xr)
         self._deformed_win = self._windows(torch.where(obs[..., None], data, Xr))
         self._observed_win = self._windows(obs[..., None].to(Xr.dtype))[..., 0] > 0.5
+        n = self.W // 2
+        # edge frames are repeated by _windows: count only real neighbours on each side
+        T = obs.shape[0]
+        idx = torch.arange(T)[:, None] + torch.arange(-n, n + 1)[None]
+        real = ((idx >= 0) & (idx < T))[..., None]
+        ow = self._observed_win & real
+        self.reach = ow[:, :n].any(1) & ow[:, n + 1 :].any(1)
 
-    def points(self, poses: torch.Tensor, jacobian: bool = True):
+    def prepare(self, poses: Tensor) -> None:
+        same = self._M is not None and self._M.shape[0] == poses.shape[0]
+        if same and self.jacobian == "frozen" and self.evaluations >= self.refresh:
+            return  # the prediction is held in body coordinates from here on
+        self._net_inputs(poses)
+        self.interp.prepare(poses)
+        X = self._forward(poses)
+        self.evaluations += 1
+        R = so3_exp(poses[:, :3]).detach()
+        M = torch.einsum("tji,tkj->tki", R, X - poses[:, None, 3:].detach())
+        Mi = self.interp._M.to(M.dtype)
+        # held-out errors on the measured part-frames (the net's and the kriging's)
+        data = self.data.to(M.dtype)
+        m = self.interp.observed & ~self.interp.outliers.to(torch.bool)
+        d_net = ((data - X) ** 2).sum(-1)
+        Xi = torch.einsum("tij,tkj->tki", R, Mi) + poses[:, None, 3:].detach()
+        d_int = ((data - Xi) ** 2).sum(-1)
+        num = torch.where(m, d_net, torch.zeros_like(d_net)).sum(0)
+        den = torch.where(m, d_int, torch.zeros_like(d_int)).sum(0)
+        factor = torch.where(m.sum(0) >= 10, num / den.clamp_min(1e-9), torch.ones_like(num))
+        self.factor = factor.clamp(0.25, 4.0)
+        var = self.interp._var.to(M.dtype) * self.factor[None, :, None]
+        if self.beyond_window == "interp":
+            use = self.reach[..., None].to(M.device)
+            M = torch.where(use, M, Mi)
+            var = torch.where(use, var, self.interp._var.to(M.dtype))
+        self._M, self._var = M, var
+
+    def _ready(self, poses: Tensor) -> None:
+        if self._M is None or self._M.shape[0] != poses.shape[0]:
+            self.prepare(poses)
+
+    def deformation_cov(self, poses: Tensor) -> Tensor:
+        """(T, K, 3, 3) global covariance of the parts about the model points."""
+        self._ready(poses)
+        return _rotate_axes_var(so3_exp(poses[:, :3]), self._var.to(poses.dtype))
+
+    def points(self, poses: Tensor, jacobian: bool = True):
         """X (T, K, 3) and, if asked, dX_t/d(delta_t) (T, K, 3, 6).
 
-        ``jacobian="frozen"`` (default): the net's prediction in the frame's own body
-        coordinates, c_t = R_t^T (X_t - tau_t), is held fixed within an iteration (it is
-        re-predicted at every linearisation and cost evaluation), so dX_t/d(delta_t) =
-        [-[X_t - tau_t]_x, I] as for a rigid point: one forward pass per evaluation; it
-        neglects how the prediction changes with the frame's pose relative to its fixed
-        neighbours (a Gauss-Newton with that approximate Jacobian). ``"forward"`` /
-        ``"central"``: the full Jacobian by finite differences through the net; frames are
-        independent given the fixed neighbour inputs, so one batched forward pass per
-        perturbed pose component gives every frame's column at once (6 or 12 passes)."""
-        if self._rigid_win is None or self._rigid_win.shape[0] != poses.shape[0]:
-            self.prepare(poses)
-        X = self._forward(poses)
-        if not jacobian:
-            return X, None
+        ``jacobian="frozen"`` (default): the prediction in the frame's own body coordinates
+        is held fixed between net passes, so dX_t/d(delta_t) = [-[X_t - tau_t]_x, I] as for
+        a rigid point; it neglects how the prediction changes with the frame's pose relative
+        to its fixed neighbours (a Gauss-Newton with that approximate Jacobian).
+        ``"forward"`` / ``"central"``: the net is evaluated at every call and the full
+        Jacobian taken by finite differences through it; frames are independent given the
+        fixed neighbour inputs, so one batched forward pass per perturbed pose component
+        gives every frame's column at once (6 or 12 passes)."""
+        self._ready(poses)
         if self.jacobian == "frozen":
-            a = X - poses[:, None, 3:]
+            R = so3_exp(poses[:, :3])
+            a = torch.einsum("tij,tkj->tki", R, self._M.to(poses.dtype))
+            X = a + poses[:, None, 3:]
+            if not jacobian:
+                return X, None
             eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
             return X, torch.cat((-skew(a), eye), -1)
+        X = self._forward(poses)
+        Xi, Ji = self.interp.points(poses, jacobian)
+        use = self.reach[..., None] if self.beyond_window == "interp" else None
+        if use is not None:
+            X = torch.where(use, X, Xi)
+        if not jacobian:
+            return X, None
         J = poses.new_zeros((*X.shape, 6))
         for j in range(6):
             h = FD_STEP[self.jacobian][j // 3]
@@ -416,9 +482,14 @@ class NetObservation(DeformableObservation):
                 J[..., j] = (Xp - self._forward(retract(poses, -d))) / (2 * h)
             else:
                 J[..., j] = (Xp - X) / h
+        if use is not None:
+            J = torch.where(use[..., None], J, Ji)
         return X, J
 
     def window(self, start: int, stop: int):
+        if start == 0 and stop == self.observed.shape[0]:
+            return self
+        nv = None if self.noise_var is None else self.noise_var[start:stop]
         return NetObservation(
             self.model,
             self.rigid.body,
@@ -428,4 +499,7 @@ class NetObservation(DeformableObservation):
             self.gate_mm,
             self.batch_size,
             self.jacobian,
+            noise_var=nv,
+            refresh=self.refresh,
+            beyond_window=self.beyond_window,
         )
