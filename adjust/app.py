@@ -272,18 +272,14 @@ def required(cfg: DictConfig, key: str, config_name: str) -> str:
 
 
 def stats(values: np.ndarray) -> dict:
-    """count, median, mean, p90 and max of the finite values (None when there are none)."""
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
+    """count, median, mean, p90 and max of the finite values (None when there are none): the
+    summary.json view of `adjust.metrics.error_summary`, the one statistics summary."""
+    from adjust.metrics import error_summary
+
+    s = error_summary(values)
+    if s["n"] == 0:
         return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
-    return {
-        "count": int(v.size),
-        "median": float(np.median(v)),
-        "mean": float(v.mean()),
-        "p90": float(np.percentile(v, 90)),
-        "max": float(v.max()),
-    }
+    return {"count": s["n"], **{k: s[k] for k in ("median", "mean", "p90", "max")}}
 
 
 def finite_or_none(x):

@@ -44,6 +44,7 @@ __all__ = [
     "project_cameras",
     "project_points",
     "projection_matrix",
+    "reprojection_errors",
     "undistort_normalized",
     "undistort_points",
 ]
@@ -300,6 +301,31 @@ def look_at_pose(
     y = np.cross(z, x)
     R = np.stack([x, y, z])
     return R, -R @ pos
+
+
+def reprojection_errors(
+    points: Tensor, xy: Tensor, cams: CameraTensors, observed: Tensor | None = None
+) -> Tensor:
+    """Pixel distance between projected points and detections (the one implementation).
+
+    points: (..., 3) mm (NaN allowed); xy: (..., C, 2) px (NaN where missing); observed:
+    (..., C) bool or None (all) -> (..., C) px, NaN where either is missing or not observed.
+    Differentiable, with a zero (not NaN) gradient where an error is exactly zero.
+    """
+    C = cams.num_cameras
+    if points.shape[-1] != 3 or xy.shape[-2:] != (C, 2) or points.shape[:-1] != xy.shape[:-2]:
+        raise ValueError(
+            f"expected points (..., 3) and xy (..., {C}, 2) with equal leading dims, "
+            f"got {tuple(points.shape)} and {tuple(xy.shape)}"
+        )
+    if observed is not None and observed.shape != xy.shape[:-1]:
+        raise ValueError(f"observed must have shape {tuple(xy.shape[:-1])}, got {observed.shape}")
+    proj = project_points(points[..., None, :], cams.K, cams.R, cams.t, cams.dist)
+    sq = ((proj - xy) ** 2).sum(-1)
+    good = torch.isfinite(sq) if observed is None else observed & torch.isfinite(sq)
+    sq = torch.where(good, sq, torch.ones_like(sq))
+    err = torch.where(sq > 0, sq.clamp_min(1e-300).sqrt(), torch.zeros_like(sq))
+    return torch.where(good, err, torch.full_like(err, float("nan")))
 
 
 def projection_matrix(K: Tensor, R: Tensor, t: Tensor) -> Tensor:

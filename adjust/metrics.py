@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from adjust.camera import Camera, CameraTensors
+from adjust.camera import reprojection_errors as _pixel_errors
 
 WITHIN_MM = 5.0
 
@@ -131,17 +132,21 @@ def point_errors(
 
 
 def reprojection_errors(
-    points: np.ndarray, xy: np.ndarray, cams: CameraTensors | Sequence[Camera]
+    points: np.ndarray,
+    xy: np.ndarray,
+    cams: CameraTensors | Sequence[Camera],
+    observed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Pixel distances (T, K, C) between projected points (T, K, 3) and detections
-    xy (T, K, C, 2); NaN where either is missing."""
-    from adjust.triangulate import reprojection_errors as _errors
-
+    xy (T, K, C, 2); NaN where either is missing or not `observed` ((T, K, C) bool, default
+    all). numpy in and out around `adjust.camera.reprojection_errors`."""
     if not isinstance(cams, CameraTensors):
         cams = CameraTensors.from_cameras(list(cams))
     p = torch.as_tensor(np.asarray(points, dtype=float), dtype=cams.K.dtype)
     d = torch.as_tensor(np.asarray(xy, dtype=float), dtype=cams.K.dtype)
-    return _errors(p, d, cams).numpy()
+    obs = None if observed is None else torch.as_tensor(np.asarray(observed, dtype=bool))
+    with torch.no_grad():
+        return _pixel_errors(p, d, cams, obs).numpy()
 
 
 def reprojection_stats(

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from adjust.camera import Camera, decompose_projection_matrix, project_points
+from adjust.lsq import lm
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
 
 log = logging.getLogger(__name__)
@@ -105,16 +106,14 @@ def levenberg_marquardt(
     max_iter: int = 200,
     tol: float = 1e-12,
 ) -> tuple[Tensor, float, int]:
-    """Minimise ||fun(theta)||^2 with Marquardt-scaled Levenberg-Marquardt (small problems).
+    """Minimise ||fun(theta)||^2 for small dense problems with the project's one
+    Levenberg-Marquardt loop (`adjust.lsq.lm.levenberg_marquardt`, Marquardt-scaled damping;
+    the dense normal matrix is its band with one frame and no off-diagonal blocks).
 
-    fun: (P,) -> (M,) residuals (torch, differentiable); theta0: (P,) float64.
-    Returns (theta (P,), final cost sum r^2, iterations). Jacobians by
-    central differences.
+    fun: (P,) -> (M,) residuals (torch); theta0: (P,) float64. Returns (theta (P,), final
+    cost sum r^2, iterations). Stops when a step gains less than `tol` (relative) or moves
+    less than about `tol` |theta0|. Jacobians by central differences.
     """
-    theta = theta0.detach().clone()
-    r = fun(theta)
-    cost = float(r @ r)
-    lam = 1e-3
 
     def jac(p: Tensor) -> Tensor:
         # central differences: 2P (<= 32) evaluations, however many residuals (reverse-mode
@@ -128,31 +127,34 @@ def levenberg_marquardt(
                 cols.append((fun(p + d) - fun(p - d)) / (2 * h[i]))
             return torch.stack(cols, -1)
 
-    it = 0
-    for it in range(1, max_iter + 1):  # noqa: B007
-        J = jac(theta)
-        g = J.T @ r
-        H = J.T @ J
-        diag = torch.diagonal(H).clamp_min(1e-12)
-        improved = False
-        for _ in range(30):
-            step = torch.linalg.solve(H + lam * torch.diag(diag), -g)
-            new = theta + step
-            r_new = fun(new)
-            c_new = float(r_new @ r_new)
-            if np.isfinite(c_new) and c_new <= cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        small_step = float(step.norm()) <= tol * (float(theta.norm()) + tol)
-        small_gain = cost - c_new <= tol * max(cost, 1e-300)
-        theta, r, cost = new, r_new, c_new
-        lam = max(lam / 10.0, 1e-12)
-        if small_step or small_gain:
-            break
-    return theta, cost, it
+    def cost(theta: Tensor, ctx=None) -> float:
+        r = fun(theta)
+        return float(r @ r)
+
+    def linearise(theta: Tensor) -> tuple[np.ndarray, np.ndarray, float, None]:
+        r, J = fun(theta), jac(theta)
+        N = (J.T @ J).detach().cpu().numpy()[None, None]  # blocks (b + 1 = 1, T = 1, P, P)
+        g = (-(J.T @ r)).detach().cpu().numpy()[None]  # (T = 1, P)
+        return N, g, float(r @ r), None
+
+    def retract(theta: Tensor, delta: np.ndarray) -> Tensor:
+        return theta + torch.as_tensor(delta[0], dtype=theta.dtype, device=theta.device)
+
+    theta0 = theta0.detach().clone()
+    out = lm.levenberg_marquardt(
+        theta0,
+        linearise,
+        cost,
+        retract,
+        max_iterations=max_iter,
+        ftol=tol,
+        xtol=tol * (float(theta0.norm()) + tol),
+        lam=1e-3,
+        lam_up=10.0,
+        lam_down=0.1,
+        max_tries=30,
+    )
+    return out.x, cost(out.x), out.iterations
 
 
 def _dist_mask(fit_dist: Sequence[str]) -> list[int]:

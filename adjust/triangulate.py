@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import Camera, CameraTensors, project_points, undistort_points
+from adjust.camera import Camera, CameraTensors, reprojection_errors, undistort_points
 
 
 @dataclass(frozen=True)
@@ -118,12 +118,7 @@ def _linear_triangulate(
 
 def _view_errors(X: Tensor, xy: Tensor, observed: Tensor, cams: CameraTensors) -> Tensor:
     """Pixel errors (N, C) of points X (N, 3) against xy (N, C, 2); NaN where missing."""
-    proj = project_points(X[:, None, :], cams.K, cams.R, cams.t, cams.dist)
-    sq = ((proj - xy) ** 2).sum(-1)
-    good = observed & torch.isfinite(sq)
-    sq = torch.where(good, sq, torch.ones_like(sq))
-    err = torch.where(sq > 0, sq.clamp_min(1e-300).sqrt(), torch.zeros_like(sq))
-    return torch.where(good, err, torch.full_like(err, float("nan")))
+    return reprojection_errors(X, xy, cams, observed)
 
 
 def _mean_over(err: Tensor, mask: Tensor) -> Tensor:
@@ -317,19 +312,3 @@ def _triangulate_flat(
     view_error = _view_errors(X, xy0, observed, cams)
     error = _mean_over(view_error, used)
     return X, error, ncams, used, nviews, view_error
-
-
-def reprojection_errors(points: Tensor, xy: Tensor, cams: CameraTensors) -> Tensor:
-    """Pixel distance between projected points and detections.
-
-    points: (..., 3) mm (NaN allowed); xy: (..., C, 2) px (NaN where missing) -> (..., C),
-    NaN where either is missing.
-    """
-    C = cams.num_cameras
-    if points.shape[-1] != 3 or xy.shape[-2:] != (C, 2) or points.shape[:-1] != xy.shape[:-2]:
-        raise ValueError(
-            f"expected points (..., 3) and xy (..., {C}, 2) with equal leading dims, "
-            f"got {tuple(points.shape)} and {tuple(xy.shape)}"
-        )
-    proj = project_points(points[..., None, :], cams.K, cams.R, cams.t, cams.dist)
-    return (proj - xy).norm(dim=-1)

@@ -222,3 +222,44 @@ def test_small_helpers_shapes_values_gradients():
         undistort_normalized(xy, cams.dist[..., :4])
     with pytest.raises(ValueError):
         undistort_normalized(xy, cams.dist, iters=-1)
+
+
+def test_reprojection_errors_one_implementation():
+    from adjust.app import stats
+    from adjust.camera import reprojection_errors
+    from adjust.metrics import error_summary
+    from adjust.metrics import reprojection_errors as errors_np
+    from adjust.triangulate import reprojection_errors as errors_tri
+
+    assert errors_tri is reprojection_errors  # one function, re-exported
+    cams = [make_camera(s) for s in range(3)]
+    ct = CameraTensors.from_cameras(cams)
+    X = torch.as_tensor(points_in_front(cams[0], 4 * 5)).reshape(4, 5, 3)
+    uv = project_cameras(X, ct)
+    uv[..., 1, :] += torch.tensor([3.0, 4.0], dtype=D)  # 5 px off in camera 1
+    uv[0, 0, 2] = float("nan")
+    observed = torch.ones(4, 5, 3, dtype=torch.bool)
+    observed[1, :, 0] = False
+    e = reprojection_errors(X, uv, ct, observed)
+    assert e.shape == (4, 5, 3)
+    torch.testing.assert_close(e[..., 1], torch.full((4, 5), 5.0, dtype=D))
+    assert torch.isnan(e[0, 0, 2]) and torch.isnan(e[1, :, 0]).all()
+    assert float(e[2:, :, 0].abs().max()) < 1e-9
+    np.testing.assert_array_equal(errors_np(X.numpy(), uv.numpy(), cams, observed.numpy()), e)
+    # a zero error has a zero (not NaN) gradient; gradcheck where it is not zero
+    Xg = X[2:, :2].clone().requires_grad_(True)
+    reprojection_errors(Xg, uv[2:, :2], ct)[..., 0].sum().backward()
+    assert torch.isfinite(Xg.grad).all()
+    f = lambda P: reprojection_errors(P, uv[2:, :2], ct)[..., 1]  # noqa: E731
+    assert torch.autograd.gradcheck(f, (Xg.detach().requires_grad_(True),))
+    with pytest.raises(ValueError):
+        reprojection_errors(X, uv, ct, observed[..., :2])
+    with pytest.raises(ValueError):
+        reprojection_errors(X[..., :2], uv, ct)
+    # the two summaries of such errors are one computation with two views
+    s, t = error_summary(e.numpy()), stats(e.numpy())
+    assert t == {"count": s["n"], "median": s["median"], "mean": s["mean"], "p90": s["p90"],
+                 "max": s["max"]}  # fmt: skip
+    assert stats(np.array([np.nan])) == {
+        "count": 0, "median": None, "mean": None, "p90": None, "max": None
+    }  # fmt: skip

@@ -10,16 +10,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors, project_cameras, undistort_points
-from adjust.lsq.geometry import project_components, so3_exp, so3_log
+from adjust.camera import CameraTensors, project_cameras, reprojection_errors, undistort_points
+from adjust.lsq.geometry import so3_exp, so3_log
 from deformnet.so3 import kabsch
 
 log = logging.getLogger(__name__)
-
-
-def _reprojection_errors(X: Tensor, xy: Tensor, cams: CameraTensors) -> Tensor:
-    u, v, _, _ = project_components(X, cams, jacobian=False)
-    return ((xy[..., 0] - u) ** 2 + (xy[..., 1] - v) ** 2).sqrt()
 
 
 def triangulate_robust(
@@ -30,7 +25,7 @@ def triangulate_robust(
     Shapes as `triangulate_linear`."""
     use = valid.clone()
     X, ok = triangulate_linear(xy, use, cams)
-    err = _reprojection_errors(X, xy, cams)  # (T, K, C)
+    err = reprojection_errors(X, xy, cams)  # (T, K, C)
     for _ in range(rounds):
         e = torch.where(use & ok[..., None], err, torch.zeros_like(err))
         worst = e.argmax(-1, keepdim=True)
@@ -41,7 +36,7 @@ def triangulate_robust(
         use[idx] = use[idx] & ~torch.zeros_like(use[idx]).scatter(-1, worst[idx], True)
         Xs, oks = triangulate_linear(xy[idx][None], use[idx][None], cams)  # only those points
         X[idx], ok[idx] = Xs[0], oks[0]
-        err[idx] = _reprojection_errors(Xs, xy[idx][None], cams)[0]
+        err[idx] = reprojection_errors(Xs, xy[idx][None], cams)[0]
     ok = ok & ~(use & (err > max_error_px)).any(-1)
     return X, ok
 

@@ -60,6 +60,7 @@ def levenberg_marquardt(
     lam_down: float = 0.3,
     ridge: float = 0.0,
     tick: Callable[[str], None] | None = None,
+    max_tries: int = 12,
 ) -> LMResult:
     """Minimise a sum of squares whose normal matrix is block-banded.
 
@@ -85,7 +86,7 @@ def levenberg_marquardt(
         diag0 = blocks[0][:, idx, idx].copy()
         floor = 1e-12 * float(diag0.max(initial=1.0))
         accepted = stop = False
-        for _ in range(12):
+        for _ in range(max_tries):
             blocks[0][:, idx, idx] = diag0 + lam * np.maximum(diag0, floor)
             try:
                 delta = banded.solve(blocks, g)
