@@ -1,0 +1,103 @@
+"""The layering contract (run by `make lint` and `make test`).
+
+- `deformnet` never imports `adjust` (not at the top of a module, not inside a function, not by
+  ``importlib.import_module``): the learning half stands alone; `adjust` may import `deformnet`.
+- Every module of `adjust` and of `deformnet.sim` imports without Lightning (only training,
+  `deformnet.lit` / `deformnet.train` / ..., needs it).
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LIGHTNING = ("lightning", "pytorch_lightning", "lightning_fabric")
+
+
+def _imported_modules(path: Path) -> list[tuple[int, str]]:
+    """(line, absolute module name) of every import in a file, wherever it stands."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.append((node.lineno, node.module))
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute | ast.Name)
+            and getattr(node.func, "attr", getattr(node.func, "id", "")) == "import_module"
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+            and isinstance(node.args[0].value, str)
+        ):
+            out.append((node.lineno, node.args[0].value))
+    return out
+
+
+def test_deformnet_never_imports_adjust():
+    files = sorted((ROOT / "deformnet").rglob("*.py"))
+    assert files
+    bad = [
+        f"{p.relative_to(ROOT)}:{line} imports {mod}"
+        for p in files
+        for line, mod in _imported_modules(p)
+        if mod == "adjust" or mod.startswith("adjust.")
+    ]
+    assert not bad, "deformnet must never import adjust:\n" + "\n".join(bad)
+
+
+def test_the_scan_sees_every_kind_of_import(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text(
+        "import adjust.camera\nfrom adjust import io\n"
+        "def g():\n    from adjust.lsq import lm\n    importlib.import_module('adjust.track')\n"
+        "from . import sibling\n"
+    )
+    assert [m for _, m in _imported_modules(f)] == [
+        "adjust.camera",
+        "adjust",
+        "adjust.lsq",
+        "adjust.track",
+    ]
+
+
+_IMPORT_ALL = f"""
+import importlib, pkgutil, sys
+
+class _NoLightning:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in {LIGHTNING!r}:
+            raise ImportError("lightning is blocked: " + name)
+        return None
+
+sys.meta_path.insert(0, _NoLightning())
+import adjust, deformnet.sim
+failed = []
+for pkg in (adjust, deformnet.sim):
+    for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
+        try:
+            importlib.import_module(info.name)
+        except ImportError as exc:
+            failed.append(info.name + ": " + str(exc))
+loaded = sorted(m for m in sys.modules if m.split(".")[0] in {LIGHTNING!r})
+print("\\n".join(failed + loaded))
+sys.exit(1 if failed or loaded else 0)
+"""
+
+
+def test_adjust_and_sim_import_without_lightning():
+    proc = subprocess.run(
+        [sys.executable, "-c", _IMPORT_ALL],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, (
+        "these need Lightning (adjust and deformnet.sim must not):\n"
+        + proc.stdout[-3000:]
+        + proc.stderr[-3000:]
+    )
