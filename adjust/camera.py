@@ -1,9 +1,9 @@
 """Pinhole cameras with OpenCV's 5-coefficient distortion, as pure batched torch functions.
 
-The distortion polynomial, its derivative and its inverse live in `adjust.distortion` (re-exported
-here); `camera_to_pixels` is the one forward projection (camera coordinates -> pixels, optionally
-with its Jacobian) that `project_points`, `project_cameras` and the solver's
-`adjust.lsq.geometry.project_components` all call.
+The distortion polynomial, its derivative and its inverse live in `adjust.distortion`
+(`undistort_points` is re-exported here); `camera_to_pixels` is the one forward projection
+(camera coordinates -> pixels, optionally with its Jacobian) that `project_points`,
+`project_cameras` and the solver's `adjust.lsq.geometry.project_components` all call.
 
 Conventions (stated once): world -> camera ``x_cam = R X + t``; pixels with the origin at the
 centre of the top-left pixel (OpenCV's convention); distortion (k1, k2, p1, p2, k3) as in
@@ -18,16 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.distortion import (
-    check_shape,
-    distort_components,
-    distort_normalized,
-    distort_points,
-    normalized_to_pixels,
-    pixels_to_normalized,
-    undistort_normalized,
-    undistort_points,
-)
+from adjust.distortion import check_shape, distort_components, undistort_points
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
 
 __all__ = [
@@ -37,15 +28,10 @@ __all__ = [
     "decompose_projection_matrix",
     "depth",
     "look_at_pose",
-    "distort_normalized",
-    "distort_points",
-    "normalized_to_pixels",
-    "pixels_to_normalized",
     "project_cameras",
     "project_points",
     "projection_matrix",
     "reprojection_errors",
-    "undistort_normalized",
     "undistort_points",
 ]
 

@@ -21,7 +21,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import Camera, CameraTensors, reprojection_errors, undistort_points
+from adjust.camera import Camera, CameraTensors, reprojection_errors
+from adjust.distortion import undistort_points
 
 
 @dataclass(frozen=True)

@@ -12,14 +12,16 @@ from adjust.camera import (
     CameraTensors,
     decompose_projection_matrix,
     depth,
-    distort_normalized,
-    normalized_to_pixels,
-    pixels_to_normalized,
     project_cameras,
     project_points,
     projection_matrix,
-    undistort_normalized,
     undistort_points,
+)
+from adjust.distortion import (
+    distort_normalized,
+    normalized_to_pixels,
+    pixels_to_normalized,
+    undistort_normalized,
 )
 from deformnet.so3 import rodrigues_to_matrix
 

@@ -10,7 +10,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors, project_cameras, reprojection_errors, undistort_points
+from adjust.camera import CameraTensors, project_cameras, reprojection_errors
+from adjust.distortion import undistort_points
 from adjust.lsq.geometry import so3_exp, so3_log
 from deformnet.so3 import kabsch
 

@@ -16,14 +16,9 @@ from scipy.ndimage import convolve1d
 from scipy.special import ndtri
 
 from adjust.camera import Camera, CameraTensors, depth, project_cameras
+from adjust.scene import occlusion
 from adjust.scene._checks import _range
-from adjust.scene.occlusion import (
-    Ellipsoid,
-    ellipsoids_from_config,
-    lockbox_boxes,
-    occluded_by_boxes,
-    occluded_by_ellipsoids,
-)
+from adjust.scene.occlusion import Ellipsoid
 from deformnet.confutil import to_plain
 
 __all__ = [
@@ -118,7 +113,9 @@ class DetectorConfig:
             )
         object.__setattr__(self, "lockbox_occludes", bool(self.lockbox_occludes))
         occ = self.occluders
-        occ = ellipsoids_from_config(occ) if isinstance(occ, Mapping) else tuple(occ or ())
+        occ = (
+            occlusion.ellipsoids_from_config(occ) if isinstance(occ, Mapping) else tuple(occ or ())
+        )
         if not all(isinstance(e, Ellipsoid) for e in occ):
             raise ValueError("detector.occluders must be Ellipsoids or {name: {center, radii}}")
         object.__setattr__(self, "occluders", tuple(occ))
@@ -148,7 +145,7 @@ def detector_config(cfg: Any = None) -> DetectorConfig:
     if unknown:
         raise ValueError(f"unknown detector config keys {sorted(unknown)} (known: {sorted(known)})")
     if "occluders" in d:
-        d["occluders"] = tuple(ellipsoids_from_config(d["occluders"]))
+        d["occluders"] = tuple(occlusion.ellipsoids_from_config(d["occluders"]))
     return DetectorConfig(**d)
 
 
@@ -313,11 +310,13 @@ def simulate_scene(
     in_image = (z > 0) & finite & (uv >= lo).all(-1) & (uv < hi).all(-1)
     centers = np.stack([c.center for c in cams])
     model = getattr(sim, "model", None)
-    occluded = occluded_by_ellipsoids(
+    occluded = occlusion.occluded_by_ellipsoids(
         X, poses, centers, cfg.occluders, cfg.surface_margin, model=model, parts=parts
     )
     if cfg.lockbox_occludes:
-        occluded |= occluded_by_boxes(X, centers, lockbox_boxes(sim), cfg.surface_margin)
+        occluded |= occlusion.occluded_by_boxes(
+            X, centers, occlusion.lockbox_boxes(sim), cfg.surface_margin
+        )
     occluded &= in_image
     visible = in_image & ~occluded
 
