@@ -195,6 +195,7 @@ def make_deformable_observation(
         noise_var=noise,
         refresh=int(cfg_def.get("refresh", 2)),
         beyond_window=str(cfg_def.get("beyond_window", "interp")),
+        measured=str(cfg_def.get("measured", "interp")),
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
@@ -572,6 +573,7 @@ def _run(cfg: DictConfig) -> dict:
             p: float(v) for p, v in zip(body.parts, observation.factor)
         }
         def_facts["net_reach_fraction"] = float(observation.reach.double().mean())
+        def_facts["net_used_fraction"] = float(observation.use_net.double().mean())
     timings["adjust_s"] = time.perf_counter() - t0 - timings.get("adapt_s", 0.0)
 
     # --- outputs ------------------------------------------------------------------------

@@ -345,15 +345,23 @@ class NetObservation(DeformableObservation):
     `InterpObservation`'s) and after the last refresh the prediction is held while the poses
     converge (the poses start from the rigid/interp adjustment; they move little).
 
-    A window reaches only ``half_window`` frames to each side. ``beyond_window="interp"``
-    (default): a part-frame whose window holds no observation of the part on one side of
-    the mid frame takes ``deformation=interp``'s prediction (kriged across the whole gap,
-    `InterpObservation`) instead of the net's; ``"net"``: the net everywhere.
+    Where the net's prediction is used: on the part-frames without a measurement of their
+    own (occluded, or a mis-detection), where the net beats the interpolation. A measured
+    part-frame's model point, which is fused with its own detections, is
+    ``deformation=interp``'s prediction from the neighbouring frames (``measured="interp"``,
+    default; ``"net"``: the net there too): across a one-frame hole the kriging is the more
+    accurate of the two (`factor`, below, measures it on every run). A window reaches only
+    ``half_window`` frames to each side; ``beyond_window="interp"`` (default): a part-frame
+    whose window holds no observation of the part on one side of the mid frame takes the
+    interpolation's prediction too (kriged across the whole gap, `InterpObservation`);
+    ``"net"``: the net there as well. `use_net` (T, K) says where the net was used.
 
     `deformation_cov`: the interpolation's kriging variance (how uncertainty grows with the
-    distance to the part's observations), scaled per part by how the net's held-out error
-    compares with the interpolation's on the same measured part-frames (the net never sees
-    the mid frame's measurement; the kriging skips it too): both are one-frame-gap errors.
+    distance to the part's observations; conservative for the net in gaps, where it is the
+    better predictor). `factor` (K,): the net's held-out mean-square error over the
+    interpolation's on the measured part-frames (the net never sees the mid frame's
+    measurement; the kriging skips it too); with ``measured="net"`` it scales the variance
+    there.
     """
 
     def __init__(
@@ -369,8 +377,13 @@ class NetObservation(DeformableObservation):
         noise_var: Tensor | None = None,
         refresh: int = 2,
         beyond_window: str = "interp",
+        measured: str = "interp",
     ):
         super().__init__(model, body_points, window, observed, batch_size)
+        if measured not in ("interp", "net"):
+            raise ValueError(f"deform.measured must be interp or net, got {measured!r}")
+        self.measured = measured
+        self.use_net: Tensor | None = None  # (T, K) where the net's prediction is the model
         if jacobian not in JACOBIANS:
             raise ValueError(f"deform.jacobian must be one of {list(JACOBIANS)}, got {jacobian!r}")
         if beyond_window not in ("interp", "net"):
@@ -429,11 +442,17 @@ class NetObservation(DeformableObservation):
         den = torch.where(m, d_int, torch.zeros_like(d_int)).sum(0)
         factor = torch.where(m.sum(0) >= 10, num / den.clamp_min(1e-9), torch.ones_like(num))
         self.factor = factor.clamp(0.25, 4.0)
-        var = self.interp._var.to(M.dtype) * self.factor[None, :, None]
+        use = torch.ones_like(m)
+        if self.measured == "interp":
+            use = use & ~m
         if self.beyond_window == "interp":
-            use = self.reach[..., None].to(M.device)
-            M = torch.where(use, M, Mi)
-            var = torch.where(use, var, self.interp._var.to(M.dtype))
+            use = use & self.reach.to(m.device)
+        self.use_net = use
+        use = use[..., None]
+        M = torch.where(use, M, Mi)
+        var = self.interp._var.to(M.dtype)
+        if self.measured == "net":  # the net's own held-out error where it is used there
+            var = torch.where(m[..., None], var * self.factor[None, :, None], var)
         self._M, self._var = M, var
 
     def _ready(self, poses: Tensor) -> None:
@@ -467,9 +486,8 @@ class NetObservation(DeformableObservation):
             return X, torch.cat((-skew(a), eye), -1)
         X = self._forward(poses)
         Xi, Ji = self.interp.points(poses, jacobian)
-        use = self.reach[..., None] if self.beyond_window == "interp" else None
-        if use is not None:
-            X = torch.where(use, X, Xi)
+        use = self.use_net[..., None]
+        X = torch.where(use, X, Xi)
         if not jacobian:
             return X, None
         J = poses.new_zeros((*X.shape, 6))
@@ -482,8 +500,7 @@ class NetObservation(DeformableObservation):
                 J[..., j] = (Xp - self._forward(retract(poses, -d))) / (2 * h)
             else:
                 J[..., j] = (Xp - X) / h
-        if use is not None:
-            J = torch.where(use[..., None], J, Ji)
+        J = torch.where(use[..., None], J, Ji)
         return X, J
 
     def window(self, start: int, stop: int):
@@ -502,4 +519,5 @@ class NetObservation(DeformableObservation):
             noise_var=nv,
             refresh=self.refresh,
             beyond_window=self.beyond_window,
+            measured=self.measured,
         )
