@@ -273,8 +273,8 @@ def _masked_mean_shape(X: np.ndarray, w: np.ndarray, fill: np.ndarray) -> np.nda
 
 def _align_to(X: np.ndarray, w: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Rigidly align each frame of X (F, K, 3), weights w (F, K), onto ref (K, 3) (Kabsch)."""
-    Xt = torch.as_tensor(X)
-    R, t = kabsch(torch.as_tensor(ref), Xt, torch.as_tensor(w))  # ref ~ X R^T + t, per frame
+    Xt, wt, rt = (torch.from_numpy(np.require(a, np.float64, "W")) for a in (X, w, ref))
+    R, t = kabsch(rt, Xt, wt)  # ref ~ X R^T + t, per frame
     return (Xt @ R.transpose(-1, -2) + t[:, None, :]).numpy()
 
 
