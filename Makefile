@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 PYTHON ?= python3
 
-.PHONY: demo test test-slow lint format install clean bench-env
+.PHONY: demo test test-slow lint format install clean bench-env pretrained
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,10 @@ test-slow: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q tests/test_layering.py  # the layering contract
+
+# Rebuild the shipped default net bit for bit (deformnet/pretrained/mouse_lstm_small.pt; ~5 min).
+pretrained: $(STAMP)
+	$(PY) -m deformnet.pretrained.build
 
 format: $(STAMP)
 	$(VENV)/bin/ruff format . && $(VENV)/bin/ruff check --fix .

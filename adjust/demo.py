@@ -11,7 +11,8 @@ Each step is the app a user runs, called through Hydra's compose API (`run(cfg)`
                               one TensorBoard root OUT/tb)
 3. ``adjust-triangulate``     OUT/dlt (the DLT baseline)
 4. ``adjust-track``           OUT/rigid (deformation=rigid), OUT/interp (the default), OUT/net
-                              (deformation=<the trained LSTM checkpoint>)
+                              (deformation=<the trained LSTM checkpoint>), OUT/self
+                              (deformation=self: the shipped net fine-tuned on the recording)
 5. ``deformnet-classify``     OUT/classify: fine-tune the LSTM's encoder on simulated labelled
                               sessions, then label the primary tracks (OUT/classify/predict)
 6. ``adjust-events``          OUT/events: lock-box contacts on the primary tracks
@@ -36,7 +37,7 @@ from deformnet.paths import CONF_DIR, output_dir
 
 log = logging.getLogger(__name__)
 
-METHODS = ("dlt", "rigid", "interp", "net")
+METHODS = ("dlt", "rigid", "interp", "net", "self")
 
 
 def compose(name: str, overrides: list[str]) -> DictConfig:
@@ -143,7 +144,18 @@ def run(cfg: DictConfig) -> dict:
         triangulate_cli.run,
         compose("triangulate", [*inputs, "body=mouse", f"output.dir={out / 'dlt'}"]),
     )
-    for method, deformation in (("rigid", "rigid"), ("interp", "interp"), ("net", ckpt)):
+    for method, deformation in (
+        ("rigid", "rigid"),
+        ("interp", "interp"),
+        ("net", ckpt),
+        ("self", "self"),  # the shipped net fine-tuned on this recording (no training run before)
+    ):
+        extra = []
+        if method == "self":
+            extra = [
+                f"adapt.max_time={max_time(p.adapt_minutes)}",
+                "adapt.tensorboard=false",
+            ]
         tcfg = compose(
             "track",
             [
@@ -152,6 +164,7 @@ def run(cfg: DictConfig) -> dict:
                 "progress=false",
                 f"threads={int(cfg.threads)}",
                 f"output.dir={out / method}",
+                *extra,
             ],
         )
         step(method, f"adjust-track deformation={deformation}", track.run, tcfg)

@@ -196,6 +196,7 @@ def make_deformable_observation(
         refresh=int(cfg_def.get("refresh", 2)),
         beyond_window=str(cfg_def.get("beyond_window", "interp")),
         measured=str(cfg_def.get("measured", "interp")),
+        threads=cfg_def.get("threads"),
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 

@@ -128,7 +128,7 @@ def train_on_sessions(work: Path, frames: int, seed: int, budget: str) -> tuple[
             [
                 "data=sessions",
                 f"data.sessions=[{','.join(folders)}]",
-                "data.val_fraction=0.34",
+                "data.val_fraction=0.3",  # ceil(0.3 * 3) = 1 of the 3 sessions validates
                 "pretrained=default",
                 "optim.lr=1e-3",
                 "optim.warmup_steps=20",

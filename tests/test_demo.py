@@ -60,7 +60,7 @@ def test_tracking_numbers_equal_the_run_files(demo):
     out, _, rep = demo
     with np.load(out / "scene" / "truth.npz") as z:
         truth, nviews, parts = z["points"], z["nviews"], [str(p) for p in z["parts"]]
-    assert set(rep["tracking"]) == {"dlt", "rigid", "interp", "net"}
+    assert set(rep["tracking"]) == {"dlt", "rigid", "interp", "net", "self"}
     md = (out / "report.md").read_text()
     for method, row in rep["tracking"].items():
         tr = read_points3d(out / method / "points3d.csv")
@@ -75,8 +75,9 @@ def test_tracking_numbers_equal_the_run_files(demo):
         assert f"{row['rmse_all']:.2f}" in line and f"{row['completeness']:.3f}" in line
     # DLT leaves the occluded part-frames empty; the adjustments fill every one
     assert rep["tracking"]["dlt"]["completeness"] < 0.9
-    for m in ("rigid", "interp", "net"):
+    for m in ("rigid", "interp", "net", "self"):
         assert rep["tracking"][m]["completeness"] == 1.0
+    assert (out / "self" / "deformation.ckpt").is_file()  # the adapted net, reusable
 
 
 def test_training_behavior_events_numbers_equal_the_run_files(demo):

@@ -378,8 +378,10 @@ class NetObservation(DeformableObservation):
         refresh: int = 2,
         beyond_window: str = "interp",
         measured: str = "interp",
+        threads: int | None = None,
     ):
         super().__init__(model, body_points, window, observed, batch_size)
+        self.threads = threads  # torch threads for the net's passes (None: unchanged)
         if measured not in ("interp", "net"):
             raise ValueError(f"deform.measured must be interp or net, got {measured!r}")
         self.measured = measured
@@ -425,9 +427,12 @@ class NetObservation(DeformableObservation):
         same = self._M is not None and self._M.shape[0] == poses.shape[0]
         if same and self.jacobian == "frozen" and self.evaluations >= self.refresh:
             return  # the prediction is held in body coordinates from here on
+        from deformnet.threads import torch_threads
+
         self._net_inputs(poses)
         self.interp.prepare(poses)
-        X = self._forward(poses)
+        with torch_threads(self.threads):
+            X = self._forward(poses)
         self.evaluations += 1
         R = so3_exp(poses[:, :3]).detach()
         M = torch.einsum("tji,tkj->tki", R, X - poses[:, None, 3:].detach())
@@ -520,4 +525,5 @@ class NetObservation(DeformableObservation):
             refresh=self.refresh,
             beyond_window=self.beyond_window,
             measured=self.measured,
+            threads=self.threads,
         )
