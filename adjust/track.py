@@ -46,9 +46,10 @@ import torch
 from omegaconf import DictConfig
 
 from adjust.app import load_kwargs, required, run_or_exit, stats, write_outputs
-from adjust.camera import CameraTensors, project_cameras
+from adjust.camera import CameraTensors
 from adjust.io import Detections, InputError, load_scene, write_points3d
 from adjust.lsq.observation import NetObservation
+from adjust.metrics import reprojection_errors
 from adjust.session import expand_session_globs, with_session
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
@@ -75,17 +76,6 @@ def _triangulate(det: Detections, cams: CameraTensors, robust: bool, max_error_p
             robust=robust,
             max_error_px=max_error_px,
         )
-
-
-def reprojection_errors(
-    points: np.ndarray, det: Detections, cams: CameraTensors, accepted: np.ndarray | None = None
-) -> np.ndarray:
-    """(T, K, C) pixel distance between each accepted detection (`accepted` (T, K, C), default
-    all observed ones) and the projection of the reported point (T, K, 3); NaN elsewhere."""
-    with torch.no_grad():
-        uv = project_cameras(torch.as_tensor(points, dtype=torch.float64), cams).numpy()
-    err = np.linalg.norm(uv - det.xy, axis=-1)
-    return np.where(det.observed if accepted is None else accepted, err, np.nan)
 
 
 # --------------------------------------------------------------------------------------------
@@ -227,6 +217,8 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
     a = dict(adapt_cfg or {})
     work = out / "adapt"
     work.mkdir(parents=True, exist_ok=True)
+    for old in (work / "checkpoints").glob("*.ckpt"):  # a previous run's, not this one's
+        old.unlink()
     tok_path = tokens.save(work / "tokens.npz")
     default = load_default()
     same = tuple(default.body.parts) == tuple(tokens.parts)
@@ -583,7 +575,7 @@ def _run(cfg: DictConfig) -> dict:
     points = res.points
     observed = res.weights > 0  # the detections the fused points rest on
     ncams = observed.sum(-1)
-    view_err = reprojection_errors(points, det, cams, observed)
+    view_err = reprojection_errors(points, det.xy, cams, observed)
     with warnings.catch_warnings():  # all-NaN rows (no detection) are expected
         warnings.simplefilter("ignore", RuntimeWarning)
         error = np.nanmean(view_err, axis=-1) if C else np.full((T, K), np.nan)

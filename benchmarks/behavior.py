@@ -47,13 +47,13 @@ import os
 import time
 from pathlib import Path
 
-import hydra
 import numpy as np
 import pandas as pd
 import torch
 
 from adjust.app import finite_or_none
 from deformnet.atomic import write_text
+from deformnet.confutil import compose
 from deformnet.paths import CONF_DIR
 
 log = logging.getLogger("benchmarks.behavior")
@@ -62,11 +62,6 @@ ROOT = CONF_DIR.parent
 SEEDS = {"train": 95_000, "val": 95_100, "test": 95_200}
 FRACTIONS = (0.01, 0.1, 1.0)
 MECHANISMS = ("lever", "splint", "ball", "slider")
-
-
-def compose(name: str, overrides: list[str]):
-    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return hydra.compose(name, overrides=list(overrides))
 
 
 # --------------------------------------------------------------------------------------------

@@ -30,15 +30,15 @@ import time
 import warnings
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 
 from adjust.app import finite_or_none
 from adjust.camera import CameraTensors
 from adjust.io import load_scene, read_points3d
-from adjust.track import reprojection_errors
+from adjust.metrics import error_summary, reprojection_errors
 from deformnet.atomic import write_text
+from deformnet.confutil import compose
 from deformnet.paths import CONF_DIR, real_hand_dir
 
 log = logging.getLogger("benchmarks.real_hand")
@@ -47,21 +47,7 @@ ROOT = CONF_DIR.parent
 DATA = real_hand_dir()
 
 
-def compose(name: str, overrides: list[str]):
-    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return hydra.compose(name, overrides=list(overrides))
-
-
-def _stats(v: np.ndarray) -> dict:
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return {"n": 0, "median": float("nan"), "mean": float("nan"), "p90": float("nan")}
-    return {
-        "n": int(v.size),
-        "median": float(np.median(v)),
-        "mean": float(v.mean()),
-        "p90": float(np.percentile(v, 90)),
-    }
+_stats = error_summary  # n, mean, median, p90, rmse, max (NaN if none)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -115,7 +101,7 @@ def main(argv: list[str] | None = None) -> dict:
     common = np.isfinite(pts["dlt"]).all(-1)
     results: dict[str, dict] = {}
     for name, P in pts.items():
-        view = reprojection_errors(np.nan_to_num(P, nan=0.0), det, cams)
+        view = reprojection_errors(np.nan_to_num(P, nan=0.0), det.xy, cams, det.observed)
         view = np.where(np.isfinite(P).all(-1)[..., None], view, np.nan)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)

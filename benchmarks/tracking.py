@@ -37,7 +37,6 @@ import os
 import time
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 
@@ -45,17 +44,13 @@ from adjust.app import finite_or_none
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
 from deformnet.atomic import write_text
+from deformnet.confutil import compose
 from deformnet.paths import CONF_DIR
 
 log = logging.getLogger("benchmarks.tracking")
 
 ROOT = CONF_DIR.parent
 SCENE_SEED = 91_000  # held out: deformnet-train uses seeds 0.. and 10_000..
-
-
-def compose(name: str, overrides: list[str]):
-    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return hydra.compose(name, overrides=list(overrides))
 
 
 def simulate(out: Path, frames: int, seed: int) -> dict:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from adjust.camera import Camera, CameraTensors, project_cameras
+from adjust.camera import Camera, CameraTensors, look_at_pose, project_cameras
 from adjust.triangulate import triangulate
 from deformnet.atomic import write_text
 from deformnet.so3 import matrix_to_rodrigues
@@ -33,12 +33,10 @@ def look_at(name: str, center, f: float = 1200.0) -> Camera:
     c = np.asarray(center, float)
     z = -c / np.linalg.norm(c)
     up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    R = np.stack((x, np.cross(z, x), z))
+    R, t = look_at_pose(c, np.zeros(3), up, name)
     K = np.array([[f, 0.0, 640.0], [0.0, f, 512.0], [0.0, 0.0, 1.0]])
     dist = np.array([-0.2, 0.08, 1e-3, -7e-4, -0.01])
-    return Camera(name, K, dist, matrix_to_rodrigues(torch.as_tensor(R)).numpy(), -R @ c)
+    return Camera(name, K, dist, matrix_to_rodrigues(torch.as_tensor(R)).numpy(), t)
 
 
 def main(argv: list[str] | None = None) -> dict:

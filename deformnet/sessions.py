@@ -234,9 +234,12 @@ def split_sessions(
         t = tokens[0]
         T = t.num_frames
         every = max(2, int(round(1.0 / val_fraction)))
-        # a short session gets shorter blocks (at least `every` of them, each a window long)
+        # a short session gets shorter blocks (down to a window); blocks of equal length, the
+        # last one taking the remainder, so none is shorter than a window
         block = max(int(min_frames), min(int(block_frames), T // (2 * every)))
-        starts = list(range(0, T, block))
+        nblocks = max(1, T // block)
+        block = T // nblocks
+        starts = [i * block for i in range(nblocks)]
         is_val = [i % every == every - 1 for i in range(len(starts))]
         if not any(is_val) and len(starts) >= 2:  # short session: its last block validates
             is_val[-1] = True
@@ -246,7 +249,7 @@ def split_sessions(
             j = i
             while j + 1 < len(starts) and is_val[j + 1] == is_val[i]:
                 j += 1
-            s, e = starts[i], min(T, starts[j] + block)
+            s, e = starts[i], (T if j == nblocks - 1 else starts[j] + block)
             (val if is_val[i] else train).append(t.to_sequence(s, e))
             if is_val[i]:
                 vb.append([s, e])

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import hydra
 import numpy as np
 import pandas as pd
 import pytest
@@ -18,14 +17,9 @@ from adjust.lsq.stochastic import OffsetCovariance, detector_sigma, krige_offset
 from adjust.lsq.synthetic import ring_cameras, smooth_trajectory
 from adjust.triangulate import triangulate
 from deformnet.body import BodyModel, default_mouse
-from deformnet.paths import CONF_DIR
+from deformnet.confutil import compose
 from deformnet.shape import real_paper_parts, rigid_floor
 from deformnet.so3 import transform_points
-
-
-def compose(name: str, overrides: list[str]):
-    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return hydra.compose(name, overrides=overrides)
 
 
 def track(session: Path, out: Path, overrides: list[str] = ()) -> dict:

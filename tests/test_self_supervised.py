@@ -166,6 +166,10 @@ def test_split_by_session_and_by_time_blocks():
     # blocks 4 and 9 (of 50 frames... shortened to keep two val blocks) validate, the rest train
     assert facts["train_frames"] + facts["val_frames"] == 200
     assert all(s.rigid.shape[0] >= 9 for s in train + val)
+    # a session only a few windows long still splits, no piece shorter than a window
+    train, val, facts = split_sessions([_tokens(150, 9, "short")], 0.2, 500, min_frames=33)
+    assert facts["train_frames"] + facts["val_frames"] == 150 and len(val) >= 1
+    assert all(s.rigid.shape[0] >= 33 for s in train + val)
     with pytest.raises(ValueError, match="parts"):
         from deformnet.sessions import check_compatible
 

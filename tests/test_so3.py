@@ -216,3 +216,28 @@ def test_gradcheck_kabsch():
     w = (torch.rand(2, 7, generator=g, dtype=D) + 0.5).requires_grad_(True)
     assert torch.autograd.gradcheck(kabsch, (src, ref.requires_grad_(True)))
     assert torch.autograd.gradcheck(kabsch, (src, ref, w))
+
+
+def test_kabsch_polar_rotation_equals_the_svd_one():
+    """The Newton polar factor (no SVD) is Kabsch's U diag(1, 1, det) V^T: same rotation to
+    float precision on proper, noisy fits; reflections and degenerate cross-covariances fall
+    back to the SVD; differentiable (float64 gradcheck)."""
+    from deformnet.so3 import _rotation_of, _rotation_svd
+
+    gen = torch.Generator().manual_seed(0)
+    body = torch.tensor(
+        [[40.0, 0, 0], [20, 5, 2], [20, -5, 2], [0, 8, -3], [-10, -6, -4], [-30, 0, 0]],
+        dtype=torch.float64,
+    )
+    R = rodrigues_to_matrix(2 * torch.randn(500, 3, generator=gen, dtype=torch.float64))
+    src = body @ R.transpose(-1, -2) + torch.randn(500, 6, 3, generator=gen, dtype=torch.float64)
+    H = (src - src.mean(-2, keepdim=True)).transpose(-1, -2) @ (body - body.mean(0))
+    torch.testing.assert_close(_rotation_of(H), _rotation_svd(H), atol=1e-12, rtol=0)
+    torch.testing.assert_close(_rotation_of(H.float()), _rotation_svd(H.float()), atol=5e-6, rtol=0)
+    odd = torch.randn(6, 3, 3, generator=gen, dtype=torch.float64)
+    odd[0] = -torch.eye(3, dtype=torch.float64)  # a reflection
+    odd[1, :, 2] = 0.0  # rank 2 (collinear-like)
+    odd[2] = 0.0  # all points at one place
+    torch.testing.assert_close(_rotation_of(odd), _rotation_svd(odd), atol=1e-12, rtol=0)
+    Hp = H[:4].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(_rotation_of, (Hp,))

@@ -56,6 +56,18 @@ def _rotate_axes_var(R: Tensor, var: Tensor) -> Tensor:
     return torch.einsum("tij,tkj,tlj->tkil", R, var, R)
 
 
+def _body_frame_points(poses: Tensor, M: Tensor, jacobian: bool) -> tuple[Tensor, Tensor | None]:
+    """Points held in each frame's body coordinates, M (T, K, 3), moved by the poses (T, 6):
+    X = R M + tau, and the Jacobian w.r.t. the frame's left increment [-[R M]_x, I]
+    (T, K, 3, 6) (the prediction held fixed: a rigid point's Jacobian)."""
+    a = torch.einsum("tij,tkj->tki", so3_exp(poses[:, :3]), M.to(poses.dtype))
+    X = a + poses[:, None, 3:]
+    if not jacobian:
+        return X, None
+    eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
+    return X, torch.cat((-skew(a), eye), -1)
+
+
 class RigidObservation:
     """The rigid body model moved by the pose (paper eq. 4): X_i = R(r_t) X_i^m + tau_t.
 
@@ -193,13 +205,7 @@ class InterpObservation:
 
     def points(self, poses: Tensor, jacobian: bool = True) -> tuple[Tensor, Tensor | None]:
         self._ready(poses)
-        R = so3_exp(poses[:, :3])
-        a = torch.einsum("tij,tkj->tki", R, self._M.to(poses.dtype))
-        X = a + poses[:, None, 3:]
-        if not jacobian:
-            return X, None
-        eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
-        return X, torch.cat((-skew(a), eye), -1)
+        return _body_frame_points(poses, self._M, jacobian)
 
     def deformation_cov(self, poses: Tensor) -> Tensor:
         self._ready(poses)
@@ -482,13 +488,7 @@ class NetObservation(DeformableObservation):
         gives every frame's column at once (6 or 12 passes)."""
         self._ready(poses)
         if self.jacobian == "frozen":
-            R = so3_exp(poses[:, :3])
-            a = torch.einsum("tij,tkj->tki", R, self._M.to(poses.dtype))
-            X = a + poses[:, None, 3:]
-            if not jacobian:
-                return X, None
-            eye = torch.eye(3, dtype=X.dtype, device=X.device).expand(*a.shape[:-1], 3, 3)
-            return X, torch.cat((-skew(a), eye), -1)
+            return _body_frame_points(poses, self._M, jacobian)
         X = self._forward(poses)
         Xi, Ji = self.interp.points(poses, jacobian)
         use = self.use_net[..., None]
