@@ -530,6 +530,23 @@ def _run(cfg: DictConfig) -> dict:
         )
         model, adapt_facts = adapt_net(tokens, output_dir(cfg), cfg.get("adapt"), progress)
         timings["adapt_s"] = time.perf_counter() - t1
+        net_mm, lin_mm = adapt_facts.get("val_rmse_mm"), adapt_facts.get("val_rmse_mm_linear")
+        if bool((cfg.get("adapt") or {}).get("require_better", True)) and not (
+            net_mm is not None and lin_mm is not None and net_mm < lin_mm
+        ):
+            log.warning(
+                "deformation=self: the adapted net does not predict held-out parts better "
+                "than linear interpolation (val RMSE %s vs %s mm; too little data or time?): "
+                "the tracks are deformation=interp's (adapt.require_better=false uses the net "
+                "anyway; its checkpoint is %s)",
+                f"{net_mm:.2f}" if net_mm is not None else "n/a",
+                f"{lin_mm:.2f}" if lin_mm is not None else "n/a",
+                adapt_facts["checkpoint"],
+            )
+            adapt_facts["used"] = False
+            model = None  # `res`: the interp adjustment's, outputs complete
+        else:
+            adapt_facts["used"] = True
     if model is not None:
         t1 = time.perf_counter()
         observation, def_facts = make_deformable_observation(
@@ -557,8 +574,10 @@ def _run(cfg: DictConfig) -> dict:
             trusted=trusted,
             outputs=TRACK_OUTPUTS,
         )
-    if mode == "interp":
-        def_facts = interp_facts(observation, body)
+    if mode == "interp" or (mode == "self" and model is None):
+        def_facts = interp_facts(observation if mode == "interp" else interp_obs, body)
+        if adapt_facts is not None:
+            def_facts["adapt"] = adapt_facts
     elif model is not None:
         timings["net_s"] = time.perf_counter() - t_net
         def_facts["net_passes"] = int(observation.evaluations)

@@ -239,3 +239,24 @@ def test_shipped_net_is_the_build_scripts_output(tmp_path):
 
     res = build(out=tmp_path / "rebuilt.pt")
     assert res["sha256"] == weights_sha256(load_default())
+
+
+def test_self_falls_back_to_interp_when_the_net_does_not_beat_interpolation(scene, tmp_path):
+    """An adapted net that predicts held-out parts no better than linear interpolation (here:
+    trained from scratch for 2 s, i.e. about the rigid model) is not used: the tracks are the
+    interp adjustment's, and the summary says so."""
+    s = _track(
+        scene,
+        tmp_path / "fb",
+        [
+            "deformation=self",
+            "adapt.pretrained=null",
+            "adapt.max_time=00:00:00:02",
+            "adapt.tensorboard=false",
+        ],
+    )
+    adapt = s["deformation"]["adapt"]
+    assert adapt["val_rmse_mm"] >= adapt["val_rmse_mm_linear"]
+    assert adapt["used"] is False
+    assert "deformation_sigma_mm_per_part" in s["deformation"]  # interp's facts
+    assert s["completeness"] == 1.0
