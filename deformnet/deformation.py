@@ -15,7 +15,6 @@ never imports Lightning (a deformnet-train checkpoint holds only tensors and pla
 
 from __future__ import annotations
 
-import importlib
 import logging
 import os
 from collections.abc import Mapping
@@ -64,17 +63,30 @@ def load_checkpoint_data(path: str | os.PathLike, map_location="cpu") -> Any:
 
 
 def build_net(config: Mapping[str, Any]) -> nn.Module:
-    """Instantiate a net from a plain config dict with a `_target_` (no Hydra needed)."""
+    """A net from its config (a mapping with a `_target_` class path, as in conf/net/*.yaml,
+    or a checkpoint's `net_config`) by `hydra.utils.instantiate`; ValueError naming the class
+    when it cannot be imported or built."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
     cfg = dict(config)
-    target = cfg.pop("_target_", None)
+    target = cfg.get("_target_")
     if not target:
         raise ValueError(f"net config needs a '_target_' (a class path), got keys {sorted(cfg)}")
-    module, _, name = str(target).rpartition(".")
+    from hydra.utils import get_class
+
+    try:  # only a module class: a config (or a checkpoint) may not name any other callable
+        cls = get_class(str(target))
+    except (ImportError, ValueError, AttributeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"cannot import net class '{target}': {first}") from None
+    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
+        raise ValueError(f"net '{target}' is not a torch.nn.Module class")
     try:
-        cls = getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError) as exc:
-        raise ValueError(f"cannot import net class '{target}': {exc}") from exc
-    return cls(**cfg)
+        return instantiate(cfg, _convert_="all")
+    except InstantiationException as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"cannot build net '{target}': {first}") from None
 
 
 class DeformationModel(nn.Module):
