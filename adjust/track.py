@@ -240,6 +240,8 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
         f"data.steps_per_epoch={int(a.get('steps_per_epoch', 50))}",
         f"pretrained={pretrained}",
         "net=lstm_small",
+        # from scratch on one recording: start from the interpolation, not the rigid model
+        f"net.prior_residual={'true' if pretrained == 'null' else 'false'}",
         f"half_window={int(default.half_window)}",
         f"optim.lr={float(a.get('lr', 1e-3))}",
         f"optim.warmup_steps={int(a.get('warmup_steps', 20))}",

@@ -30,12 +30,22 @@ class PartHead(nn.Module):
     h_i = W_i ctx + U [prior_i, e_i] (e_i a learned part embedding), then a shared MLP -> 3.
     The shared path lets all parts learn one use of their interpolation prior; the per-part
     context projection keeps a joint view of the window. The last layer (`out`) is zero-
-    initialised, so an untrained head outputs zero offsets (the rigid baseline).
+    initialised, so an untrained head outputs zero offsets (the rigid baseline), or, with
+    ``prior_residual``, the prior's linearly interpolated body-frame offset (the linear
+    baseline: a net trained from scratch on little data starts from interpolation).
     """
 
-    def __init__(self, ctx_dim: int, num_parts: int, hidden: int, d_part: int = 16) -> None:
+    def __init__(
+        self,
+        ctx_dim: int,
+        num_parts: int,
+        hidden: int,
+        d_part: int = 16,
+        prior_residual: bool = False,
+    ) -> None:
         super().__init__()
         self.num_parts, self.hidden = int(num_parts), int(hidden)
+        self.prior_residual = bool(prior_residual)
         self.part_embedding = nn.Embedding(self.num_parts, d_part)
         self.ctx = nn.Linear(ctx_dim, self.num_parts * self.hidden)
         self.local = nn.Linear(PRIOR_FEATURES + d_part, self.hidden, bias=False)
@@ -50,7 +60,10 @@ class PartHead(nn.Module):
         emb = self.part_embedding.weight.to(prior.dtype).expand(B, -1, -1)
         h = self.ctx(ctx).reshape(B, self.num_parts, self.hidden)
         h = h + self.local(torch.cat((prior, emb), -1))
-        return self.out(self.mlp(h))
+        out = self.out(self.mlp(h))
+        if self.prior_residual:  # on top of the interpolation prior's offset (its first 3)
+            out = out + prior[..., :3]
+        return out
 
 
 class _Base(nn.Module):
@@ -99,7 +112,8 @@ class LSTMPredictor(_Base):
     """Bidirectional LSTM over time; each frame's K tokens are embedded jointly; the output at the
     mid frame, with the interpolation prior of `token_features`, predicts the K offsets.
 
-    num_parts K, half_window n (W = 2n + 1), hidden size per direction, layers, dropout.
+    num_parts K, half_window n (W = 2n + 1), hidden size per direction, layers, dropout;
+    prior_residual: predict on top of the interpolation prior (`PartHead`).
     """
 
     def __init__(
@@ -112,6 +126,7 @@ class LSTMPredictor(_Base):
         dropout: float = 0.0,
         pos_scale: float = 30.0,
         offset_scale: float = 10.0,
+        prior_residual: bool = False,
     ) -> None:
         super().__init__(num_parts, half_window, pos_scale, offset_scale)
         K = self.num_parts
@@ -124,7 +139,7 @@ class LSTMPredictor(_Base):
             bidirectional=True,
             dropout=dropout if layers > 1 else 0.0,
         )
-        self.head = PartHead(2 * hidden + embed, K, 2 * hidden)
+        self.head = PartHead(2 * hidden + embed, K, 2 * hidden, prior_residual=prior_residual)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
         feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K, P)
@@ -170,6 +185,7 @@ class TransformerPredictor(_Base):
         pos_scale: float = 30.0,
         offset_scale: float = 10.0,
         use_pos_enc: bool = True,
+        prior_residual: bool = False,
     ) -> None:
         super().__init__(num_parts, half_window, pos_scale, offset_scale)
         K = self.num_parts
@@ -192,7 +208,7 @@ class TransformerPredictor(_Base):
         )
         self.encoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(d_model)
-        self.head = PartHead(d_model, K, 2 * d_model)
+        self.head = PartHead(d_model, K, 2 * d_model, prior_residual=prior_residual)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
         feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K, P)
