@@ -212,7 +212,6 @@ def interpolate_poses(poses: Tensor, ok: Tensor) -> Tensor:
         return poses.clone()
     if not bool(ok.any()):
         return torch.zeros_like(poses)
-    idx = torch.arange(T)
     okn = ok.cpu().numpy()
     prev = np.where(okn, np.arange(T), -1)
     prev = np.maximum.accumulate(prev)
@@ -220,14 +219,21 @@ def interpolate_poses(poses: Tensor, ok: Tensor) -> Tensor:
     nxt = np.minimum.accumulate(nxt[::-1])[::-1]
     prev = np.where(prev < 0, nxt, prev)
     nxt = np.where(nxt >= T, prev, nxt)
-    a, b = torch.as_tensor(prev), torch.as_tensor(nxt)
-    span = (b - a).clamp_min(1).to(poses.dtype)
-    alpha = torch.where(b > a, (idx - a).to(poses.dtype) / span, torch.zeros_like(span))[:, None]
-    Ra, Rb = so3_exp(poses[a, :3]), so3_exp(poses[b, :3])
-    rel = so3_log(Rb @ Ra.transpose(-1, -2))
-    R = so3_exp(alpha * rel) @ Ra
-    tau = (1 - alpha) * poses[a, 3:] + alpha * poses[b, 3:]
-    return torch.cat((so3_log(R), tau), -1)
+    out = poses.clone()  # fitted frames keep their poses; only the others are computed,
+    fill = np.flatnonzero(~okn)  # in blocks (bounded memory on long sessions)
+    for s in range(0, fill.size, 100_000):
+        f = fill[s : s + 100_000]
+        idx = torch.as_tensor(f)
+        a, b = torch.as_tensor(prev[f]), torch.as_tensor(nxt[f])
+        span = (b - a).clamp_min(1).to(poses.dtype)
+        alpha = torch.where(b > a, (idx - a).to(poses.dtype) / span, torch.zeros_like(span))
+        alpha = alpha[:, None]
+        Ra, Rb = so3_exp(poses[a, :3]), so3_exp(poses[b, :3])
+        rel = so3_log(Rb @ Ra.transpose(-1, -2))
+        R = so3_exp(alpha * rel) @ Ra
+        tau = (1 - alpha) * poses[a, 3:] + alpha * poses[b, 3:]
+        out[idx] = torch.cat((so3_log(R), tau), -1)
+    return out
 
 
 def unwrap_rotations(r: np.ndarray) -> np.ndarray:
@@ -311,10 +317,15 @@ def initial_poses(
     dt = body.dtype
     if T == 0:
         return xy.new_zeros((0, 6)), torch.zeros(0, dtype=torch.bool)
+    from adjust.lsq.solver import _release_freed_memory
+
     fits = []
     for a in range(0, T, 10000):  # per-frame fits in blocks of frames (cache-friendly)
         X, mask = triangulate_robust(xy[a : a + 10000], valid[a : a + 10000], cams)
         fits.append(kabsch_robust(body, X, mask))
+        del X, mask
+        if T > 10000:
+            _release_freed_memory()
     poses = torch.cat([f[0] for f in fits], 0)
     ok = torch.cat([f[1] for f in fits], 0)
     need = np.flatnonzero(~ok.cpu().numpy() & (valid.sum(1) >= 4).any(-1).cpu().numpy())
