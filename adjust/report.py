@@ -601,7 +601,9 @@ def blocks(rep: Mapping) -> list[tuple]:
             "nothing where fewer than 2 cameras saw a part); `rigid` = `adjust-track "
             "deformation=rigid`; `interp` = `adjust-track` (default: the rigid model plus "
             "each part's interpolated offset); `net` = `adjust-track deformation=<the "
-            f"demo's LSTM checkpoint>`. Reprojections, behavior and events below use "
+            "demo's LSTM checkpoint>`; `self` = `adjust-track deformation=self` (the shipped "
+            "pretrained net fine-tuned on this scene's own detections, no truth). "
+            f"Reprojections, behavior and events below use "
             f"`{rep['primary']}`.",
         )
     )

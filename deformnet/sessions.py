@@ -141,16 +141,27 @@ def _is_raw_session(path: Path) -> bool:
 
 
 def resolve_sessions(patterns: Sequence[str | os.PathLike]) -> list[Path]:
-    """Folders (or ``tokens.npz`` files) named by paths or glob patterns, sorted, each once.
+    """Folders (or ``tokens.npz`` files) named by paths or glob patterns (``glob(PATTERN)``, as
+    in ``adjust-track -m input.session=glob(...)``, works too), sorted, each once.
 
     A folder counts when it holds ``tokens.npz`` (an adjust-track output folder) or
     ``calibration.toml`` (a raw session); ValueError naming a pattern that matches nothing
     usable."""
     if isinstance(patterns, (str, os.PathLike)):
         patterns = [patterns]
+    flat: list = []
+    exclude: list[str] = []
+    for pat in patterns:  # Hydra parses an unquoted glob(...) into {include, exclude}
+        if hasattr(pat, "get") and pat.get("include") is not None:
+            flat.extend(str(i) for i in pat["include"])
+            exclude.extend(str(e) for e in (pat.get("exclude") or []))
+        else:
+            flat.append(pat)
     out: list[Path] = []
-    for pat in patterns:
+    for pat in flat:
         pat = os.fspath(pat)
+        if pat.startswith("glob(") and pat.endswith(")"):  # adjust-track -m's batch syntax
+            pat = pat[5:-1]
         hits = sorted(glob.glob(pat)) if glob.has_magic(pat) else [pat]
         found = []
         for h in hits:
@@ -165,6 +176,10 @@ def resolve_sessions(patterns: Sequence[str | os.PathLike]) -> list[Path]:
                 "adjust-track, or with calibration.toml + detections)"
             )
         out.extend(found)
+    if exclude:
+        import fnmatch
+
+        out = [p for p in out if not any(fnmatch.fnmatch(str(p), e) for e in exclude)]
     seen: set[Path] = set()
     unique = []
     for p in out:

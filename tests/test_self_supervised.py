@@ -260,3 +260,31 @@ def test_self_falls_back_to_interp_when_the_net_does_not_beat_interpolation(scen
     assert adapt["used"] is False
     assert "deformation_sigma_mm_per_part" in s["deformation"]  # interp's facts
     assert s["completeness"] == 1.0
+
+
+def test_train_on_a_raw_session_folder_tracks_it_first(scene, tmp_path):
+    """data.sessions may name raw session folders (calibration.toml + detections), in
+    adjust-track's batch syntax: the builder tracks each (adjust-track, interp) into the
+    training folder, then trains on its tokens (one session: split by time blocks)."""
+    from deformnet.train import run
+
+    res = run(
+        compose(
+            "train",
+            [
+                "data=sessions",
+                f"data.sessions=[glob({scene})]",
+                "logger=none",
+                "progress_bar=none",
+                "trainer.max_time=null",
+                "trainer.max_steps=10",
+                "trainer.max_epochs=1",
+                "data.steps_per_epoch=10",
+                "data.val_windows=128",
+                f"output.dir={tmp_path / 'train'}",
+            ],
+        )
+    )
+    assert (tmp_path / "train" / "sessions" / scene.name / "tokens.npz").is_file()
+    assert res["data"]["split"] == "by time blocks"
+    assert np.isfinite(res["metrics"]["val/rmse_mm"])
