@@ -45,12 +45,14 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import load_kwargs, required, run_or_exit, stats, write_outputs
+from adjust.adapt import adapt_net
+from adjust.app import load_kwargs, required, run_or_exit, write_outputs
 from adjust.camera import CameraTensors
 from adjust.io import Detections, InputError, load_scene, write_points3d
 from adjust.lsq.observation import NetObservation
 from adjust.metrics import reprojection_errors
 from adjust.session import expand_session_globs, with_session
+from adjust.summary import result_summary
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, output_dir
@@ -201,77 +203,6 @@ def deformation_mode(deformation) -> str:
     if str(deformation).lower() in ("interp", "default", "self"):
         return str(deformation).lower()
     return "net"
-
-
-def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
-    """``deformation=self``: fine-tune the default pretrained net on this recording's tokens
-    (`deformnet-train data=sessions pretrained=default`, split by time blocks) for
-    ``adapt.max_time``; a skeleton the shipped net does not know gets a net of the same
-    architecture trained from scratch. Writes ``out/adapt/`` (deformnet-train's folder) and
-    the adapted model ``out/deformation.ckpt``; returns (model, facts)."""
-    from deformnet.confutil import compose
-    from deformnet.deformation import DeformationModel
-    from deformnet.pretrained import load_default
-    from deformnet.train import run as train
-
-    a = dict(adapt_cfg or {})
-    work = out / "adapt"
-    work.mkdir(parents=True, exist_ok=True)
-    for old in (work / "checkpoints").glob("*.ckpt"):  # a previous run's, not this one's
-        old.unlink()
-    tok_path = tokens.save(work / "tokens.npz")
-    default = load_default()
-    same = tuple(default.body.parts) == tuple(tokens.parts)
-    pretrained = str(a.get("pretrained", "default")) if same else "null"
-    if not same:
-        log.warning(
-            "deformation=self: the shipped net knows the parts %s, this recording has %s: "
-            "training a net of its architecture from scratch (%s)",
-            list(default.body.parts),
-            list(tokens.parts),
-            a.get("max_time"),
-        )
-    ov = [
-        "data=sessions",
-        f"data.sessions=[{tok_path}]",
-        f"data.val_fraction={float(a.get('val_fraction', 0.2))}",
-        f"data.block_frames={int(a.get('block_frames', 500))}",
-        f"data.batch_size={int(a.get('batch_size', 128))}",
-        f"data.steps_per_epoch={int(a.get('steps_per_epoch', 50))}",
-        f"pretrained={pretrained}",
-        "net=lstm_small",
-        # from scratch on one recording: start from the interpolation, not the rigid model
-        f"net.prior_residual={'true' if pretrained == 'null' else 'false'}",
-        f"half_window={int(default.half_window)}",
-        f"optim.lr={float(a.get('lr', 1e-3))}",
-        f"optim.warmup_steps={int(a.get('warmup_steps', 20))}",
-        f"seed={int(a.get('seed', 0))}",
-        f"trainer.max_time={a.get('max_time', '00:00:03:00')}",
-        f"trainer.accelerator={a.get('accelerator', 'auto')}",
-        "trainer.enable_model_summary=false",
-        "trainer.num_sanity_val_steps=0",
-        f"threads={a['threads']}" if a.get("threads") is not None else "threads=null",
-        f"progress_bar={'rich' if progress else 'none'}",
-        "logger=tensorboard" if a.get("tensorboard", True) else "logger=none",
-        f"logger.save_dir={work / 'tb'}" if a.get("tensorboard", True) else "",
-        f"output.dir={work}",
-    ]
-    res = train(compose("train", [o for o in ov if o]))
-    ckpt = res.get("best_checkpoint") or res.get("last_checkpoint")
-    if not ckpt:
-        raise ValueError(f"deformation=self: training wrote no checkpoint into {work}")
-    model = DeformationModel.from_checkpoint(ckpt)
-    model.save(out / "deformation.ckpt")
-    m = res.get("metrics", {})
-    facts = {
-        "pretrained": pretrained if pretrained != "null" else None,
-        "checkpoint": str(out / "deformation.ckpt"),
-        "val_rmse_mm": m.get("best/val_rmse_mm", m.get("val/rmse_mm")),
-        "val_rmse_mm_rigid": m.get("val/rmse_mm_rigid"),
-        "val_rmse_mm_linear": m.get("val/rmse_mm_linear"),
-        "data": res.get("data"),
-    }
-    return model, facts
 
 
 def scale_body(body: BodyModel, body_cfg, cons) -> tuple[BodyModel, dict]:
@@ -615,10 +546,6 @@ def _run(cfg: DictConfig) -> dict:
     def write_points(path: Path) -> Path:
         return write_points3d(path, det.parts, points, error, ncams, score, extra=extra, fnum=fnum)
 
-    done = np.isfinite(points).all(-1)
-    seen2 = ncams >= 2
-    costs = [c for chunk in res.cost_history for c in chunk[-1:]]
-    history = res.cost_history[0] if len(res.cost_history) == 1 else res.cost_history
     summary = {
         "inputs": {
             "calibration": str(Path(calibration).resolve()),
@@ -652,47 +579,8 @@ def _run(cfg: DictConfig) -> dict:
             "individual": kwargs["individual"],
             "solver": asdict(solver_cfg),
         },
-        "iterations": int(res.iterations),
         "rigid_iterations": rigid_iterations,  # of the rigid run that started a deformable one
-        "converged": bool(res.converged),
-        "chunks": int(res.chunks),
-        "initial_cost": float(res.cost_history[0][0]) if res.cost_history else None,
-        "final_cost": float(sum(costs)) if costs else None,
-        "cost_history": history,
-        "mixture_share": float(res.mixture_share),
-        "initial_fit_frames": int(np.asarray(res.fitted).sum()),
-        "frames_without_detections": int((ncams.sum(-1) == 0).sum()),
-        # how much of the output rests on no accepted detection at all (the model alone)
-        "from_model_only": {
-            "fraction": float((ncams == 0).mean()) if ncams.size else 0.0,
-            "per_part": {p: float((ncams[:, k] == 0).mean()) for k, p in enumerate(det.parts)},
-        },
-        # fraction of part-frames with a finite 3D point
-        "completeness": float(done.mean()) if done.size else 0.0,
-        "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},
-        # reprojection error (px) of the reported points: per point (mean over its accepted
-        # detections), per camera and per part (over single detections)
-        "reprojection_error_px": stats(error),
-        "reprojection_error_px_per_camera": {
-            c: stats(view_err[..., i]) for i, c in enumerate(det.cameras)
-        },
-        "reprojection_error_px_per_part": {
-            p: stats(view_err[:, k]) for k, p in enumerate(det.parts)
-        },
-        "sigma_mm": {
-            "seen_ge2": stats(sigma[seen2]),
-            "seen_1": stats(sigma[ncams == 1]),
-            "unseen": stats(sigma[ncams == 0]),
-        },
-        "counts": {
-            "part_frames": int(T * K),
-            "detections": int(observed.sum()),
-            "detections_per_camera": {
-                c: int(observed[..., i].sum()) for i, c in enumerate(det.cameras)
-            },
-            "downweighted_detections": int(((res.weights < 0.1) & observed).sum()),
-            "ncams_histogram": np.bincount(ncams.reshape(-1), minlength=C + 1).tolist(),
-        },
+        **result_summary(res, det, error, view_err),
         "time_s": {},
         "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
     }

@@ -1,0 +1,67 @@
+"""What `adjust-track`'s summary.json says about a result: convergence, completeness,
+reprojection errors, uncertainty and counts (the app adds its inputs and settings)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from adjust.app import stats
+
+__all__ = ["result_summary"]
+
+
+def result_summary(res, det, error: np.ndarray, view_err: np.ndarray) -> dict:
+    """res: the `adjust.lsq.AdjustmentResult` (points, weights, point_sd, cost history, ...);
+    det: the `adjust.io.Detections`; error (T, K) px: each reported point's mean reprojection
+    error over its accepted detections; view_err (T, K, C) px: per accepted detection (NaN
+    elsewhere)."""
+    T, K, C = det.num_frames, det.num_parts, det.num_cameras
+    observed = res.weights > 0  # the detections the fused points rest on
+    ncams = observed.sum(-1)
+    sigma = res.point_sd
+    done = np.isfinite(res.points).all(-1)
+    seen2 = ncams >= 2
+    costs = [c for chunk in res.cost_history for c in chunk[-1:]]
+    history = res.cost_history[0] if len(res.cost_history) == 1 else res.cost_history
+    return {
+        "iterations": int(res.iterations),
+        "converged": bool(res.converged),
+        "chunks": int(res.chunks),
+        "initial_cost": float(res.cost_history[0][0]) if res.cost_history else None,
+        "final_cost": float(sum(costs)) if costs else None,
+        "cost_history": history,
+        "mixture_share": float(res.mixture_share),
+        "initial_fit_frames": int(np.asarray(res.fitted).sum()),
+        "frames_without_detections": int((ncams.sum(-1) == 0).sum()),
+        # how much of the output rests on no accepted detection at all (the model alone)
+        "from_model_only": {
+            "fraction": float((ncams == 0).mean()) if ncams.size else 0.0,
+            "per_part": {p: float((ncams[:, k] == 0).mean()) for k, p in enumerate(det.parts)},
+        },
+        # fraction of part-frames with a finite 3D point
+        "completeness": float(done.mean()) if done.size else 0.0,
+        "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},
+        # reprojection error (px) of the reported points: per point (mean over its accepted
+        # detections), per camera and per part (over single detections)
+        "reprojection_error_px": stats(error),
+        "reprojection_error_px_per_camera": {
+            c: stats(view_err[..., i]) for i, c in enumerate(det.cameras)
+        },
+        "reprojection_error_px_per_part": {
+            p: stats(view_err[:, k]) for k, p in enumerate(det.parts)
+        },
+        "sigma_mm": {
+            "seen_ge2": stats(sigma[seen2]),
+            "seen_1": stats(sigma[ncams == 1]),
+            "unseen": stats(sigma[ncams == 0]),
+        },
+        "counts": {
+            "part_frames": int(T * K),
+            "detections": int(observed.sum()),
+            "detections_per_camera": {
+                c: int(observed[..., i].sum()) for i, c in enumerate(det.cameras)
+            },
+            "downweighted_detections": int(((res.weights < 0.1) & observed).sum()),
+            "ncams_histogram": np.bincount(ncams.reshape(-1), minlength=C + 1).tolist(),
+        },
+    }
