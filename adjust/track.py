@@ -409,20 +409,27 @@ def _run(cfg: DictConfig) -> dict:
     trusted = None
     if cons is not None:
         trusted = cons.used & (cons.observed & ~cons.dropped.any(-1))[..., None]
-    staged = mode != "rigid" and cons is not None  # rigid -> interp -> (net)
-    if mode == "rigid" or staged or bool(deform_cfg.get("rigid_first", True)):
-        # the rigid adjustment: the result itself, or the start of a deformable one
-        rigid = adjust_poses(
+
+    def solve(config, obs, init=None):
+        """One pose-track adjustment of this session (only the outputs that are written:
+        long sessions in bounded memory)."""
+        return adjust_poses(
             det.xy,
             weight,
             cams,
-            np.array(body.points),
-            solver_cfg,
-            observation=rigid_obs,
+            np.array(body.points),  # a writable copy
+            config,
+            init_poses=init,
+            observation=obs,
             progress=progress,
             trusted=trusted,
-            outputs=TRACK_OUTPUTS,  # only what is written: long sessions in bounded memory
+            outputs=TRACK_OUTPUTS,
         )
+
+    staged = mode != "rigid" and cons is not None  # rigid -> interp -> (net)
+    if mode == "rigid" or staged or bool(deform_cfg.get("rigid_first", True)):
+        # the rigid adjustment: the result itself, or the start of a deformable one
+        rigid = solve(solver_cfg, rigid_obs)
         res = rigid
         init_poses, rigid_iterations = rigid.poses, int(rigid.iterations)
         timings["rigid_s"] = time.perf_counter() - t0
@@ -439,18 +446,7 @@ def _run(cfg: DictConfig) -> dict:
             observation = interp_obs
         else:  # the net starts from the interp poses
             t1 = time.perf_counter()
-            res = adjust_poses(
-                det.xy,
-                weight,
-                cams,
-                np.array(body.points),
-                solver_cfg,
-                init_poses=init_poses,
-                observation=interp_obs,
-                progress=progress,
-                trusted=trusted,
-                outputs=TRACK_OUTPUTS,
-            )
+            res = solve(solver_cfg, interp_obs, init_poses)
             init_poses = res.poses
             timings["interp_s"] = time.perf_counter() - t1
     adapt_facts = None
@@ -495,18 +491,7 @@ def _run(cfg: DictConfig) -> dict:
             dcfg = dcfg.replace(max_iterations=int(deform_cfg["max_iterations"]))
         if deform_cfg.get("sigma_def_mm") is not None:
             dcfg = dcfg.replace(sigma_def_mm=float(deform_cfg["sigma_def_mm"]))
-        res = adjust_poses(
-            det.xy,
-            weight,
-            cams,
-            np.array(body.points),  # a writable copy
-            dcfg,
-            init_poses=init_poses,
-            observation=observation,
-            progress=progress,
-            trusted=trusted,
-            outputs=TRACK_OUTPUTS,
-        )
+        res = solve(dcfg, observation, init_poses)
     if mode == "interp" or (mode == "self" and model is None):
         def_facts = interp_facts(observation if mode == "interp" else interp_obs, body)
         if adapt_facts is not None:
