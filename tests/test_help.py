@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from deformnet.paths import CONF_DIR, REPO_DIR
@@ -99,7 +100,8 @@ def test_help_says_what_needs_and_uses(app, helps):
     assert len(text.splitlines()) < 45  # a page, not a dump of the whole config
     assert "Required arguments:" in text
     name = APPS[app]
-    cfg = OmegaConf.load(CONF_DIR / f"{name}.yaml")
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = compose(name)  # with the groups' files (conf/input/default.yaml's input.*)
     required = _required(OmegaConf.to_container(cfg, resolve=False))
     for key in required:
         assert f"{key}=" in text, f"{app} --help does not name its required {key}"
