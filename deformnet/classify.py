@@ -333,17 +333,47 @@ class _Frames(torch.utils.data.Dataset):
         return self.bank.batch(torch.as_tensor(items, dtype=torch.long))
 
 
-class _FeatureBank:
-    """Encoder features (N, D) of some frames of a bank, computed once (frozen encoder)."""
+@torch.no_grad()
+def context_features(model, bank: SessionBank, idx, batch_size: int = 512) -> Tensor:
+    """The classifier's (not standardised) features (N, out_dim) of the bank frames ``idx``
+    (N,), the encoder run once per distinct frame that a context needs (in eval mode; the
+    model's train / eval modes are restored)."""
+    modes = {m: m.training for m in model.modules()}
+    try:
+        model.eval()
+        return _context_features(model, bank, idx, batch_size)
+    finally:
+        for m, mode in modes.items():
+            m.training = mode
 
-    @torch.no_grad()
-    def __init__(self, encoder, bank: SessionBank, idx: np.ndarray, batch_size: int = 512):
-        encoder.eval()
-        feats = []
-        for chunk in torch.as_tensor(idx, dtype=torch.long).split(batch_size):
-            b = bank.batch(chunk)
-            feats.append(encoder(b["rigid"], b["deformed"], b["observed"]))
-        self.features = torch.cat(feats)
+
+def _context_features(model, bank: SessionBank, idx, batch_size: int) -> Tensor:
+    idx = torch.as_tensor(idx, dtype=torch.long)
+    enc = model.encoder
+    if bank.n != model.half_window:
+        raise ValueError(f"bank half window {bank.n} != the classifier's {model.half_window}")
+    offsets = torch.as_tensor(model.offsets)
+    pos = bank.mids[idx][:, None] + offsets  # (N, O) positions in the bank's arrays
+    uniq, inverse = torch.unique(pos, return_inverse=True)
+    steps = torch.arange(-enc.half_window, enc.half_window + 1)
+    feats = []
+    for chunk in uniq.split(int(batch_size)):
+        fr = chunk[:, None] + steps
+        feats.append(enc(bank.rigid[fr], bank.deformed[fr], bank.observed[fr]))
+    F = torch.cat(feats) if feats else torch.zeros(0, enc.out_dim)
+    out = [
+        model.pool(F[inv])
+        for inv in inverse.split(max(1, int(batch_size) * 8 // max(len(model.offsets), 1)))
+    ]
+    return torch.cat(out) if out else torch.zeros(0, model.out_dim)
+
+
+class _FeatureBank:
+    """Classifier features (N, out_dim) of some frames of a bank, computed once (frozen
+    encoder)."""
+
+    def __init__(self, model, bank: SessionBank, idx: np.ndarray, features: Tensor | None = None):
+        self.features = context_features(model, bank, idx) if features is None else features
         self.labels = bank.labels[torch.as_tensor(idx, dtype=torch.long)]
 
     def __len__(self) -> int:
@@ -369,12 +399,25 @@ def _loader(bank, idx: np.ndarray, batch_size: int, samples: int | None, seed: i
 # --------------------------------------------------------------------------------------------
 # model building, checkpoint
 # --------------------------------------------------------------------------------------------
-def _build(net_cfg: dict, body, half_window: int, head_cfg: dict, frame_features: bool, C: int):
+def _build(
+    net_cfg: dict,
+    body,
+    half_window: int,
+    head_cfg: dict,
+    frame_features: bool,
+    C: int,
+    context: dict | None = None,
+):
     from deformnet.deformation import build_net
     from deformnet.heads import BehaviorClassifier, WindowEncoder, build_head
 
     enc = WindowEncoder(build_net(net_cfg), np.asarray(body.points), half_window, frame_features)
-    return BehaviorClassifier(enc, build_head(head_cfg, enc.out_dim, C))
+    ctx = dict(context or {})
+    frames = [int(f) for f in (ctx.get("frames") or [])]
+    dim = BehaviorClassifier.feature_dim(enc.out_dim, frames)
+    return BehaviorClassifier(
+        enc, build_head(head_cfg, dim, C), frames, int(ctx.get("stride", 1) or 1)
+    )
 
 
 def export_classifier(model, meta: dict) -> dict:
@@ -406,6 +449,7 @@ def load_classifier(path: str | os.PathLike):
         blob["head"],
         bool(blob["frame_features"]),
         len(blob["classes"]),
+        blob.get("context"),
     )
     model.load_state_dict(blob["state_dict"])
     return model.eval(), {**{k: v for k, v in blob.items() if k != "state_dict"}, "body": body}
@@ -414,17 +458,13 @@ def load_classifier(path: str | os.PathLike):
 @torch.no_grad()
 def predict_probs(model, bank: SessionBank, batch_size: int = 512) -> np.ndarray:
     """Class probabilities (N, C) for every frame of the bank, in order."""
-    model.eval()
-    out = []
-    for idx in torch.arange(len(bank)).split(int(batch_size)):
-        b = bank.batch(idx)
-        out.append(torch.softmax(model(b["rigid"], b["deformed"], b["observed"]), -1))
-    return torch.cat(out).numpy()
+    feats = context_features(model, bank, torch.arange(len(bank)), batch_size)
+    return torch.softmax(model.classify(feats), -1).numpy()
 
 
-def predict_session(model, session: Session, half_window: int, smoothing: dict) -> dict:
+def predict_session(model, session: Session, smoothing: dict) -> dict:
     """{"probs" (T, C), "raw" (T,), "labels" (T,) smoothed (= raw without smoothing)}."""
-    probs = predict_probs(model, SessionBank([session], half_window))
+    probs = predict_probs(model, SessionBank([session], model.half_window))
     raw = probs.argmax(-1)
     lab = smooth(probs, int(smoothing.get("median") or 0), int(smoothing.get("min_bout") or 0))
     return {"probs": probs, "raw": raw, "labels": lab}
@@ -630,9 +670,11 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     net_cfg, body, hw, state = _encoder_config(cfg, classes)
     head_cfg = dict(to_plain(cfg.head))
     ff = bool(cfg.get("frame_features", True))
-    model = _build(net_cfg, body, hw, head_cfg, ff, C)
+    context = dict(to_plain(cfg.get("context")) or {})
+    model = _build(net_cfg, body, hw, head_cfg, ff, C, context)
     if state is not None:
         model.encoder.net.load_state_dict(state)
+    span = model.half_window  # the encoder's half window plus the context's
 
     train = _sessions(cfg, "train", body, classes)
     val = _sessions(cfg, "val", body, classes)
@@ -642,7 +684,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
     subsample_labels(train, frac, seg, int(cfg.labels.seed))
     subsample_labels(val, frac, seg, int(cfg.labels.seed) + 1)
-    bank = SessionBank(train, hw)
+    bank = SessionBank(train, span)
     idx = np.flatnonzero(bank.labels.numpy() >= 0)
     if idx.size == 0:
         raise ValueError("the training sessions have no labelled frames")
@@ -653,13 +695,17 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     elif str(cfg.loss.class_weights) != "none":
         raise ValueError(f"loss.class_weights must be 'balanced' or 'none', got {cfg.loss}")
     log.info("labelled training frames: %d (%s)", idx.size, dict(zip(classes, counts.tolist())))
+    # the head's inputs standardised by the labelled training frames' features (at the start)
+    train_features = context_features(model, bank, idx)
+    if idx.size >= 2:
+        model.set_standardization(train_features)
 
     d = cfg.data
     bs = int(d.batch_size)
     train_dl = _loader(bank, idx, bs, int(d.steps_per_epoch) * bs, int(cfg.seed))
     val_dl = None
     if val:
-        vbank = SessionBank(val, hw)
+        vbank = SessionBank(val, span)
         vidx = np.flatnonzero(vbank.labels.numpy() >= 0)
         vmax = d.get("val_frames")
         if vmax and vidx.size > int(vmax):
@@ -703,10 +749,10 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     probe = int(cfg.get("probe_epochs") or 0) if state is not None else 0
     steps = 0
     if bool(cfg.freeze) or probe > 0:
-        fbank = _FeatureBank(model.encoder, bank, idx)
+        fbank = _FeatureBank(model, bank, idx, train_features)
         fval = None
         if val_dl is not None:
-            fv = _FeatureBank(model.encoder, vbank, vidx)
+            fv = _FeatureBank(model, vbank, vidx)
             fval = _loader(fv, np.arange(len(fv)), 512, None, 0)
         floader = _loader(fbank, np.arange(len(fbank)), bs, int(d.steps_per_epoch) * bs, cfg.seed)
         lit.head_only = True
@@ -731,6 +777,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "half_window": hw,
         "head": head_cfg,
         "frame_features": ff,
+        "context": {"frames": list(model.context_frames), "stride": model.stride},
         "classes": classes,
         "smoothing": smoothing,
         "pretrained": str(cfg.pretrained) if cfg.get("pretrained") else None,
@@ -751,7 +798,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     yt, yr, ys = [], [], []
     first = None
     for s in eval_sessions:
-        pr = predict_session(model, s, hw, smoothing)
+        pr = predict_session(model, s, smoothing)
         yt.append(s.labels)
         yr.append(pr["raw"])
         ys.append(pr["labels"])
@@ -828,7 +875,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     s = Session(str(cfg.tracks), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
                 np.full(T, -1))  # fmt: skip
     smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
-    pr = predict_session(model, s, int(meta["half_window"]), smoothing)
+    pr = predict_session(model, s, smoothing)
     fnum = tr["fnum"]
     names = np.asarray(classes, dtype=object)
     df = pd.DataFrame(

@@ -91,7 +91,7 @@ class ClassifyLit(L.LightningModule):
     def _logits(self, batch: Mapping[str, Tensor], augment: bool) -> Tensor:
         """Logits of a window batch, or of a batch of cached encoder `features` (B, D)."""
         if "features" in batch:
-            return self.model.head(batch["features"])
+            return self.model.classify(batch["features"])
         observed = batch["observed"]
         p = float(self.hparams.token_dropout)
         if augment and p > 0:

@@ -16,12 +16,13 @@ matrix, translation / pos_scale: height, pitch and place in the arena) and the m
 deformation offsets (the net masks them when predicting them; here they are inputs).
 
 Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml).
-`BehaviorClassifier` = encoder + head.
+`BehaviorClassifier` = encoder + temporal context (the mean and std of the encoder outputs of
+the surrounding frames, `context_frames`) + standardisation + head.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -31,7 +32,14 @@ from torch import Tensor, nn
 from deformnet.nets import LSTMPredictor, TransformerPredictor
 from deformnet.tokens import canonicalize
 
-__all__ = ["WindowEncoder", "LinearHead", "MLPHead", "BehaviorClassifier", "build_head"]
+__all__ = [
+    "WindowEncoder",
+    "LinearHead",
+    "MLPHead",
+    "BehaviorClassifier",
+    "build_head",
+    "context_offsets",
+]
 
 
 class WindowEncoder(nn.Module):
@@ -169,13 +177,105 @@ def build_head(config: Mapping[str, Any], in_dim: int, num_classes: int) -> nn.M
     return HEADS[name](int(in_dim), int(num_classes), **cfg)
 
 
-class BehaviorClassifier(nn.Module):
-    """encoder (`WindowEncoder`) + head: windows (B, W, K, 3) x2, (B, W, K) -> logits (B, C)."""
+def context_offsets(frames: Sequence[int], stride: int = 1) -> tuple[int, ...]:
+    """Frame offsets (O,) whose encoder features the temporal context pools: multiples of
+    ``stride`` within +-(max(frames) - 1) / 2 (0 included). No frames: (0,)."""
+    frames = [int(f) for f in frames]
+    stride = int(stride)
+    if stride < 1:
+        raise ValueError(f"context.stride must be >= 1, got {stride}")
+    bad = [f for f in frames if f < 3 or f % 2 == 0]
+    if bad:
+        raise ValueError(f"context.frames must be odd and >= 3, got {bad}")
+    if not frames:
+        return (0,)
+    c = (max(frames) - 1) // 2 // stride * stride
+    return tuple(range(-c, c + 1, stride))
 
-    def __init__(self, encoder: WindowEncoder, head: nn.Module) -> None:
+
+class BehaviorClassifier(nn.Module):
+    """encoder (`WindowEncoder`) + temporal context + head -> logits (B, C).
+
+    Without context (``context_frames`` empty) a frame's features are its window's encoder
+    output (B, D). With context, e.g. (15, 33), they are that output plus the mean and the
+    standard deviation of the encoder outputs of the frames around it, over centred spans of
+    each length (every ``stride``-th frame): the behavior of a frame shows in how its window
+    changes over the next second, as the SimBA-style rolling features of hand-made
+    measurements do (D (1 + 2 len(context_frames)) values). The head sees them standardised
+    by `feature_mean` / `feature_std` (set from the training frames, `set_standardization`).
+
+    forward(rigid, deformed (B, W + 2 span, K, 3), observed (B, W + 2 span, K)) with W the
+    encoder's window and span = `span` (0 without context).
+    """
+
+    def __init__(
+        self,
+        encoder: WindowEncoder,
+        head: nn.Module,
+        context_frames: Sequence[int] = (),
+        stride: int = 1,
+    ) -> None:
         super().__init__()
         self.encoder = encoder
         self.head = head
+        self.context_frames = tuple(int(f) for f in context_frames)
+        self.stride = int(stride)
+        self.offsets = context_offsets(self.context_frames, self.stride)
+        self.span = max(self.offsets)
+        self.window = encoder.window + 2 * self.span
+        self.half_window = encoder.half_window + self.span
+        self.out_dim = encoder.out_dim * (1 + 2 * len(self.context_frames))
+        self.register_buffer("feature_mean", torch.zeros(self.out_dim))
+        self.register_buffer("feature_std", torch.ones(self.out_dim))
+
+    @staticmethod
+    def feature_dim(encoder_dim: int, context_frames: Sequence[int]) -> int:
+        return int(encoder_dim) * (1 + 2 * len(tuple(context_frames)))
+
+    def pool(self, per_frame: Tensor) -> Tensor:
+        """(B, O, D) encoder outputs at `offsets` -> (B, out_dim) context features."""
+        if per_frame.dim() != 3 or per_frame.shape[1] != len(self.offsets):
+            raise ValueError(
+                f"per_frame must be (B, {len(self.offsets)}, D), got {tuple(per_frame.shape)}"
+            )
+        off = torch.as_tensor(self.offsets)
+        out = [per_frame[:, self.offsets.index(0)]]
+        for f in self.context_frames:
+            sel = per_frame[:, (off.abs() <= (f - 1) // 2).nonzero().flatten()]
+            out += [sel.mean(1), sel.std(1, unbiased=False)]
+        return torch.cat(out, -1)
+
+    def features(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        """Context features (B, out_dim) of the batch's mid frames (not standardised)."""
+        if rigid.dim() != 4 or rigid.shape[1] != self.window:
+            raise ValueError(
+                f"rigid must be (B, {self.window}, K, 3) (encoder window {self.encoder.window} "
+                f"+ 2 x context span {self.span}), got {tuple(rigid.shape)}"
+            )
+        if not self.span:
+            return self.encoder(rigid, deformed, observed)
+        B, W = rigid.shape[0], self.encoder.window
+        starts = [self.span + o for o in self.offsets]  # sub-window centred at mid + o
+
+        def unfold(x: Tensor) -> Tensor:
+            return torch.stack([x[:, s : s + W] for s in starts], 1).flatten(0, 1)
+
+        f = self.encoder(unfold(rigid), unfold(deformed), unfold(observed))
+        return self.pool(f.reshape(B, len(self.offsets), -1))
+
+    @torch.no_grad()
+    def set_standardization(self, features: Tensor) -> None:
+        """Standardise the head's inputs by these (N, out_dim) features' mean and std."""
+        if features.dim() != 2 or features.shape[1] != self.out_dim or features.shape[0] < 2:
+            raise ValueError(f"features must be (N >= 2, {self.out_dim}), got {features.shape}")
+        self.feature_mean.copy_(features.mean(0))
+        std = features.std(0)
+        # a (nearly) constant feature is centred, not scaled: a later change must not explode
+        self.feature_std.copy_(torch.where(std > 1e-3, std, torch.ones_like(std)))
+
+    def classify(self, features: Tensor) -> Tensor:
+        """Logits (B, C) from context features (B, out_dim)."""
+        return self.head((features - self.feature_mean) / self.feature_std)
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        return self.head(self.encoder(rigid, deformed, observed))
+        return self.classify(self.features(rigid, deformed, observed))

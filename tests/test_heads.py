@@ -137,3 +137,53 @@ def test_frozen_encoder_weights_do_not_change(freeze):
         assert enc_changed == []
     else:
         assert any(k.startswith("net.lstm") for k in enc_changed)
+
+
+@pytest.mark.parametrize("kind", ["lstm", "transformer"])
+def test_temporal_context_pools_the_surrounding_windows(kind):
+    """With context (5, 9) and stride 2 the features are the mid window's encoder output plus
+    the mean and std of the outputs of the windows at offsets within +-2 and +-4 (step 2), and
+    the bank path (`context_features`, one encoder pass per distinct frame) gives the same."""
+    from deformnet.classify import Session, SessionBank, context_features
+    from deformnet.heads import context_offsets
+
+    enc = _encoder(kind).eval()
+    assert context_offsets((5, 9), 2) == (-4, -2, 0, 2, 4)
+    dim = BehaviorClassifier.feature_dim(enc.out_dim, (5, 9))
+    model = BehaviorClassifier(enc, LinearHead(dim, 3), (5, 9), 2).eval()
+    assert model.span == 4 and model.window == enc.window + 8 and model.out_dim == 5 * enc.out_dim
+    rigid, deformed, observed = _windows(3, model.window, seed=1)
+    with torch.no_grad():
+        f = model.features(rigid, deformed, observed)
+        W = enc.window
+        per = torch.stack(
+            [enc(rigid[:, s : s + W], deformed[:, s : s + W], observed[:, s : s + W])
+             for s in (0, 2, 4, 6, 8)], 1)  # fmt: skip
+    want = torch.cat(
+        [per[:, 2], per[:, 1:4].mean(1), per[:, 1:4].std(1, unbiased=False),
+         per.mean(1), per.std(1, unbiased=False)], -1)  # fmt: skip
+    assert f.shape == (3, model.out_dim)
+    torch.testing.assert_close(f, want)
+    assert model(rigid, deformed, observed).shape == (3, 3)
+    with pytest.raises(ValueError, match="context span"):
+        model.features(rigid[:, 1:], deformed[:, 1:], observed[:, 1:])
+    with pytest.raises(ValueError, match="odd"):
+        context_offsets((4,))
+    # the bank path: one session, every frame
+    T = 12
+    r, d, o = _windows(1, T, seed=2)
+    s = Session("s", r[0].numpy(), d[0].numpy(), o[0].numpy(), np.arange(T), np.zeros(T, int))
+    bank = SessionBank([s], model.half_window)
+    idx = torch.arange(T)
+    b = bank.batch(idx)
+    with torch.no_grad():
+        direct = model.features(b["rigid"], b["deformed"], b["observed"])
+    torch.testing.assert_close(context_features(model, bank, idx, batch_size=5), direct)
+    # standardisation: centred and scaled by the training features; constant ones only centred
+    feats = torch.randn(50, model.out_dim) * 3 + 1
+    feats[:, 0] = 7.0
+    model.set_standardization(feats)
+    z = (feats - model.feature_mean) / model.feature_std
+    assert torch.allclose(z[:, 1:].mean(0), torch.zeros(model.out_dim - 1), atol=1e-5)
+    assert torch.allclose(z[:, 1:].std(0), torch.ones(model.out_dim - 1), atol=1e-4)
+    assert float(model.feature_std[0]) == 1.0 and torch.all(z[:, 0] == 0)
