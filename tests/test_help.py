@@ -126,10 +126,10 @@ def test_readme_lists_the_config_groups_as_they_are():
     text = (REPO_DIR / "README.md").read_text()
     section = text.split("## Configuration groups", 1)[1].split("\n## ", 1)[0]
     rows = dict(re.findall(r"^\| `([a-z_/]+)` \| ([\w, ]+) \|", section, re.M))
-    groups = {
-        p.name: {f.stem for f in p.glob("*.yaml")}
-        for p in CONF_DIR.iterdir()
-        if p.is_dir() and p.name != "hydra"
+    groups = {  # nested groups too (solver/constraint, ...)
+        p.relative_to(CONF_DIR).as_posix(): {f.stem for f in p.glob("*.yaml")}
+        for p in CONF_DIR.rglob("*")
+        if p.is_dir() and p.relative_to(CONF_DIR).parts[0] != "hydra"
     }
     assert set(rows) == set(groups) | {"hydra/launcher"}
     for g, options in groups.items():

@@ -221,9 +221,10 @@ def test_config_from_mapping_and_errors():
         SolverConfig.from_config({"constrant": "grid"})
     with pytest.raises(ValueError, match="constraint"):
         SolverConfig(constraint="quintic")
-    from omegaconf import OmegaConf
+    from hydra import compose, initialize_config_dir
 
     from deformnet.paths import CONF_DIR
 
-    node = OmegaConf.load(CONF_DIR / "solver" / "default.yaml")
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        node = compose("track").solver  # conf/solver/default.yaml with its groups
     assert SolverConfig.from_config(node) == SolverConfig()
