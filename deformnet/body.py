@@ -116,7 +116,6 @@ class BodyModel:
         from deformnet.confutil import to_plain
 
         cfg = dict(to_plain(cfg))
-        cfg.pop("_target_", None)
         return cls.from_mapping(cfg["parts"], cfg.get("aliases"), cfg.get("name", "body"))
 
     def scaled(self, scale: float) -> BodyModel:

@@ -128,7 +128,6 @@ def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arra
     from deformnet.data import DeformDataModule
 
     data = dict(to_plain(cfg.data))
-    data.pop("_target_", None)
     for key in ("sessions", "val_fraction", "block_frames", "builder"):
         data.pop(key, None)
     if arrays is not None:

@@ -139,7 +139,6 @@ def detector_config(cfg: Any = None) -> DetectorConfig:
     if "detector" in d and isinstance(d["detector"], Mapping):
         d = d["detector"]
     d = dict(d)
-    d.pop("_target_", None)
     known = {f.name for f in fields(DetectorConfig)}
     unknown = set(d) - known
     if unknown:
