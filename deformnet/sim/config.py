@@ -3,6 +3,10 @@
 Units: lengths mm, times s, angles deg. `SimConfig()` equals the YAML defaults;
 `SimConfig.from_config(node)` builds one from a Hydra/OmegaConf node or a plain mapping (missing
 keys keep their defaults, unknown keys and bad values raise ValueError naming the key).
+Each group's dataclass (``WalkConfig``, ...) checks its own ranges in ``__post_init__``, naming
+``sim.<group>.<key>``; `SimConfig` checks the top-level keys and what spans groups (the lock box
+inside the arena). `from_config` parses the YAML's shape (rows keyed by behavior and mechanism
+name, fixed-length lists), which a structured-config schema cannot express.
 """
 
 from __future__ import annotations
@@ -24,6 +28,10 @@ class ArenaConfig:
     size: tuple[float, float] = (300.0, 300.0)
     wall_margin: float = 45.0
 
+    def __post_init__(self) -> None:
+        _check(min(self.size) > 0, "arena.size", "must be > 0", self.size)
+        _at_least(self, "arena", 0, "wall_margin")
+
 
 @dataclass(frozen=True)
 class WalkConfig:
@@ -38,11 +46,23 @@ class WalkConfig:
     smooth: float = 0.12
     approach_speed: float = 70.0
 
+    def __post_init__(self) -> None:
+        _positive(self, "walk", "speed_mean", "speed_max", "speed_tau", "curvature_tau",
+                  "approach_speed")  # fmt: skip
+        _at_least(self, "walk", 0, "speed_sigma", "curvature_std", "stop_rate", "smooth")
+        _check(self.speed_max >= self.speed_mean, "walk.speed_max", "must be >= walk.speed_mean",
+               self.speed_max)  # fmt: skip
+        _interval(self.stop_duration, "walk.stop_duration", 0.0)
+
 
 @dataclass(frozen=True)
 class GaitConfig:
     stride: float = 20.0
     swing_height: float = 2.0
+
+    def __post_init__(self) -> None:
+        _positive(self, "gait", "stride")
+        _at_least(self, "gait", 0, "swing_height")
 
 
 @dataclass(frozen=True)
@@ -53,6 +73,10 @@ class HeadConfig:
     period: tuple[float, float, float] = (1.6, 1.2, 2.0)
     blend: float = 0.1
 
+    def __post_init__(self) -> None:
+        _head_angles(self, "head")
+        _at_least(self, "head", 0, "blend")
+
 
 @dataclass(frozen=True)
 class ScanConfig:
@@ -60,6 +84,9 @@ class ScanConfig:
     pitch: tuple[float, float] = (-15.0, 30.0)
     roll: tuple[float, float] = (-15.0, 15.0)
     period: tuple[float, float, float] = (1.4, 2.2, 1.8)
+
+    def __post_init__(self) -> None:
+        _head_angles(self, "scan")
 
 
 @dataclass(frozen=True)
@@ -70,6 +97,10 @@ class RearConfig:
     stretch: float = 0.0  # relative: the parts ahead of the hind paws moved forward by this share
     paw_motion: float = 0.0  # mm: std of the free front paws' random motion while reared
 
+    def __post_init__(self) -> None:
+        _interval(self.pitch, "rear.pitch", 0.0, 89.0)
+        _at_least(self, "rear", 0, "lift", "stretch", "paw_motion")
+
 
 @dataclass(frozen=True)
 class GroomConfig:
@@ -78,6 +109,10 @@ class GroomConfig:
     stroke_amplitude: float = 2.0
     stroke_frequency: float = 4.0
 
+    def __post_init__(self) -> None:
+        _interval(self.pitch, "groom.pitch", 0.0, 89.0)
+        _at_least(self, "groom", 0, "stroke_amplitude", "stroke_frequency")
+
 
 @dataclass(frozen=True)
 class ReachConfig:
@@ -85,6 +120,11 @@ class ReachConfig:
     max_pitch: float = 60.0
     jitter: float = 0.8
     ramp: float = 0.3
+
+    def __post_init__(self) -> None:
+        _at_least(self, "reach", 0, "gap", "jitter")
+        _check(0 <= self.max_pitch < 89, "reach.max_pitch", "must be in [0, 89)", self.max_pitch)
+        _positive(self, "reach", "ramp")
 
 
 _DEFAULT_DURATIONS: tuple[tuple[float, float], ...] = (
@@ -117,6 +157,21 @@ class BehaviorConfig:
     durations: tuple[tuple[float, float], ...] = _DEFAULT_DURATIONS
     transitions: tuple[tuple[float, ...], ...] = _DEFAULT_TRANSITIONS
 
+    def __post_init__(self) -> None:
+        n = len(BEHAVIORS)
+        _check(len(self.durations) == n, "behaviors.durations",
+               f"need one [min, max] per behavior {list(BEHAVIORS)}", self.durations)  # fmt: skip
+        for name, d in zip(BEHAVIORS, self.durations):
+            _interval(d, f"behaviors.durations.{name}", 0.0)
+            _check(d[1] > 0, f"behaviors.durations.{name}", "max must be > 0", d)
+        _check(len(self.transitions) == n, "behaviors.transitions",
+               f"need one row per behavior {list(BEHAVIORS)}", self.transitions)  # fmt: skip
+        for name, row in zip(BEHAVIORS, self.transitions):
+            key = f"behaviors.transitions.{name}"
+            _check(len(row) == n, key, f"need {n} probabilities", row)
+            _check(min(row) >= 0, key, "probabilities must be >= 0", row)
+            _check(abs(sum(row) - 1.0) < 1e-6, key, "the row must sum to 1", row)
+
 
 @dataclass(frozen=True)
 class MechanismConfig:
@@ -142,6 +197,17 @@ class LockboxConfig:
     center: tuple[float, float] = (150.0, 280.0)
     size: tuple[float, float, float] = (180.0, 40.0, 45.0)
     mechanisms: tuple[MechanismConfig, ...] = _DEFAULT_MECHANISMS
+
+    def __post_init__(self) -> None:
+        _check(min(self.size) > 0, "lockbox.size", "must be > 0", self.size)
+        _check(len(self.mechanisms) == len(MECHANISMS), "lockbox.mechanisms",
+               f"need the mechanisms {list(MECHANISMS)}", self.mechanisms)  # fmt: skip
+        for name, m in zip(MECHANISMS, self.mechanisms):
+            key = f"lockbox.mechanisms.{name}.position"
+            _check(abs(m.position[0]) <= self.size[0] / 2, key, "x offset must be on the box face",
+                   m.position)  # fmt: skip
+            _check(m.position[1] >= 0 and m.position[2] >= 0, key,
+                   "out-of-face offset and height must be >= 0", m.position)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -176,12 +242,23 @@ class DeformConfig:
     jitter_tau: float = 0.2
     paw_tau: float = 0.25
 
+    def __post_init__(self) -> None:
+        _at_least(self, "deform", 0, "spine_bend", "spine_max", "spine_wiggle", "head_yaw",
+                  "head_pitch", "head_roll", "head_shift", "jitter")  # fmt: skip
+        _check(self.spine_max < 90, "deform.spine_max", "must be < 90", self.spine_max)
+        _positive(self, "deform", "spine_lag", "spine_tau", "head_tau", "jitter_tau", "paw_tau")
+
 
 @dataclass(frozen=True)
 class MissingConfig:
     dropout: float = 0.05
     occlusion_rate: float = 0.05
     occlusion_duration: tuple[float, float] = (0.2, 1.5)
+
+    def __post_init__(self) -> None:
+        _check(0 <= self.dropout < 1, "missing.dropout", "must be in [0, 1)", self.dropout)
+        _at_least(self, "missing", 0, "occlusion_rate")
+        _interval(self.occlusion_duration, "missing.occlusion_duration", 0.0)
 
 
 @dataclass(frozen=True)
@@ -206,7 +283,16 @@ class SimConfig:
     deform: DeformConfig = field(default_factory=DeformConfig)
 
     def __post_init__(self) -> None:
-        validate(self)
+        """The top-level ranges and what spans groups (each group checks its own)."""
+        _positive(self, "", "fps", "body_scale")
+        _check(self.num_frames >= 1, "num_frames", "must be >= 1", self.num_frames)
+        _check(self.seed >= 0, "seed", "must be >= 0", self.seed)
+        a, lb = self.arena, self.lockbox
+        x0, x1 = lb.center[0] - lb.size[0] / 2, lb.center[0] + lb.size[0] / 2
+        y0, y1 = lb.center[1] - lb.size[1] / 2, lb.center[1] + lb.size[1] / 2
+        _check(x0 >= 0 and x1 <= a.size[0] and y0 >= 0 and y1 <= a.size[1], "lockbox.center",
+               f"the box must lie inside the arena [0, {a.size[0]}] x [0, {a.size[1]}]",
+               lb.center)  # fmt: skip
 
     @classmethod
     def from_config(cls, cfg: Any) -> SimConfig:
@@ -339,14 +425,7 @@ def _build(cls: type, data: Mapping, key: str) -> Any:
             kwargs[name] = int(v)
         else:
             kwargs[name] = _num(value, sub)
-    if cls is SimConfig:
-        # validate once, with full key names, after the whole tree is built
-        obj = object.__new__(cls)
-        for f in dataclasses.fields(cls):
-            object.__setattr__(obj, f.name, kwargs.get(f.name, getattr(defaults, f.name)))
-        validate(obj)
-        return obj
-    return cls(**kwargs)
+    return cls(**kwargs)  # each dataclass checks its ranges (naming sim.<group>.<key>)
 
 
 def _check(cond: bool, key: str, msg: str, value: Any) -> None:
@@ -359,113 +438,21 @@ def _interval(v: tuple, key: str, lo: float = -math.inf, hi: float = math.inf) -
     _check(lo <= v[0] and v[1] <= hi, key, f"values must lie in [{lo}, {hi}]", v)
 
 
-def validate(c: SimConfig) -> None:
-    """Raise ValueError naming the offending key if a setting is out of range."""
-    _check(c.fps > 0, "fps", "must be > 0", c.fps)
-    _check(c.num_frames >= 1, "num_frames", "must be >= 1", c.num_frames)
-    _check(c.seed >= 0, "seed", "must be >= 0", c.seed)
-    _check(c.body_scale > 0, "body_scale", "must be > 0", c.body_scale)
-    a = c.arena
-    _check(min(a.size) > 0, "arena.size", "must be > 0", a.size)
-    _check(a.wall_margin >= 0, "arena.wall_margin", "must be >= 0", a.wall_margin)
-    w = c.walk
-    for k in ("speed_mean", "speed_max", "speed_tau", "curvature_tau", "approach_speed"):
-        _check(getattr(w, k) > 0, f"walk.{k}", "must be > 0", getattr(w, k))
-    for k in ("speed_sigma", "curvature_std", "stop_rate", "smooth"):
-        _check(getattr(w, k) >= 0, f"walk.{k}", "must be >= 0", getattr(w, k))
-    _check(w.speed_max >= w.speed_mean, "walk.speed_max", "must be >= walk.speed_mean", w.speed_max)
-    _interval(w.stop_duration, "walk.stop_duration", 0.0)
-    _check(c.gait.stride > 0, "gait.stride", "must be > 0", c.gait.stride)
-    _check(c.gait.swing_height >= 0, "gait.swing_height", "must be >= 0", c.gait.swing_height)
-    for grp in ("head", "scan"):
-        h = getattr(c, grp)
-        for k in ("yaw", "pitch", "roll"):
-            _interval(getattr(h, k), f"{grp}.{k}", -90.0, 90.0)
-            iv = getattr(h, k)
-            _check(iv[0] <= 0.0 <= iv[1], f"{grp}.{k}", "the interval must contain 0", iv)
-        _check(min(h.period) > 0, f"{grp}.period", "periods must be > 0", h.period)
-    _check(c.head.blend >= 0, "head.blend", "must be >= 0", c.head.blend)
-    _interval(c.rear.pitch, "rear.pitch", 0.0, 89.0)
-    for k in ("lift", "stretch", "paw_motion"):
-        _check(getattr(c.rear, k) >= 0, f"rear.{k}", "must be >= 0", getattr(c.rear, k))
-    df = c.deform
-    for k in ("spine_bend", "spine_max", "spine_wiggle", "head_yaw", "head_pitch", "head_roll"):
-        _check(getattr(df, k) >= 0, f"deform.{k}", "must be >= 0", getattr(df, k))
-    _check(df.spine_max < 90, "deform.spine_max", "must be < 90", df.spine_max)
-    _check(df.head_shift >= 0, "deform.head_shift", "must be >= 0", df.head_shift)
-    _check(df.jitter >= 0, "deform.jitter", "must be >= 0", df.jitter)
-    for k in ("spine_lag", "spine_tau", "head_tau", "jitter_tau", "paw_tau"):
-        _check(getattr(df, k) > 0, f"deform.{k}", "must be > 0", getattr(df, k))
-    _interval(c.groom.pitch, "groom.pitch", 0.0, 89.0)
-    _check(
-        c.groom.stroke_amplitude >= 0,
-        "groom.stroke_amplitude",
-        "must be >= 0",
-        c.groom.stroke_amplitude,
-    )
-    _check(
-        c.groom.stroke_frequency >= 0,
-        "groom.stroke_frequency",
-        "must be >= 0",
-        c.groom.stroke_frequency,
-    )
-    r = c.reach
-    _check(r.gap >= 0, "reach.gap", "must be >= 0", r.gap)
-    _check(0 <= r.max_pitch < 89, "reach.max_pitch", "must be in [0, 89)", r.max_pitch)
-    _check(r.jitter >= 0, "reach.jitter", "must be >= 0", r.jitter)
-    _check(r.ramp > 0, "reach.ramp", "must be > 0", r.ramp)
-    b = c.behaviors
-    _check(
-        len(b.durations) == len(BEHAVIORS),
-        "behaviors.durations",
-        f"need one [min, max] per behavior {list(BEHAVIORS)}",
-        b.durations,
-    )
-    for name, d in zip(BEHAVIORS, b.durations):
-        _interval(d, f"behaviors.durations.{name}", 0.0)
-        _check(d[1] > 0, f"behaviors.durations.{name}", "max must be > 0", d)
-    _check(
-        len(b.transitions) == len(BEHAVIORS),
-        "behaviors.transitions",
-        f"need one row per behavior {list(BEHAVIORS)}",
-        b.transitions,
-    )
-    for name, row in zip(BEHAVIORS, b.transitions):
-        key = f"behaviors.transitions.{name}"
-        _check(len(row) == len(BEHAVIORS), key, f"need {len(BEHAVIORS)} probabilities", row)
-        _check(min(row) >= 0, key, "probabilities must be >= 0", row)
-        _check(abs(sum(row) - 1.0) < 1e-6, key, "the row must sum to 1", row)
-    lb = c.lockbox
-    _check(min(lb.size) > 0, "lockbox.size", "must be > 0", lb.size)
-    _check(
-        len(lb.mechanisms) == len(MECHANISMS),
-        "lockbox.mechanisms",
-        f"need the mechanisms {list(MECHANISMS)}",
-        lb.mechanisms,
-    )
-    x0, x1 = lb.center[0] - lb.size[0] / 2, lb.center[0] + lb.size[0] / 2
-    y0, y1 = lb.center[1] - lb.size[1] / 2, lb.center[1] + lb.size[1] / 2
-    _check(
-        x0 >= 0 and x1 <= a.size[0] and y0 >= 0 and y1 <= a.size[1],
-        "lockbox.center",
-        f"the box must lie inside the arena [0, {a.size[0]}] x [0, {a.size[1]}]",
-        lb.center,
-    )
-    for name, m in zip(MECHANISMS, lb.mechanisms):
-        key = f"lockbox.mechanisms.{name}.position"
-        _check(
-            abs(m.position[0]) <= lb.size[0] / 2,
-            key,
-            "x offset must be on the box face",
-            m.position,
-        )
-        _check(
-            m.position[1] >= 0 and m.position[2] >= 0,
-            key,
-            "out-of-face offset and height must be >= 0",
-            m.position,
-        )
-    mi = c.missing
-    _check(0 <= mi.dropout < 1, "missing.dropout", "must be in [0, 1)", mi.dropout)
-    _check(mi.occlusion_rate >= 0, "missing.occlusion_rate", "must be >= 0", mi.occlusion_rate)
-    _interval(mi.occlusion_duration, "missing.occlusion_duration", 0.0)
+def _positive(cfg: Any, group: str, *keys: str) -> None:
+    for k in keys:
+        _check(getattr(cfg, k) > 0, f"{group}.{k}".lstrip("."), "must be > 0", getattr(cfg, k))
+
+
+def _at_least(cfg: Any, group: str, lo: float, *keys: str) -> None:
+    for k in keys:
+        v = getattr(cfg, k)
+        _check(v >= lo, f"{group}.{k}", f"must be >= {lo}", v)
+
+
+def _head_angles(h: Any, group: str) -> None:
+    """head / scan: yaw, pitch, roll intervals in [-90, 90] containing 0; periods > 0."""
+    for k in ("yaw", "pitch", "roll"):
+        iv = getattr(h, k)
+        _interval(iv, f"{group}.{k}", -90.0, 90.0)
+        _check(iv[0] <= 0.0 <= iv[1], f"{group}.{k}", "the interval must contain 0", iv)
+    _check(min(h.period) > 0, f"{group}.period", "periods must be > 0", h.period)
