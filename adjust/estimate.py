@@ -25,9 +25,9 @@ from adjust.lsq.geometry import (
     normal_blocks_3d,
     project_components,
     rotation_gemm_weights,
-    sym3_inverse,
 )
 from adjust.lsq.stochastic import body_offsets, detector_sigma
+from adjust.sym3 import sym3_inverse
 
 log = logging.getLogger(__name__)
 

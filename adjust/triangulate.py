@@ -23,6 +23,7 @@ from torch import Tensor
 
 from adjust.camera import Camera, CameraTensors, reprojection_errors
 from adjust.distortion import undistort_points
+from adjust.sym3 import sym3_solve
 
 
 @dataclass(frozen=True)
@@ -44,38 +45,6 @@ class TriangulationResult:
     used: Tensor
     nviews: Tensor
     view_error: Tensor
-
-
-def _solve_sym3(M: tuple[Tensor, ...], v: Tensor, rel_eps: float) -> tuple[Tensor, Tensor]:
-    """Solve symmetric 3x3 systems by the adjugate; never raises.
-
-    M: six (N,) entries (m00, m01, m02, m11, m12, m22); v: (N, 3) -> X (N, 3), ok (N,) bool
-    (False where singular relative to the matrix scale; X is then meaningless but finite).
-    """
-    m00, m01, m02, m11, m12, m22 = M
-    c00 = m11 * m22 - m12 * m12
-    c01 = m02 * m12 - m01 * m22
-    c02 = m01 * m12 - m02 * m11
-    c11 = m00 * m22 - m02 * m02
-    c12 = m01 * m02 - m00 * m12
-    c22 = m00 * m11 - m01 * m01
-    det = m00 * c00 + m01 * c01 + m02 * c02
-    scale = ((m00 + m11 + m22) / 3.0) ** 3
-    ok = (det > rel_eps * scale) & (scale > 0) & torch.isfinite(det)
-    det = torch.where(ok, det, torch.ones_like(det))
-    v0, v1, v2 = v.unbind(-1)
-    X = (
-        torch.stack(
-            (
-                c00 * v0 + c01 * v1 + c02 * v2,
-                c01 * v0 + c11 * v1 + c12 * v2,
-                c02 * v0 + c12 * v1 + c22 * v2,
-            ),
-            -1,
-        )
-        / det[:, None]
-    )
-    return X, ok
 
 
 def _linear_triangulate(
@@ -108,7 +77,7 @@ def _linear_triangulate(
         M = tuple((ww * (A1[i] * A1[j] + A2[i] * A2[j])).sum(0) for i, j in pairs)
         wb1, wb2 = ww * b1, ww * b2
         v = torch.stack([(wb1 * A1[i] + wb2 * A2[i]).sum(0) for i in range(3)], -1)
-        X, ok = _solve_sym3(M, v, rel_eps)
+        X, ok = sym3_solve(M, v, rel_eps)
         if it < reweight_iters:
             z = X[:, 0] * Rc[:, 2, 0] + X[:, 1] * Rc[:, 2, 1] + X[:, 2] * Rc[:, 2, 2]
             z = z + t[:, 2, None]  # (C, N)

@@ -9,7 +9,7 @@ import torch
 from adjust.camera import CameraTensors
 from adjust.lsq import SolverConfig, adjust_poses, synthetic
 from adjust.lsq.geometry import pose_difference, so3_exp, so3_log
-from adjust.lsq.init import triangulate_linear
+from adjust.triangulate import triangulate
 from deformnet.body import default_mouse
 
 F64 = torch.float64
@@ -179,7 +179,8 @@ def test_fused_points_at_least_as_accurate_as_triangulation(scene):
     )
     res = adjust_poses(xy, w, cams, body, _cfg(sigma_def_mm=2.0), progress=False)
     valid = torch.isfinite(xy).all(-1)
-    Xt, ok = triangulate_linear(torch.nan_to_num(xy), valid, cams)
+    tri = triangulate(xy, valid.to(xy.dtype), cams)
+    Xt, ok = tri.points, tri.ncams >= 2
     sel = (valid.sum(-1) == 2) & ok
     err_tri = ((Xt - X)[sel] ** 2).sum(-1).mean().sqrt()
     err_fused = ((torch.as_tensor(res.points) - X)[sel] ** 2).sum(-1).mean().sqrt()

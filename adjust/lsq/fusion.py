@@ -21,8 +21,8 @@ from adjust.lsq.geometry import (
     project_components,
     project_with_jacobian,
     rotation_gemm_weights,
-    sym3_inverse,
 )
+from adjust.sym3 import sym3_inverse
 
 #: chi-square (2 dof) gate of a detection's innovation: tail probability 0.001
 GATE_CHI2 = 13.8

@@ -167,27 +167,6 @@ def project_components(
     return u, v, Xc[..., 2], A
 
 
-def sym3_inverse(M: Tensor) -> Tensor:
-    """Inverse of symmetric 3x3 matrices by cofactors (elementwise, fast).  (..., 3, 3)."""
-    a, b, c = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
-    d, e, f = M[..., 1, 1], M[..., 1, 2], M[..., 2, 2]
-    A = d * f - e * e
-    B = c * e - b * f
-    Cc = b * e - c * d
-    D = a * f - c * c
-    E = b * c - a * e
-    F = a * d - b * b
-    det = a * A + b * B + c * Cc
-    inv = 1.0 / det
-    return (
-        torch.stack(
-            (torch.stack((A, B, Cc), -1), torch.stack((B, D, E), -1), torch.stack((Cc, E, F), -1)),
-            -2,
-        )
-        * inv[..., None, None]
-    )
-
-
 def normal_blocks_3d(
     A: tuple[Tensor, ...], eu: Tensor, ev: Tensor, w: Tensor, W6: Tensor, Wg: Tensor
 ) -> tuple[Tensor, Tensor]:

@@ -1,5 +1,6 @@
-"""Initial poses: per-frame fits (Kabsch on triangulated parts, or PnP in one camera),
-interpolated over the rest; or a constant-velocity Kalman filter + RTS smoother over them.
+"""Initial poses: per-frame fits (Kabsch on parts triangulated by `adjust.triangulate`, or PnP
+in one camera), interpolated over the rest; or a constant-velocity Kalman filter + RTS smoother
+over them.
 """
 
 from __future__ import annotations
@@ -10,75 +11,34 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors, project_cameras, reprojection_errors
-from adjust.distortion import undistort_points
+from adjust.camera import CameraTensors, project_cameras
 from adjust.lsq.geometry import so3_exp, so3_log
+from adjust.triangulate import triangulate
 from deformnet.so3 import kabsch
 
 log = logging.getLogger(__name__)
 
 
-def triangulate_robust(
-    xy: Tensor, valid: Tensor, cams: CameraTensors, max_error_px: float = 15.0, rounds: int = 2
+def triangulated_parts(
+    xy: Tensor, valid: Tensor, cams: CameraTensors, max_error_px: float = 15.0
 ) -> tuple[Tensor, Tensor]:
-    """Linear triangulation, then views reprojecting worse than `max_error_px` dropped and the
-    point re-triangulated (`rounds` times; a view is dropped only if >= 2 others remain).
-    Shapes as `triangulate_linear`."""
-    use = valid.clone()
-    X, ok = triangulate_linear(xy, use, cams)
-    err = reprojection_errors(X, xy, cams)  # (T, K, C)
-    for _ in range(rounds):
-        e = torch.where(use & ok[..., None], err, torch.zeros_like(err))
-        worst = e.argmax(-1, keepdim=True)
-        bad = (e.gather(-1, worst) > max_error_px) & (use.sum(-1, keepdim=True) >= 3)
-        idx = torch.nonzero(bad[..., 0], as_tuple=True)  # points with a view to drop
-        if idx[0].numel() == 0:
-            break
-        use[idx] = use[idx] & ~torch.zeros_like(use[idx]).scatter(-1, worst[idx], True)
-        Xs, oks = triangulate_linear(xy[idx][None], use[idx][None], cams)  # only those points
-        X[idx], ok[idx] = Xs[0], oks[0]
-        err[idx] = reprojection_errors(Xs, xy[idx][None], cams)[0]
-    ok = ok & ~(use & (err > max_error_px)).any(-1)
-    return X, ok
+    """The parts in 3D for the per-frame fits: `adjust.triangulate.triangulate`, robust (its one
+    scheme: while the worst used view of a point seen by >= 3 cameras reprojects worse than
+    `max_error_px`, the view whose removal leaves the most consistent set is dropped); a point
+    that still has a used view worse than `max_error_px`, or lies behind a used camera, is left
+    out.
 
-
-def triangulate_linear(xy: Tensor, valid: Tensor, cams: CameraTensors) -> tuple[Tensor, Tensor]:
-    """Fast linear triangulation (inhomogeneous DLT on undistorted normalized coordinates).
-
-    xy: (T, K, C, 2) px; valid: (T, K, C) bool -> X (T, K, 3) mm (zeros where not ok),
-    ok (T, K) bool (>= 2 views, well conditioned, in front of the cameras).
+    xy: (T, K, C, 2) px (anything where not valid); valid: (T, K, C) bool -> X (T, K, 3) mm
+    (zeros where not ok), ok (T, K) bool.
     """
-    xn, yn = undistort_points(xy, cams.K, cams.dist).unbind(-1)
-    R, t = cams.R, cams.t
-    w = valid.to(xy.dtype)
-    # rows (R_0 - x R_2) X = x t_2 - t_0 and (R_1 - y R_2) X = y t_2 - t_1, per camera
-    r0, r1, r2 = R[:, 0], R[:, 1], R[:, 2]  # (C, 3)
-    a1 = [r0[:, i] - xn * r2[:, i] for i in range(3)]  # 3 x (T, K, C)
-    a2 = [r1[:, i] - yn * r2[:, i] for i in range(3)]
-    b1 = xn * t[:, 2] - t[:, 0]
-    b2 = yn * t[:, 2] - t[:, 1]
-    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-    m6 = [(w * (a1[i] * a1[j] + a2[i] * a2[j])).sum(-1) for i, j in pairs]
-    r = torch.stack([(w * (a1[i] * b1 + a2[i] * b2)).sum(-1) for i in range(3)], -1)
-    M = torch.stack(
-        (
-            torch.stack((m6[0], m6[1], m6[2]), -1),
-            torch.stack((m6[1], m6[3], m6[4]), -1),
-            torch.stack((m6[2], m6[4], m6[5]), -1),
-        ),
-        -2,
-    )
-    n = valid.sum(-1)
-    M = M + 1e-12 * torch.eye(3, dtype=M.dtype)
-    det = torch.linalg.det(M)
-    tr = M.diagonal(dim1=-2, dim2=-1).sum(-1)
-    ok = (n >= 2) & (det > 1e-9 * tr.clamp_min(1e-300) ** 3)
-    X = torch.linalg.solve(
-        torch.where(ok[..., None, None], M, torch.eye(3, dtype=M.dtype)), r[..., None]
-    )[..., 0]
-    X = torch.where(ok[..., None], X, torch.zeros_like(X))
-    zc = torch.einsum("cj,tkj->tkc", R[:, 2], X) + t[:, 2]
-    ok = ok & ((zc > 0) | ~valid).all(-1) & torch.isfinite(X).all(-1)
+    if xy.dim() != 4 or valid.shape != xy.shape[:-1]:
+        raise ValueError(f"xy (T, K, C, 2), valid (T, K, C); got {tuple(xy.shape)}, "
+                         f"{tuple(valid.shape)}")  # fmt: skip
+    tri = triangulate(xy, valid.to(xy.dtype), cams, True, max_error_px, num_threads=None)
+    ok = (tri.ncams >= 2) & ~(tri.used & (tri.view_error > max_error_px)).any(-1)
+    X = torch.where(ok[..., None], tri.points, torch.zeros_like(tri.points))
+    zc = torch.einsum("cj,tkj->tkc", cams.R[:, 2], X) + cams.t[:, 2]
+    ok = ok & ((zc > 0) | ~tri.used).all(-1)
     return torch.where(ok[..., None], X, torch.zeros_like(X)), ok
 
 
@@ -321,7 +281,7 @@ def initial_poses(
 
     fits = []
     for a in range(0, T, 10000):  # per-frame fits in blocks of frames (cache-friendly)
-        X, mask = triangulate_robust(xy[a : a + 10000], valid[a : a + 10000], cams)
+        X, mask = triangulated_parts(xy[a : a + 10000], valid[a : a + 10000], cams)
         fits.append(kabsch_robust(body, X, mask))
         del X, mask
         if T > 10000:
