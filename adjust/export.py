@@ -121,15 +121,12 @@ def read_intervals(
     (divided by fps) or ``seconds``. Errors name the file, the column and the row."""
     import pandas as pd
 
+    from deformnet.tables import read_csv
+
     path = Path(path)
     if unit not in ("frames", "seconds"):
         raise InputError(f"intervals_unit must be 'frames' or 'seconds', got {unit!r}")
-    if not path.is_file():
-        raise InputError(f"intervals file not found: {path}")
-    try:
-        df = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read CSV: {exc}") from None
+    df = read_csv(path, "intervals file", InputError)
     df.columns = [str(c).strip() for c in df.columns]
     missing = [c for c in columns if c not in df.columns]
     if missing:
@@ -234,10 +231,8 @@ def write_nwb(
     from deformnet.atomic import atomic_path
 
     tracks = Path(tracks)
-    d = read_points3d(tracks)
+    d = read_points3d(tracks)  # a file without part columns is an error there
     parts = list(d["parts"])
-    if not parts:
-        raise InputError(f"{tracks}: no part columns ({{part}}_x, _y, _z)")
     points = d["points"]
     T, K = points.shape[:2]
     cameras, meta = [], {}

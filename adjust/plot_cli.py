@@ -188,10 +188,8 @@ def run(cfg: DictConfig) -> dict:
         raise ValueError("clip=START:STOP needs video=DIR")
     if det_dir and not calib:
         raise ValueError("input.detections needs input.calibration=calibration.toml too")
-    tr = read_points3d(tracks_path)
+    tr = read_points3d(tracks_path)  # a file without part columns is an error there
     parts = list(tr["parts"])
-    if not parts:
-        raise InputError(f"{tracks_path}: no part columns ({{part}}_x, _y, _z)")
     points = tr["points"]
     T, K = points.shape[:2]
     chosen = _rows(tr["fnum"], to_plain(cfg.get("frames")) or [], T)

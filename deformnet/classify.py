@@ -42,6 +42,7 @@ from torch import Tensor
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
 from deformnet.series import interpolate_gaps
+from deformnet.tables import read_csv, xyz_parts
 
 log = logging.getLogger(__name__)
 
@@ -95,19 +96,13 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
     from deformnet.tokens import kabsch
 
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"tracks file not found: {path}")
-    try:
-        df = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read CSV: {exc}") from None
+    df = read_csv(path, "tracks file")
     cols = set(df.columns)
     found: dict[str, str] = {}
-    for c in df.columns:
-        if c.endswith("_x") and f"{c[:-2]}_y" in cols and f"{c[:-2]}_z" in cols:
-            name = body.resolve(c[:-2])
-            if name is not None:
-                found[name] = c[:-2]
+    for part in xyz_parts(df.columns):
+        name = body.resolve(part)
+        if name is not None:
+            found[name] = part
     missing = [p for p in body.parts if p not in found]
     if missing:
         raise ValueError(
@@ -176,12 +171,7 @@ def read_labels(
     duplicate frames, overlapping bouts and frames outside the track are errors naming the file
     and row (rows count data rows from 1)."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"labels file not found: {path}")
-    try:
-        df = pd.read_csv(path, dtype={"label": str})
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read CSV: {exc}") from None
+    df = read_csv(path, "labels file", dtype={"label": str})
     index = {str(c): i for i, c in enumerate(classes)}
     pos = {int(f): i for i, f in enumerate(fnum)}
     lo, hi = int(np.min(fnum)), int(np.max(fnum))

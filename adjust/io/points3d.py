@@ -20,6 +20,7 @@ import pandas as pd
 
 from adjust.io.errors import InputError
 from deformnet.atomic import atomic_path
+from deformnet.tables import read_csv, xyz_parts
 
 log = logging.getLogger(__name__)
 
@@ -102,12 +103,7 @@ def read_points3d(path: str | os.PathLike) -> dict:
     every other column (anipose's ``M_00``.., ``center_0``.. included), in file order.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"points3d file not found: {path}")
-    try:
-        df = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read CSV: {exc}") from None
+    df = read_csv(path, "points3d file", InputError)
     for col in df.columns:
         if col == "fnum":  # a frame number, or a labelled image's name
             continue
@@ -120,11 +116,9 @@ def read_points3d(path: str | os.PathLike) -> dict:
             )
     names = list(df.columns)
     colset = set(names)
-    parts = [
-        c[:-2]
-        for c in names
-        if c.endswith("_x") and f"{c[:-2]}_y" in colset and f"{c[:-2]}_z" in colset
-    ]
+    parts = xyz_parts(names)
+    if not parts:
+        raise InputError(f"{path}: no part columns ({{part}}_x, _y, _z)")
     T, K = len(df), len(parts)
     used = set()
     out: dict = {"parts": tuple(parts), "points": np.full((T, K, 3), np.nan)}
