@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from deformnet.body import BodyModel
-from deformnet.tokens import canonicalize, uncanonicalize
+from deformnet.tokens import canonicalize, check_window, uncanonicalize
 
 log = logging.getLogger(__name__)
 
@@ -119,20 +119,8 @@ class DeformationModel(nn.Module):
         return self.body.num_parts
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
-        want = (self.window, self.num_parts, 3)
-        if rigid.dim() < 3 or tuple(rigid.shape[-3:]) != want:
-            raise ValueError(
-                f"rigid must have shape (..., {self.window}, {self.num_parts}, 3) (window W = "
-                f"{self.window}, parts {', '.join(self.body.parts)}), got {tuple(rigid.shape)}"
-            )
-        if deformed.shape != rigid.shape:
-            raise ValueError(
-                f"deformed shape {tuple(deformed.shape)} != rigid shape {tuple(rigid.shape)}"
-            )
-        if tuple(observed.shape) != tuple(rigid.shape[:-1]):
-            raise ValueError(
-                f"observed must have shape {tuple(rigid.shape[:-1])}, got {tuple(observed.shape)}"
-            )
+        check_window(rigid, deformed, observed, self.window, self.num_parts, lead="...",
+                     parts=tuple(self.body.parts))  # fmt: skip
 
     def canonical(
         self, rigid: Tensor, deformed: Tensor, observed: Tensor

@@ -19,7 +19,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from deformnet.tokens import NUM_FEATURES, PRIOR_FEATURES, token_features
+from deformnet.tokens import NUM_FEATURES, PRIOR_FEATURES, check_window, token_features
 
 __all__ = ["LSTMPredictor", "TransformerPredictor", "PartHead", "sinusoidal_encoding"]
 
@@ -82,19 +82,7 @@ class _Base(nn.Module):
         self.offset_scale = float(offset_scale)
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
-        want = (self.window, self.num_parts, 3)
-        if rigid.dim() != 4 or tuple(rigid.shape[1:]) != want:
-            raise ValueError(
-                f"rigid must have shape (B, {', '.join(map(str, want))}), got {tuple(rigid.shape)}"
-            )
-        if deformed.shape != rigid.shape:
-            raise ValueError(
-                f"deformed shape {tuple(deformed.shape)} != rigid shape {tuple(rigid.shape)}"
-            )
-        if tuple(observed.shape) != tuple(rigid.shape[:-1]):
-            raise ValueError(
-                f"observed must have shape {tuple(rigid.shape[:-1])}, got {tuple(observed.shape)}"
-            )
+        check_window(rigid, deformed, observed, self.window, self.num_parts)
 
     def _features(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
         """Token features (B, W, K, F) and the interpolation prior (B, K, P)."""

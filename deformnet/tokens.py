@@ -27,6 +27,7 @@ __all__ = [
     "canonicalize",
     "uncanonicalize",
     "token_features",
+    "check_window",
     "NUM_FEATURES",
     "PRIOR_FEATURES",
     "masked_mse",
@@ -50,6 +51,37 @@ def canonicalize(
     rigid_c = (rigid - tw) @ Rw
     deformed_c = (deformed - tw) @ Rw
     return rigid_c, deformed_c, R, t
+
+
+def check_window(
+    rigid: Tensor,
+    deformed: Tensor,
+    observed: Tensor,
+    window: int,
+    num_parts: int,
+    *,
+    lead: str = "B",
+    parts: tuple[str, ...] | None = None,
+) -> None:
+    """A window's inputs: rigid, deformed (lead, W, K, 3) and observed (lead, W, K), or a
+    ValueError naming the one that is off. lead: ``"B"`` = one batch dimension, ``"..."`` = any
+    leading dimensions; parts: the body's part names, said in the message."""
+    want = (window, num_parts, 3)
+    dims_ok = rigid.dim() == 4 if lead == "B" else rigid.dim() >= 3
+    if not dims_ok or tuple(rigid.shape[-3:]) != want:
+        said = f" (window W = {window}, parts {', '.join(parts)})" if parts else ""
+        raise ValueError(
+            f"rigid must have shape ({lead}, {', '.join(map(str, want))}){said}, "
+            f"got {tuple(rigid.shape)}"
+        )
+    if deformed.shape != rigid.shape:
+        raise ValueError(
+            f"deformed shape {tuple(deformed.shape)} != rigid shape {tuple(rigid.shape)}"
+        )
+    if tuple(observed.shape) != tuple(rigid.shape[:-1]):
+        raise ValueError(
+            f"observed must have shape {tuple(rigid.shape[:-1])}, got {tuple(observed.shape)}"
+        )
 
 
 def uncanonicalize(points_c: Tensor, R: Tensor, t: Tensor) -> Tensor:

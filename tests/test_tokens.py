@@ -169,3 +169,19 @@ def test_interpolation_prior_uses_nearest_observed_frames(body):
     assert torch.allclose(q[0:3], x(0.3)) and torch.allclose(q[12:15], x(0.0))
     assert torch.allclose(q[22:], torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=torch.float64))
     assert torch.all(prior[0, 2:, 22:] == 0)  # nothing observed
+
+
+def test_check_window_names_the_input_that_is_off():
+    from deformnet.tokens import check_window
+
+    r = torch.zeros(2, 5, 4, 3)
+    check_window(r, r, torch.zeros(2, 5, 4, dtype=torch.bool), 5, 4)
+    check_window(r[None], r[None], torch.zeros(1, 2, 5, 4, dtype=torch.bool), 5, 4, lead="...")
+    with pytest.raises(ValueError, match=r"^rigid must have shape \(B, 5, 4, 3\), got"):
+        check_window(r[None], r[None], torch.zeros(1, 2, 5, 4), 5, 4)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 5, 3, 3\) \(window W = 5, parts a, b, c\)"):
+        check_window(r, r, torch.zeros(2, 5, 4), 5, 3, lead="...", parts=("a", "b", "c"))
+    with pytest.raises(ValueError, match="deformed shape"):
+        check_window(r, r[:1], torch.zeros(2, 5, 4), 5, 4)
+    with pytest.raises(ValueError, match=r"observed must have shape \(2, 5, 4\)"):
+        check_window(r, r, torch.zeros(2, 5), 5, 4)
