@@ -415,28 +415,18 @@ def write_nwb(
     )
 
     # --- intervals ---------------------------------------------------------------------
-    if bouts is not None:
-        start_s, stop_s, cols_b = read_intervals(bouts, BOUTS_COLUMNS, rate, intervals_unit)
+    tables = (
+        (bouts, BOUTS_NAME, BOUTS_COLUMNS, "behavior bouts", {"label": "behavior label"}),
+        (events, EVENTS_NAME, EVENTS_COLUMNS, "lock-box interaction events",
+         {"part": "body part", "mechanism": "lock-box mechanism operated"}),
+    )  # fmt: skip
+    for source, name, columns, what, descriptions in tables:
+        if source is None:
+            continue
+        start_s, stop_s, cols = read_intervals(source, columns, rate, intervals_unit)
         nwb.add_time_intervals(
             _intervals(
-                BOUTS_NAME,
-                f"behavior bouts from {Path(bouts).name}",
-                start_s,
-                stop_s,
-                cols_b,
-                {"label": "behavior label"},
-            )
-        )
-    if events is not None:
-        start_s, stop_s, cols_e = read_intervals(events, EVENTS_COLUMNS, rate, intervals_unit)
-        nwb.add_time_intervals(
-            _intervals(
-                EVENTS_NAME,
-                f"lock-box interaction events from {Path(events).name}",
-                start_s,
-                stop_s,
-                cols_e,
-                {"part": "body part", "mechanism": "lock-box mechanism operated"},
+                name, f"{what} from {Path(source).name}", start_s, stop_s, cols, descriptions
             )
         )
 

@@ -77,20 +77,14 @@ class DetectorConfig:
     surface_margin: float = 3.0
 
     def __post_init__(self) -> None:
-        for key in ("dropout_rate", "swap_rate", "outlier_rate", "threshold"):
+        rates = ("dropout_rate", "swap_rate", "outlier_rate", "threshold")
+        sizes = ("dropout_correlation_frames", "swap_correlation_frames", "noise_px", "guess_px",
+                 "surface_margin")  # fmt: skip
+        for key in (*rates, *sizes):
             v = float(getattr(self, key))
-            if not 0.0 <= v <= 1.0:
+            if key in rates and not 0.0 <= v <= 1.0:
                 raise ValueError(f"detector.{key} must be in [0, 1], got {v}")
-            object.__setattr__(self, key, v)
-        for key in (
-            "dropout_correlation_frames",
-            "swap_correlation_frames",
-            "noise_px",
-            "guess_px",
-            "surface_margin",
-        ):
-            v = float(getattr(self, key))
-            if not (math.isfinite(v) and v >= 0.0):
+            if key in sizes and not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"detector.{key} must be >= 0, got {v}")
             object.__setattr__(self, key, v)
         for key in (
