@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torch import Tensor
+from torch import Tensor, nn
 
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
@@ -371,6 +371,62 @@ class _FeatureBank:
 
     def batch(self, idx: Tensor) -> dict:
         return {"features": self.features[idx], "label": self.labels[idx]}
+
+
+def fit_head_lbfgs(
+    model,
+    features: Tensor,
+    labels: Tensor,
+    class_weights: Sequence[float] | None = None,
+    l2: float = 1.0,
+    max_iter: int = 500,
+) -> dict:
+    """Fit the classifier's head alone on fixed features by full-batch L-BFGS (the linear-probe
+    protocol: deterministic, to convergence): minimise the class-weighted sum over the frames
+    of the cross-entropy plus 0.5 l2 |W|^2 over the head's weight matrices (for a linear head,
+    multinomial logistic regression with C = 1 / l2).
+
+    features (N, out_dim) as `model.features` gives them (standardised inside
+    `model.classify`), labels (N,) class indices. Returns {"loss", "iterations"}."""
+    features = features.detach().to(torch.float64)
+    labels = torch.as_tensor(labels, dtype=torch.long)
+    if features.dim() != 2 or features.shape[0] != labels.shape[0] or labels.numel() == 0:
+        raise ValueError(f"features (N, D) and labels (N,), got {features.shape}, {labels.shape}")
+    head = model.head
+    dtype = next(head.parameters()).dtype
+    head.to(torch.float64).train(False)  # dropout off: a deterministic objective
+    mean, std = model.feature_mean.to(torch.float64), model.feature_std.to(torch.float64)
+    x = (features - mean) / std
+    C = next(p for p in reversed(list(head.parameters())) if p.dim() == 1).shape[0]
+    w = torch.ones(C, dtype=torch.float64)
+    if class_weights is not None:
+        w = torch.as_tensor(class_weights, dtype=torch.float64)
+    params = [p for p in head.parameters() if p.requires_grad]
+    mats = [p for p in params if p.dim() >= 2]
+    opt = torch.optim.LBFGS(
+        params,
+        lr=1.0,
+        max_iter=int(max_iter),
+        history_size=50,
+        line_search_fn="strong_wolfe",
+        tolerance_grad=1e-7,
+        tolerance_change=1e-10,
+    )
+    sw = w[labels]
+
+    def closure():
+        opt.zero_grad()
+        ce = nn.functional.cross_entropy(head(x), labels, reduction="none")
+        loss = (ce * sw).sum() + 0.5 * float(l2) * sum((m**2).sum() for m in mats)
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        opt.step(closure)
+        loss = float(closure())
+    n_iter = int(opt.state[opt._params[0]].get("n_iter", 0))
+    head.to(dtype)
+    return {"loss": loss / max(float(sw.sum()), 1e-12), "iterations": n_iter}
 
 
 def _loader(bank, idx: np.ndarray, batch_size: int, samples: int | None, seed: int):
@@ -736,26 +792,57 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     # A frozen encoder's features are computed once (no token dropout) and the head trains on
     # them; a pretrained encoder that is fine-tuned gets such a probing phase first
     # (`probe_epochs`, linear probing then fine-tuning), then trains with the encoder.
+    # With `head_solver=lbfgs` that head is fitted by full-batch L-BFGS to convergence (the
+    # linear-probe protocol), else by `probe_epochs` AdamW epochs (the whole run when frozen).
+    solver = str(cfg.get("head_solver", "sgd"))
+    if solver not in ("sgd", "lbfgs"):
+        raise ValueError(f"head_solver must be 'sgd' or 'lbfgs', got '{solver}'")
     probe = int(cfg.get("probe_epochs") or 0) if state is not None else 0
+    if solver == "lbfgs" and state is not None:
+        probe = max(probe, 1)
     steps = 0
+    trainer = None
+    probe_facts: dict = {}
     if bool(cfg.freeze) or probe > 0:
         fbank = _FeatureBank(model, bank, idx, train_features)
-        fval = None
+        fval = fv = None
         if val_dl is not None:
             fv = _FeatureBank(model, vbank, vidx)
             fval = _loader(fv, np.arange(len(fv)), 512, None, 0)
-        floader = _loader(fbank, np.arange(len(fbank)), bs, int(d.steps_per_epoch) * bs, cfg.seed)
         lit.head_only = True
-        if bool(cfg.freeze):
-            trainer = fit(floader, fval)
+        if solver == "lbfgs":
+            probe_facts = fit_head_lbfgs(
+                model, fbank.features, fbank.labels, weights, float(cfg.get("head_l2", 1.0))
+            )
+            if fv is not None:  # the probe's validation score: the state to beat
+                with torch.no_grad():
+                    pv = model.classify(fv.features).argmax(-1).numpy()
+                from deformnet.classify_lit import macro_f1
+
+                score, per = macro_f1(fv.labels.numpy(), pv, C)
+                probe_facts["val_macro_f1"] = score
+                lit.best_score = score
+                lit.best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+                if logger:
+                    logger.log_metrics(
+                        {"val/macro_f1": score, "train/loss": probe_facts["loss"]}
+                        | {f"val/f1/{c}": float(f) for c, f in zip(classes, per) if np.isfinite(f)},
+                        step=0,
+                    )
+            log.info("head fitted by L-BFGS (%s)", probe_facts)
         else:
-            trainer = fit(floader, fval, max_epochs=probe, max_time=None)
-            steps += int(trainer.global_step)
+            floader = _loader(
+                fbank, np.arange(len(fbank)), bs, int(d.steps_per_epoch) * bs, cfg.seed
+            )  # fmt: skip
+            trainer = fit(floader, fval, **({} if cfg.freeze else {"max_epochs": probe,
+                                                                   "max_time": None}))  # fmt: skip
+        if not bool(cfg.freeze):
+            steps += int(trainer.global_step) if trainer is not None else 0
             lit.head_only = False
             trainer = fit(train_dl, val_dl)
     else:
         trainer = fit(train_dl, val_dl)
-    steps += int(trainer.global_step)
+    steps += int(trainer.global_step) if trainer is not None else 0
     if lit.best_state is not None:
         model.load_state_dict(lit.best_state)
     model.eval()
@@ -810,6 +897,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         },
         "labelled_training_frames": int(idx.size),
         "training_steps": steps,
+        "head_solver": solver,
+        "probe": probe_facts or None,
         "best_val_macro_f1": lit.best_score if lit.best_state is not None else None,
         "checkpoint": str(ckpt),
     }
@@ -818,12 +907,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     )  # noqa: E501
     eth_fig = ethogram_figure(first, classes, fps)
     if logger and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_figure"):
-        logger.experiment.add_figure(
-            f"{eval_name}/confusion", cm_fig, global_step=trainer.global_step
-        )  # noqa: E501
-        logger.experiment.add_figure(
-            f"{eval_name}/ethogram", eth_fig, global_step=trainer.global_step
-        )  # noqa: E501
+        logger.experiment.add_figure(f"{eval_name}/confusion", cm_fig, global_step=steps)  # noqa: E501
+        logger.experiment.add_figure(f"{eval_name}/ethogram", eth_fig, global_step=steps)  # noqa: E501
         logger.experiment.flush()
     _save_figure(cm_fig, out / "confusion.png")
     _save_figure(eth_fig, out / "ethogram.png")
@@ -839,7 +924,9 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "output_dir": str(out),
         "checkpoint": str(ckpt),
         "report": report,
-        "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
+        "metrics": {}
+        if trainer is None
+        else {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
     }
 
 

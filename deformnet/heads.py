@@ -129,13 +129,15 @@ class WindowEncoder(nn.Module):
 
 
 class LinearHead(nn.Module):
-    """Logits = W LayerNorm(x) + b.  x (B, in_dim) -> (B, num_classes)."""
+    """Logits = W LayerNorm(x) + b (``norm``; else W x + b: inputs the classifier has
+    standardised already).  x (B, in_dim) -> (B, num_classes)."""
 
-    def __init__(self, in_dim: int, num_classes: int, dropout: float = 0.0) -> None:
+    def __init__(
+        self, in_dim: int, num_classes: int, dropout: float = 0.0, norm: bool = True
+    ) -> None:
         super().__init__()
-        self.net = nn.Sequential(
-            nn.LayerNorm(in_dim), nn.Dropout(dropout), nn.Linear(in_dim, num_classes)
-        )
+        mods: list[nn.Module] = [nn.LayerNorm(in_dim)] if norm else []
+        self.net = nn.Sequential(*mods, nn.Dropout(dropout), nn.Linear(in_dim, num_classes))
 
     def forward(self, x: Tensor) -> Tensor:
         return self.net(x)

@@ -226,6 +226,7 @@ def test_pretrained_probe_then_fine_tune_changes_the_encoder(tmp_path):
                 f"pretrained={ckpt}",
                 "freeze=false",
                 "probe_epochs=2",
+                "head_solver=sgd",
                 f"labels.classes=[{','.join(CLASSES)}]",
                 *_files("train", train),
                 "data.batch_size=16",
@@ -245,3 +246,42 @@ def test_pretrained_probe_then_fine_tune_changes_the_encoder(tmp_path):
         if not torch.equal(model.encoder.net.state_dict()[k], v)
     ]
     assert any(k.startswith("lstm.") for k in changed)
+
+
+def test_lbfgs_probe_is_logistic_regression():
+    """fit_head_lbfgs on a linear head = multinomial logistic regression with C = 1 / l2
+    (scikit-learn's, class-weighted), on the head's standardised inputs."""
+    from sklearn.linear_model import LogisticRegression
+
+    from deformnet.classify import fit_head_lbfgs
+    from deformnet.heads import LinearHead
+
+    g = np.random.default_rng(0)
+    N, D, C = 300, 6, 3
+    y = g.integers(0, C, N)
+    y[:150] = 0  # imbalanced
+    X = g.normal(size=(N, D)) + np.eye(C, D)[y] * 1.5
+
+    class Probe(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.head = LinearHead(D, C, norm=False)
+            self.register_buffer("feature_mean", torch.zeros(D))
+            self.register_buffer("feature_std", torch.ones(D))
+
+        def classify(self, f):
+            return self.head((f - self.feature_mean) / self.feature_std)
+
+    counts = np.bincount(y, minlength=C)
+    w = counts.sum() / (C * counts)
+    m = Probe()
+    facts = fit_head_lbfgs(m, torch.tensor(X, dtype=torch.float32), torch.tensor(y), w, l2=2.0)
+    ref = LogisticRegression(C=0.5, class_weight="balanced", tol=1e-10, max_iter=5000).fit(X, y)
+    with torch.no_grad():
+        logits = m.classify(torch.tensor(X, dtype=torch.float32)).numpy()
+    lin = m.head.net[-1]
+    W = lin.weight.detach().numpy()
+    # softmax logits are defined up to a per-sample constant: compare centred
+    np.testing.assert_allclose(W - W.mean(0), ref.coef_ - ref.coef_.mean(0), atol=2e-3)
+    np.testing.assert_array_equal(logits.argmax(-1), ref.predict(X))
+    assert facts["iterations"] > 0 and facts["loss"] > 0
