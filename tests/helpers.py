@@ -26,3 +26,19 @@ def tiny_deformation_model(seed: int = 0) -> DeformationModel:
     body = default_mouse()
     config = tiny_lstm_config(body.num_parts)
     return DeformationModel(build_net(config), body, 2, config)
+
+
+def quiet_trainer(max_steps: int, **kwargs):
+    """A Lightning trainer on the CPU for `max_steps` steps, without logger, checkpoints,
+    progress bar or model summary (kwargs: further `lightning.Trainer` arguments)."""
+    import lightning as L
+
+    return L.Trainer(
+        max_steps=max_steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
+        **kwargs,
+    )

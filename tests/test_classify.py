@@ -184,8 +184,10 @@ def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
     assert ((bdf["mean_probability"] > 0.5) & (bdf["mean_probability"] <= 1.0)).all()
 
 
-def test_pretrained_frozen_encoder_is_kept(tmp_path):
-    from deformnet.classify import load_classifier, run
+def _fit_from_pretrained(tmp_path, overrides: list[str]):
+    """Fine-tune from a saved tiny deformation net (seed 3) on one toy session (3 steps an
+    epoch); returns that net, its checkpoint path and the run's result."""
+    from deformnet.classify import run
 
     ckpt = tmp_path / "net.ckpt"
     pre = tiny_deformation_model(seed=3)
@@ -195,17 +197,23 @@ def test_pretrained_frozen_encoder_is_kept(tmp_path):
         _compose(
             [
                 f"pretrained={ckpt}",
-                "freeze=true",
+                *overrides,
                 f"labels.classes=[{','.join(CLASSES)}]",
                 *_files("train", train),
                 "data.batch_size=16",
                 "data.steps_per_epoch=3",
-                "trainer.max_epochs=1",
                 "logger=none",
                 f"output.dir={tmp_path / 'fit'}",
             ]
         )
     )
+    return pre, ckpt, res
+
+
+def test_pretrained_frozen_encoder_is_kept(tmp_path):
+    from deformnet.classify import load_classifier
+
+    pre, ckpt, res = _fit_from_pretrained(tmp_path, ["freeze=true", "trainer.max_epochs=1"])
     model, meta = load_classifier(res["checkpoint"])
     assert meta["pretrained"] == str(ckpt) and meta["freeze"]
     for k, v in pre.net.state_dict().items():
@@ -214,28 +222,10 @@ def test_pretrained_frozen_encoder_is_kept(tmp_path):
 
 
 def test_pretrained_probe_then_fine_tune_changes_the_encoder(tmp_path):
-    from deformnet.classify import load_classifier, run
+    from deformnet.classify import load_classifier
 
-    ckpt = tmp_path / "net.ckpt"
-    pre = tiny_deformation_model(seed=3)
-    pre.save(ckpt)
-    train = [_toy_session(tmp_path, "train", 0, T=120)]
-    res = run(
-        _compose(
-            [
-                f"pretrained={ckpt}",
-                "freeze=false",
-                "probe_epochs=2",
-                "head_solver=sgd",
-                f"labels.classes=[{','.join(CLASSES)}]",
-                *_files("train", train),
-                "data.batch_size=16",
-                "data.steps_per_epoch=3",
-                "trainer.max_epochs=2",
-                "logger=none",
-                f"output.dir={tmp_path / 'fit'}",
-            ]
-        )
+    pre, _, res = _fit_from_pretrained(
+        tmp_path, ["freeze=false", "probe_epochs=2", "head_solver=sgd", "trainer.max_epochs=2"]
     )
     assert res["report"]["training_steps"] == 2 * 3 + 2 * 3  # probing, then fine-tuning
     # no validation sessions: the last state is kept (not a best-validation one)

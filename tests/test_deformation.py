@@ -152,7 +152,7 @@ def test_save_and_load_round_trip(body, kind, tmp_path):
 
 
 def test_lightning_checkpoint_round_trip(body, tmp_path):
-    import lightning as L
+    from helpers import quiet_trainer
 
     from deformnet.data import DeformDataModule
     from deformnet.lit import DeformLit
@@ -171,15 +171,7 @@ def test_lightning_checkpoint_round_trip(body, tmp_path):
         steps_per_epoch=2,
         val_windows=16,
     )
-    trainer = L.Trainer(
-        max_steps=2,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        accelerator="cpu",
-        num_sanity_val_steps=0,
-    )
+    trainer = quiet_trainer(2, num_sanity_val_steps=0)
     trainer.fit(lit, datamodule=dm)
     path = tmp_path / "lit.ckpt"
     trainer.save_checkpoint(path)

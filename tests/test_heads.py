@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import hydra
-import lightning as L
 import numpy as np
 import pytest
 import torch
+from helpers import quiet_trainer
 
 from deformnet.body import default_mouse
 from deformnet.deformation import build_net
@@ -116,14 +116,7 @@ def test_frozen_encoder_weights_do_not_change(freeze):
     before_enc = {k: v.clone() for k, v in model.encoder.state_dict().items()}
     before_head = {k: v.clone() for k, v in model.head.state_dict().items()}
     lit = ClassifyLit(model, ["a", "b", "c"], freeze=freeze, lr=1e-2, encoder_lr=1e-2)
-    trainer = L.Trainer(
-        max_steps=4,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        accelerator="cpu",
-    )
+    trainer = quiet_trainer(4)
     batches = torch.utils.data.DataLoader(_batches(enc), batch_size=None)
     trainer.fit(lit, train_dataloaders=batches)
     enc_changed = [

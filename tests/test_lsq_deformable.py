@@ -30,8 +30,7 @@ class _Bend(nn.Module):
         return mid + 0.1 * (rigid.mean(-3) - mid) + bend
 
 
-def test_deformable_observation_jacobian_and_noiseless_recovery():
-    torch.set_num_threads(1)
+def test_deformable_observation_jacobian_and_noiseless_recovery(one_thread):
     body = torch.tensor(default_mouse().points)
     cams = CameraTensors.from_cameras(synthetic.ring_cameras(3))
     T, W = 16, 5

@@ -37,15 +37,15 @@ def scene(tmp_path_factory) -> Path:
     return out
 
 
+def _track_cfg(calibration: Path, detections: Path, extra: list[str] = ()):
+    """adjust-track's config for a calibration file and a detections folder, then `extra`."""
+    ov = [f"input.calibration={calibration}", f"input.detections={detections}", *extra]
+    return _cfg("track", ov)
+
+
 def _track(scene: Path, out: Path, extra: list[str] = ()) -> dict:
-    ov = [
-        f"input.calibration={scene / 'calibration.toml'}",
-        f"input.detections={scene / 'detections'}",
-        f"output.dir={out}",
-        *FAST,
-        *extra,
-    ]
-    return run(_cfg("track", ov))
+    ov = [f"output.dir={out}", *FAST, *extra]
+    return run(_track_cfg(scene / "calibration.toml", scene / "detections", ov))
 
 
 def _columns(path: Path) -> list[str]:
@@ -142,16 +142,7 @@ def test_body_auto_on_real_hand_data(tmp_path):
     det = _hand_subset(tmp_path)
     out = tmp_path / "out"
     summary = run(
-        _cfg(
-            "track",
-            [
-                f"input.calibration={REAL / 'calibration.toml'}",
-                f"input.detections={det}",
-                f"output.dir={out}",
-                "body=auto",
-                *FAST,
-            ],
-        )
+        _track_cfg(REAL / "calibration.toml", det, [f"output.dir={out}", "body=auto", *FAST])
     )
     assert summary["body"]["source"] == "auto" and len(summary["parts"]) == 21
     assert summary["completeness"] == 1.0
@@ -167,14 +158,8 @@ def test_body_auto_on_real_hand_data(tmp_path):
 
 def test_body_mouse_on_hand_data_is_an_input_error(tmp_path):
     assert REAL.exists(), f"shared data missing: {REAL}"
-    cfg = _cfg(
-        "track",
-        [
-            f"input.calibration={REAL / 'calibration.toml'}",
-            f"input.detections={REAL / 'trial_000'}",
-            f"output.dir={tmp_path}",
-            *FAST,
-        ],
+    cfg = _track_cfg(
+        REAL / "calibration.toml", REAL / "trial_000", [f"output.dir={tmp_path}", *FAST]
     )
     with pytest.raises(InputError, match="elbow"):
         run(cfg)
@@ -182,14 +167,7 @@ def test_body_mouse_on_hand_data_is_an_input_error(tmp_path):
 
 def test_bad_input(scene, tmp_path):
     base = [f"output.dir={tmp_path / 'out'}", *FAST]
-    cfg = _cfg(
-        "track",
-        [
-            f"input.calibration={tmp_path / 'nope.toml'}",
-            f"input.detections={scene / 'detections'}",
-            *base,
-        ],
-    )
+    cfg = _track_cfg(tmp_path / "nope.toml", scene / "detections", base)
     with pytest.raises(InputError, match="calibration file not found: .*nope.toml"):
         run(cfg)
     # a detections folder without the file of one camera
@@ -197,24 +175,13 @@ def test_bad_input(scene, tmp_path):
     partial.mkdir()
     for cam in ("top", "side"):
         (partial / f"{cam}.csv").write_bytes((scene / "detections" / f"{cam}.csv").read_bytes())
-    cfg = _cfg(
-        "track",
-        [
-            f"input.calibration={scene / 'calibration.toml'}",
-            f"input.detections={partial}",
-            *base,
-        ],
-    )
+    cfg = _track_cfg(scene / "calibration.toml", partial, base)
     with pytest.raises(InputError, match=r"cameras without a file: \['front'\]"):
         run(cfg)
-    cfg = _cfg(
-        "track",
-        [
-            f"input.calibration={scene / 'calibration.toml'}",
-            f"input.detections={scene / 'detections'}",
-            f"deformation={tmp_path / 'missing.ckpt'}",
-            *base,
-        ],
+    cfg = _track_cfg(
+        scene / "calibration.toml",
+        scene / "detections",
+        [f"deformation={tmp_path / 'missing.ckpt'}", *base],
     )
     with pytest.raises(InputError, match="deformation checkpoint not found"):
         run(cfg)
