@@ -73,14 +73,18 @@ class _Steps:
 
 def run(cfg: DictConfig) -> dict:
     """Run the pipeline and write the report; returns {"output_dir", "report" (paths), the
-    tracking table, timings}."""
-    import torch
+    tracking table, timings}. ``threads`` (torch's intra-op threads) applies for the call and
+    is restored after it."""
+    from deformnet.threads import torch_threads
 
+    with torch_threads(cfg.get("threads")):
+        return _run(cfg)
+
+
+def _run(cfg: DictConfig) -> dict:
     from adjust import events_cli, scene_cli, track, triangulate_cli
     from adjust.report import write_report
 
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
     name = str(cfg.preset)
     if name not in cfg.presets:
         raise ValueError(f"preset={name} is not one of {list(cfg.presets)}")

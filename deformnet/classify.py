@@ -991,9 +991,9 @@ def run(cfg: DictConfig) -> dict:
     import lightning as L
 
     from deformnet.atomic import write_text
+    from deformnet.threads import set_torch_threads
 
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    set_torch_threads(cfg.get("threads"))
     mode = str(cfg.get("mode", "train"))
     if mode not in ("train", "predict"):
         raise ValueError(f"mode must be 'train' or 'predict', got '{mode}'")

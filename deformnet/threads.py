@@ -1,4 +1,5 @@
-"""One way to run code with a given number of torch intra-op threads."""
+"""One way to set torch's number of intra-op threads: for the rest of the process
+(`set_torch_threads`) or for a block, restoring the previous setting (`torch_threads`)."""
 
 from __future__ import annotations
 
@@ -8,14 +9,21 @@ from collections.abc import Iterator
 import torch
 
 
+def set_torch_threads(n: int | None) -> int:
+    """Use `n` torch threads from now on (None or <= 0: unchanged); returns the previous count."""
+    old = torch.get_num_threads()
+    if n is not None and int(n) > 0:
+        torch.set_num_threads(int(n))
+    return old
+
+
 @contextlib.contextmanager
 def torch_threads(n: int | None) -> Iterator[None]:
     """Run with `n` torch threads (None or <= 0: unchanged), restoring the previous setting."""
     if n is None or int(n) <= 0:
         yield
         return
-    old = torch.get_num_threads()
-    torch.set_num_threads(int(n))
+    old = set_torch_threads(n)
     try:
         yield
     finally:

@@ -207,15 +207,22 @@ def _progress_bar(kind: str):
 
 def run(cfg: DictConfig) -> dict:
     """Train one net; returns {"net", "output_dir", "best_checkpoint", "last_checkpoint",
-    "metrics"} (checkpoint paths None when not written, e.g. under fast_dev_run)."""
+    "metrics"} (checkpoint paths None when not written, e.g. under fast_dev_run).
+
+    ``threads`` (torch's intra-op threads) applies for the call and is restored after it."""
+    from deformnet.threads import torch_threads
+
+    with torch_threads(cfg.get("threads")):
+        return _run(cfg)
+
+
+def _run(cfg: DictConfig) -> dict:
     import lightning as L
     import torch
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from deformnet.atomic import write_text
 
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = output_dir(cfg)
     write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
