@@ -58,7 +58,15 @@ from peers.anipose import (  # noqa: E402
     constraint_indices,
     run_anipose,
 )
-from tracking import compose, emit, run_dlt, run_track, train_net  # noqa: E402
+from tracking import (  # noqa: E402
+    compose,
+    emit,
+    ensure_scene,
+    run_dlt,
+    run_track,
+    train_net,
+    view_fractions,
+)
 
 from adjust.metrics import point_errors  # noqa: E402
 from deformnet.paths import CONF_DIR  # noqa: E402
@@ -69,14 +77,9 @@ ROOT = CONF_DIR.parent
 SCENE_SEED = 92_000  # held out: no training run uses it
 
 
-def make_scene(out: Path, frames: int, seed: int) -> None:
-    from adjust.scene_cli import run
-
-    run(
-        compose(
-            "scene", [f"output.dir={out}", f"num_frames={frames}", f"seed={seed}", "sim=mouse_b"]
-        )
-    )
+def make_scene(out: Path, frames: int, seed: int) -> Path:
+    """The mouse_b scene folder `out` (simulated first unless it is there)."""
+    return ensure_scene(out, frames, seed, ["sim=mouse_b"])
 
 
 def evaluate(est: np.ndarray, truth: np.ndarray, nviews: np.ndarray) -> dict:
@@ -124,9 +127,7 @@ def train_on_sessions(work: Path, frames: int, seed: int, budget: str) -> tuple[
 
     folders = []
     for i in (1, 2, 3):
-        sc = work / f"scene_mouse_b_{frames}_{seed + i}"
-        if not (sc / "truth.npz").exists():
-            make_scene(sc, frames, seed + i)
+        sc = make_scene(work / f"scene_mouse_b_{frames}_{seed + i}", frames, seed + i)
         tr = work / f"sessions_track_{seed + i}"
         if not (tr / "tokens.npz").exists():
             run_track(sc, tr, ["threads=1"])
@@ -184,18 +185,12 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
     work = Path(args.work)
-    scene = work / f"scene_mouse_b_{args.frames}_{args.seed}"
-    if not (scene / "truth.npz").exists():
-        make_scene(scene, args.frames, args.seed)
+    scene = make_scene(work / f"scene_mouse_b_{args.frames}_{args.seed}", args.frames, args.seed)
     tr = np.load(scene / "truth.npz")
     truth, nviews = tr["points"], tr["nviews"]
     parts = [str(p) for p in tr["parts"]]
     floor = rigid_floor(truth, parts=parts)
-    fractions = {
-        "seen_ge2": float((nviews >= 2).mean()),
-        "seen_1": float((nviews == 1).mean()),
-        "seen_0": float((nviews == 0).mean()),
-    }
+    fractions = view_fractions(nviews)
     results: dict[str, dict] = {}
     extra: dict = {"rigid_floor": floor.as_dict()}
 

@@ -22,17 +22,16 @@ runs/benchmarks/efficiency.json.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 
 import numpy as np
 import torch
+from common import emit, start
 
 from adjust.camera import CameraTensors
 from adjust.lsq import SolverConfig, adjust_poses, normal_matrix, synthetic
 from adjust.lsq.banded import diagonal_blocks_of_inverse
 from adjust.lsq.geometry import pose_difference
-from deformnet.atomic import write_text
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 
@@ -50,9 +49,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument(
         "--out", default=str(CONF_DIR.parent / "runs" / "benchmarks" / "efficiency.json")
     )
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(args.threads)
+    args = start(ap, argv)
     body = torch.tensor(default_mouse().points)
     cams = CameraTensors.from_cameras(synthetic.ring_cameras(3))
     cfg = SolverConfig(
@@ -147,10 +144,7 @@ def main(argv: list[str] | None = None) -> dict:
         "target_ratio": 1.2,
         "passed": bool(max(target.values()) <= 1.2),
     }
-    line = json.dumps(summary)
-    write_text(args.out, line + "\n")
-    print(line)
-    return summary
+    return emit(summary, args.out)
 
 
 if __name__ == "__main__":

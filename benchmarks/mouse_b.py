@@ -18,15 +18,14 @@ runs/benchmarks/mouse_b.json (or --out).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from common import emit
 
-from deformnet.atomic import write_text
 from deformnet.body import default_mouse
 from deformnet.shape import pair_distances, real_paper_parts, rigid_floor
 from deformnet.sim import SimConfig, simulate
@@ -190,10 +189,7 @@ def main(argv: list[str] | None = None) -> dict:
         "seconds": args.seconds,
         "seed": args.seed,
     }
-    line = json.dumps(summary)
-    write_text(args.out, line + "\n")
-    print(line)
-    return summary
+    return emit(summary, args.out)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ runs/benchmarks/real_hand.json.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -32,12 +31,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import emit, start
 
-from adjust.app import finite_or_none
 from adjust.camera import CameraTensors
 from adjust.io import load_scene, read_points3d
 from adjust.metrics import error_summary, reprojection_errors
-from deformnet.atomic import write_text
 from deformnet.confutil import compose
 from deformnet.paths import CONF_DIR, real_hand_dir
 
@@ -60,10 +58,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument(
         "-o", "--override", action="append", default=[], help="adjust-track override (repeat)"
     )
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = start(ap, argv)
     data, work = Path(args.data), Path(args.work)
     calib, dets = data / "calibration.toml", data / args.trial
     inputs = [f"input.calibration={calib}", f"input.detections={dets}"]
@@ -143,10 +138,7 @@ def main(argv: list[str] | None = None) -> dict:
         "threads": args.threads or torch.get_num_threads(),
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
-    line = json.dumps(finite_or_none(summary))
-    write_text(args.out, line + "\n")
-    print(line, flush=True)
-    return summary
+    return emit(summary, args.out)
 
 
 def _fmt(v) -> str:

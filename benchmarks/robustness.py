@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import json
 import logging
 import os
 import shutil
@@ -30,14 +29,15 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from common import emit
 
-from deformnet.atomic import write_text
 from deformnet.paths import CONF_DIR, shared_dir
 
 log = logging.getLogger("benchmarks.robustness")
 BIN = Path(sys.executable).parent
 APPS = ("adjust-triangulate", "adjust-track")
 TRACK_FAST = ["progress=false", "solver.max_iterations=8"]
+CAMERAS = ("top", "side", "front")  # the default rig's
 
 
 # --- the scene and its spoilt copies -------------------------------------------------------
@@ -60,6 +60,17 @@ def _read(path: Path) -> list[list[str]]:
 
 def _write(path: Path, rows: list[list[str]]) -> None:
     path.write_text("\n".join(",".join(r) for r in rows) + "\n")
+
+
+def _rewrite(folder: Path, cam: str, edit: Callable[[list[list[str]]], list[list[str]]]) -> None:
+    """Rewrite a camera's detections CSV as edit(rows) (its rows: 3 header rows, then frames)."""
+    p = folder / "detections" / f"{cam}.csv"
+    _write(p, edit(_read(p)))
+
+
+def _no_detections(rows: list[list[str]]) -> list[list[str]]:
+    """The rows with every frame's detections empty (frame index kept)."""
+    return rows[:3] + [[r[0]] + [""] * (len(r) - 1) for r in rows[3:]]
 
 
 def _cell(folder: Path, cam: str, row: int, col: int, value: str) -> None:
@@ -97,7 +108,16 @@ def _save(folder: Path, cams) -> None:
     save_calibration(folder / "calibration.toml", cams)
 
 
-def _likelihoods(folder: Path, fn: Callable[[float], float], cams=("top", "side", "front")):
+def _replace_camera(folder: Path, index: int, **fields) -> None:
+    """Change fields (K, dist, ...) of the calibration's camera `index`."""
+    import dataclasses
+
+    cams = _cams(folder)
+    cams[index] = dataclasses.replace(cams[index], **fields)
+    _save(folder, cams)
+
+
+def _likelihoods(folder: Path, fn: Callable[[float], float], cams=CAMERAS):
     for cam in cams:
         p = folder / "detections" / f"{cam}.csv"
         rows = _read(p)
@@ -171,71 +191,63 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
     out = []
 
     def case(name, apps=both):
+        """A case whose function spoils the folder and returns its overrides (None: none)."""
+
         def deco(fn):
-            out.append((name, fn, apps))
+            out.append((name, lambda f: fn(f) or [], apps))
             return fn
 
         return deco
 
+    def setting(name, override=None, apps=both):
+        """A case that only gives an override (`name` itself by default)."""
+        out.append((name, lambda f: [override or name], apps))
+
     @case("clean")
     def _(f):
-        return []
+        pass
 
     @case("one cell x=1e200")
     def _(f):
         _cell(f, "top", 10, 0, "1e200")
-        return []
 
     @case("one part at 1e160 in every camera")
     def _(f):
-        for cam in ("top", "side", "front"):
+        for cam in CAMERAS:
             _column(f, cam, 0, lambda v: "1e160" if v else v)
             _column(f, cam, 1, lambda v: "1e160" if v else v)
-        return []
 
     @case("inf cell")
     def _(f):
         _cell(f, "side", 5, 3, "inf")
-        return []
 
     @case("likelihood 50 on some detections")
     def _(f):
         _likelihoods(f, lambda v: 50.0 if v < 0.7 else v)
-        return []
 
     @case("negative likelihood")
     def _(f):
         _cell(f, "front", 3, 2, "-0.5")
-        return []
 
     @case("all likelihoods 0")
     def _(f):
         _likelihoods(f, lambda v: 0.0)
-        return []
 
-    @case("likelihood_threshold=2")
-    def _(f):
-        return ["input.likelihood_threshold=2"]
-
-    @case("likelihood_threshold=abc")
-    def _(f):
-        return ["input.likelihood_threshold=abc"]
+    setting("likelihood_threshold=2", "input.likelihood_threshold=2")
+    setting("likelihood_threshold=abc", "input.likelihood_threshold=abc")
 
     @case("empty detections folder")
     def _(f):
         for p in (f / "detections").iterdir():
             p.unlink()
-        return []
 
     @case("a camera's file missing")
     def _(f):
         (f / "detections" / "front.csv").unlink()
-        return []
 
     @case("stray file in the folder")
     def _(f):
         (f / "detections" / "notes.csv").write_text("a,b\n1,2\n")
-        return []
 
     @case("truncated row")
     def _(f):
@@ -243,31 +255,23 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         rows = _read(p)
         rows[20] = rows[20][:7]
         _write(p, rows)
-        return []
 
     @case("non-numeric cell")
     def _(f):
         _cell(f, "side", 7, 1, "abc")
-        return []
 
     @case("header rows only")
     def _(f):
-        for cam in ("top", "side", "front"):
-            p = f / "detections" / f"{cam}.csv"
-            _write(p, _read(p)[:3])
-        return []
+        for cam in CAMERAS:
+            _rewrite(f, cam, lambda rows: rows[:3])
 
     @case("one file truncated (fewer frames)")
     def _(f):
-        p = f / "detections" / "side.csv"
-        rows = _read(p)
-        _write(p, rows[:-30])
-        return []
+        _rewrite(f, "side", lambda rows: rows[:-30])
 
     @case("one file's frame numbers offset by 1000")
     def _(f):
         _renumber(f, "front", lambda i: i + 1000)
-        return []
 
     @case("duplicate frame number")
     def _(f):
@@ -275,19 +279,14 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         rows = _read(p)
         rows[5][0] = rows[4][0]
         _write(p, rows)
-        return []
 
     @case("one camera's rows reversed")
     def _(f):
         _reverse_rows(f, "side")
-        return []
 
     @case("one camera's rows in reverse order, frame index too")
     def _(f):
-        p = f / "detections" / "side.csv"
-        rows = _read(p)
-        _write(p, rows[:3] + rows[3:][::-1])
-        return []
+        _rewrite(f, "side", lambda rows: rows[:3] + rows[3:][::-1])
 
     @case("two camera files swapped")
     def _(f):
@@ -295,12 +294,10 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         (d / "side.csv").rename(d / "tmp.csv")
         (d / "front.csv").rename(d / "side.csv")
         (d / "tmp.csv").rename(d / "front.csv")
-        return []
 
     @case("binary garbage as a detection file")
     def _(f):
         (f / "detections" / "top.csv").write_bytes(bytes(range(256)) * 16)
-        return []
 
     @case("unknown part name (body=mouse)", track)
     def _(f):
@@ -308,70 +305,42 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         rows = _read(p)
         rows[1] = [c.replace("nose_tip", "whisker") for c in rows[1]]
         _write(p, rows)
-        return []
 
     @case("all detections of one camera empty")
     def _(f):
-        p = f / "detections" / "front.csv"
-        rows = _read(p)
-        _write(p, rows[:3] + [[r[0]] + [""] * (len(r) - 1) for r in rows[3:]])
-        return []
+        _rewrite(f, "front", _no_detections)
 
     @case("every detection empty")
     def _(f):
-        for cam in ("top", "side", "front"):
-            p = f / "detections" / f"{cam}.csv"
-            rows = _read(p)
-            _write(p, rows[:3] + [[r[0]] + [""] * (len(r) - 1) for r in rows[3:]])
-        return []
+        for cam in CAMERAS:
+            _rewrite(f, cam, _no_detections)
 
     @case("CRLF line endings and a BOM")
     def _(f):
         p = f / "detections" / "top.csv"
         p.write_bytes(b"\xef\xbb\xbf" + p.read_bytes().replace(b"\n", b"\r\n"))
-        return []
 
     @case("focal length 0")
     def _(f):
-        cams = _cams(f)
-        K = cams[0].K.copy()
+        K = _cams(f)[0].K.copy()
         K[0, 0] = K[1, 1] = 0.0
-        import dataclasses
-
-        cams[0] = dataclasses.replace(cams[0], K=K)
-        _save(f, cams)
-        return []
+        _replace_camera(f, 0, K=K)
 
     @case("negative focal length")
     def _(f):
-        import dataclasses
-
-        cams = _cams(f)
-        K = cams[1].K.copy()
+        K = _cams(f)[1].K.copy()
         K[0, 0] = -K[0, 0]
-        cams[1] = dataclasses.replace(cams[1], K=K)
-        _save(f, cams)
-        return []
+        _replace_camera(f, 1, K=K)
 
     @case("K third row not [0, 0, 1]")
     def _(f):
-        import dataclasses
-
-        cams = _cams(f)
-        K = cams[2].K.copy()
+        K = _cams(f)[2].K.copy()
         K[2] = [0.0, 0.001, 1.0]
-        cams[2] = dataclasses.replace(cams[2], K=K)
-        _save(f, cams)
-        return []
+        _replace_camera(f, 2, K=K)
 
     @case("distortion k1 = 1e6")
     def _(f):
-        import dataclasses
-
-        cams = _cams(f)
-        cams[0] = dataclasses.replace(cams[0], dist=np.array([1e6, 0, 0, 0, 0.0]))
-        _save(f, cams)
-        return []
+        _replace_camera(f, 0, dist=np.array([1e6, 0, 0, 0, 0.0]))
 
     @case("all cameras at one pose")
     def _(f):
@@ -380,22 +349,18 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         cams = _cams(f)
         cams = [dataclasses.replace(c, rvec=cams[0].rvec, tvec=cams[0].tvec) for c in cams]
         _save(f, cams)
-        return []
 
     @case("a camera with the scene behind it")
     def _(f):
         _flip_camera(f, "front")
-        return []
 
     @case("one camera's pose off by 8 degrees")
     def _(f):
         _rotate_camera(f, "side", 8.0)
-        return []
 
     @case("binary calibration file")
     def _(f):
         (f / "calibration.toml").write_bytes(bytes(range(256)) * 8)
-        return []
 
     @case("a directory as the calibration")
     def _(f):
@@ -404,12 +369,10 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
     @case("calibration file missing")
     def _(f):
         (f / "calibration.toml").unlink()
-        return []
 
     @case("calibration lacks a camera")
     def _(f):
         _save(f, _cams(f)[:2])
-        return []
 
     @case("calibration has a camera without a file")
     def _(f):
@@ -418,53 +381,27 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         cams = _cams(f)
         extra = dataclasses.replace(cams[0], name="back", tvec=cams[0].tvec + 100.0)
         _save(f, [*cams, extra])
-        return []
 
     @case("fisheye calibration")
     def _(f):
         _toml(f, 'name = "top"', 'name = "top"\nfisheye = true')
-        return []
 
     @case("calibration is not TOML")
     def _(f):
         (f / "calibration.toml").write_text("this is [not toml\n")
-        return []
 
-    @case("solver.max_iterations=abc", track)
-    def _(f):
-        return ["solver.max_iterations=abc"]
-
-    @case("solver.max_iterations=2.5", track)
-    def _(f):
-        return ["solver.max_iterations=2.5"]
-
-    @case("solver.max_iterations=-3", track)
-    def _(f):
-        return ["solver.max_iterations=-3"]
-
-    @case("solver.chunk_size=abc", track)
-    def _(f):
-        return ["solver.chunk_size=abc"]
-
-    @case("threads=abc", track)
-    def _(f):
-        return ["threads=abc"]
-
-    @case("triangulate.min_views=abc", tri)
-    def _(f):
-        return ["triangulate.min_views=abc"]
-
-    @case("input.camera_check=bogus")
-    def _(f):
-        return ["input.camera_check=bogus"]
-
-    @case("input.exclude_cameras=[nope]")
-    def _(f):
-        return ["input.exclude_cameras=[nope]"]
-
-    @case("input.exclude_cameras=[side] (by hand)")
-    def _(f):
-        return ["input.exclude_cameras=[side]"]
+    for name in (
+        "solver.max_iterations=abc",
+        "solver.max_iterations=2.5",
+        "solver.max_iterations=-3",
+        "solver.chunk_size=abc",
+        "threads=abc",
+    ):
+        setting(name, apps=track)
+    setting("triangulate.min_views=abc", apps=tri)
+    setting("input.camera_check=bogus")
+    setting("input.exclude_cameras=[nope]")
+    setting("input.exclude_cameras=[side] (by hand)", "input.exclude_cameras=[side]")
 
     @case("output.dir is a file")
     def _(f):
@@ -475,9 +412,7 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
     def _(f):
         return ["output.dir=/proc/mousetrack/out"]
 
-    @case("deformation=/etc/passwd", track)
-    def _(f):
-        return ["deformation=/etc/passwd"]
+    setting("deformation=/etc/passwd", apps=track)
 
     @case("deformation checkpoint with a pickle payload", track)
     def _(f):
@@ -632,10 +567,7 @@ def main(argv: list[str] | None = None) -> dict:
         and not summary["cwd_written"]
     )
     shutil.rmtree(work, ignore_errors=True)
-    line = json.dumps(summary)
-    write_text(args.out, line + "\n")
-    print(line)
-    return summary
+    return emit(summary, args.out)
 
 
 if __name__ == "__main__":

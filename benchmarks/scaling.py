@@ -41,12 +41,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import emit
 
 from adjust.camera import CameraTensors
 from adjust.lsq import SolverConfig, adjust_poses, synthetic
 from adjust.lsq.geometry import pose_difference
 from adjust.lsq.solver import TRACK_OUTPUTS
-from deformnet.atomic import write_text
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 
@@ -187,9 +187,7 @@ def run_deformable(T: int, checkpoint: str | None, threads: int, work: Path) -> 
     scene (see module doc)."""
     import tracking  # benchmarks/tracking.py: scene, training and adjust-track helpers
 
-    scene = work / f"scene_{T}"
-    if not (scene / "truth.npz").exists():
-        tracking.simulate(scene, T, tracking.SCENE_SEED)
+    scene = tracking.ensure_scene(work / f"scene_{T}", T, tracking.SCENE_SEED)
     deformation = f"deformation={checkpoint}" if checkpoint else "deformation=default"
     extra = [f"threads={threads}"] if threads else []
     truth = np.load(scene / "truth.npz")["points"]
@@ -307,10 +305,7 @@ def main(argv: list[str] | None = None) -> dict:
         "cpu": platform.processor() or platform.machine(),
         "load_avg_1min": round(float(np.round(_loadavg(), 2)), 2),
     }
-    line = json.dumps(summary)
-    write_text(args.out, line + "\n")
-    print(line)
-    return summary
+    return emit(summary, args.out)
 
 
 def _loadavg() -> float:

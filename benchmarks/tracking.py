@@ -30,7 +30,6 @@ runs/benchmarks/tracking.json.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -39,11 +38,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import emit, start
 
-from adjust.app import finite_or_none
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
-from deformnet.atomic import write_text
 from deformnet.confutil import compose
 from deformnet.paths import CONF_DIR
 
@@ -53,13 +51,38 @@ ROOT = CONF_DIR.parent
 SCENE_SEED = 91_000  # held out: deformnet-train uses seeds 0.. and 10_000..
 
 
-def simulate(out: Path, frames: int, seed: int) -> dict:
+def simulate(out: Path, frames: int, seed: int, overrides: list[str] = ()) -> dict:
     from adjust.scene_cli import run
 
     t0 = time.perf_counter()
-    res = run(compose("scene", [f"output.dir={out}", f"num_frames={frames}", f"seed={seed}"]))
+    ov = [f"output.dir={out}", f"num_frames={frames}", f"seed={seed}", *overrides]
+    res = run(compose("scene", ov))
     log.info("scene: %d frames in %.1f s -> %s", frames, time.perf_counter() - t0, out)
     return res
+
+
+def ensure_scene(out: Path, frames: int, seed: int, overrides: list[str] = ()) -> Path:
+    """The scene folder `out`, simulated first (`simulate`) unless its truth.npz is there."""
+    if not (out / "truth.npz").exists():
+        simulate(out, frames, seed, overrides)
+    return out
+
+
+def view_fractions(nviews: np.ndarray) -> dict:
+    """The fractions of part-frames seen by >= 2 cameras, by 1 and by none."""
+    return {
+        "seen_ge2": float((nviews >= 2).mean()),
+        "seen_1": float((nviews == 1).mean()),
+        "seen_0": float((nviews == 0).mean()),
+    }
+
+
+def scene_inputs(scene: Path) -> list[str]:
+    """The apps' input overrides for a scene folder (its calibration and detections)."""
+    return [
+        f"input.calibration={scene / 'calibration.toml'}",
+        f"input.detections={scene / 'detections'}",
+    ]
 
 
 def train_net(out: Path, overrides: list[str]) -> tuple[str, float, dict]:
@@ -79,17 +102,7 @@ def run_dlt(scene: Path, out: Path) -> tuple[np.ndarray, float]:
     from adjust.triangulate_cli import run
 
     t0 = time.perf_counter()
-    run(
-        compose(
-            "triangulate",
-            [
-                f"input.calibration={scene / 'calibration.toml'}",
-                f"input.detections={scene / 'detections'}",
-                f"output.dir={out}",
-                "body=mouse",
-            ],
-        )
-    )
+    run(compose("triangulate", [*scene_inputs(scene), f"output.dir={out}", "body=mouse"]))
     return read_points3d(out / "points3d.csv")["points"], time.perf_counter() - t0
 
 
@@ -98,16 +111,7 @@ def run_track(scene: Path, out: Path, overrides: list[str]) -> tuple[np.ndarray,
 
     t0 = time.perf_counter()
     summary = run(
-        compose(
-            "track",
-            [
-                f"input.calibration={scene / 'calibration.toml'}",
-                f"input.detections={scene / 'detections'}",
-                f"output.dir={out}",
-                "progress=false",
-                *overrides,
-            ],
-        )
+        compose("track", [*scene_inputs(scene), f"output.dir={out}", "progress=false", *overrides])
     )
     return read_points3d(out / "points3d.csv")["points"], time.perf_counter() - t0, summary
 
@@ -155,21 +159,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument(
         "-t", "--train-override", action="append", default=[], help="deformnet-train override"
     )
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = start(ap, argv)
     work = Path(args.work)
-    scene = work / f"scene_{args.frames}_{args.seed}"
-    if not (scene / "truth.npz").exists():
-        simulate(scene, args.frames, args.seed)
+    scene = ensure_scene(work / f"scene_{args.frames}_{args.seed}", args.frames, args.seed)
     truth = np.load(scene / "truth.npz")
     P, nviews = truth["points"], truth["nviews"]
-    fractions = {
-        "seen_ge2": float((nviews >= 2).mean()),
-        "seen_1": float((nviews == 1).mean()),
-        "seen_0": float((nviews == 0).mean()),
-    }
+    fractions = view_fractions(nviews)
     log.info(
         "part-frames seen by >= 2 cameras %.3f, by 1 %.3f, by none %.3f",
         fractions["seen_ge2"],
@@ -257,15 +252,6 @@ def main(argv: list[str] | None = None) -> dict:
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
     return emit(summary, args.out)
-
-
-def emit(summary: dict, out: str | Path) -> dict:
-    """The benchmarks' last line: the summary as JSON (non-finite -> null), printed and written
-    atomically to `out`."""
-    line = json.dumps(finite_or_none(summary))
-    write_text(out, line + "\n")
-    print(line, flush=True)
-    return summary
 
 
 def _round(v):

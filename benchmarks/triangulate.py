@@ -11,7 +11,6 @@ line last and writes it to runs/benchmarks/triangulate.json (atomically).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -19,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import emit
 
 from adjust.camera import Camera, CameraTensors, look_at_pose, project_cameras
 from adjust.triangulate import triangulate
-from deformnet.atomic import write_text
 from deformnet.so3 import matrix_to_rodrigues
 
 OUT = Path(__file__).resolve().parents[1] / "runs" / "benchmarks" / "triangulate.json"
@@ -124,10 +123,7 @@ def main(argv: list[str] | None = None) -> dict:
         "torch": torch.__version__,
         "machine": platform.machine(),
     }
-    line = json.dumps(result)
-    write_text(args.out, line + "\n")
-    print(line)
-    return result
+    return emit(result, args.out)
 
 
 if __name__ == "__main__":

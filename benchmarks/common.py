@@ -1,0 +1,33 @@
+"""What the benchmarks share: their start (`start`: arguments, logging, torch's thread count)
+and their last line (`emit`). A benchmark runs as a script, so ``from common import ...``
+(imports inside the functions: a benchmark's child processes load nothing more for them)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+
+def start(ap: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """The parsed arguments; log messages bare to stderr (INFO); ``--threads N`` (when the
+    benchmark has it): N torch threads for the run (0: torch's default)."""
+    from deformnet.threads import set_torch_threads
+
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    set_torch_threads(getattr(args, "threads", None))
+    return args
+
+
+def emit(summary: dict, out: str | Path) -> dict:
+    """The benchmarks' last line: the summary as JSON (non-finite -> null), printed and written
+    atomically to `out`."""
+    from adjust.app import finite_or_none
+    from deformnet.atomic import write_text
+
+    line = json.dumps(finite_or_none(summary))
+    write_text(out, line + "\n")
+    print(line, flush=True)
+    return summary
