@@ -81,6 +81,20 @@ def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
         raise SystemExit(2) from None
 
 
+def hydra_app(run: Callable[[DictConfig], dict], config_name: str) -> Callable[[], None]:
+    """An app's console-script entry point: Hydra composes ``conf/<config_name>.yaml`` with
+    the command line, then `run_or_exit` calls `run`."""
+    import hydra
+
+    from deformnet.paths import CONF_DIR
+
+    def main(cfg: DictConfig) -> None:
+        run_or_exit(run, cfg)
+
+    main.__wrapped__ = run  # Hydra names the job (and its log file) after run's module
+    return hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)(main)
+
+
 _KINDS = {"int": "an integer", "float": "a number", "bool": "true or false"}
 
 

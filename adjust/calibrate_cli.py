@@ -25,16 +25,14 @@ import json
 import logging
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, prepare_output, required, run_or_exit, setting
+from adjust.app import finite_or_none, hydra_app, prepare_output, required, setting
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import InputError, load_calibration, read_dlc, save_calibration
 from deformnet.atomic import write_text
-from deformnet.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
 
@@ -253,9 +251,7 @@ def run(cfg: DictConfig) -> dict:
     return summary
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="calibrate", version_base=None)
-def main(cfg: DictConfig) -> None:
-    run_or_exit(run, cfg)
+main = hydra_app(run, "calibrate")
 
 
 if __name__ == "__main__":  # pragma: no cover

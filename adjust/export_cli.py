@@ -13,12 +13,10 @@ import logging
 import sys
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from adjust.app import required, run_or_exit
+from adjust.app import hydra_app, required
 from adjust.io.errors import InputError
-from deformnet.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
 
@@ -69,9 +67,7 @@ def run(cfg: DictConfig) -> dict:
     return {"format": fmt, "tracks": str(tracks), "output": str(path)}
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="export", version_base=None)
-def _main(cfg: DictConfig) -> None:
-    run_or_exit(run, cfg)
+_main = hydra_app(run, "export")
 
 
 def main() -> None:

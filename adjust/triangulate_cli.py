@@ -16,17 +16,16 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
 from adjust.app import (
     finite_or_none,
+    hydra_app,
     load_kwargs,
     prepare_output,
     required,
-    run_or_exit,
     setting,
     stats,
     write_outputs,
@@ -35,7 +34,6 @@ from adjust.camera import CameraTensors
 from adjust.camera_check import check_from_config
 from adjust.io import load_scene, write_points3d
 from deformnet.body import BodyModel
-from deformnet.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
 
@@ -146,9 +144,7 @@ def run(cfg: DictConfig) -> dict:
     return summary
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="triangulate", version_base=None)
-def main(cfg: DictConfig) -> None:
-    run_or_exit(run, cfg)
+main = hydra_app(run, "triangulate")
 
 
 if __name__ == "__main__":  # pragma: no cover
