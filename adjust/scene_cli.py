@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from adjust.scene import default_rig, simulate_scene, write_scene
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
+from deformnet.confutil import int_setting
 from deformnet.paths import CONF_DIR, output_dir
 
 log = logging.getLogger(__name__)
@@ -38,17 +39,10 @@ def _simulate(cfg: DictConfig, body: BodyModel, num_frames: int, seed: int) -> A
     return simulate(cfg.sim, num_frames=num_frames, seed=seed, body=body)
 
 
-def _int(cfg: DictConfig, key: str, minimum: int) -> int:
-    value = cfg.get(key)
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{key} must be an integer >= {minimum}, got {value!r}")
-    return value
-
-
 def run(cfg: DictConfig) -> dict:
     """Simulate, detect, write the scene folder; returns its paths and the measured fractions."""
-    num_frames = _int(cfg, "num_frames", 1)
-    seed = _int(cfg, "seed", 0)
+    num_frames = int_setting(cfg, "num_frames", 1)
+    seed = int_setting(cfg, "seed", 0)
     body = BodyModel.from_config(cfg.body)
     sim = _simulate(cfg, body, num_frames, seed)
     cameras = default_rig(cfg, arena_size=getattr(sim, "arena_size", None))

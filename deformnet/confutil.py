@@ -1,4 +1,5 @@
-"""One helper for code that accepts both Hydra/OmegaConf nodes and plain mappings."""
+"""Config helpers for code that accepts both Hydra/OmegaConf nodes and plain mappings: plain
+values (`to_plain`), a project config (`compose`), an integer setting (`int_setting`)."""
 
 from __future__ import annotations
 
@@ -26,3 +27,11 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> Any:
         return hydra.compose(name, overrides=list(overrides))
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         return hydra.compose(name, overrides=list(overrides))
+
+
+def int_setting(cfg: Any, key: str, minimum: int) -> int:
+    """``cfg[key]``, an integer >= `minimum` (not a bool), or a ValueError naming the setting."""
+    value = cfg.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{key} must be an integer >= {minimum}, got {value!r}")
+    return value

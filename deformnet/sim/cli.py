@@ -15,6 +15,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from deformnet.body import BodyModel
+from deformnet.confutil import int_setting
 from deformnet.paths import CONF_DIR, output_dir
 from deformnet.sim.dataset import save_sim
 from deformnet.sim.engine import simulate
@@ -23,21 +24,14 @@ from deformnet.sim.plot import plot_sim, track_xy
 log = logging.getLogger(__name__)
 
 
-def _int(cfg: DictConfig, key: str, minimum: int) -> int:
-    value = cfg.get(key)
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{key}: expected an integer >= {minimum}, got {value!r}")
-    return value
-
-
 def run(cfg: DictConfig) -> dict:
     """Simulate from the app config; write ``sim.npz`` and ``sim.png`` into the output folder.
 
     Returns ``{"data": path, "figure": path, "num_frames", "seed", "duration_s",
     "behavior_fractions": {name: fraction}, "observed_fraction", "mean_speed_mm_s"}``.
     """
-    num_frames = _int(cfg, "num_frames", 1)
-    seed = _int(cfg, "seed", 0)
+    num_frames = int_setting(cfg, "num_frames", 1)
+    seed = int_setting(cfg, "seed", 0)
     body = BodyModel.from_config(cfg.body)
     data = simulate(cfg.sim, num_frames=num_frames, seed=seed, body=body)
     out = output_dir(cfg)
