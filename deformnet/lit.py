@@ -17,9 +17,8 @@ from typing import Any
 
 import lightning as L
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from deformnet.body import BodyModel
 from deformnet.deformation import CHECKPOINT_KEY, DeformationModel
 from deformnet.tokens import linear_baseline, masked_mse
 
@@ -27,20 +26,16 @@ __all__ = ["DeformLit"]
 
 
 class DeformLit(L.LightningModule):
-    """net: canonical-coordinate predictor (see `deformnet.nets`); body: rigid body model;
-    half_window: n; net_config: the net's `_target_` config (needed to rebuild it from a
-    checkpoint); lr, weight_decay, warmup_steps: AdamW with linear warm-up then cosine decay
-    over the trainer's estimated steps, or over `time_budget_s` seconds of training when that comes
-    first (set it to the trainer's max_time, so a slow shared machine still finishes the schedule);
-    hparams: extra hyper-parameters to log (e.g. the
-    flattened run config)."""
+    """model: the `DeformationModel` to train (its net: a canonical-coordinate predictor, see
+    `deformnet.nets`; its net_config is needed to rebuild it from a checkpoint); lr,
+    weight_decay, warmup_steps: AdamW with linear warm-up then cosine decay over the trainer's
+    estimated steps, or over `time_budget_s` seconds of training when that comes first (set it
+    to the trainer's max_time, so a slow shared machine still finishes the schedule); hparams:
+    extra hyper-parameters to log (e.g. the flattened run config)."""
 
     def __init__(
         self,
-        net: nn.Module,
-        body: BodyModel,
-        half_window: int,
-        net_config: Mapping[str, Any] | None = None,
+        model: DeformationModel,
         lr: float = 2e-3,
         weight_decay: float = 1e-4,
         warmup_steps: int = 100,
@@ -48,10 +43,10 @@ class DeformLit(L.LightningModule):
         hparams: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["net", "body"])
-        self.model = DeformationModel(net, body, half_window, net_config)
-        self.parts = tuple(body.parts)
-        self.mid = int(half_window)
+        self.save_hyperparameters(ignore=["model"])
+        self.model = model
+        self.parts = tuple(model.body.parts)
+        self.mid = model.half_window
         self._val_sums: dict[str, Tensor] = {}
         self._t_start: float | None = None
 

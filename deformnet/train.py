@@ -89,7 +89,7 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
     body: the body model (default: ``cfg.body``); pretrained: a `DeformationModel` whose net
     (config, window and weights) is fine-tuned instead of a fresh ``cfg.net``."""
     from deformnet.body import BodyModel
-    from deformnet.deformation import build_net
+    from deformnet.deformation import DeformationModel, build_net
     from deformnet.lit import DeformLit
 
     body = BodyModel.from_config(cfg.body) if body is None else body
@@ -110,10 +110,7 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
     if pretrained is not None:
         net.load_state_dict(pretrained.net.state_dict())
     lit = DeformLit(
-        net,
-        body,
-        half_window,
-        net_config=ncfg,
+        DeformationModel(net, body, half_window, ncfg),
         lr=float(cfg.optim.lr),
         weight_decay=float(cfg.optim.weight_decay),
         warmup_steps=int(cfg.optim.warmup_steps),

@@ -159,7 +159,7 @@ def test_lightning_checkpoint_round_trip(body, tmp_path):
 
     torch.manual_seed(0)
     cfg = NET_CONFIGS["transformer"]
-    lit = DeformLit(build_net(cfg), body, N, net_config=cfg, lr=1e-2, warmup_steps=1)
+    lit = DeformLit(DeformationModel(build_net(cfg), body, N, cfg), lr=1e-2, warmup_steps=1)
     dm = DeformDataModule(
         body,
         N,
