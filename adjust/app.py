@@ -17,6 +17,8 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from deformnet.atomic import finite_or_none  # noqa: F401  (apps: adjust.app.finite_or_none)
+
 log = logging.getLogger(__name__)
 
 
@@ -294,19 +296,6 @@ def stats(values: np.ndarray) -> dict:
     if s["n"] == 0:
         return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
     return {"count": s["n"], **{k: s[k] for k in ("median", "mean", "p90", "max")}}
-
-
-def finite_or_none(x):
-    """JSON has no NaN: non-finite floats (recursively) -> None; numpy bools -> bool."""
-    if isinstance(x, dict):
-        return {k: finite_or_none(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [finite_or_none(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
 
 
 def load_kwargs(inp: DictConfig) -> dict:

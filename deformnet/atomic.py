@@ -52,3 +52,20 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def finite_or_none(x):
+    """JSON has no NaN: non-finite floats (recursively) -> None; numpy bools -> bool."""
+    import math
+
+    import numpy as np
+
+    if isinstance(x, dict):
+        return {k: finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [finite_or_none(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x

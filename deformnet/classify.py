@@ -39,6 +39,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
+from deformnet.atomic import finite_or_none
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
 from deformnet.series import interpolate_gaps
@@ -912,7 +913,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         logger.experiment.flush()
     _save_figure(cm_fig, out / "confusion.png")
     _save_figure(eth_fig, out / "ethogram.png")
-    write_text(out / "report.json", json.dumps(_json_safe(report), indent=2) + "\n")
+    write_text(out / "report.json", json.dumps(finite_or_none(report), indent=2) + "\n")
     log.info(
         "%s macro-F1 %.3f (smoothed %.3f); classifier %s",
         eval_name,
@@ -928,16 +929,6 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         if trainer is None
         else {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
     }
-
-
-def _json_safe(x):
-    if isinstance(x, dict):
-        return {k: _json_safe(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
 
 
 def _predict(cfg: DictConfig, out: Path) -> dict:
