@@ -262,7 +262,7 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
         keep("curves", plot.curves_figure(nets))
     beh = data.get("behavior")
     if beh and "_labels" in beh:
-        from deformnet.classify import confusion_figure, ethogram_figure
+        from deformnet.behavior_report import confusion_figure, ethogram_figure
 
         lab = beh.pop("_labels")
         s = beh["session"]
@@ -301,13 +301,15 @@ def _raw_positions(scene: Path, cameras, parts) -> tuple[np.ndarray | None, floa
 # ---------------------------------------------------------------------------------------------
 def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
     """The classifier's own report (its test split) and its predictions on the demo session's
-    primary tracks scored against the scene's truth labels (`deformnet.classify.evaluate`)."""
+    primary tracks scored against the scene's truth labels
+    (`deformnet.behavior_report.evaluate`)."""
     cls = record.get("classify")
     if not cls:
         return None
     import pandas as pd
 
-    from deformnet.classify import bouts, evaluate
+    from deformnet.behavior_labels import bouts
+    from deformnet.behavior_report import evaluate
 
     rep = json.loads((Path(cls["dir"]) / "report.json").read_text())
     classes = list(rep["raw"]["per_class"])

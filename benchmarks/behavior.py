@@ -201,7 +201,8 @@ def window_features(path: Path, parts: list[str], interpolate: bool) -> np.ndarr
 def run_rf(sessions: dict, source: str, fraction: float, seed: int = 0) -> dict:
     from sklearn.ensemble import RandomForestClassifier
 
-    from deformnet.classify import Session, evaluate, subsample_labels
+    from deformnet.behavior_labels import Session, subsample_labels
+    from deformnet.behavior_report import evaluate
 
     classes = sessions["train"][0]["behaviors"]
     parts = sessions["train"][0]["parts"]
@@ -213,7 +214,7 @@ def run_rf(sessions: dict, source: str, fraction: float, seed: int = 0) -> dict:
         return X, y
 
     Xtr, ytr = load("train")
-    # the same labelled frames the nets get (deformnet.classify.subsample_labels)
+    # the same labelled frames the nets get (deformnet.behavior_labels.subsample_labels)
     dummy = [
         Session(str(i), None, None, None, np.arange(len(y)), y.copy()) for i, y in enumerate(ytr)
     ]  # fmt: skip
@@ -239,7 +240,7 @@ def run_rf(sessions: dict, source: str, fraction: float, seed: int = 0) -> dict:
 # events
 # --------------------------------------------------------------------------------------------
 def truth_bouts(labels: np.ndarray, behaviors: list[str]) -> list[dict]:
-    from deformnet.classify import bouts
+    from deformnet.behavior_labels import bouts
 
     out = []
     for a, b, c in bouts(np.asarray(labels)):

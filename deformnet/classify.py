@@ -20,6 +20,10 @@ Training writes into the output folder: `classifier.pt` (what `mode=predict` loa
 and smoothed), `confusion.png`, `ethogram.png`, `config.yaml`. Prediction writes
 `predictions.csv` (fnum, label, label_raw, p_<class>...) and `bouts.csv` (start, stop, label,
 mean_probability).
+
+Here: the window bank, the context features, the head's L-BFGS fit, building and loading the
+classifier, and the app. Tracks and labels: `deformnet.behavior_labels`; metrics and figures:
+`deformnet.behavior_report`; the modules: `deformnet.heads`, `deformnet.classify_lit`.
 """
 
 from __future__ import annotations
@@ -28,7 +32,6 @@ import json
 import logging
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,235 +43,38 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
 from deformnet.atomic import finite_or_none
+from deformnet.behavior_labels import (
+    Session,
+    bouts,
+    read_labels,
+    read_tracks,
+    smooth,
+    subsample_labels,
+)
+from deformnet.behavior_report import (
+    bout_stats,
+    confusion_figure,
+    ethogram_figure,
+    evaluate,
+    save_figure,
+)
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
-from deformnet.series import interpolate_gaps
-from deformnet.tables import read_csv, xyz_parts
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "Session",
-    "read_tracks",
-    "read_labels",
-    "bouts",
-    "smooth",
-    "subsample_labels",
     "SessionBank",
+    "context_features",
+    "fit_head_lbfgs",
     "load_classifier",
+    "predict_probs",
     "predict_session",
-    "evaluate",
     "run",
     "main",
 ]
 
 CHECKPOINT_KIND = "mousetrack-behavior-classifier"
-POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
-
-
-# --------------------------------------------------------------------------------------------
-# sessions: tracks and labels
-# --------------------------------------------------------------------------------------------
-@dataclass
-class Session:
-    """One recording: rigid, deformed (T, K, 3) global mm, observed (T, K) bool, fnum (T,)
-    frame numbers, labels (T,) int64 class index (-1: not labelled)."""
-
-    name: str
-    rigid: np.ndarray
-    deformed: np.ndarray
-    observed: np.ndarray
-    fnum: np.ndarray
-    labels: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.fnum)
-
-
-def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dict:
-    """A points3d CSV -> {"rigid", "deformed" (T, K, 3), "observed" (T, K), "fnum" (T,)} in the
-    body model's part order (parts found by name or alias).
-
-    With pose columns the rigid points are the body model moved by each frame's pose; without,
-    the pose is fitted per frame by Kabsch (`deformnet.tokens.kabsch`) to the points, which then
-    must all be finite (set `interpolate` to fill gaps linearly in time first).
-    """
-    from deformnet.so3 import transform_points
-    from deformnet.tokens import kabsch
-
-    path = Path(path)
-    df = read_csv(path, "tracks file")
-    cols = set(df.columns)
-    found: dict[str, str] = {}
-    for part in xyz_parts(df.columns):
-        name = body.resolve(part)
-        if name is not None:
-            found[name] = part
-    missing = [p for p in body.parts if p not in found]
-    if missing:
-        raise ValueError(
-            f"{path}: no {{part}}_x/_y/_z columns for body part(s) {missing} "
-            f"(found {sorted(found.values())})"
-        )
-    T = len(df)
-    if T == 0:
-        raise ValueError(f"{path}: no rows")
-
-    def numeric(col: str) -> np.ndarray:
-        v = pd.to_numeric(df[col], errors="coerce")
-        bad = v.isna() & df[col].notna()
-        if bad.any():
-            r = int(np.flatnonzero(bad.to_numpy())[0])
-            raise ValueError(f"{path}: non-numeric value {df[col].iloc[r]!r} in '{col}', row {r}")
-        return v.to_numpy(np.float64)
-
-    pts = np.stack(
-        [np.stack([numeric(f"{found[p]}_{a}") for a in "xyz"], -1) for p in body.parts], 1
-    )
-    observed = np.isfinite(pts).all(-1)
-    if interpolate:
-        pts = interpolate_gaps(pts)
-        never = [p for k, p in enumerate(body.parts) if not np.isfinite(pts[:, k]).all()]
-        if never:
-            raise ValueError(f"{path}: part(s) {never} have no finite value to interpolate from")
-        observed = np.ones_like(observed)
-    model = torch.tensor(np.array(body.points, dtype=np.float64))
-    if all(c in cols for c in POSE_COLUMNS):
-        poses = np.stack([numeric(c) for c in POSE_COLUMNS], -1)
-        bad = ~np.isfinite(poses).all(-1)
-        if bad.any():
-            raise ValueError(
-                f"{path}: non-finite pose in row {int(np.flatnonzero(bad)[0])} (pose columns "
-                "must be complete; adjust-track writes them so)"
-            )
-        rigid = transform_points(torch.as_tensor(poses), model.expand(T, -1, -1)).numpy()
-    else:
-        if not observed.all():
-            t, k = np.argwhere(~observed)[0]
-            raise ValueError(
-                f"{path}: no pose columns and part '{body.parts[k]}' is missing in row {t}: "
-                "fill gaps first (data.interpolate=true) or use adjust-track output"
-            )
-        P = torch.as_tensor(pts)
-        R, t = kabsch(P, model)
-        rigid = (model @ R.transpose(-1, -2) + t[:, None, :]).numpy()
-    deformed = np.where(observed[..., None], pts, rigid)
-    fnum = numeric("fnum").astype(np.int64) if "fnum" in cols else np.arange(T, dtype=np.int64)
-    if len(np.unique(fnum)) != T:
-        raise ValueError(f"{path}: duplicate frame numbers in column 'fnum'")
-    return {
-        "rigid": rigid.astype(np.float32),
-        "deformed": deformed.astype(np.float32),
-        "observed": observed,
-        "fnum": fnum,
-    }
-
-
-def read_labels(
-    path: str | os.PathLike, fnum: np.ndarray, classes: Sequence[str], tracks: str = "the track"
-) -> np.ndarray:
-    """Labels (T,) int64 (-1: unlabelled) for frames `fnum` from a `fnum,label` CSV (one row per
-    frame) or a `start,stop,label` CSV (bouts, frame numbers, stop inclusive). Unknown labels,
-    duplicate frames, overlapping bouts and frames outside the track are errors naming the file
-    and row (rows count data rows from 1)."""
-    path = Path(path)
-    df = read_csv(path, "labels file", dtype={"label": str})
-    index = {str(c): i for i, c in enumerate(classes)}
-    pos = {int(f): i for i, f in enumerate(fnum)}
-    lo, hi = int(np.min(fnum)), int(np.max(fnum))
-    out = np.full(len(fnum), -1, dtype=np.int64)
-    cols = set(df.columns)
-    if {"fnum", "label"} <= cols:
-        kind, frame_cols = "frames", ("fnum",)
-    elif {"start", "stop", "label"} <= cols:
-        kind, frame_cols = "bouts", ("start", "stop")
-    else:
-        raise ValueError(
-            f"{path}: expected columns 'fnum,label' (per frame) or 'start,stop,label' (bouts), "
-            f"got {list(df.columns)}"
-        )
-
-    def frame(r: int, col: str) -> int:
-        v = df[col].iloc[r]
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            f = float("nan")
-        if not np.isfinite(f) or f != int(f):
-            raise ValueError(f"{path}: row {r + 1}: '{col}' must be a frame number, got {v!r}")
-        f = int(f)
-        if f not in pos:
-            raise ValueError(
-                f"{path}: row {r + 1}: frame {f} is outside {tracks} (frames {lo}..{hi})"
-            )
-        return f
-
-    owner = np.zeros(len(fnum), dtype=np.int64)  # 1-based row that labelled each frame
-    for r in range(len(df)):
-        name = df["label"].iloc[r]
-        if not isinstance(name, str) or str(name).strip() not in index:
-            raise ValueError(
-                f"{path}: row {r + 1}: unknown label {name!r} (known: {', '.join(classes)})"
-            )
-        c = index[str(name).strip()]
-        if kind == "frames":
-            i = pos[frame(r, "fnum")]
-            if owner[i]:
-                raise ValueError(
-                    f"{path}: row {r + 1}: frame {fnum[i]} is labelled again (row {owner[i]})"
-                )
-            sel = np.array([i])
-        else:
-            a, b = frame(r, frame_cols[0]), frame(r, frame_cols[1])
-            if b < a:
-                raise ValueError(f"{path}: row {r + 1}: stop {b} < start {a}")
-            sel = np.flatnonzero((fnum >= a) & (fnum <= b))
-            clash = sel[owner[sel] > 0]
-            if clash.size:
-                raise ValueError(
-                    f"{path}: row {r + 1}: bout {a}-{b} overlaps the bout in row "
-                    f"{owner[clash[0]]} (frame {fnum[clash[0]]})"
-                )
-        owner[sel] = r + 1
-        out[sel] = c
-    return out
-
-
-def bouts(labels: np.ndarray) -> list[tuple[int, int, int]]:
-    """Runs of equal labels: [(start index, stop index inclusive, label)], -1 runs skipped."""
-    labels = np.asarray(labels)
-    if labels.size == 0:
-        return []
-    change = np.flatnonzero(np.diff(labels) != 0) + 1
-    starts = np.concatenate(([0], change))
-    stops = np.concatenate((change, [len(labels)])) - 1
-    return [(int(a), int(b), int(labels[a])) for a, b in zip(starts, stops) if labels[a] >= 0]
-
-
-def smooth(probs: np.ndarray, median: int = 0, min_bout: int = 0) -> np.ndarray:
-    """Smoothed labels (T,) from per-frame probabilities (T, C): a running median of each class's
-    probability over `median` frames (0/1: none), argmax, then bouts shorter than `min_bout`
-    frames merged into the longer neighbour (repeated until none is left)."""
-    from scipy.ndimage import median_filter
-
-    p = np.asarray(probs, dtype=np.float64)
-    if median and median > 1:
-        p = median_filter(p, size=(int(median), 1), mode="nearest")
-    lab = p.argmax(-1)
-    if min_bout and min_bout > 1:
-        for _ in range(len(lab)):
-            runs = bouts(lab)
-            short = [i for i, (a, b, _) in enumerate(runs) if b - a + 1 < min_bout]
-            if not short or len(runs) == 1:
-                break
-            i = min(short, key=lambda j: runs[j][1] - runs[j][0])
-            a, b, _ = runs[i]
-            left = runs[i - 1] if i > 0 else None
-            right = runs[i + 1] if i + 1 < len(runs) else None
-            cand = [x for x in (left, right) if x is not None]
-            best = max(cand, key=lambda x: x[1] - x[0])
-            lab[a : b + 1] = best[2]
-    return lab
 
 
 # --------------------------------------------------------------------------------------------
@@ -518,116 +324,6 @@ def predict_session(model, session: Session, smoothing: dict) -> dict:
 
 
 # --------------------------------------------------------------------------------------------
-# reports
-# --------------------------------------------------------------------------------------------
-def bout_stats(labels: np.ndarray, classes: Sequence[str], fps: float) -> dict:
-    """Per class: bout count and mean duration (frames and s)."""
-    runs = bouts(labels)
-    out = {}
-    for c, name in enumerate(classes):
-        d = np.array([b - a + 1 for a, b, lab in runs if lab == c])
-        mean = float(d.mean()) if d.size else 0.0
-        out[name] = {"bouts": int(d.size), "mean_frames": mean, "mean_s": mean / fps}
-    return out
-
-
-def evaluate(y_true: np.ndarray, y_pred: np.ndarray, classes: Sequence[str]) -> dict:
-    """Per-class precision / recall / F1 / support, macro-F1 (over the classes present in the
-    truth or the predictions), accuracy, and the confusion matrix (rows: truth) on the labelled
-    frames (y_true >= 0). scikit-learn metrics."""
-    from sklearn.metrics import confusion_matrix, precision_recall_fscore_support
-
-    from deformnet.classify_lit import macro_f1
-
-    m = np.asarray(y_true) >= 0
-    yt, yp = np.asarray(y_true)[m], np.asarray(y_pred)[m]
-    C = len(classes)
-    p, r, f, s = precision_recall_fscore_support(
-        yt, yp, labels=np.arange(C), average=None, zero_division=0
-    )
-    score, _ = macro_f1(yt, yp, C)
-    return {
-        "macro_f1": score,
-        "accuracy": float(np.mean(yt == yp)) if yt.size else float("nan"),
-        "frames": int(yt.size),
-        "per_class": {
-            name: {
-                "precision": float(p[c]),
-                "recall": float(r[c]),
-                "f1": float(f[c]),
-                "support": int(s[c]),
-            }
-            for c, name in enumerate(classes)
-        },
-        "confusion": confusion_matrix(yt, yp, labels=np.arange(C)).tolist(),
-    }
-
-
-def confusion_figure(confusion: Sequence[Sequence[int]], classes: Sequence[str], title: str = ""):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    cm = np.asarray(confusion, dtype=np.float64)
-    norm = cm / np.maximum(cm.sum(1, keepdims=True), 1)
-    fig, ax = plt.subplots(figsize=(6, 5))
-    im = ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
-    C = len(classes)
-    ax.set_xticks(range(C), classes, rotation=45, ha="right")
-    ax.set_yticks(range(C), classes)
-    for i in range(C):
-        for j in range(C):
-            if cm[i, j]:
-                ax.text(j, i, int(cm[i, j]), ha="center", va="center", fontsize=7,
-                        color="w" if norm[i, j] > 0.5 else "k")  # fmt: skip
-    ax.set_xlabel("predicted")
-    ax.set_ylabel("true")
-    ax.set_title(title or "confusion (row-normalised colour, counts)")
-    fig.colorbar(im, ax=ax)
-    fig.tight_layout()
-    return fig
-
-
-def ethogram_figure(tracks: dict[str, np.ndarray], classes: Sequence[str], fps: float):
-    """One row per named label track (e.g. true, predicted), time in s."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap
-
-    names = list(tracks)
-    T = max(len(v) for v in tracks.values())
-    img = np.full((len(names), T), np.nan)
-    for i, n in enumerate(names):
-        v = np.asarray(tracks[n], dtype=np.float64)
-        img[i, : len(v)] = np.where(v >= 0, v, np.nan)
-    C = len(classes)
-    cmap = ListedColormap(plt.get_cmap("tab10")(np.arange(C) % 10))
-    fig, ax = plt.subplots(figsize=(12, 0.6 * len(names) + 1.6))
-    ax.imshow(img, aspect="auto", interpolation="nearest", cmap=cmap, vmin=-0.5, vmax=C - 0.5,
-              extent=(0, T / fps, len(names) - 0.5, -0.5))  # fmt: skip
-    ax.set_yticks(range(len(names)), names)
-    ax.set_xlabel("time (s)")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=cmap(c)) for c in range(C)]
-    ax.legend(handles, classes, ncol=min(C, 8), loc="upper center", bbox_to_anchor=(0.5, -0.35),
-              fontsize=8, frameon=False)  # fmt: skip
-    fig.tight_layout()
-    return fig
-
-
-def _save_figure(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    from deformnet.atomic import atomic_path
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-
-
-# --------------------------------------------------------------------------------------------
 # the app
 # --------------------------------------------------------------------------------------------
 def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list[Session]:
@@ -665,27 +361,6 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
             Session(tp, tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], lab)
         )  # fmt: skip
     return out
-
-
-def subsample_labels(sessions: list[Session], fraction: float, segment: int, seed: int) -> None:
-    """Keep the labels of a random `fraction` of each session's labelled frames (in segments of
-    `segment` frames), unlabel the rest (in place)."""
-    if not 0 < fraction <= 1:
-        raise ValueError(f"labels.fraction must be in (0, 1], got {fraction}")
-    if fraction >= 1:
-        return
-    rng = np.random.default_rng(seed)
-    seg = max(1, int(segment))
-    for s in sessions:
-        lab = np.flatnonzero(s.labels >= 0)
-        if lab.size == 0:
-            continue
-        chunks = [lab[i : i + seg] for i in range(0, lab.size, seg)]
-        k = max(1, int(round(fraction * len(chunks))))
-        keep = np.concatenate([chunks[i] for i in rng.choice(len(chunks), k, replace=False)])
-        new = np.full_like(s.labels, -1)
-        new[keep] = s.labels[keep]
-        s.labels = new
 
 
 def _encoder_config(cfg: DictConfig, classes):
@@ -911,8 +586,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         logger.experiment.add_figure(f"{eval_name}/confusion", cm_fig, global_step=steps)  # noqa: E501
         logger.experiment.add_figure(f"{eval_name}/ethogram", eth_fig, global_step=steps)  # noqa: E501
         logger.experiment.flush()
-    _save_figure(cm_fig, out / "confusion.png")
-    _save_figure(eth_fig, out / "ethogram.png")
+    save_figure(cm_fig, out / "confusion.png")
+    save_figure(eth_fig, out / "ethogram.png")
     write_text(out / "report.json", json.dumps(finite_or_none(report), indent=2) + "\n")
     log.info(
         "%s macro-F1 %.3f (smoothed %.3f); classifier %s",

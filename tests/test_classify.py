@@ -10,8 +10,8 @@ import torch
 from helpers import tiny_deformation_model
 
 from adjust.io import write_points3d
+from deformnet.behavior_labels import bouts, read_labels, read_tracks, smooth
 from deformnet.body import default_mouse
-from deformnet.classify import bouts, read_labels, read_tracks, smooth
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import transform_points
 

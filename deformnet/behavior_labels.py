@@ -1,0 +1,258 @@
+"""Behavior sessions for `deformnet-classify`: 3D tracks and labels read, bouts, smoothing.
+
+Tracks: the points3d CSV layout `adjust-track` writes (`{part}_x/_y/_z` columns, `pose_rx..pose_tz`,
+`fnum`; read here by column name, without `adjust`). Labels: per frame (`fnum,label`) or bouts
+(`start,stop,label`, stop inclusive); every error names the file and the row.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from deformnet.series import interpolate_gaps
+from deformnet.tables import read_csv, xyz_parts
+
+__all__ = [
+    "POSE_COLUMNS",
+    "Session",
+    "read_tracks",
+    "read_labels",
+    "bouts",
+    "smooth",
+    "subsample_labels",
+]
+
+POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
+
+
+# --------------------------------------------------------------------------------------------
+# sessions: tracks and labels
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Session:
+    """One recording: rigid, deformed (T, K, 3) global mm, observed (T, K) bool, fnum (T,)
+    frame numbers, labels (T,) int64 class index (-1: not labelled)."""
+
+    name: str
+    rigid: np.ndarray
+    deformed: np.ndarray
+    observed: np.ndarray
+    fnum: np.ndarray
+    labels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.fnum)
+
+
+def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dict:
+    """A points3d CSV -> {"rigid", "deformed" (T, K, 3), "observed" (T, K), "fnum" (T,)} in the
+    body model's part order (parts found by name or alias).
+
+    With pose columns the rigid points are the body model moved by each frame's pose; without,
+    the pose is fitted per frame by Kabsch (`deformnet.tokens.kabsch`) to the points, which then
+    must all be finite (set `interpolate` to fill gaps linearly in time first).
+    """
+    from deformnet.so3 import transform_points
+    from deformnet.tokens import kabsch
+
+    path = Path(path)
+    df = read_csv(path, "tracks file")
+    cols = set(df.columns)
+    found: dict[str, str] = {}
+    for part in xyz_parts(df.columns):
+        name = body.resolve(part)
+        if name is not None:
+            found[name] = part
+    missing = [p for p in body.parts if p not in found]
+    if missing:
+        raise ValueError(
+            f"{path}: no {{part}}_x/_y/_z columns for body part(s) {missing} "
+            f"(found {sorted(found.values())})"
+        )
+    T = len(df)
+    if T == 0:
+        raise ValueError(f"{path}: no rows")
+
+    def numeric(col: str) -> np.ndarray:
+        v = pd.to_numeric(df[col], errors="coerce")
+        bad = v.isna() & df[col].notna()
+        if bad.any():
+            r = int(np.flatnonzero(bad.to_numpy())[0])
+            raise ValueError(f"{path}: non-numeric value {df[col].iloc[r]!r} in '{col}', row {r}")
+        return v.to_numpy(np.float64)
+
+    pts = np.stack(
+        [np.stack([numeric(f"{found[p]}_{a}") for a in "xyz"], -1) for p in body.parts], 1
+    )
+    observed = np.isfinite(pts).all(-1)
+    if interpolate:
+        pts = interpolate_gaps(pts)
+        never = [p for k, p in enumerate(body.parts) if not np.isfinite(pts[:, k]).all()]
+        if never:
+            raise ValueError(f"{path}: part(s) {never} have no finite value to interpolate from")
+        observed = np.ones_like(observed)
+    model = torch.tensor(np.array(body.points, dtype=np.float64))
+    if all(c in cols for c in POSE_COLUMNS):
+        poses = np.stack([numeric(c) for c in POSE_COLUMNS], -1)
+        bad = ~np.isfinite(poses).all(-1)
+        if bad.any():
+            raise ValueError(
+                f"{path}: non-finite pose in row {int(np.flatnonzero(bad)[0])} (pose columns "
+                "must be complete; adjust-track writes them so)"
+            )
+        rigid = transform_points(torch.as_tensor(poses), model.expand(T, -1, -1)).numpy()
+    else:
+        if not observed.all():
+            t, k = np.argwhere(~observed)[0]
+            raise ValueError(
+                f"{path}: no pose columns and part '{body.parts[k]}' is missing in row {t}: "
+                "fill gaps first (data.interpolate=true) or use adjust-track output"
+            )
+        P = torch.as_tensor(pts)
+        R, t = kabsch(P, model)
+        rigid = (model @ R.transpose(-1, -2) + t[:, None, :]).numpy()
+    deformed = np.where(observed[..., None], pts, rigid)
+    fnum = numeric("fnum").astype(np.int64) if "fnum" in cols else np.arange(T, dtype=np.int64)
+    if len(np.unique(fnum)) != T:
+        raise ValueError(f"{path}: duplicate frame numbers in column 'fnum'")
+    return {
+        "rigid": rigid.astype(np.float32),
+        "deformed": deformed.astype(np.float32),
+        "observed": observed,
+        "fnum": fnum,
+    }
+
+
+def read_labels(
+    path: str | os.PathLike, fnum: np.ndarray, classes: Sequence[str], tracks: str = "the track"
+) -> np.ndarray:
+    """Labels (T,) int64 (-1: unlabelled) for frames `fnum` from a `fnum,label` CSV (one row per
+    frame) or a `start,stop,label` CSV (bouts, frame numbers, stop inclusive). Unknown labels,
+    duplicate frames, overlapping bouts and frames outside the track are errors naming the file
+    and row (rows count data rows from 1)."""
+    path = Path(path)
+    df = read_csv(path, "labels file", dtype={"label": str})
+    index = {str(c): i for i, c in enumerate(classes)}
+    pos = {int(f): i for i, f in enumerate(fnum)}
+    lo, hi = int(np.min(fnum)), int(np.max(fnum))
+    out = np.full(len(fnum), -1, dtype=np.int64)
+    cols = set(df.columns)
+    if {"fnum", "label"} <= cols:
+        kind, frame_cols = "frames", ("fnum",)
+    elif {"start", "stop", "label"} <= cols:
+        kind, frame_cols = "bouts", ("start", "stop")
+    else:
+        raise ValueError(
+            f"{path}: expected columns 'fnum,label' (per frame) or 'start,stop,label' (bouts), "
+            f"got {list(df.columns)}"
+        )
+
+    def frame(r: int, col: str) -> int:
+        v = df[col].iloc[r]
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            f = float("nan")
+        if not np.isfinite(f) or f != int(f):
+            raise ValueError(f"{path}: row {r + 1}: '{col}' must be a frame number, got {v!r}")
+        f = int(f)
+        if f not in pos:
+            raise ValueError(
+                f"{path}: row {r + 1}: frame {f} is outside {tracks} (frames {lo}..{hi})"
+            )
+        return f
+
+    owner = np.zeros(len(fnum), dtype=np.int64)  # 1-based row that labelled each frame
+    for r in range(len(df)):
+        name = df["label"].iloc[r]
+        if not isinstance(name, str) or str(name).strip() not in index:
+            raise ValueError(
+                f"{path}: row {r + 1}: unknown label {name!r} (known: {', '.join(classes)})"
+            )
+        c = index[str(name).strip()]
+        if kind == "frames":
+            i = pos[frame(r, "fnum")]
+            if owner[i]:
+                raise ValueError(
+                    f"{path}: row {r + 1}: frame {fnum[i]} is labelled again (row {owner[i]})"
+                )
+            sel = np.array([i])
+        else:
+            a, b = frame(r, frame_cols[0]), frame(r, frame_cols[1])
+            if b < a:
+                raise ValueError(f"{path}: row {r + 1}: stop {b} < start {a}")
+            sel = np.flatnonzero((fnum >= a) & (fnum <= b))
+            clash = sel[owner[sel] > 0]
+            if clash.size:
+                raise ValueError(
+                    f"{path}: row {r + 1}: bout {a}-{b} overlaps the bout in row "
+                    f"{owner[clash[0]]} (frame {fnum[clash[0]]})"
+                )
+        owner[sel] = r + 1
+        out[sel] = c
+    return out
+
+
+def bouts(labels: np.ndarray) -> list[tuple[int, int, int]]:
+    """Runs of equal labels: [(start index, stop index inclusive, label)], -1 runs skipped."""
+    labels = np.asarray(labels)
+    if labels.size == 0:
+        return []
+    change = np.flatnonzero(np.diff(labels) != 0) + 1
+    starts = np.concatenate(([0], change))
+    stops = np.concatenate((change, [len(labels)])) - 1
+    return [(int(a), int(b), int(labels[a])) for a, b in zip(starts, stops) if labels[a] >= 0]
+
+
+def smooth(probs: np.ndarray, median: int = 0, min_bout: int = 0) -> np.ndarray:
+    """Smoothed labels (T,) from per-frame probabilities (T, C): a running median of each class's
+    probability over `median` frames (0/1: none), argmax, then bouts shorter than `min_bout`
+    frames merged into the longer neighbour (repeated until none is left)."""
+    from scipy.ndimage import median_filter
+
+    p = np.asarray(probs, dtype=np.float64)
+    if median and median > 1:
+        p = median_filter(p, size=(int(median), 1), mode="nearest")
+    lab = p.argmax(-1)
+    if min_bout and min_bout > 1:
+        for _ in range(len(lab)):
+            runs = bouts(lab)
+            short = [i for i, (a, b, _) in enumerate(runs) if b - a + 1 < min_bout]
+            if not short or len(runs) == 1:
+                break
+            i = min(short, key=lambda j: runs[j][1] - runs[j][0])
+            a, b, _ = runs[i]
+            left = runs[i - 1] if i > 0 else None
+            right = runs[i + 1] if i + 1 < len(runs) else None
+            cand = [x for x in (left, right) if x is not None]
+            best = max(cand, key=lambda x: x[1] - x[0])
+            lab[a : b + 1] = best[2]
+    return lab
+
+
+def subsample_labels(sessions: list[Session], fraction: float, segment: int, seed: int) -> None:
+    """Keep the labels of a random `fraction` of each session's labelled frames (in segments of
+    `segment` frames), unlabel the rest (in place)."""
+    if not 0 < fraction <= 1:
+        raise ValueError(f"labels.fraction must be in (0, 1], got {fraction}")
+    if fraction >= 1:
+        return
+    rng = np.random.default_rng(seed)
+    seg = max(1, int(segment))
+    for s in sessions:
+        lab = np.flatnonzero(s.labels >= 0)
+        if lab.size == 0:
+            continue
+        chunks = [lab[i : i + seg] for i in range(0, lab.size, seg)]
+        k = max(1, int(round(fraction * len(chunks))))
+        keep = np.concatenate([chunks[i] for i in rng.choice(len(chunks), k, replace=False)])
+        new = np.full_like(s.labels, -1)
+        new[keep] = s.labels[keep]
+        s.labels = new
