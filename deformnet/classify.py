@@ -186,7 +186,7 @@ def fit_head_lbfgs(
     labels: Tensor,
     class_weights: Sequence[float] | None = None,
     l2: float = 1.0,
-    max_iter: int = 500,
+    max_iter: int = 200,
 ) -> dict:
     """Fit the classifier's head alone on fixed features by full-batch L-BFGS (the linear-probe
     protocol: deterministic, to convergence): minimise the class-weighted sum over the frames
@@ -195,19 +195,18 @@ def fit_head_lbfgs(
 
     features (N, out_dim) as `model.features` gives them (standardised inside
     `model.classify`), labels (N,) class indices. Returns {"loss", "iterations"}."""
-    features = features.detach().to(torch.float64)
     labels = torch.as_tensor(labels, dtype=torch.long)
     if features.dim() != 2 or features.shape[0] != labels.shape[0] or labels.numel() == 0:
         raise ValueError(f"features (N, D) and labels (N,), got {features.shape}, {labels.shape}")
     head = model.head
+    was_training = head.training
+    head.train(False)  # dropout off: a deterministic objective
     dtype = next(head.parameters()).dtype
-    head.to(torch.float64).train(False)  # dropout off: a deterministic objective
-    mean, std = model.feature_mean.to(torch.float64), model.feature_std.to(torch.float64)
-    x = (features - mean) / std
+    x = ((features.detach() - model.feature_mean) / model.feature_std).to(dtype)
     C = next(p for p in reversed(list(head.parameters())) if p.dim() == 1).shape[0]
-    w = torch.ones(C, dtype=torch.float64)
+    w = torch.ones(C, dtype=dtype)
     if class_weights is not None:
-        w = torch.as_tensor(class_weights, dtype=torch.float64)
+        w = torch.as_tensor(class_weights, dtype=dtype)
     params = [p for p in head.parameters() if p.requires_grad]
     mats = [p for p in params if p.dim() >= 2]
     opt = torch.optim.LBFGS(
@@ -216,8 +215,8 @@ def fit_head_lbfgs(
         max_iter=int(max_iter),
         history_size=50,
         line_search_fn="strong_wolfe",
-        tolerance_grad=1e-7,
-        tolerance_change=1e-10,
+        tolerance_grad=1e-6,
+        tolerance_change=1e-9,
     )
     sw = w[labels]
 
@@ -232,7 +231,7 @@ def fit_head_lbfgs(
         opt.step(closure)
         loss = float(closure())
     n_iter = int(opt.state[opt._params[0]].get("n_iter", 0))
-    head.to(dtype)
+    head.train(was_training)
     return {"loss": loss / max(float(sw.sum()), 1e-12), "iterations": n_iter}
 
 
@@ -488,7 +487,12 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         lit.head_only = True
         if solver == "lbfgs":
             probe_facts = fit_head_lbfgs(
-                model, fbank.features, fbank.labels, weights, float(cfg.get("head_l2", 1.0))
+                model,
+                fbank.features,
+                fbank.labels,
+                weights,
+                float(cfg.get("head_l2", 1.0)),
+                int(cfg.get("head_max_iter", 200)),
             )
             if fv is not None:  # the probe's validation score: the state to beat
                 with torch.no_grad():
