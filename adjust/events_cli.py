@@ -18,17 +18,16 @@ from __future__ import annotations
 import json
 import logging
 
-import hydra
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, required, run_or_exit
+from adjust.app import finite_or_none, hydra_app, required
 from adjust.events import detect_events, first_operated, operations
 from adjust.io import InputError, load_calibration_metadata, read_points3d
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
-from deformnet.paths import CONF_DIR, output_dir
+from deformnet.paths import output_dir
 from deformnet.series import interpolate_gaps
 
 log = logging.getLogger(__name__)
@@ -142,13 +141,7 @@ def run(cfg: DictConfig) -> dict:
     return {**summary, "event_list": events, "operation_list": ops, "output_dir": str(out)}
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="events", version_base=None)
-def _app(cfg: DictConfig) -> None:
-    run_or_exit(run, cfg)
-
-
-def main() -> None:
-    _app()
+main = hydra_app(run, "events")
 
 
 if __name__ == "__main__":
