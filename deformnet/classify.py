@@ -203,10 +203,10 @@ def fit_head_lbfgs(
     head.train(False)  # dropout off: a deterministic objective
     dtype = next(head.parameters()).dtype
     x = ((features.detach() - model.feature_mean) / model.feature_std).to(dtype)
-    C = next(p for p in reversed(list(head.parameters())) if p.dim() == 1).shape[0]
-    w = torch.ones(C, dtype=dtype)
-    if class_weights is not None:
-        w = torch.as_tensor(class_weights, dtype=dtype)
+    if class_weights is None:
+        sw = torch.ones(labels.shape, dtype=dtype)
+    else:
+        sw = torch.as_tensor(class_weights, dtype=dtype)[labels]
     params = [p for p in head.parameters() if p.requires_grad]
     mats = [p for p in params if p.dim() >= 2]
     opt = torch.optim.LBFGS(
@@ -218,7 +218,6 @@ def fit_head_lbfgs(
         tolerance_grad=1e-6,
         tolerance_change=1e-9,
     )
-    sw = w[labels]
 
     def closure():
         opt.zero_grad()
@@ -511,11 +510,10 @@ def _train(cfg: DictConfig, out: Path) -> dict:
                     )
             log.info("head fitted by L-BFGS (%s)", probe_facts)
         else:
-            floader = _loader(
-                fbank, np.arange(len(fbank)), bs, int(d.steps_per_epoch) * bs, cfg.seed
-            )  # fmt: skip
-            trainer = fit(floader, fval, **({} if cfg.freeze else {"max_epochs": probe,
-                                                                   "max_time": None}))  # fmt: skip
+            n = int(d.steps_per_epoch) * bs
+            floader = _loader(fbank, np.arange(len(fbank)), bs, n, cfg.seed)
+            probe_only = {} if cfg.freeze else {"max_epochs": probe, "max_time": None}
+            trainer = fit(floader, fval, **probe_only)
         if not bool(cfg.freeze):
             steps += int(trainer.global_step) if trainer is not None else 0
             lit.head_only = False
@@ -587,8 +585,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     )  # noqa: E501
     eth_fig = ethogram_figure(first, classes, fps)
     if logger and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_figure"):
-        logger.experiment.add_figure(f"{eval_name}/confusion", cm_fig, global_step=steps)  # noqa: E501
-        logger.experiment.add_figure(f"{eval_name}/ethogram", eth_fig, global_step=steps)  # noqa: E501
+        logger.experiment.add_figure(f"{eval_name}/confusion", cm_fig, global_step=steps)
+        logger.experiment.add_figure(f"{eval_name}/ethogram", eth_fig, global_step=steps)
         logger.experiment.flush()
     save_figure(cm_fig, out / "confusion.png")
     save_figure(eth_fig, out / "ethogram.png")
