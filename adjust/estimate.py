@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from adjust.camera import CameraTensors
 from adjust.lsq.geometry import (
@@ -158,3 +159,128 @@ def deformation_moments(
     else:
         mom[:] = 100.0  # nothing observed in 3D: 10 mm per axis, and say so elsewhere
     return np.maximum(mom, floor_mm**2), mean
+
+
+@dataclass
+class RayPlacement:
+    """Parts placed on the body from their single views (`place_from_rays`).
+
+    points (K, 3) mm: the body model with the placed parts moved; var (K, 3) mm^2 per body axis:
+    a placed part's spread about its model point (deformation beyond the detector noise, plus
+    the placement's own uncertainty; the input ``var`` elsewhere); placed (K,) bool; views (K,)
+    the detections each placement rests on; rms_px (K,) their robust rms residual (NaN where
+    not placed)."""
+
+    points: np.ndarray
+    var: np.ndarray
+    placed: np.ndarray
+    views: np.ndarray
+    rms_px: np.ndarray
+
+
+def place_from_rays(
+    poses: np.ndarray,
+    xy: np.ndarray,
+    weight: np.ndarray,
+    cams: CameraTensors,
+    body_points: np.ndarray,
+    var: np.ndarray,
+    which: np.ndarray,
+    sigma_px: float,
+    prior_sd_mm: float,
+    min_views: int = 10,
+    iterations: int = 20,
+    kernel_scale: float = 3.0,
+) -> RayPlacement:
+    """Locate parts in the body frame from their detections across frames at known poses.
+
+    A part that no two cameras see together has no 3D observation, so a body model built from
+    triangulated parts (`BodyModel.from_observations`) cannot place it. Its detections still
+    constrain it: in the body frame the part is (nearly) fixed while the body moves in front of
+    the cameras, so each detection is a ray through the body frame and the rays of many
+    frames meet near the part. Per part k with ``which[k]`` and >= ``min_views`` detections,
+    this minimises over the body-frame point B_k
+
+        sum_{t,c} rho(|x_tkc - proj_c(R_t B_k + tau_t)|^2 / sigma^2) + |B_k - B0_k|^2 / s^2
+
+    (Gauss-Newton, Cauchy kernel at ``kernel_scale`` sigma against mis-detections), the weak
+    prior (B0 = ``body_points``, s = ``prior_sd_mm``) holding the directions the rays leave open
+    (a body that only translates sees a part along one direction). The part's spread about
+    its point, per body axis: the robust residual variance beyond the detector noise
+    (median |e|^2 / (2 ln 2) - sigma^2, in mm at each view's depth), plus the placement's own
+    variance (the inverse normal matrix).
+
+    poses (T, 6) model -> global (Rodrigues rad, mm); xy (T, K, C, 2) px, NaN missing; weight
+    (T, K, C) (0 = missing); body_points (K, 3) mm; var (K, 3) mm^2 (kept where not placed);
+    which (K,) bool -> `RayPlacement`.
+    """
+    from adjust.lsq.geometry import project_with_jacobian, so3_exp
+    from adjust.lsq.robust import kernel_weight
+
+    xy = np.asarray(xy, dtype=np.float64)
+    T, K, C, _ = xy.shape
+    if np.shape(poses) != (T, 6) or np.shape(body_points) != (K, 3) or np.shape(var) != (K, 3):
+        raise ValueError(
+            f"poses {np.shape(poses)} must be ({T}, 6), body_points {np.shape(body_points)} and "
+            f"var {np.shape(var)} ({K}, 3) for xy {xy.shape}"
+        )
+    if np.shape(weight) != (T, K, C) or np.shape(which) != (K,):
+        raise ValueError(f"weight must be ({T}, {K}, {C}) and which ({K},)")
+    valid = np.isfinite(xy).all(-1) & (np.nan_to_num(np.asarray(weight, np.float64)) > 0)
+    views = valid.sum((0, 2))
+    todo = np.flatnonzero(np.asarray(which, bool) & (views >= min_views))
+    points = np.array(body_points, dtype=np.float64)
+    out_var = np.array(var, dtype=np.float64)
+    placed = np.zeros(K, dtype=bool)
+    rms = np.full(K, np.nan)
+    if todo.size == 0:
+        return RayPlacement(points, out_var, placed, views, rms)
+    dt = torch.float64
+    R = so3_exp(torch.as_tensor(poses[:, :3], dtype=dt))  # (T, 3, 3)
+    tau = torch.as_tensor(poses[:, 3:], dtype=dt)
+    x = torch.as_tensor(np.nan_to_num(xy[:, todo]), dtype=dt)  # (T, P, C, 2)
+    ok = torch.as_tensor(valid[:, todo])
+    B0 = torch.as_tensor(points[todo], dtype=dt)  # (P, 3)
+    B = B0.clone()
+    s2 = float(prior_sd_mm) ** 2
+    eye = torch.eye(3, dtype=dt)
+
+    def linearise(B: Tensor):
+        X = torch.einsum("tij,pj->tpi", R, B) + tau[:, None]
+        uv, J, z = project_with_jacobian(X, cams)  # (T, P, C, 2), (T, P, C, 2, 3), (T, P, C)
+        JB = J @ R[:, None, None]  # d uv / d B
+        e = x - uv
+        use = ok & (z > 0) & torch.isfinite(e).all(-1)
+        e = torch.where(use[..., None], e, torch.zeros_like(e))
+        return e, JB, z, use
+
+    for _ in range(iterations):
+        e, JB, _, use = linearise(B)
+        u = e.norm(dim=-1) / sigma_px
+        w = use.to(dt) * kernel_weight(u, "cauchy", kernel_scale) / sigma_px**2
+        H = torch.einsum("tpc,tpcai,tpcaj->pij", w, JB, JB) + eye / s2
+        g = torch.einsum("tpc,tpcai,tpca->pi", w, JB, e) - (B - B0) / s2
+        step = torch.linalg.solve(H, g[..., None])[..., 0]
+        B = B + step
+        if float(step.abs().max()) < 1e-4:
+            break
+    e, JB, z, use = linearise(B)
+    u = e.norm(dim=-1) / sigma_px
+    w = use.to(dt) * kernel_weight(u, "cauchy", kernel_scale) / sigma_px**2
+    H = torch.einsum("tpc,tpcai,tpcaj->pij", w, JB, JB) + eye / s2
+    cov_B = torch.linalg.inv(H)  # (P, 3, 3) in body axes
+    focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs()).to(dt)  # (C,)
+    mm_per_px2 = (z / focal) ** 2  # (T, P, C)
+    e2 = (e**2).sum(-1)
+    for i, k in enumerate(todo):
+        m = use[:, i]
+        if int(m.sum()) < min_views:
+            continue
+        s2_px = float(e2[:, i][m].median()) / (2.0 * math.log(2.0))  # per image axis
+        scale = float(mm_per_px2[:, i][m].median())
+        def_var = max(s2_px - sigma_px**2, 0.0) * scale
+        points[k] = B[i].numpy()
+        out_var[k] = np.maximum(def_var + np.diag(cov_B[i].numpy()), 0.25)
+        placed[k] = True
+        rms[k] = math.sqrt(2.0 * s2_px)
+    return RayPlacement(points, out_var, placed, views, rms)

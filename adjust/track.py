@@ -156,12 +156,13 @@ def load_deformation(path: str):
 
 
 def make_deformable_observation(
-    model, body_points: np.ndarray, det: Detections, cams, cfg_def, cons=None
+    model, body_points: np.ndarray, det: Detections, cams, cfg_def, cons=None, few_var=None
 ):
     """The solver's deformable observation for this data: the net's ``deformed`` inputs for
     observed tokens are the parts triangulated (robustly) from the detections (the session's
     gated 3D observations `cons` when given), gated by their distance from the rigid model
-    (`deform.gate_mm`)."""
+    (`deform.gate_mm`). few_var: (K, 3) torch, the spread of parts with too few 3D observations
+    (`refine_body`; NaN: unknown)."""
     cfg_def = cfg_def if cfg_def is not None else {}
     if cons is not None:
         X = torch.as_tensor(cons.points, dtype=torch.float64)
@@ -189,6 +190,7 @@ def make_deformable_observation(
         beyond_window=str(cfg_def.get("beyond_window", "interp")),
         measured=str(cfg_def.get("measured", "interp")),
         threads=cfg_def.get("threads"),
+        few_var=few_var,
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
@@ -254,6 +256,83 @@ def rigid_observation(body: BodyModel, cons) -> tuple:
         "rigid_rms_mm": float(np.sqrt(np.mean(sig**2))),
     }
     return RigidObservation(B, torch.as_tensor(mom)), facts
+
+
+def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid_obs):
+    """``body=auto``: the rigid model re-estimated from the detections themselves at the rigid
+    adjustment's poses (`adjust.estimate.place_from_rays`: each part where its views' rays meet
+    in the body frame across all frames, robustly; the structure step of a bundle adjustment).
+    The Procrustes model (`BodyModel.from_observations`) averages triangulated points, each
+    resting on the views that saw it in its frame and carrying their errors; this one weighs
+    every detection, single views included, as the pose adjustment does. ``body.refine``:
+    ``views`` (default) re-estimates every part, ``unplaced`` only the parts with fewer than
+    ``body.rays_below`` 3D observations (no two cameras see them together, so the Procrustes
+    model could not place them), ``none`` keeps the Procrustes model. Those parts' spread about
+    their points comes from their views' residuals (their deformation variance); the others
+    keep the spread of their 3D observations.
+    Returns None (nothing done) or (body, rigid observation, few_var (K, 3) torch, NaN for
+    parts with enough 3D observations, facts)."""
+    from adjust.estimate import place_from_rays
+    from adjust.lsq.observation import RigidObservation
+
+    mode = str(body_cfg.get("refine", "views")).lower()
+    if mode not in ("views", "unplaced", "none"):
+        raise ValueError(f"body.refine must be views, unplaced or none, got {mode!r}")
+    below = int(body_cfg.get("rays_below", 20) or 0)
+    few = cons.observed.sum(0) < below
+    which = np.ones_like(few) if mode == "views" else few
+    if mode == "none" or few.all() or not which.any():
+        return None
+    B = np.array(body.points, dtype=np.float64)
+    # the prior's spread: the rms radius of the parts the triangulations placed
+    prior_sd = float(np.sqrt(np.mean(np.sum((B[~few] - B[~few].mean(0)) ** 2, -1))))
+    var0 = rigid_obs.var.numpy()
+    pl = place_from_rays(
+        poses,
+        det.xy,
+        weight,
+        cams,
+        B,
+        var0,
+        which,
+        cons.sigma_det_px,
+        max(prior_sd, 1.0),
+        min_views=int(body_cfg.get("rays_min_views", 10)),
+    )
+    if not pl.placed.any():
+        return None
+    placed_few = pl.placed & few
+    var = np.where(placed_few[:, None], pl.var, var0)
+    moved = np.linalg.norm(pl.points - B, axis=-1)
+    facts = {
+        "refine": mode,
+        "moved_mm_per_part": {p: float(v) for p, v in zip(body.parts, moved) if np.isfinite(v)},
+        "rms_px_per_part": {
+            p: float(pl.rms_px[k]) for k, p in enumerate(body.parts) if pl.placed[k]
+        },
+        "from_single_views": {
+            p: {"views": int(pl.views[k]), "sd_mm": float(np.sqrt(pl.var[k].sum()))}
+            for k, p in enumerate(body.parts)
+            if placed_few[k]
+        },
+    }
+    log.info(
+        "body=auto: the rigid model re-estimated from the detections (%d parts; moved by a "
+        "median of %.1f mm from the Procrustes model)",
+        int(pl.placed.sum()),
+        float(np.median(moved[pl.placed])),
+    )
+    if placed_few.any():
+        log.warning(
+            "body=auto: %s seen by fewer than 2 cameras at a time (< %d 3D observations): "
+            "placed from their single-view rays across frames (%s)",
+            ", ".join(facts["from_single_views"]),
+            below,
+            ", ".join(f"{p} {f['sd_mm']:.1f} mm" for p, f in facts["from_single_views"].items()),
+        )
+    new = BodyModel(body.parts, pl.points, body.aliases, body.name)
+    few_var = torch.as_tensor(np.where(placed_few[:, None], pl.var, np.nan))
+    return new, RigidObservation(torch.tensor(pl.points), torch.as_tensor(var)), few_var, facts
 
 
 def interp_facts(observation, body: BodyModel) -> dict:
@@ -427,9 +506,15 @@ def _run(cfg: DictConfig) -> dict:
         )
 
     staged = mode != "rigid" and cons is not None  # rigid -> interp -> (net)
+    few_var = None  # (K, 3) the spread of parts placed from their single views (else NaN)
     if mode == "rigid" or staged or bool(deform_cfg.get("rigid_first", True)):
         # the rigid adjustment: the result itself, or the start of a deformable one
         rigid = solve(solver_cfg, rigid_obs)
+        if auto and rigid_obs is not None:  # the model from the detections themselves
+            refined = refine_body(body, body_cfg, rigid.poses, det, weight, cams, cons, rigid_obs)
+            if refined is not None:
+                body, rigid_obs, few_var, body_facts["refined"] = refined
+                rigid = solve(solver_cfg, rigid_obs, rigid.poses)
         res = rigid
         init_poses, rigid_iterations = rigid.poses, int(rigid.iterations)
         timings["rigid_s"] = time.perf_counter() - t0
@@ -441,6 +526,7 @@ def _run(cfg: DictConfig) -> dict:
             torch.as_tensor(cons.points),
             torch.as_tensor(cons.observed),
             torch.as_tensor(cons.noise_var),
+            few_var=few_var,
         )
         if mode == "interp":
             observation = interp_obs
@@ -479,7 +565,7 @@ def _run(cfg: DictConfig) -> dict:
     if model is not None:
         t1 = time.perf_counter()
         observation, def_facts = make_deformable_observation(
-            model, body.points, det, cams, cfg.get("deform"), cons=cons
+            model, body.points, det, cams, cfg.get("deform"), cons=cons, few_var=few_var
         )
         if adapt_facts is not None:
             def_facts["adapt"] = adapt_facts
@@ -492,6 +578,40 @@ def _run(cfg: DictConfig) -> dict:
         if deform_cfg.get("sigma_def_mm") is not None:
             dcfg = dcfg.replace(sigma_def_mm=float(deform_cfg["sigma_def_mm"]))
         res = solve(dcfg, observation, init_poses)
+    measured_facts = None
+    if mode == "self":  # the measured part-frames' prior, by held-out cameras
+        measured = str((cfg.get("adapt") or {}).get("measured", "cv"))
+        if measured not in ("cv", "interp", "rigid"):
+            raise ValueError(f"adapt.measured must be cv, interp or rigid, got {measured!r}")
+        t1 = time.perf_counter()
+        choice = measured
+        if measured == "cv":
+            from adjust.validate import choose_measured_prior
+
+            choice, measured_facts = choose_measured_prior(
+                res.poses,
+                det.xy,
+                weight,
+                res.weights > 0,
+                cams,
+                np.array(body.points),
+                rigid_obs.var.numpy(),
+                solver_cfg.sigma_det_px,
+                consensus_kwargs={
+                    "max_error_px": float(est_cfg.get("max_error_px", 20.0)),
+                    "gate_sigmas": float(est_cfg.get("gate_sigmas", 4.0)),
+                },
+                few_var=few_var,
+            )
+        else:
+            measured_facts = {"choice": choice, "reason": "adapt.measured"}
+        if choice == "rigid":  # the shape prior where a part has its own 3D observation
+            target = observation if observation is not None else interp_obs
+            inner = target.interp if isinstance(target, NetObservation) else target
+            inner.measured_var = rigid_obs.var
+            target._M = None  # predict again (the net's passes included)
+            res = solve(dcfg if observation is not None else solver_cfg, target, res.poses)
+        timings["measured_prior_s"] = time.perf_counter() - t1
     if mode == "interp" or (mode == "self" and model is None):
         def_facts = interp_facts(observation if mode == "interp" else interp_obs, body)
         if adapt_facts is not None:
@@ -504,6 +624,8 @@ def _run(cfg: DictConfig) -> dict:
         }
         def_facts["net_reach_fraction"] = float(observation.reach.double().mean())
         def_facts["net_used_fraction"] = float(observation.use_net.double().mean())
+    if measured_facts is not None:
+        def_facts["measured_prior"] = measured_facts
     timings["adjust_s"] = time.perf_counter() - t0 - timings.get("adapt_s", 0.0)
 
     # --- outputs ------------------------------------------------------------------------

@@ -14,13 +14,24 @@ detections (likelihood >= 0.9). Methods, side by side on the same subsets:
 - ``interp``: `adjust-track body=auto` (default `deformation=interp`);
 - ``self``: `adjust-track body=auto deformation=self`: a net trained on the leave-out's own
   recording (self-supervised; these skeletons are not the shipped net's, so from scratch) for
-  ``--adapt-seconds`` (30), then used in the adjustment (``--no-self`` skips it).
+  ``--adapt-seconds`` (30), then used in the adjustment for the part-frames without a 3D
+  observation of their own; the prior of those with one (rigid model or neighbouring frames)
+  chosen by held-out cameras among the tracking cameras (`adjust.validate`; >= 3 of them)
+  (``--no-self`` skips it).
+
+All `adjust-track` variants use `body=auto`'s rigid model re-estimated from the detections
+themselves (`body.refine=views`, `adjust.estimate.place_from_rays`).
 
 The first ``--frames`` (200) frames of each session, the same for every method (aniposelib's
 optimisation takes minutes per leave-out on the whole hand session on 2 cores). Per session and
 left-out camera: coverage (fraction of the confident detections the method gave
 a 3D point for), median and 90th percentile pixel error over those, and the same on the part-
 frames every method covers (``common``). Every leave-out must run.
+
+Aggregates over the leave-outs, per method: the median of the common-subset medians (with
+10 leave-outs, the mean of the 5th and 6th), and, scale-free, the geometric mean over the
+leave-outs of each method's common-subset median relative to rigid's and to interp's (below 1:
+lower error on average); ``self`` is also counted per leave-out (below rigid, below interp).
 
     .venv/bin/python benchmarks/real_loco.py [--sessions hand,fly,mouse_sleap] [--no-anipose]
 
@@ -252,6 +263,25 @@ def main(argv: list[str] | None = None) -> dict:
         "\nmedian over leave-outs of the common-subset median error (px): "
         + ", ".join(f"{m} {v:.2f}" for m, v in overall.items())
     )
+    # geometric mean over leave-outs of the common-subset median relative to rigid / interp
+    geo = {}
+    for ref in ("rigid", "interp"):
+        for m in METHODS:
+            logs = [
+                math.log(res[m]["common_median_px"] / res[ref]["common_median_px"])
+                for r in results.values()
+                for res in r["leave_out"].values()
+                if all(
+                    q in res and math.isfinite(res[q].get("common_median_px", float("nan")))
+                    for q in (m, ref)
+                )
+            ]
+            if logs and m != ref:
+                geo[f"{m}_over_{ref}"] = float(math.exp(np.mean(logs)))
+    print(
+        "geometric mean over leave-outs of the common-subset median ratio: "
+        + ", ".join(f"{k} {v:.3f}" for k, v in geo.items())
+    )
     checks = {}
     if "self" in overall:
         checks["self_below_rigid"] = bool(overall["self"] < overall["rigid"])
@@ -265,10 +295,13 @@ def main(argv: list[str] | None = None) -> dict:
             if all(m in res and "common_median_px" in res[m] for m in ("self", "rigid", "interp"))
         ]
         checks["self_wins_per_leave_out_of_2"] = wins
+        checks["self_geomean_below_rigid"] = bool(geo.get("self_over_rigid", 9.0) < 1.0)
+        checks["self_geomean_below_interp"] = bool(geo.get("self_over_interp", 9.0) < 1.0)
         print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {
         **results,
         "overall_common_median_px": overall,
+        "geomean_common_median_ratio": geo,
         "checks": checks,
         "failures": failures,
         "load_avg_1min": round(os.getloadavg()[0], 2),

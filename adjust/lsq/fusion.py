@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors
+from adjust.camera import CameraTensors, project_cameras
 from adjust.lsq.geometry import (
     normal_blocks_3d,
     project_components,
@@ -149,3 +149,45 @@ def innovation_gate(
     nvalid = valid.sum(-1, keepdim=True)
     outvoted = (nvalid >= 2) & ~ok.any(-1, keepdim=True)
     return ok | (valid & outvoted), torch.where(valid, d2, torch.full_like(d2, float("nan")))
+
+
+def held_out_view_errors(
+    X_prior: Tensor,
+    prior_cov: Tensor,
+    xy: Tensor,
+    accepted: Tensor,
+    cams: CameraTensors,
+    sigma_px: float,
+    min_others: int = 1,
+    prior_without=None,
+) -> Tensor:
+    """How well a prior predicts views it did not use: per camera c, every part-frame with an
+    accepted view in c and >= ``min_others`` accepted views in the other cameras is fused
+    (`fuse_points`, to convergence) from the prior and those other views alone, projected into
+    c, and compared with c's detection.
+
+    X_prior (T, K, 3) mm, prior_cov (T, K, 3, 3) mm^2, xy (T, K, C, 2) px (any finite value
+    where not accepted), accepted (T, K, C) bool, sigma_px the detector noise ->
+    (T, K, C) px, NaN where not evaluated. ``prior_without(c) -> (X_prior, prior_cov)``
+    (optional): a prior built without camera c's detections, so that c is truly held out.
+    """
+    T, K, C, _ = xy.shape
+    if accepted.shape != (T, K, C) or X_prior.shape != (T, K, 3):
+        raise ValueError(
+            f"shapes: X_prior {tuple(X_prior.shape)}, accepted {tuple(accepted.shape)}, "
+            f"xy {tuple(xy.shape)}"
+        )
+    out = torch.full((T, K, C), float("nan"), dtype=X_prior.dtype)
+    for c in range(C):
+        others = accepted.clone()
+        others[..., c] = False
+        ask = accepted[..., c] & (others.sum(-1) >= min_others)
+        if not bool(ask.any()):
+            continue
+        Xp, Pp = (X_prior, prior_cov) if prior_without is None else prior_without(c)
+        w = others.to(X_prior.dtype) / sigma_px**2
+        X, _ = fuse_points(Xp, Pp, xy, w, cams, 50, tol=1e-4)
+        uv = project_cameras(X, cams)[:, :, c]
+        e = (uv - xy[:, :, c]).norm(dim=-1)
+        out[..., c] = torch.where(ask, e, out[..., c])
+    return out

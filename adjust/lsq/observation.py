@@ -129,6 +129,13 @@ class InterpObservation:
     prediction held fixed (as the net's "frozen" Jacobian), and `deformation_cov` the kriging
     variance rotated to global coordinates: on a gap the interpolation across it, on an
     observed frame an independent prediction to fuse with the frame's own detections.
+
+    few_var (K, 3) mm^2, optional: the spread of parts with too few 3D observations to
+    estimate it (e.g. placed from their single views, `adjust.track.refine_body`; NaN: unknown).
+    measured_var (K, 3) mm^2, optional: then a part-frame with its own 3D observation takes
+    the rigid model point with this variance (the shape prior) instead of the prediction from
+    its neighbours (`deformation=self` chooses between the two by held-out cameras,
+    `adjust.validate.choose_measured_prior`).
     """
 
     def __init__(
@@ -137,6 +144,8 @@ class InterpObservation:
         data: Tensor,
         observed: Tensor,
         noise_var: Tensor | None = None,
+        few_var: Tensor | None = None,
+        measured_var: Tensor | None = None,
     ) -> None:
         self.rigid = RigidObservation(body_points)
         T, K = observed.shape
@@ -150,6 +159,12 @@ class InterpObservation:
         self.data = torch.nan_to_num(data)
         self.observed = observed & torch.isfinite(data).all(-1)
         self.noise_var = noise_var
+        if few_var is not None and tuple(few_var.shape) != (K, 3):
+            raise ValueError(f"few_var must be ({K}, 3), got {tuple(few_var.shape)}")
+        self.few_var = few_var
+        if measured_var is not None and tuple(measured_var.shape) != (K, 3):
+            raise ValueError(f"measured_var must be ({K}, 3), got {tuple(measured_var.shape)}")
+        self.measured_var = measured_var
         self.cov = None  # the last OffsetCovariance
         self.outlier_rounds = 2
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
@@ -183,9 +198,10 @@ class InterpObservation:
             nugget = np.repeat(per[:, None], 3, axis=1)
         # robust: an observation its own neighbours contradict (chi-square, 3 dof, p = 0.001)
         # is a mis-detection, not deformation; re-estimate without it
+        few = None if self.few_var is None else self.few_var.cpu().numpy().astype(np.float64)
         good = m
         for _ in range(self.outlier_rounds + 1):
-            self.cov = OffsetCovariance.estimate(o, good, nugget=nugget)
+            self.cov = OffsetCovariance.estimate(o, good, nugget=nugget, few_var=few)
             pred, var = krige_offsets(o, good, self.cov, skip_self=True)
             if _ == self.outlier_rounds:
                 break
@@ -195,6 +211,10 @@ class InterpObservation:
                 break
             good = new
         self.outliers = torch.as_tensor(m & ~good)
+        if self.measured_var is not None:  # measured part-frames: the rigid model point
+            mv = self.measured_var.cpu().numpy().astype(np.float64)
+            pred = np.where(good[..., None], 0.0, pred)
+            var = np.where(good[..., None], mv[None], var)
         dt = poses.dtype
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
@@ -218,7 +238,14 @@ class InterpObservation:
         if start == 0 and stop == self.observed.shape[0]:
             return self
         nc = None if self.noise_var is None else self.noise_var[start:stop]
-        return InterpObservation(self.body, self.data[start:stop], self.observed[start:stop], nc)
+        return InterpObservation(
+            self.body,
+            self.data[start:stop],
+            self.observed[start:stop],
+            nc,
+            self.few_var,
+            self.measured_var,
+        )
 
 
 class DeformableObservation:
@@ -385,6 +412,8 @@ class NetObservation(DeformableObservation):
         beyond_window: str = "interp",
         measured: str = "interp",
         threads: int | None = None,
+        few_var: Tensor | None = None,
+        measured_var: Tensor | None = None,
     ):
         super().__init__(model, body_points, window, observed, batch_size)
         self.threads = threads  # torch threads for the net's passes (None: unchanged)
@@ -404,7 +433,10 @@ class NetObservation(DeformableObservation):
         self.noise_var = noise_var
         self.refresh = int(refresh)
         self.beyond_window = beyond_window
-        self.interp = InterpObservation(body_points, data, observed, noise_var)
+        self.few_var = few_var
+        self.interp = InterpObservation(
+            body_points, data, observed, noise_var, few_var, measured_var
+        )
         self.evaluations = 0  # net passes over the whole sequence so far
         self.factor: Tensor | None = None  # (K,) net / interp held-out mean-square error
         self.reach: Tensor | None = None  # (T, K) the window sees the part on both sides
@@ -526,4 +558,6 @@ class NetObservation(DeformableObservation):
             beyond_window=self.beyond_window,
             measured=self.measured,
             threads=self.threads,
+            few_var=self.few_var,
+            measured_var=self.interp.measured_var,
         )

@@ -125,6 +125,7 @@ class OffsetCovariance:
         min_pairs: int = 20,
         floor_mm: float = 0.3,
         nugget: np.ndarray | None = None,
+        few_var: np.ndarray | None = None,
     ) -> OffsetCovariance:
         """From offsets (T, K, 3) observed where ``observed`` (T, K) (>= 2 views, gated).
 
@@ -135,7 +136,8 @@ class OffsetCovariance:
         gamma is made non-decreasing and capped at the sill. A part with too few pairs at
         a lag uses the sill there (no temporal information is claimed where none was seen); a
         part observed fewer than ``min_pairs`` times gets mean 0 and 4x the largest second
-        moment of the others (it is barely known).
+        moment of the others (it is barely known), or its ``few_var`` (K, 3) mm^2 where that is
+        finite (its spread known otherwise, e.g. from its single views, `place_from_rays`).
         """
         o = np.asarray(offsets, dtype=np.float64)
         m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
@@ -172,6 +174,9 @@ class OffsetCovariance:
             known = ~few
             wide = 4.0 * (sill[known] + mean[known] ** 2).max(0) if known.any() else 100.0
             sill[few] = wide
+            if few_var is not None:
+                fv = np.broadcast_to(np.asarray(few_var, dtype=np.float64), (K, 3))
+                sill = np.where(few[:, None] & np.isfinite(fv), fv, sill)
             mean[few] = 0.0
             raw[few] = np.nan
         gamma = raw - nug[..., None]
