@@ -188,7 +188,7 @@ def make_deformable_observation(
         noise_var=noise,
         refresh=int(cfg_def.get("refresh", 2)),
         beyond_window=str(cfg_def.get("beyond_window", "interp")),
-        measured=str(cfg_def.get("measured", "interp")),
+        measured="net" if str(cfg_def.get("measured", "cv")) == "net" else "interp",
         threads=cfg_def.get("threads"),
         few_var=few_var,
     )
@@ -579,10 +579,12 @@ def _run(cfg: DictConfig) -> dict:
             dcfg = dcfg.replace(sigma_def_mm=float(deform_cfg["sigma_def_mm"]))
         res = solve(dcfg, observation, init_poses)
     measured_facts = None
-    if mode == "self":  # the measured part-frames' prior, by held-out cameras
-        measured = str((cfg.get("adapt") or {}).get("measured", "cv"))
-        if measured not in ("cv", "interp", "rigid"):
-            raise ValueError(f"adapt.measured must be cv, interp or rigid, got {measured!r}")
+    measured = str(deform_cfg.get("measured", "cv"))
+    if measured not in ("cv", "interp", "rigid", "net"):
+        raise ValueError(f"deform.measured must be cv, interp, rigid or net, got {measured!r}")
+    learned = mode in ("self", "default", "net") and rigid_obs is not None
+    if learned and (observation is not None or mode == "self") and measured in ("cv", "rigid"):
+        # the learned modes: the measured part-frames' prior, by held-out cameras
         t1 = time.perf_counter()
         choice = measured
         if measured == "cv":
@@ -604,7 +606,7 @@ def _run(cfg: DictConfig) -> dict:
                 few_var=few_var,
             )
         else:
-            measured_facts = {"choice": choice, "reason": "adapt.measured"}
+            measured_facts = {"choice": choice, "reason": "deform.measured"}
         if choice == "rigid":  # the shape prior where a part has its own 3D observation
             target = observation if observation is not None else interp_obs
             inner = target.interp if isinstance(target, NetObservation) else target

@@ -168,6 +168,7 @@ class InterpObservation:
         self.cov = None  # the last OffsetCovariance
         self.outlier_rounds = 2
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
+        self.neighbours = None  # (T, K, 3) body-frame prediction from the neighbouring frames
         self._M: Tensor | None = None  # (T, K, 3) body-frame model points
         self._var: Tensor | None = None  # (T, K, 3) body-axis variances
 
@@ -211,11 +212,13 @@ class InterpObservation:
                 break
             good = new
         self.outliers = torch.as_tensor(m & ~good)
+        dt = poses.dtype
+        # the neighbours' prediction, also where the rigid point replaces it (diagnostics)
+        self.neighbours = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         if self.measured_var is not None:  # measured part-frames: the rigid model point
             mv = self.measured_var.cpu().numpy().astype(np.float64)
             pred = np.where(good[..., None], 0.0, pred)
             var = np.where(good[..., None], mv[None], var)
-        dt = poses.dtype
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
 
@@ -479,7 +482,8 @@ class NetObservation(DeformableObservation):
         data = self.data.to(M.dtype)
         m = self.interp.observed & ~self.interp.outliers.to(torch.bool)
         d_net = ((data - X) ** 2).sum(-1)
-        Xi = torch.einsum("tij,tkj->tki", R, Mi) + poses[:, None, 3:].detach()
+        Mn = self.interp.neighbours.to(M.dtype)  # the kriging, not the rigid point
+        Xi = torch.einsum("tij,tkj->tki", R, Mn) + poses[:, None, 3:].detach()
         d_int = ((data - Xi) ** 2).sum(-1)
         num = torch.where(m, d_net, torch.zeros_like(d_net)).sum(0)
         den = torch.where(m, d_int, torch.zeros_like(d_int)).sum(0)
