@@ -44,6 +44,7 @@ def choose_measured_prior(
     sigma_px: float,
     consensus_kwargs: dict | None = None,
     few_var: torch.Tensor | None = None,
+    max_frames: int = 3000,
 ) -> tuple[str, dict]:
     """``"rigid"`` or ``"interp"``: which prior of the measured part-frames predicts held-out
     cameras better on this recording (module doc; ``"rigid"`` where that cannot be measured).
@@ -52,8 +53,10 @@ def choose_measured_prior(
     missing or dropped); accepted (T, K, C) bool, the detections the tracked points rest on;
     body_points (K, 3) mm; rigid_var (K, 3) mm^2 the rigid model's per-axis spread;
     consensus_kwargs: `adjust.estimate.consensus`'s settings (as the tracking used them);
-    few_var: `InterpObservation`'s. Returns the choice and facts (median held-out errors, the
-    number of held-out detections, per camera)."""
+    few_var: `InterpObservation`'s. A longer session is validated on its middle ``max_frames``
+    frames (the cost stays bounded; thousands of held-out detections decide). Returns the
+    choice and facts (median held-out errors, the number of held-out detections, per camera,
+    the frames used)."""
     from adjust.estimate import consensus
     from adjust.lsq.fusion import held_out_view_errors
     from adjust.lsq.observation import InterpObservation, RigidObservation
@@ -65,6 +68,11 @@ def choose_measured_prior(
             "reason": f"{C} cameras: held-out validation needs >= 3 (two to fuse, one held out); "
             "the rigid model, independent of the views' persistent errors",
         }
+    a, b = 0, T
+    if max_frames and T > max_frames:  # the middle block of frames
+        a = (T - max_frames) // 2
+        b = a + max_frames
+        poses, xy, weight, accepted = (np.asarray(x)[a:b] for x in (poses, xy, weight, accepted))
     dt = torch.float64
     P = torch.as_tensor(poses, dtype=dt)
     B = torch.as_tensor(np.asarray(body_points), dtype=dt)
@@ -131,4 +139,5 @@ def choose_measured_prior(
         "rigid_median_px": med_r,
         "interp_median_px": med_t,
         "per_camera": per_camera,
+        "frames": [a, b],
     }

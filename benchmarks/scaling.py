@@ -203,7 +203,9 @@ def run_deformable(T: int, checkpoint: str | None, threads: int, work: Path) -> 
         row[name] = {
             "seconds": round(seconds, 2),
             "adjust_s": t.get("adjust_s"),  # the adjustments alone (rigid [+ interp + net])
-            "stages_s": {k: t[k] for k in ("rigid_s", "interp_s", "net_s") if k in t},
+            "stages_s": {
+                k: t[k] for k in ("rigid_s", "interp_s", "net_s", "measured_prior_s") if k in t
+            },
             "iterations": summary.get("iterations"),
             "completeness": float(np.isfinite(points).all(-1).mean()),
             "rmse_mm": float(np.sqrt(np.nanmean(err**2))),

@@ -192,3 +192,21 @@ def test_measured_prior_needs_three_cameras():
         0.5,
     )
     assert choice == "rigid" and ">= 3" in facts["reason"]
+
+
+def test_measured_prior_on_the_middle_block_of_a_long_session():
+    body, poses, _, _, ct, uv = _scene(T=300, n_cams=3, seed=5, bias_px=3.0)
+    K = body.num_parts
+    choice, facts = choose_measured_prior(
+        poses,
+        uv,
+        np.ones(uv.shape[:-1]),
+        np.ones(uv.shape[:-1], bool),
+        ct,
+        np.array(body.points),
+        np.full((K, 3), 0.25),
+        0.5,
+        max_frames=150,
+    )
+    assert facts["frames"] == [75, 225] and choice == "rigid", facts
+    assert facts["held_out_detections"] <= 150 * K * 3
