@@ -112,6 +112,10 @@ def test_self_lowers_the_occluded_error_against_rigid(scene, tracked):
     assert (out / "deformation.ckpt").is_file()
     assert summary["deformation"]["adapt"]["pretrained"] == "default"
     assert summary["time_s"]["adapt_s"] > 0
+    # the measured part-frames' prior, chosen by held-out cameras (3 cameras here)
+    mp = summary["deformation"]["measured_prior"]
+    assert mp["choice"] in ("rigid", "interp") and mp["held_out_detections"] > 1000, mp
+    assert set(mp["per_camera"]) == set(summary["cameras"])
     assert m["self"]["completeness"] == 1.0
     # measured: occluded rigid 7.61, interp 3.67, self 3.57 mm (0.47x rigid) on this scene
     assert m["self"]["rmse_occluded"] < 0.6 * m["rigid"]["rmse_occluded"], m
