@@ -159,6 +159,15 @@ def test_held_out_view_errors_exact_and_masked():
         held_out_view_errors(Xp[1:], P, torch.as_tensor(uv), torch.as_tensor(acc), ct, 1.0)
 
 
+def _choose(body, poses, ct, uv, var: float, **kw):
+    """`choose_measured_prior` with every detection present and accepted."""
+    ones = np.ones(uv.shape[:-1])
+    rigid_var = np.full((body.num_parts, 3), var)
+    return choose_measured_prior(
+        poses, uv, ones, ones > 0, ct, np.array(body.points), rigid_var, 0.5, **kw
+    )
+
+
 @pytest.mark.parametrize("deform_mm, bias_px, want", [(0.0, 3.0, "rigid"), (4.0, 0.0, "interp")])
 def test_measured_prior_chosen_by_held_out_cameras(deform_mm, bias_px, want):
     """A rigid body whose detections carry a persistent bias per part and camera: the
@@ -168,12 +177,7 @@ def test_measured_prior_chosen_by_held_out_cameras(deform_mm, bias_px, want):
     body, poses, _, _, ct, uv = _scene(
         T=300, n_cams=3, seed=5, deform_mm=deform_mm, bias_px=bias_px
     )
-    K = body.num_parts
-    w = np.ones(uv.shape[:-1])
-    rigid_var = np.full((K, 3), max(deform_mm, 0.5) ** 2)
-    choice, facts = choose_measured_prior(
-        poses, uv, w, np.ones(uv.shape[:-1], bool), ct, np.array(body.points), rigid_var, 0.5
-    )
+    choice, facts = _choose(body, poses, ct, uv, max(deform_mm, 0.5) ** 2)
     assert choice == want, facts
     assert facts["held_out_detections"] > 1000
     assert set(facts["per_camera"]) == {"cam0", "cam1", "cam2"}
@@ -181,32 +185,12 @@ def test_measured_prior_chosen_by_held_out_cameras(deform_mm, bias_px, want):
 
 def test_measured_prior_needs_three_cameras():
     body, poses, _, _, ct, uv = _scene(T=30, n_cams=2)
-    choice, facts = choose_measured_prior(
-        poses,
-        uv,
-        np.ones(uv.shape[:-1]),
-        np.ones(uv.shape[:-1], bool),
-        ct,
-        np.array(body.points),
-        np.ones((body.num_parts, 3)),
-        0.5,
-    )
+    choice, facts = _choose(body, poses, ct, uv, 1.0)
     assert choice == "rigid" and ">= 3" in facts["reason"]
 
 
 def test_measured_prior_on_the_middle_block_of_a_long_session():
     body, poses, _, _, ct, uv = _scene(T=300, n_cams=3, seed=5, bias_px=3.0)
-    K = body.num_parts
-    choice, facts = choose_measured_prior(
-        poses,
-        uv,
-        np.ones(uv.shape[:-1]),
-        np.ones(uv.shape[:-1], bool),
-        ct,
-        np.array(body.points),
-        np.full((K, 3), 0.25),
-        0.5,
-        max_frames=150,
-    )
+    choice, facts = _choose(body, poses, ct, uv, 0.25, max_frames=150)
     assert facts["frames"] == [75, 225] and choice == "rigid", facts
-    assert facts["held_out_detections"] <= 150 * K * 3
+    assert facts["held_out_detections"] <= 150 * body.num_parts * 3
