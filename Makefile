@@ -28,7 +28,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q tests/test_layering.py  # the layering contract
 
-# Rebuild the shipped default net bit for bit (deformnet/pretrained/mouse_lstm_small.pt; ~5 min).
+# Rebuild the shipped default net (deformnet/pretrained/mouse_lstm_small.pt; ~5 min; bit for bit on the same machine).
 pretrained: $(STAMP)
 	$(PY) -m deformnet.pretrained.build
 
