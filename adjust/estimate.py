@@ -205,8 +205,8 @@ def place_from_rays(
 
     (Gauss-Newton, Cauchy kernel at ``kernel_scale`` sigma against mis-detections), the weak
     prior (B0 = ``body_points``, s = ``prior_sd_mm``) holding the directions the rays leave open
-    (a body that only translates sees a part along one direction). The part's spread about
-    its point, per body axis: the robust residual variance beyond the detector noise
+    (a body that stands still in front of one camera sees a part along one ray). The part's
+    spread about its point, per body axis: the robust residual variance beyond the detector noise
     (median |e|^2 / (2 ln 2) - sigma^2, in mm at each view's depth), plus the placement's own
     variance (the inverse normal matrix).
 
@@ -245,29 +245,28 @@ def place_from_rays(
     s2 = float(prior_sd_mm) ** 2
     eye = torch.eye(3, dtype=dt)
 
-    def linearise(B: Tensor):
+    def normal_equations(B: Tensor):
+        """Residuals e (T, P, C, 2) px, depths z, the views used, and the robust normal
+        equations H (P, 3, 3), g (P, 3) of the placement at B (P, 3)."""
         X = torch.einsum("tij,pj->tpi", R, B) + tau[:, None]
         uv, J, z = project_with_jacobian(X, cams)  # (T, P, C, 2), (T, P, C, 2, 3), (T, P, C)
         JB = J @ R[:, None, None]  # d uv / d B
         e = x - uv
         use = ok & (z > 0) & torch.isfinite(e).all(-1)
         e = torch.where(use[..., None], e, torch.zeros_like(e))
-        return e, JB, z, use
-
-    for _ in range(iterations):
-        e, JB, _, use = linearise(B)
         u = e.norm(dim=-1) / sigma_px
         w = use.to(dt) * kernel_weight(u, "cauchy", kernel_scale) / sigma_px**2
         H = torch.einsum("tpc,tpcai,tpcaj->pij", w, JB, JB) + eye / s2
         g = torch.einsum("tpc,tpcai,tpca->pi", w, JB, e) - (B - B0) / s2
+        return e, z, use, H, g
+
+    for _ in range(iterations):
+        _, _, _, H, g = normal_equations(B)
         step = torch.linalg.solve(H, g[..., None])[..., 0]
         B = B + step
         if float(step.abs().max()) < 1e-4:
             break
-    e, JB, z, use = linearise(B)
-    u = e.norm(dim=-1) / sigma_px
-    w = use.to(dt) * kernel_weight(u, "cauchy", kernel_scale) / sigma_px**2
-    H = torch.einsum("tpc,tpcai,tpcaj->pij", w, JB, JB) + eye / s2
+    e, z, use, H, _ = normal_equations(B)
     cov_B = torch.linalg.inv(H)  # (P, 3, 3) in body axes
     focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs()).to(dt)  # (C,)
     mm_per_px2 = (z / focal) ** 2  # (T, P, C)

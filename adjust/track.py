@@ -306,7 +306,7 @@ def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid
     moved = np.linalg.norm(pl.points - B, axis=-1)
     facts = {
         "refine": mode,
-        "moved_mm_per_part": {p: float(v) for p, v in zip(body.parts, moved) if np.isfinite(v)},
+        "moved_mm_per_part": {p: float(v) for p, v in zip(body.parts, moved)},
         "rms_px_per_part": {
             p: float(pl.rms_px[k]) for k, p in enumerate(body.parts) if pl.placed[k]
         },
@@ -609,9 +609,7 @@ def _run(cfg: DictConfig) -> dict:
             measured_facts = {"choice": choice, "reason": "deform.measured"}
         if choice == "rigid":  # the shape prior where a part has its own 3D observation
             target = observation if observation is not None else interp_obs
-            inner = target.interp if isinstance(target, NetObservation) else target
-            inner.measured_var = rigid_obs.var
-            target._M = None  # predict again (the net's passes included)
+            target.set_measured_var(rigid_obs.var)
             res = solve(dcfg if observation is not None else solver_cfg, target, res.poses)
         timings["measured_prior_s"] = time.perf_counter() - t1
     if mode == "interp" or (mode == "self" and model is None):

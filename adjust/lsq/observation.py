@@ -162,15 +162,13 @@ class InterpObservation:
         if few_var is not None and tuple(few_var.shape) != (K, 3):
             raise ValueError(f"few_var must be ({K}, 3), got {tuple(few_var.shape)}")
         self.few_var = few_var
-        if measured_var is not None and tuple(measured_var.shape) != (K, 3):
-            raise ValueError(f"measured_var must be ({K}, 3), got {tuple(measured_var.shape)}")
-        self.measured_var = measured_var
         self.cov = None  # the last OffsetCovariance
         self.outlier_rounds = 2
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
         self.neighbours = None  # (T, K, 3) body-frame prediction from the neighbouring frames
         self._M: Tensor | None = None  # (T, K, 3) body-frame model points
         self._var: Tensor | None = None  # (T, K, 3) body-axis variances
+        self.set_measured_var(measured_var)
 
     @property
     def num_parts(self) -> int:
@@ -221,6 +219,16 @@ class InterpObservation:
             var = np.where(good[..., None], mv[None], var)
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
+
+    def set_measured_var(self, measured_var: Tensor | None) -> None:
+        """Switch the measured part-frames' prior: the rigid model point with this (K, 3)
+        variance, or (None) the neighbours' prediction; predicted afresh at the next use."""
+        if measured_var is not None and tuple(measured_var.shape) != (self.num_parts, 3):
+            raise ValueError(
+                f"measured_var must be ({self.num_parts}, 3), got {tuple(measured_var.shape)}"
+            )
+        self.measured_var = measured_var
+        self._M = None
 
     def _ready(self, poses: Tensor) -> None:
         if self._M is None or self._M.shape[0] != poses.shape[0]:
@@ -501,6 +509,12 @@ class NetObservation(DeformableObservation):
         if self.measured == "net":  # the net's own held-out error where it is used there
             var = torch.where(m[..., None], var * self.factor[None, :, None], var)
         self._M, self._var = M, var
+
+    def set_measured_var(self, measured_var: Tensor | None) -> None:
+        """`InterpObservation.set_measured_var` for the measured part-frames (the net does
+        not predict them); the next use predicts afresh, the net's pass included."""
+        self.interp.set_measured_var(measured_var)
+        self._M = None
 
     def _ready(self, poses: Tensor) -> None:
         if self._M is None or self._M.shape[0] != poses.shape[0]:
