@@ -10,6 +10,16 @@ log = logging.getLogger("adjust.track")
 __all__ = ["adapt_net"]
 
 
+def augment_overrides(augment) -> list[str]:
+    """``adapt.augment`` -> deformnet-train's ``data.augment.*`` overrides."""
+    out = []
+    for key, value in dict(augment or {}).items():
+        if key == "steps" and value is not None:
+            value = "[" + ",".join(str(int(v)) for v in value) + "]"
+        out.append(f"data.augment.{key}={'null' if value is None else value}")
+    return out
+
+
 def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
     """``deformation=self``: fine-tune the default pretrained net on this recording's tokens
     (`deformnet-train data=sessions pretrained=default`, split by time blocks) for
@@ -50,6 +60,8 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
         # from scratch on one recording: start from the interpolation, not the rigid model
         f"net.prior_residual={'true' if pretrained == 'null' else 'false'}",
         f"half_window={int(default.half_window)}",
+        f"data.step={int(a.get('step') or 1)}",
+        *augment_overrides(a.get("augment")),
         f"optim.lr={float(a.get('lr', 1e-3))}",
         f"optim.warmup_steps={int(a.get('warmup_steps', 20))}",
         f"seed={int(a.get('seed', 0))}",

@@ -191,8 +191,39 @@ def make_deformable_observation(
         measured="net" if str(cfg_def.get("measured", "cv")) == "net" else "interp",
         threads=cfg_def.get("threads"),
         few_var=few_var,
+        step=deform_step(model, cfg_def),
+        far_steps=far_steps(model, cfg_def),
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
+
+
+def deform_step(model, cfg_def) -> int:
+    """Frames between the net's window tokens: ``deform.step`` (null: the step the net was
+    trained with, `DeformationModel.step`)."""
+    step = (cfg_def or {}).get("step")
+    if step is None:
+        return int(getattr(model, "step", 1))
+    if int(step) < 1:
+        raise InputError(f"deform.step must be an integer >= 1, got {step}")
+    return int(step)
+
+
+def far_steps(model, cfg_def) -> tuple[int, ...]:
+    """``deform.far_steps``: wider token steps for part-frames the window does not reach
+    (``auto``: the larger steps the net was trained with, `DeformationModel.steps`; a list;
+    ``[]``: none)."""
+    spec = (cfg_def or {}).get("far_steps", "auto")
+    if spec is None or str(spec) == "auto":
+        base = deform_step(model, cfg_def)
+        return tuple(s for s in getattr(model, "steps", ()) if s > base)
+    try:
+        steps = tuple(int(s) for s in spec)
+    except (TypeError, ValueError):
+        msg = f"deform.far_steps must be auto or a list of integers, got {spec}"
+        raise InputError(msg) from None
+    if any(s < 1 for s in steps):
+        raise InputError(f"deform.far_steps must be integers >= 1, got {list(steps)}")
+    return steps
 
 
 def deformation_mode(deformation) -> str:
@@ -624,6 +655,11 @@ def _run(cfg: DictConfig) -> dict:
         }
         def_facts["net_reach_fraction"] = float(observation.reach.double().mean())
         def_facts["net_used_fraction"] = float(observation.use_net.double().mean())
+        used = observation.step_used[observation.use_net.to(observation.step_used.device)]
+        def_facts["net_used_by_step"] = {
+            int(s): float((used == s).double().sum() / max(used.numel(), 1))
+            for s in (observation.step, *observation.far_steps)
+        }
     if measured_facts is not None:
         def_facts["measured_prior"] = measured_facts
     timings["adjust_s"] = time.perf_counter() - t0 - timings.get("adapt_s", 0.0)
@@ -674,6 +710,7 @@ def _run(cfg: DictConfig) -> dict:
                 else (out / "deformation.ckpt" if mode == "self" else "default")
             ),
             "window": int(model.window),
+            "step": int(observation.step) if observation is not None else int(model.step),
             **(def_facts or {}),
         },
         "stochastic": None if cons is None else cons.facts(det.cameras),

@@ -35,8 +35,10 @@ from deformnet.body import BodyModel
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "Augment",
     "MaskConfig",
     "SequenceArrays",
+    "mirror_permutation",
     "toy_sequence",
     "load_sequences",
     "make_masks",
@@ -133,6 +135,66 @@ def load_sequences(paths: Sequence[str | os.PathLike]) -> list[SequenceArrays]:
     return [SequenceArrays.of(load_sim(p)) for p in paths]
 
 
+def mirror_permutation(parts: Sequence[str]) -> list[int] | None:
+    """Part order of the mirror image: each left/right part (``left_*``/``right_*``,
+    ``l_*``/``r_*``, ``*_left``/``*_right``, ``*_l``/``*_r``, any case) swapped with its twin,
+    the others in place; None when no part has a twin (nothing to mirror)."""
+    names = [str(p) for p in parts]
+    low = {n.lower(): i for i, n in enumerate(names)}
+    swaps = (("left_", "right_"), ("l_", "r_"))
+    suffixes = (("_left", "_right"), ("_l", "_r"))
+    perm = list(range(len(names)))
+    found = False
+    for i, n in enumerate(names):
+        m = n.lower()
+        twin = None
+        for a, b in swaps:
+            for x, y in ((a, b), (b, a)):
+                if twin is None and m.startswith(x):
+                    twin = y + m[len(x) :]
+        for a, b in suffixes:
+            for x, y in ((a, b), (b, a)):
+                if twin is None and m.endswith(x):
+                    twin = m[: -len(x)] + y
+        if twin is not None and twin in low:
+            perm[i] = low[twin]
+            found = True
+    return perm if found else None
+
+
+@dataclass(frozen=True)
+class Augment:
+    """Training-window augmentation (self-supervised data is scarce: one recording's tokens).
+
+    mirror: probability of the window's mirror image (reflected through a vertical plane,
+    left and right parts swapped; a bilaterally symmetric body only, `mirror_permutation`);
+    reverse: probability of the window played backwards (the mid frame stays the mid frame);
+    steps: frames between tokens drawn per batch from these (None: the data's step), so one
+    recording yields windows at several token rates."""
+
+    mirror: float = 0.0
+    reverse: float = 0.0
+    steps: tuple[int, ...] | None = None
+
+    @classmethod
+    def from_any(cls, cfg: Mapping[str, Any] | Augment | None) -> Augment:
+        if isinstance(cfg, Augment):
+            return cfg
+        d = dict(cfg or {})
+        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown data.augment options {sorted(unknown)}")
+        steps = d.get("steps")
+        if steps is not None:
+            steps = tuple(int(x) for x in steps)
+            if not steps or min(steps) < 1:
+                raise ValueError(f"data.augment.steps must be integers >= 1, got {list(steps)}")
+        for key in ("mirror", "reverse"):
+            if not 0.0 <= float(d.get(key, 0.0)) <= 1.0:
+                raise ValueError(f"data.augment.{key} must be a probability, got {d[key]}")
+        return cls(float(d.get("mirror", 0.0)), float(d.get("reverse", 0.0)), steps)
+
+
 # --------------------------------------------------------------------------------------------
 # masks
 # --------------------------------------------------------------------------------------------
@@ -215,14 +277,28 @@ def gap_masks(B: int, W: int, K: int, gap: int, dropout: float, gen: torch.Gener
 # windows
 # --------------------------------------------------------------------------------------------
 class WindowBank:
-    """All windows of W frames of a list of sequences, gathered by index without copies."""
+    """All windows of W frames of a list of sequences, gathered by index without copies.
 
-    def __init__(self, sequences: Sequence[SequenceArrays], half_window: int) -> None:
+    step: frames between a window's tokens (the window spans 2 n step + 1 frames): a recording
+    at a higher frame rate than the net's training data is seen at the same token rate."""
+
+    def __init__(
+        self,
+        sequences: Sequence[SequenceArrays],
+        half_window: int,
+        step: int = 1,
+        max_step: int | None = None,
+    ) -> None:
         self.n = int(half_window)
         self.W = 2 * self.n + 1
-        seqs = [s for s in sequences if s.rigid.shape[0] >= self.W]
+        self.step = int(step)
+        if self.step < 1:
+            raise ValueError(f"step must be >= 1, got {step}")
+        # mid frames valid for windows of up to max_step (augmentation's token steps)
+        span = self.n * max(self.step, int(max_step or 1))
+        seqs = [s for s in sequences if s.rigid.shape[0] >= 2 * span + 1]
         if not seqs:
-            raise ValueError(f"no sequence has the {self.W} frames a window needs")
+            raise ValueError(f"no sequence has the {2 * span + 1} frames a window needs")
         self.K = seqs[0].rigid.shape[1]
         self.rigid = torch.from_numpy(np.concatenate([s.rigid for s in seqs]))
         self.deformed = torch.from_numpy(np.concatenate([s.deformed for s in seqs]))
@@ -230,19 +306,41 @@ class WindowBank:
         mids, off = [], 0
         for s in seqs:
             T = s.rigid.shape[0]
-            mids.append(torch.arange(off + self.n, off + T - self.n))
+            mids.append(torch.arange(off + span, off + T - span))
             off += T
         self.mids = torch.cat(mids)  # global frame index of every valid mid frame
 
     def __len__(self) -> int:
         return len(self.mids)
 
-    def batch(self, idx: Tensor, hide: Tensor, noise_mm: float = 0.0, gen=None) -> dict:
-        """Windows around mids[idx] with extra hidden flags `hide` (B, W, K)."""
-        frames = self.mids[idx][:, None] + torch.arange(-self.n, self.n + 1)  # (B, W)
+    def batch(
+        self,
+        idx: Tensor,
+        hide: Tensor,
+        noise_mm: float = 0.0,
+        gen=None,
+        step: int | None = None,
+        flip: Tensor | None = None,
+        reverse: Tensor | None = None,
+        perm: Sequence[int] | None = None,
+    ) -> dict:
+        """Windows around mids[idx] with extra hidden flags `hide` (B, W, K); `step` frames
+        between tokens (None: the bank's); flip (B,) bool: mirror those windows (x -> -x, parts
+        permuted by `perm`); reverse (B,) bool: play those windows backwards."""
+        step = self.step if step is None else int(step)
+        frames = self.mids[idx][:, None] + step * torch.arange(-self.n, self.n + 1)  # (B, W)
+        if reverse is not None:
+            frames = torch.where(reverse[:, None], frames.flip(1), frames)
         rigid = self.rigid[frames]
         truth = self.deformed[frames]
         seen = self.observed[frames]
+        if flip is not None and perm is not None and bool(flip.any()):
+            sign = torch.tensor([-1.0, 1.0, 1.0], dtype=rigid.dtype)
+            p = torch.as_tensor(list(perm), dtype=torch.long)
+            f4 = flip[:, None, None, None]
+            rigid = torch.where(f4, (rigid * sign)[:, :, p], rigid)
+            truth = torch.where(f4, (truth * sign)[:, :, p], truth)
+            seen = torch.where(flip[:, None, None], seen[:, :, p], seen)
         observed = seen & ~hide
         deformed = truth
         if noise_mm > 0:
@@ -269,10 +367,14 @@ class RandomWindowBatches(IterableDataset):
         masking: MaskConfig,
         seed: int = 0,
         noise_mm: float = 0.0,
+        augment: Augment | None = None,
+        mirror_perm: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self.bank, self.batch_size, self.steps = bank, int(batch_size), int(steps)
         self.masking, self.seed, self.noise_mm = masking, int(seed), float(noise_mm)
+        self.augment = augment or Augment()
+        self.mirror_perm = None if mirror_perm is None else list(mirror_perm)
         self.rank = 0
         self._pass = 0
 
@@ -286,7 +388,17 @@ class RandomWindowBatches(IterableDataset):
         for _ in range(self.steps):
             idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
             hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
-            yield b.batch(idx, hide, self.noise_mm, gen)
+            a = self.augment
+            if a.mirror <= 0 and a.reverse <= 0 and a.steps is None:
+                yield b.batch(idx, hide, self.noise_mm, gen)  # (the generator's old sequence)
+                continue
+            step = None
+            if a.steps is not None:
+                step = a.steps[int(torch.randint(0, len(a.steps), (1,), generator=gen))]
+            B = self.batch_size
+            flip = torch.rand(B, generator=gen) < a.mirror
+            rev = torch.rand(B, generator=gen) < a.reverse
+            yield b.batch(idx, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
 
 
 class FixedWindowBatches(Dataset):
@@ -349,6 +461,7 @@ class DeformDataModule(L.LightningDataModule):
         self,
         body: BodyModel,
         half_window: int = 16,
+        step: int = 1,
         source: str = "sim",
         sim: Any = None,
         train_sequences: int = 4,
@@ -362,6 +475,7 @@ class DeformDataModule(L.LightningDataModule):
         val_windows: int = 2048,
         noise_mm: float = 0.0,
         masking: Mapping[str, Any] | MaskConfig | None = None,
+        augment: Mapping[str, Any] | Augment | None = None,
         train_data: Sequence[SequenceArrays] | None = None,
         val_data: Sequence[SequenceArrays] | None = None,
     ) -> None:
@@ -375,6 +489,7 @@ class DeformDataModule(L.LightningDataModule):
         self.train_data, self.val_data = list(train_data or []), list(val_data or [])
         self.body = body
         self.half_window = int(half_window)
+        self.step = int(step)
         self.source = source
         self.sim_cfg = sim
         self.train_sequences, self.val_sequences = int(train_sequences), int(val_sequences)
@@ -386,6 +501,13 @@ class DeformDataModule(L.LightningDataModule):
         self.val_windows = int(val_windows)
         self.noise_mm = float(noise_mm)
         self.masking = MaskConfig.from_any(masking)
+        self.augment = Augment.from_any(augment)
+        self.mirror_perm = mirror_permutation(body.parts) if self.augment.mirror > 0 else None
+        if self.augment.mirror > 0 and self.mirror_perm is None:
+            log.warning(
+                "data.augment.mirror: no left/right part pairs among %s; no mirroring",
+                list(body.parts),
+            )
         self.train_set: RandomWindowBatches | None = None
         self.val_set: FixedWindowBatches | None = None
 
@@ -406,13 +528,21 @@ class DeformDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is None and stage in (None, "fit"):
-            bank = WindowBank(self.sequences("train"), self.half_window)
+            steps = self.augment.steps or (self.step,)
+            bank = WindowBank(self.sequences("train"), self.half_window, self.step, max(steps))
             self.train_set = RandomWindowBatches(
-                bank, self.batch_size, self.steps_per_epoch, self.masking, self.seed, self.noise_mm
+                bank,
+                self.batch_size,
+                self.steps_per_epoch,
+                self.masking,
+                self.seed,
+                self.noise_mm,
+                self.augment,
+                self.mirror_perm,
             )
             log.info("training windows: %d mid frames, %d parts", len(bank), bank.K)
         if self.val_set is None and stage in (None, "fit", "validate"):
-            bank = WindowBank(self.sequences("val"), self.half_window)
+            bank = WindowBank(self.sequences("val"), self.half_window, self.step)
             self.val_set = FixedWindowBatches.build(
                 bank, self.val_windows, self.batch_size, self.seed + 1, self.masking
             )

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -94,7 +94,10 @@ class DeformationModel(nn.Module):
 
     net: an nn.Module with forward(rigid_c (B, W, K, 3), deformed_c (B, W, K, 3),
     observed (B, W, K)) -> (B, K, 3) in canonical coordinates; body: the rigid body model
-    (K parts); half_window: n (W = 2n + 1). Attributes: body, window, half_window, net_config.
+    (K parts); half_window: n (W = 2n + 1); step: frames between the window's tokens (the
+    frame step it was trained with: a window covers frames t - n step .. t + n step).
+    steps: every token step it was trained with (`deformnet.data.Augment.steps`; default
+    (step,)). Attributes: body, window, half_window, step, steps, net_config.
     """
 
     def __init__(
@@ -103,10 +106,17 @@ class DeformationModel(nn.Module):
         body: BodyModel,
         half_window: int,
         net_config: Mapping[str, Any] | None = None,
+        step: int = 1,
+        steps: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
+        if int(step) < 1:
+            raise ValueError(f"step must be >= 1, got {step}")
         self.net = net
         self.body = body
+        self.step = int(step)
+        # the token steps it was trained with (augmentation: several; the tracker's far steps)
+        self.steps = tuple(sorted({int(s) for s in (steps or (self.step,))} | {self.step}))
         self.half_window = int(half_window)
         self.window = 2 * self.half_window + 1
         self.net_config = dict(net_config) if net_config is not None else None
@@ -148,12 +158,17 @@ class DeformationModel(nn.Module):
         """What a checkpoint needs to rebuild this model (net config, body, window, weights)."""
         if self.net_config is None:
             raise ValueError("cannot export a DeformationModel built without net_config")
-        return {
+        blob = {
             "net_config": dict(self.net_config),
             "body": self.body.to_mapping(),
             "half_window": self.half_window,
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
         }
+        if self.step != 1:  # (step 1 is what checkpoints without the key mean)
+            blob["step"] = self.step
+        if self.steps != (self.step,):
+            blob["steps"] = list(self.steps)
+        return blob
 
     @classmethod
     def from_export(cls, blob: Mapping[str, Any]) -> DeformationModel:
@@ -161,7 +176,14 @@ class DeformationModel(nn.Module):
             blob["body"]["parts"], blob["body"].get("aliases"), blob["body"].get("name", "body")
         )
         net = build_net(blob["net_config"])
-        model = cls(net, body, int(blob["half_window"]), blob["net_config"])
+        model = cls(
+            net,
+            body,
+            int(blob["half_window"]),
+            blob["net_config"],
+            int(blob.get("step", 1)),
+            blob.get("steps"),
+        )
         model.load_state_dict(blob["state_dict"])
         return model.eval()
 

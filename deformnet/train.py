@@ -110,7 +110,7 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
     if pretrained is not None:
         net.load_state_dict(pretrained.net.state_dict())
     lit = DeformLit(
-        DeformationModel(net, body, half_window, ncfg),
+        DeformationModel(net, body, half_window, ncfg, data_step(cfg), data_steps(cfg)),
         lr=float(cfg.optim.lr),
         weight_decay=float(cfg.optim.weight_decay),
         warmup_steps=int(cfg.optim.warmup_steps),
@@ -118,6 +118,21 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
         hparams=hp,
     )
     return lit, body, name
+
+
+def data_step(cfg: DictConfig) -> int:
+    """``data.step``: frames between a window's tokens (1: consecutive frames)."""
+    step = (cfg.get("data") or {}).get("step", 1)
+    if step is None or int(step) < 1:
+        raise ValueError(f"data.step must be an integer >= 1, got {step}")
+    return int(step)
+
+
+def data_steps(cfg: DictConfig) -> list[int] | None:
+    """The token steps training draws from (``data.augment.steps``; None: ``data.step``)."""
+    aug = (cfg.get("data") or {}).get("augment") or {}
+    steps = aug.get("steps")
+    return None if steps is None else [int(s) for s in steps]
 
 
 def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arrays=None):
@@ -226,7 +241,8 @@ def _run(cfg: DictConfig) -> dict:
 
     pretrained = load_pretrained(cfg.get("pretrained"))
     body, arrays, data_facts = None, None, None
-    window = 2 * int(pretrained.half_window if pretrained is not None else cfg.half_window) + 1
+    n = int(pretrained.half_window if pretrained is not None else cfg.half_window)
+    window = 2 * n * max([data_step(cfg), *(data_steps(cfg) or [])]) + 1  # frames it spans
     if str(cfg.data.get("source")) == "sessions":
         body, arrays, data_facts = session_data(cfg, out, window)
     lit, body, name = build_model(cfg, body, pretrained)

@@ -279,9 +279,13 @@ class DeformableObservation:
         window: int,
         observed: Tensor | None = None,
         batch_size: int = 4096,
+        step: int = 1,
     ) -> None:
         if window < 1 or window % 2 != 1:
             raise ValueError(f"window must be odd and >= 1, got {window}")
+        if int(step) < 1:
+            raise ValueError(f"step must be >= 1, got {step}")
+        self.step = int(step)  # frames between the window's tokens
         self.model = model
         self.rigid = RigidObservation(body_points)
         self.W = int(window)
@@ -295,11 +299,15 @@ class DeformableObservation:
     def num_parts(self) -> int:
         return self.rigid.num_parts
 
+    def _offsets(self) -> Tensor:
+        """(W,) frame offsets of a window's tokens from its mid frame."""
+        n = self.W // 2
+        return self.step * torch.arange(-n, n + 1)
+
     def _windows(self, X: Tensor) -> Tensor:
         """(T, K, 3) -> (T, W, K, 3) windows, edge frames repeated at the sequence ends."""
         T = X.shape[0]
-        n = self.W // 2
-        idx = (torch.arange(T)[:, None] + torch.arange(-n, n + 1)[None]).clamp(0, T - 1)
+        idx = (torch.arange(T)[:, None] + self._offsets()[None]).clamp(0, T - 1)
         return X[idx]
 
     def prepare(self, poses: Tensor) -> None:
@@ -366,7 +374,9 @@ class DeformableObservation:
 
     def window(self, start: int, stop: int) -> DeformableObservation:
         obs = None if self.observed is None else self.observed[start:stop]
-        return DeformableObservation(self.model, self.rigid.body, self.W, obs, self.batch_size)
+        return DeformableObservation(
+            self.model, self.rigid.body, self.W, obs, self.batch_size, self.step
+        )
 
 
 #: finite-difference steps of the deformable Jacobian: rotation (rad), translation (mm)
@@ -425,8 +435,14 @@ class NetObservation(DeformableObservation):
         threads: int | None = None,
         few_var: Tensor | None = None,
         measured_var: Tensor | None = None,
+        step: int = 1,
+        far_steps: tuple[int, ...] = (),
     ):
-        super().__init__(model, body_points, window, observed, batch_size)
+        super().__init__(model, body_points, window, observed, batch_size, step)
+        self.far_steps = tuple(sorted(int(s) for s in far_steps if int(s) > self.step))
+        if self.far_steps and jacobian != "frozen":
+            raise ValueError("deform.far_steps needs deform.jacobian=frozen")
+        self.step_used: Tensor | None = None  # (T, K) token step of the net's prediction (0: none)
         self.threads = threads  # torch threads for the net's passes (None: unchanged)
         if measured not in ("interp", "net"):
             raise ValueError(f"deform.measured must be interp or net, got {measured!r}")
@@ -467,10 +483,43 @@ class NetObservation(DeformableObservation):
         n = self.W // 2
         # edge frames are repeated by _windows: count only real neighbours on each side
         T = obs.shape[0]
-        idx = torch.arange(T)[:, None] + torch.arange(-n, n + 1)[None]
+        idx = torch.arange(T)[:, None] + self._offsets()[None]
         real = ((idx >= 0) & (idx < T))[..., None]
         ow = self._observed_win & real
         self.reach = ow[:, :n].any(1) & ow[:, n + 1 :].any(1)
+        self._inputs = (Xr, torch.where(obs[..., None], data, Xr), obs)
+
+    def _far(self, X: Tensor) -> Tensor:
+        """Predictions (T, K, 3) where the window at ``step`` does not see the part on both
+        sides but a wider one (``far_steps``: every s-th frame, the same number of tokens)
+        does; `reach` and `step_used` updated. Runs the net on those frames only."""
+        Xr, D, obs = self._inputs
+        T = Xr.shape[0]
+        n = self.W // 2
+        reach = self.reach.clone()
+        used = torch.where(reach, self.step, 0)
+        X = X.clone()
+        mdt = next(self.model.parameters(), torch.empty(0, dtype=Xr.dtype)).dtype
+        with torch.no_grad():
+            for s in self.far_steps:
+                frames = (~reach).any(1).nonzero().flatten()
+                if frames.numel() == 0:
+                    break
+                for chunk in frames.split(self.batch_size):
+                    idx = chunk[:, None] + s * torch.arange(-n, n + 1)[None]
+                    real = (idx >= 0) & (idx < T)
+                    idx = idx.clamp(0, T - 1)
+                    ow = obs[idx] & real[..., None]
+                    r_s = ow[:, :n].any(1) & ow[:, n + 1 :].any(1)
+                    take = r_s & ~reach[chunk]
+                    if not bool(take.any()):
+                        continue
+                    pred = self.model(Xr[idx].to(mdt), D[idx].to(mdt), ow).to(X.dtype)
+                    X[chunk] = torch.where(take[..., None], pred, X[chunk])
+                    reach[chunk] = reach[chunk] | take
+                    used[chunk] = torch.where(take, s, used[chunk])
+        self.reach, self.step_used = reach, used
+        return X
 
     def prepare(self, poses: Tensor) -> None:
         same = self._M is not None and self._M.shape[0] == poses.shape[0]
@@ -482,6 +531,10 @@ class NetObservation(DeformableObservation):
         self.interp.prepare(poses)
         with torch_threads(self.threads):
             X = self._forward(poses)
+            if self.far_steps:
+                X = self._far(X)
+            else:
+                self.step_used = torch.where(self.reach, self.step, 0)
         self.evaluations += 1
         R = so3_exp(poses[:, :3]).detach()
         M = torch.einsum("tji,tkj->tki", R, X - poses[:, None, 3:].detach())
@@ -578,4 +631,6 @@ class NetObservation(DeformableObservation):
             threads=self.threads,
             few_var=self.few_var,
             measured_var=self.interp.measured_var,
+            step=self.step,
+            far_steps=self.far_steps,
         )
