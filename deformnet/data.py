@@ -287,15 +287,13 @@ class WindowBank:
         sequences: Sequence[SequenceArrays],
         half_window: int,
         step: int = 1,
-        max_step: int | None = None,
     ) -> None:
         self.n = int(half_window)
         self.W = 2 * self.n + 1
         self.step = int(step)
         if self.step < 1:
             raise ValueError(f"step must be >= 1, got {step}")
-        # mid frames valid for windows of up to max_step (augmentation's token steps)
-        span = self.n * max(self.step, int(max_step or 1))
+        span = self.n * self.step
         seqs = [s for s in sequences if s.rigid.shape[0] >= 2 * span + 1]
         if not seqs:
             raise ValueError(f"no sequence has the {2 * span + 1} frames a window needs")
@@ -303,12 +301,22 @@ class WindowBank:
         self.rigid = torch.from_numpy(np.concatenate([s.rigid for s in seqs]))
         self.deformed = torch.from_numpy(np.concatenate([s.deformed for s in seqs]))
         self.observed = torch.from_numpy(np.concatenate([s.observed for s in seqs]))
-        mids, off = [], 0
+        self._pieces, off = [], 0
         for s in seqs:
-            T = s.rigid.shape[0]
-            mids.append(torch.arange(off + span, off + T - span))
-            off += T
-        self.mids = torch.cat(mids)  # global frame index of every valid mid frame
+            self._pieces.append((off, s.rigid.shape[0]))
+            off += s.rigid.shape[0]
+        self._mids: dict[int, Tensor] = {}
+        self.mids = self.mids_for(self.step)  # global frame index of every valid mid frame
+
+    def mids_for(self, step: int) -> Tensor:
+        """Mid frames (global indices) whose window at this token step lies inside its
+        sequence (empty when every sequence is too short for it)."""
+        step = int(step)
+        if step not in self._mids:
+            span = self.n * step
+            m = [torch.arange(o + span, o + T - span) for o, T in self._pieces if T > 2 * span]
+            self._mids[step] = torch.cat(m) if m else torch.zeros(0, dtype=torch.long)
+        return self._mids[step]
 
     def __len__(self) -> int:
         return len(self.mids)
@@ -324,11 +332,12 @@ class WindowBank:
         reverse: Tensor | None = None,
         perm: Sequence[int] | None = None,
     ) -> dict:
-        """Windows around mids[idx] with extra hidden flags `hide` (B, W, K); `step` frames
-        between tokens (None: the bank's); flip (B,) bool: mirror those windows (x -> -x, parts
-        permuted by `perm`); reverse (B,) bool: play those windows backwards."""
+        """Windows around mids_for(step)[idx] with extra hidden flags `hide` (B, W, K); `step`
+        frames between tokens (None: the bank's); flip (B,) bool: mirror those windows (x -> -x,
+        parts permuted by `perm`); reverse (B,) bool: play those windows backwards."""
         step = self.step if step is None else int(step)
-        frames = self.mids[idx][:, None] + step * torch.arange(-self.n, self.n + 1)  # (B, W)
+        mids = self.mids_for(step)
+        frames = mids[idx][:, None] + step * torch.arange(-self.n, self.n + 1)  # (B, W)
         if reverse is not None:
             frames = torch.where(reverse[:, None], frames.flip(1), frames)
         rigid = self.rigid[frames]
@@ -385,16 +394,20 @@ class RandomWindowBatches(IterableDataset):
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + self.rank * 7919 + self._pass)
         self._pass += 1
         b = self.bank
+        a = self.augment
+        steps = [s for s in (a.steps or ()) if len(b.mids_for(s))] or None
         for _ in range(self.steps):
-            idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
-            hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
-            a = self.augment
-            if a.mirror <= 0 and a.reverse <= 0 and a.steps is None:
-                yield b.batch(idx, hide, self.noise_mm, gen)  # (the generator's old sequence)
+            if a.mirror <= 0 and a.reverse <= 0 and a.steps is None:  # the plain windows
+                idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
+                hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
+                yield b.batch(idx, hide, self.noise_mm, gen)
                 continue
             step = None
-            if a.steps is not None:
-                step = a.steps[int(torch.randint(0, len(a.steps), (1,), generator=gen))]
+            if steps is not None:  # a step some sequence is long enough for
+                step = steps[int(torch.randint(0, len(steps), (1,), generator=gen))]
+            n_mids = len(b.mids_for(b.step if step is None else step))
+            idx = torch.randint(0, n_mids, (self.batch_size,), generator=gen)
+            hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
             B = self.batch_size
             flip = torch.rand(B, generator=gen) < a.mirror
             rev = torch.rand(B, generator=gen) < a.reverse
@@ -504,7 +517,7 @@ class DeformDataModule(L.LightningDataModule):
         self.augment = Augment.from_any(augment)
         self.mirror_perm = mirror_permutation(body.parts) if self.augment.mirror > 0 else None
         if self.augment.mirror > 0 and self.mirror_perm is None:
-            log.warning(
+            log.info(
                 "data.augment.mirror: no left/right part pairs among %s; no mirroring",
                 list(body.parts),
             )
@@ -528,8 +541,7 @@ class DeformDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is None and stage in (None, "fit"):
-            steps = self.augment.steps or (self.step,)
-            bank = WindowBank(self.sequences("train"), self.half_window, self.step, max(steps))
+            bank = WindowBank(self.sequences("train"), self.half_window, self.step)
             self.train_set = RandomWindowBatches(
                 bank,
                 self.batch_size,

@@ -242,7 +242,7 @@ def _run(cfg: DictConfig) -> dict:
     pretrained = load_pretrained(cfg.get("pretrained"))
     body, arrays, data_facts = None, None, None
     n = int(pretrained.half_window if pretrained is not None else cfg.half_window)
-    window = 2 * n * max([data_step(cfg), *(data_steps(cfg) or [])]) + 1  # frames it spans
+    window = 2 * n * data_step(cfg) + 1  # frames a window spans (wider steps: where they fit)
     if str(cfg.data.get("source")) == "sessions":
         body, arrays, data_facts = session_data(cfg, out, window)
     lit, body, name = build_model(cfg, body, pretrained)

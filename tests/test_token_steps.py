@@ -52,12 +52,15 @@ def test_augment_options_are_checked():
 
 def test_window_bank_steps_reverse_and_mirror():
     T, K, n = 60, 3, 2
-    bank = WindowBank([_frame_coded(T, K)], n, step=1, max_step=3)
-    assert bank.mids[0] == 6 and bank.mids[-1] == T - 7  # valid for windows of step 3
+    bank = WindowBank([_frame_coded(T, K)], n, step=1)
+    assert bank.mids[0] == 2 and bank.mids[-1] == T - 3 and len(bank) == T - 4
+    m3 = bank.mids_for(3)  # the mids a step-3 window fits around
+    assert m3[0] == 6 and m3[-1] == T - 7
+    assert len(bank.mids_for(15)) == 0  # 61 frames: longer than the sequence
     hide = torch.zeros(2, 2 * n + 1, K, dtype=torch.bool)
     idx = torch.tensor([0, 10])
     b1 = bank.batch(idx, hide)
-    np.testing.assert_array_equal(b1["rigid"][0, :, 0, 0], [4, 5, 6, 7, 8])
+    np.testing.assert_array_equal(b1["rigid"][0, :, 0, 0], [0, 1, 2, 3, 4])
     b3 = bank.batch(idx, hide, step=3)
     np.testing.assert_array_equal(b3["rigid"][1, :, 0, 0], [10, 13, 16, 19, 22])
     np.testing.assert_array_equal(b3["target"][1, :, 0], [16, 16, 16])  # the mid frame
@@ -103,8 +106,8 @@ def test_mirrored_window_is_the_mirror_image_in_the_body_frame():
 
 def test_training_batches_draw_the_augmentation():
     T, K, n = 200, 3, 2
-    bank = WindowBank([_frame_coded(T, K)], n, max_step=3)
-    aug = Augment(mirror=0.5, reverse=0.5, steps=(1, 3))
+    bank = WindowBank([_frame_coded(T, K)], n)
+    aug = Augment(mirror=0.5, reverse=0.5, steps=(1, 3, 99))  # 99: too long, never drawn
     it = RandomWindowBatches(bank, 64, 40, MaskConfig(), seed=0, augment=aug, mirror_perm=[0, 2, 1])
     spans, flips, revs = set(), 0, 0
     for b in it:
@@ -132,7 +135,8 @@ def test_data_module_step_and_the_model_keeps_its_steps(tmp_path):
     dm.setup("fit")
     b = next(iter(dm.train_dataloader()))
     assert b["rigid"].shape == (4, 5, body.num_parts, 3)
-    assert dm.train_set.bank.mids.min() == 8  # valid for step 4 windows
+    bank = dm.train_set.bank
+    assert bank.mids.min() == 4 and bank.mids_for(4).min() == 8  # step 2 and step 4 windows
     net = LSTMPredictor(body.num_parts, 2, hidden=8, layers=1, embed=8)
     cfg = {"_target_": "deformnet.nets.LSTMPredictor", "num_parts": body.num_parts,
            "half_window": 2, "hidden": 8, "layers": 1, "embed": 8}  # fmt: skip
