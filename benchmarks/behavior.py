@@ -9,6 +9,9 @@ simulator's per-frame behavior (truth.npz) written as `fnum,label` CSVs.
 
 Classifiers (`deformnet-classify`, each `trainer.max_time` seconds), at label fractions 1%,
 10%, 100% of the training sessions' frames (and of the validation session's):
+At 1% (about 180 labelled frames) each method runs on `--label-draws` (3) draws of the
+labelled frames (`labels.seed` 0, 1, 2; the same frames for every method) and reports the mean:
+one draw moves macro-F1 by several points.
 - ``pretrained``: the encoder of a deformnet-train checkpoint (`--pretrained`, else a short
   `deformnet-train` run here), fine-tuned with its head;
 - ``frozen``: the same encoder frozen, head only;
@@ -36,6 +39,7 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
 
     .venv/bin/python benchmarks/behavior.py [--frames 3000] [--train 6] [--test 4]
         [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--seconds 75]
+        [--label-draws 3]
 
 Prints tables; the last line is JSON, also written atomically to runs/benchmarks/behavior.json.
 """
@@ -135,11 +139,19 @@ def _list(paths) -> str:
 
 
 def run_classifier(
-    out: Path, sessions: dict, source: str, fraction: float, method: str, ckpt: str, seconds: int
+    out: Path,
+    sessions: dict,
+    source: str,
+    fraction: float,
+    method: str,
+    ckpt: str,
+    seconds: int,
+    label_seed: int = 0,
 ) -> dict:
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
+    ov.append(f"labels.seed={label_seed}")
     ov.append(f"trainer.max_time=00:00:{seconds // 60:02d}:{seconds % 60:02d}")
     for split in ("train", "val", "test"):
         ov.append(f"data.{split}_tracks={_list(s[source] for s in sessions[split])}")
@@ -203,7 +215,9 @@ def window_features(path: Path, parts: list[str], interpolate: bool) -> np.ndarr
     return np.nan_to_num(np.concatenate(feats, 1), nan=0.0)
 
 
-def run_rf(sessions: dict, source: str, fraction: float, seed: int = 0) -> dict:
+def run_rf(
+    sessions: dict, source: str, fraction: float, seed: int = 0, label_seed: int = 0
+) -> dict:
     from sklearn.ensemble import RandomForestClassifier
 
     from deformnet.behavior_labels import Session, subsample_labels
@@ -223,7 +237,7 @@ def run_rf(sessions: dict, source: str, fraction: float, seed: int = 0) -> dict:
     dummy = [
         Session(str(i), None, None, None, np.arange(len(y)), y.copy()) for i, y in enumerate(ytr)
     ]  # fmt: skip
-    subsample_labels(dummy, fraction, 1, 0)
+    subsample_labels(dummy, fraction, 1, label_seed)
     X = np.concatenate([x[s.labels >= 0] for x, s in zip(Xtr, dummy)])
     y = np.concatenate([s.labels[s.labels >= 0] for s in dummy])
     rf = RandomForestClassifier(
@@ -239,6 +253,24 @@ def run_rf(sessions: dict, source: str, fraction: float, seed: int = 0) -> dict:
         "labelled_frames": int(len(y)),
         "seconds": round(time.perf_counter() - t0, 1),
     }
+
+
+def averaged(runs: list[dict]) -> dict:
+    """One method's result over several label draws: the mean macro-F1 (raw, smoothed) and
+    per-class F1, each draw's macro-F1, the total seconds."""
+    if len(runs) == 1:
+        return runs[0]
+    out = dict(runs[0])
+    out["macro_f1"] = float(np.mean([r["macro_f1"] for r in runs]))
+    out["macro_f1_draws"] = [r["macro_f1"] for r in runs]
+    if runs[0].get("macro_f1_smoothed") is not None:
+        out["macro_f1_smoothed"] = float(np.mean([r["macro_f1_smoothed"] for r in runs]))
+    out["f1"] = {
+        c: float(np.nanmean([r["f1"][c] if r["f1"][c] is not None else np.nan for r in runs]))
+        for c in runs[0]["f1"]
+    }
+    out["seconds"] = round(sum(r["seconds"] for r in runs), 1)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -361,6 +393,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--pretrain-seconds", type=int, default=240)
     ap.add_argument("--seconds", type=int, default=75, help="trainer.max_time per classifier")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--label-draws", type=int, default=3, help="label draws averaged at 1%% labels")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
@@ -391,13 +424,23 @@ def main(argv: list[str] | None = None) -> dict:
     for frac in FRACTIONS:
         key = f"{frac:g}"
         results[key] = {}
+        # at 1% (a few labelled frames per class) which frames get labels moves macro-F1 by
+        # several points: every method is run on the same `--label-draws` draws, averaged
+        draws = range(args.label_draws if frac <= 0.01 else 1)
         for method in ("pretrained", "frozen", "scratch", "scratch_frozen"):
-            out = work / f"cls_track_{method}_{key}"
-            results[key][method] = run_classifier(
-                out, sessions, "track", frac, method, ckpt, args.seconds
-            )
+            runs = [
+                run_classifier(
+                    work / f"cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
+                    else work / f"cls_track_{method}_{key}",
+                    sessions, "track", frac, method, ckpt, args.seconds, label_seed=d,
+                )
+                for d in draws
+            ]  # fmt: skip
+            results[key][method] = averaged(runs)
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
-        results[key]["rf"] = run_rf(sessions, "track", frac)
+        results[key]["rf"] = averaged(
+            [run_rf(sessions, "track", frac, label_seed=d) for d in draws]
+        )
         log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
     inputs = {
         "track": {
@@ -474,6 +517,7 @@ def main(argv: list[str] | None = None) -> dict:
             "sessions": counts,
             "seeds": SEEDS,
             "seconds_per_classifier": args.seconds,
+            "label_draws_at_1pct": args.label_draws,
         },
         **extra,
         "total_seconds": round(time.perf_counter() - t_start, 1),

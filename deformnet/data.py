@@ -38,6 +38,7 @@ __all__ = [
     "Augment",
     "MaskConfig",
     "SequenceArrays",
+    "mirror_asymmetry",
     "mirror_permutation",
     "toy_sequence",
     "load_sequences",
@@ -160,6 +161,18 @@ def mirror_permutation(parts: Sequence[str]) -> list[int] | None:
             perm[i] = low[twin]
             found = True
     return perm if found else None
+
+
+def mirror_asymmetry(points: np.ndarray, perm: Sequence[int]) -> float:
+    """How far a body model is from bilateral symmetry: the rms distance (mm) between its points
+    and its mirror image (x -> -x, parts permuted by `perm`) moved onto them by the best rigid
+    motion (`deformnet.so3.kabsch`); 0 for a body symmetric about any plane."""
+    from deformnet.so3 import kabsch
+
+    P = torch.tensor(np.array(points, dtype=np.float64))
+    M = (P * torch.tensor([-1.0, 1.0, 1.0], dtype=P.dtype))[list(perm)]
+    R, t = kabsch(P, M)
+    return float(((M @ R.T + t - P) ** 2).sum(-1).mean().sqrt())
 
 
 @dataclass(frozen=True)
@@ -521,6 +534,16 @@ class DeformDataModule(L.LightningDataModule):
                 "data.augment.mirror: no left/right part pairs among %s; no mirroring",
                 list(body.parts),
             )
+        elif self.mirror_perm is not None:
+            pts = np.asarray(body.points, dtype=np.float64)
+            asym = mirror_asymmetry(pts, self.mirror_perm)
+            size = float(np.sqrt(((pts - pts.mean(0)) ** 2).sum(-1).mean()))
+            if asym > 0.1 * size:  # its mirror image is another body, not this one
+                log.info(
+                    "data.augment.mirror: the body model is %.1f mm rms from its mirror image "
+                    "(%.0f%% of its size); no mirroring", asym, 100 * asym / size,
+                )  # fmt: skip
+                self.mirror_perm = None
         self.train_set: RandomWindowBatches | None = None
         self.val_set: FixedWindowBatches | None = None
 
