@@ -128,11 +128,11 @@ def data_step(cfg: DictConfig) -> int:
     return int(step)
 
 
-def data_steps(cfg: DictConfig) -> list[int] | None:
+def data_steps(cfg: DictConfig) -> tuple[int, ...] | None:
     """The token steps training draws from (``data.augment.steps``; None: ``data.step``)."""
-    aug = (cfg.get("data") or {}).get("augment") or {}
-    steps = aug.get("steps")
-    return None if steps is None else [int(s) for s in steps]
+    from deformnet.data import Augment
+
+    return Augment.from_any(to_plain((cfg.get("data") or {}).get("augment"))).steps
 
 
 def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arrays=None):

@@ -299,16 +299,22 @@ class DeformableObservation:
     def num_parts(self) -> int:
         return self.rigid.num_parts
 
-    def _offsets(self) -> Tensor:
-        """(W,) frame offsets of a window's tokens from its mid frame."""
+    def _index(self, frames: Tensor, T: int, step: int | None = None) -> tuple[Tensor, Tensor]:
+        """Frame indices (F, W) of the windows around ``frames`` (F,) of a T-frame sequence at a
+        token step (None: ``self.step``), clamped to it (edge frames repeated), and (F, W)
+        whether each is a real frame."""
         n = self.W // 2
-        return self.step * torch.arange(-n, n + 1)
+        idx = frames[:, None] + (self.step if step is None else step) * torch.arange(-n, n + 1)
+        real = (idx >= 0) & (idx < T)
+        return idx.clamp(0, T - 1), real
+
+    def _model_dtype(self, like: Tensor) -> torch.dtype:
+        return next(self.model.parameters(), torch.empty(0, dtype=like.dtype)).dtype
 
     def _windows(self, X: Tensor) -> Tensor:
         """(T, K, 3) -> (T, W, K, 3) windows, edge frames repeated at the sequence ends."""
         T = X.shape[0]
-        idx = (torch.arange(T)[:, None] + self._offsets()[None]).clamp(0, T - 1)
-        return X[idx]
+        return X[self._index(torch.arange(T), T)[0]]
 
     def prepare(self, poses: Tensor) -> None:
         Xr, _ = self.rigid.rigid_points(poses)
@@ -343,7 +349,7 @@ class DeformableObservation:
     def _model(self, Xmid: Tensor, s: int, e: int, n: int) -> Tensor:
         rw = self._rigid_win[s:e].clone()
         rw[:, n] = Xmid
-        mdt = next(self.model.parameters(), torch.empty(0, dtype=Xmid.dtype)).dtype
+        mdt = self._model_dtype(Xmid)
         return self.model(rw.to(mdt), self._deformed_win[s:e].to(mdt), self._observed_win[s:e])
 
     def _part_jacobian(self, poses: Tensor) -> tuple[Tensor, Tensor]:
@@ -382,6 +388,13 @@ class DeformableObservation:
 #: finite-difference steps of the deformable Jacobian: rotation (rad), translation (mm)
 FD_STEP = {"forward": (1e-6, 1e-4), "central": (1e-5, 1e-3)}  # (rad, mm) steps
 JACOBIANS = ("frozen", *FD_STEP)
+
+
+def _both_sides(observed_win: Tensor) -> Tensor:
+    """(F, W, K) observed flags of windows -> (F, K): the part is seen both before and after
+    the mid frame (the window reaches it)."""
+    n = observed_win.shape[1] // 2
+    return observed_win[:, :n].any(1) & observed_win[:, n + 1 :].any(1)
 
 
 class NetObservation(DeformableObservation):
@@ -480,13 +493,10 @@ class NetObservation(DeformableObservation):
         self._rigid_win = self._windows(Xr)
         self._deformed_win = self._windows(torch.where(obs[..., None], data, Xr))
         self._observed_win = self._windows(obs[..., None].to(Xr.dtype))[..., 0] > 0.5
-        n = self.W // 2
         # edge frames are repeated by _windows: count only real neighbours on each side
         T = obs.shape[0]
-        idx = torch.arange(T)[:, None] + self._offsets()[None]
-        real = ((idx >= 0) & (idx < T))[..., None]
-        ow = self._observed_win & real
-        self.reach = ow[:, :n].any(1) & ow[:, n + 1 :].any(1)
+        real = self._index(torch.arange(T), T)[1]
+        self.reach = _both_sides(self._observed_win & real[..., None])
         self._inputs = (Xr, torch.where(obs[..., None], data, Xr), obs)
 
     def _far(self, X: Tensor) -> Tensor:
@@ -495,23 +505,19 @@ class NetObservation(DeformableObservation):
         does; `reach` and `step_used` updated. Runs the net on those frames only."""
         Xr, D, obs = self._inputs
         T = Xr.shape[0]
-        n = self.W // 2
         reach = self.reach.clone()
         used = torch.where(reach, self.step, 0)
         X = X.clone()
-        mdt = next(self.model.parameters(), torch.empty(0, dtype=Xr.dtype)).dtype
+        mdt = self._model_dtype(Xr)
         with torch.no_grad():
             for s in self.far_steps:
                 frames = (~reach).any(1).nonzero().flatten()
                 if frames.numel() == 0:
                     break
                 for chunk in frames.split(self.batch_size):
-                    idx = chunk[:, None] + s * torch.arange(-n, n + 1)[None]
-                    real = (idx >= 0) & (idx < T)
-                    idx = idx.clamp(0, T - 1)
+                    idx, real = self._index(chunk, T, s)
                     ow = obs[idx] & real[..., None]
-                    r_s = ow[:, :n].any(1) & ow[:, n + 1 :].any(1)
-                    take = r_s & ~reach[chunk]
+                    take = _both_sides(ow) & ~reach[chunk]
                     if not bool(take.any()):
                         continue
                     pred = self.model(Xr[idx].to(mdt), D[idx].to(mdt), ow).to(X.dtype)
@@ -530,11 +536,7 @@ class NetObservation(DeformableObservation):
         self._net_inputs(poses)
         self.interp.prepare(poses)
         with torch_threads(self.threads):
-            X = self._forward(poses)
-            if self.far_steps:
-                X = self._far(X)
-            else:
-                self.step_used = torch.where(self.reach, self.step, 0)
+            X = self._far(self._forward(poses))
         self.evaluations += 1
         R = so3_exp(poses[:, :3]).detach()
         M = torch.einsum("tji,tkj->tki", R, X - poses[:, None, 3:].detach())
