@@ -11,7 +11,10 @@ A batch is a dict of float32 / bool tensors:
                                                 are zeroed),
     observed (B, W, K)                          input flags (mid frame false),
     target (B, K, 3), target_mask (B, K)        the mid frame's deformed positions and whether
-                                                they were observed (the loss uses only those).
+                                                they were observed (the loss uses only those),
+    pair (with pair_shift > 0)                  {rigid, deformed, observed} of windows a few
+                                                frames away in the same sequence (positives of
+                                                the temporal-contrastive term, `DeformLit`).
 """
 
 from __future__ import annotations
@@ -319,6 +322,7 @@ class WindowBank:
             self._pieces.append((off, s.rigid.shape[0]))
             off += s.rigid.shape[0]
         self._mids: dict[int, Tensor] = {}
+        self._mid_seq: dict[int, Tensor] = {}
         self.mids = self.mids_for(self.step)  # global frame index of every valid mid frame
 
     def mids_for(self, step: int) -> Tensor:
@@ -327,9 +331,31 @@ class WindowBank:
         step = int(step)
         if step not in self._mids:
             span = self.n * step
-            m = [torch.arange(o + span, o + T - span) for o, T in self._pieces if T > 2 * span]
+            m, q = [], []
+            for i, (o, T) in enumerate(self._pieces):
+                if T > 2 * span:
+                    m.append(torch.arange(o + span, o + T - span))
+                    q.append(torch.full((T - 2 * span,), i, dtype=torch.long))
             self._mids[step] = torch.cat(m) if m else torch.zeros(0, dtype=torch.long)
+            self._mid_seq[step] = torch.cat(q) if q else torch.zeros(0, dtype=torch.long)
         return self._mids[step]
+
+    def shifted(self, idx: Tensor, shift: Tensor, step: int | None = None) -> Tensor:
+        """Indices into mids_for(step) of the mid frames `shift` (B,) frames after those of
+        `idx` (B,) in the same sequence; where that leaves the sequence's valid mids, `shift`
+        frames before; where that does too, `idx` itself."""
+        step = self.step if step is None else int(step)
+        self.mids_for(step)
+        seq = self._mid_seq[step]
+        M = len(seq)
+
+        def inside(j: Tensor) -> Tensor:
+            ok = (j >= 0) & (j < M)
+            return ok & (seq[j.clamp(0, max(M - 1, 0))] == seq[idx])
+
+        j = idx + shift
+        j = torch.where(inside(j), j, idx - shift)
+        return torch.where(inside(j), j, idx)
 
     def __len__(self) -> int:
         return len(self.mids)
@@ -391,14 +417,33 @@ class RandomWindowBatches(IterableDataset):
         noise_mm: float = 0.0,
         augment: Augment | None = None,
         mirror_perm: Sequence[int] | None = None,
+        pair_shift: int = 0,
     ) -> None:
         super().__init__()
         self.bank, self.batch_size, self.steps = bank, int(batch_size), int(steps)
         self.masking, self.seed, self.noise_mm = masking, int(seed), float(noise_mm)
         self.augment = augment or Augment()
         self.mirror_perm = None if mirror_perm is None else list(mirror_perm)
+        self.pair_shift = int(pair_shift)
+        if self.pair_shift < 0:
+            raise ValueError(f"pair_shift must be >= 0, got {pair_shift}")
         self.rank = 0
         self._pass = 0
+
+    def _with_pair(self, out: dict, idx: Tensor, gen, step, flip=None, rev=None) -> dict:
+        """With `pair_shift`: add out["pair"], the windows 1..pair_shift frames (either way,
+        same sequence) from each window, independently masked, same mirror / reversal (the
+        positives of a temporal-contrastive objective)."""
+        if self.pair_shift <= 0:
+            return out
+        b, B = self.bank, len(idx)
+        shift = torch.randint(1, self.pair_shift + 1, (B,), generator=gen)
+        shift = torch.where(torch.rand(B, generator=gen) < 0.5, shift, -shift)
+        j = b.shifted(idx, shift, step)
+        hide = make_masks(B, b.W, b.K, self.masking, gen)
+        pair = b.batch(j, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
+        out["pair"] = {k: pair[k] for k in ("rigid", "deformed", "observed")}
+        return out
 
     def __len__(self) -> int:
         return self.steps
@@ -413,7 +458,7 @@ class RandomWindowBatches(IterableDataset):
             if a.mirror <= 0 and a.reverse <= 0 and a.steps is None:  # the plain windows
                 idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
                 hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
-                yield b.batch(idx, hide, self.noise_mm, gen)
+                yield self._with_pair(b.batch(idx, hide, self.noise_mm, gen), idx, gen, None)
                 continue
             step = None
             if steps is not None:  # a step some sequence is long enough for
@@ -424,7 +469,8 @@ class RandomWindowBatches(IterableDataset):
             B = self.batch_size
             flip = torch.rand(B, generator=gen) < a.mirror
             rev = torch.rand(B, generator=gen) < a.reverse
-            yield b.batch(idx, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
+            out = b.batch(idx, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
+            yield self._with_pair(out, idx, gen, step, flip, rev)
 
 
 class FixedWindowBatches(Dataset):
@@ -504,8 +550,10 @@ class DeformDataModule(L.LightningDataModule):
         augment: Mapping[str, Any] | Augment | None = None,
         train_data: Sequence[SequenceArrays] | None = None,
         val_data: Sequence[SequenceArrays] | None = None,
+        pair_shift: int = 0,
     ) -> None:
         super().__init__()
+        self.pair_shift = int(pair_shift)
         if source not in ("sim", "files", "toy", "arrays"):
             raise ValueError(
                 f"data.source must be 'sim', 'files', 'toy' or 'arrays', got '{source}'"
@@ -574,6 +622,7 @@ class DeformDataModule(L.LightningDataModule):
                 self.noise_mm,
                 self.augment,
                 self.mirror_perm,
+                self.pair_shift,
             )
             log.info("training windows: %d mid frames, %d parts", len(bank), bank.K)
         if self.val_set is None and stage in (None, "fit", "validate"):

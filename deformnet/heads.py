@@ -71,12 +71,7 @@ class WindowEncoder(nn.Module):
         self.num_parts = net.num_parts
         self.frame_features = bool(frame_features)
         self.register_buffer("body_points", torch.tensor(np.array(body_points, dtype=np.float32)))
-        if isinstance(net, LSTMPredictor):
-            h, e = net.lstm.hidden_size, net.embed[0].out_features
-            d = 2 * (2 * h + e)
-        else:
-            d = 2 * net.norm.normalized_shape[0]
-        self.out_dim = d + (12 + 4 * self.num_parts if self.frame_features else 0)
+        self.out_dim = 2 * net.encode_dim + (12 + 4 * self.num_parts if self.frame_features else 0)
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
         want = (self.window, self.num_parts, 3)
@@ -101,19 +96,8 @@ class WindowEncoder(nn.Module):
             rigid, deformed, self.body_points.to(rigid.dtype), mid
         )
         net = self.net
-        feats, _ = net._features(rigid_c, deformed_c, observed)  # (B, W, K, F)
-        B, W, K, _ = feats.shape
-        if isinstance(net, LSTMPredictor):
-            e = net.embed(feats.reshape(B, W, -1))
-            h, _ = net.lstm(e)
-            seq = torch.cat((h, e), -1)  # (B, W, 2 hidden + embed)
-        else:
-            part = net.part_embedding.weight.to(feats.dtype).expand(B, W, K, -1)
-            tok = net.token_embed(torch.cat((feats, part), -1))
-            x = net.frame_embed(tok.reshape(B, W, -1))
-            if net.use_pos_enc:
-                x = x + net.pos_encoding.to(feats.dtype)[None]
-            seq = net.norm(net.encoder(x))  # (B, W, d_model)
+        seq, _ = net.encode(rigid_c, deformed_c, observed)  # (B, W, D)
+        B = seq.shape[0]
         out = [seq[:, mid], seq.mean(1)]
         if self.frame_features:
             obs_mid = observed[:, mid]

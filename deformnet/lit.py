@@ -4,7 +4,16 @@ Metrics: `train/loss`, `val/loss` (masked MSE, mm^2, canonical = global distance
 `val/rmse_mm` and `val/rmse_mm/<part>` of the net, and on the same validation windows the rigid
 baseline `val/rmse_mm_rigid` (predict X̄) and the linear-interpolation baseline
 `val/rmse_mm_linear` (`deformnet.tokens.linear_baseline`). RMSE is over the mid frame's observed
-parts (3D point distance). Checkpoints carry a `deformation_model` entry that
+parts (3D point distance).
+
+With `contrast` (weight > 0) a temporal-contrastive term (InfoNCE, in-batch negatives) is added
+for behavior pretraining: each training window and its `pair` (the same sequence a few frames
+away, `RandomWindowBatches(pair_shift)`) are summarised by the net's encoder (`encode`: the mid
+frame's output and the window's mean, in the mid frame's canonical coordinates), projected
+(a small MLP, training only) and must pick each other out of the batch. Behaviors last tens to
+hundreds of frames, so this pulls a bout's windows together and pushes other bouts' apart, with
+no labels. Logged: `train/loss` (the sum), `train/deform_loss`, `train/contrast_loss`,
+`train/contrast_acc` (how often the pair is the nearest). Checkpoints carry a `deformation_model` entry that
 `DeformationModel.from_checkpoint` rebuilds without Lightning.
 """
 
@@ -17,10 +26,10 @@ from typing import Any
 
 import lightning as L
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from deformnet.deformation import CHECKPOINT_KEY, DeformationModel
-from deformnet.tokens import linear_baseline, masked_mse
+from deformnet.tokens import canonicalize, linear_baseline, masked_mse
 
 __all__ = ["DeformLit"]
 
@@ -31,7 +40,8 @@ class DeformLit(L.LightningModule):
     weight_decay, warmup_steps: AdamW with linear warm-up then cosine decay over the trainer's
     estimated steps, or over `time_budget_s` seconds of training when that comes first (set it
     to the trainer's max_time, so a slow shared machine still finishes the schedule); hparams:
-    extra hyper-parameters to log (e.g. the flattened run config)."""
+    extra hyper-parameters to log (e.g. the flattened run config); contrast: {weight,
+    temperature, dim} of the temporal-contrastive term (weight 0 or None: off)."""
 
     def __init__(
         self,
@@ -41,10 +51,27 @@ class DeformLit(L.LightningModule):
         warmup_steps: int = 100,
         time_budget_s: float | None = None,
         hparams: Mapping[str, Any] | None = None,
+        contrast: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["model"])
         self.model = model
+        c = dict(contrast or {})
+        unknown = set(c) - {"weight", "temperature", "dim", "max_shift"}
+        if unknown:
+            raise ValueError(f"contrast: unknown keys {sorted(unknown)}")
+        self.contrast_weight = float(c.get("weight") or 0.0)
+        self.contrast_temperature = float(c.get("temperature", 0.1))
+        if self.contrast_weight < 0 or self.contrast_temperature <= 0:
+            raise ValueError(
+                f"contrast.weight must be >= 0 and contrast.temperature > 0, got {c}"
+            )
+        self.contrast_head: nn.Module | None = None
+        if self.contrast_weight > 0:
+            d = 2 * int(model.net.encode_dim)
+            self.contrast_head = nn.Sequential(
+                nn.Linear(d, d), nn.GELU(), nn.Linear(d, int(c.get("dim", 64)))
+            )
         self.parts = tuple(model.body.parts)
         self.mid = model.half_window
         self._val_sums: dict[str, Tensor] = {}
@@ -69,9 +96,54 @@ class DeformLit(L.LightningModule):
         loss = masked_mse(pred_c, target_c, batch["target_mask"])
         return loss, pred_c
 
+    def summary(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        """The encoder's window summaries (B, 2 encode_dim): the mid frame's output and the
+        window's mean, in the mid frame's canonical coordinates (as `deformnet.heads`
+        reads them)."""
+        m = self.model
+        observed = observed.bool()
+        deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
+        rigid_c, deformed_c, _, _ = canonicalize(
+            rigid, deformed, m.body_points.to(rigid.dtype), m.half_window
+        )
+        seq, _ = m.net.encode(rigid_c, deformed_c, observed)
+        return torch.cat((seq[:, m.half_window], seq.mean(1)), -1)
+
+    def contrast_loss(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
+        """Symmetric InfoNCE between the windows and their pairs; (loss, top-1 accuracy)."""
+        if self.contrast_head is None:
+            raise ValueError("contrast_loss needs contrast.weight > 0")
+        pair = batch["pair"]
+        B = batch["rigid"].shape[0]
+        both = {
+            k: torch.cat((batch[k], pair[k])) for k in ("rigid", "deformed", "observed")
+        }  # fmt: skip
+        z = self.contrast_head(self.summary(both["rigid"], both["deformed"], both["observed"]))
+        z = nn.functional.normalize(z, dim=-1)
+        logits = z[:B] @ z[B:].T / self.contrast_temperature
+        target = torch.arange(B, device=logits.device)
+        loss = 0.5 * (
+            nn.functional.cross_entropy(logits, target)
+            + nn.functional.cross_entropy(logits.T, target)
+        )
+        acc = (logits.argmax(-1) == target).float().mean()
+        return loss, acc
+
     def training_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
         loss, _ = self._canonical_loss(batch)
-        self.log("train/loss", loss, prog_bar=True, batch_size=batch["rigid"].shape[0])
+        B = batch["rigid"].shape[0]
+        if self.contrast_weight > 0:
+            if "pair" not in batch:
+                raise ValueError(
+                    "contrast.weight > 0 needs training batches with pairs "
+                    "(RandomWindowBatches(pair_shift > 0), data from contrast.max_shift)"
+                )
+            c, acc = self.contrast_loss(batch)
+            self.log("train/deform_loss", loss, batch_size=B)
+            self.log("train/contrast_loss", c, batch_size=B)
+            self.log("train/contrast_acc", acc, batch_size=B)
+            loss = loss + self.contrast_weight * c
+        self.log("train/loss", loss, prog_bar=True, batch_size=B)
         return loss
 
     def on_validation_epoch_start(self) -> None:

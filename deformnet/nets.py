@@ -5,6 +5,10 @@ frame, see `deformnet.tokens.canonicalize`):
 
     forward(rigid (B, W, K, 3), deformed (B, W, K, 3), observed (B, W, K) bool) -> (B, K, 3)
 
+and share `encode(rigid, deformed, observed) -> (B, W, encode_dim) per-frame encoder outputs,
+(B, K, P) interpolation prior`, the part `forward` feeds to its per-part output layer at the mid
+frame (and what behavior heads and the temporal-contrastive pretraining term read).
+
 They predict the deformation offset relative to the mid rigid point (residual) with a zero-
 initialised output layer, so an untrained net is the rigid baseline. The mid frame's deformed input
 is masked inside (`deformnet.tokens.token_features`) whatever the caller passes.
@@ -128,14 +132,20 @@ class LSTMPredictor(_Base):
             dropout=dropout if layers > 1 else 0.0,
         )
         self.head = PartHead(2 * hidden + embed, K, 2 * hidden, prior_residual=prior_residual)
+        self.encode_dim = 2 * hidden + embed  # per-frame outputs of `encode`
 
-    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+    def encode(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
+        """The encoder's per-frame outputs (B, W, 2 hidden + embed) (the LSTM's output and the
+        frame embedding) and the interpolation prior (B, K, P)."""
         feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K, P)
         B, W = feats.shape[:2]
         e = self.embed(feats.reshape(B, W, -1))
         h, _ = self.lstm(e)
-        mid = self.half_window
-        out = self.head(torch.cat((h[:, mid], e[:, mid]), -1), prior)
+        return torch.cat((h, e), -1), prior
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        seq, prior = self.encode(rigid, deformed, observed)
+        out = self.head(seq[:, self.half_window], prior)
         return self._finish(out, rigid)
 
 
@@ -197,8 +207,11 @@ class TransformerPredictor(_Base):
         self.encoder = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(d_model)
         self.head = PartHead(d_model, K, 2 * d_model, prior_residual=prior_residual)
+        self.encode_dim = d_model  # per-frame outputs of `encode`
 
-    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+    def encode(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
+        """The encoder's per-frame outputs (B, W, d_model) (normalised) and the interpolation
+        prior (B, K, P)."""
         feats, prior = self._features(rigid, deformed, observed)  # (B, W, K, F), (B, K, P)
         B, W, K, _ = feats.shape
         part = self.part_embedding.weight.to(feats.dtype).expand(B, W, K, -1)
@@ -206,6 +219,9 @@ class TransformerPredictor(_Base):
         x = self.frame_embed(tok.reshape(B, W, -1))  # (B, W, d_model)
         if self.use_pos_enc:
             x = x + self.pos_encoding.to(feats.dtype)[None]
-        x = self.encoder(x)
-        out = self.head(self.norm(x[:, self.half_window]), prior)
+        return self.norm(self.encoder(x)), prior
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        seq, prior = self.encode(rigid, deformed, observed)
+        out = self.head(seq[:, self.half_window], prior)
         return self._finish(out, rigid)

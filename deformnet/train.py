@@ -116,8 +116,19 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
         warmup_steps=int(cfg.optim.warmup_steps),
         time_budget_s=_seconds(cfg.trainer.get("max_time")),
         hparams=hp,
+        contrast=contrast_config(cfg),
     )
     return lit, body, name
+
+
+def contrast_config(cfg: DictConfig) -> dict:
+    """``contrast``: the temporal-contrastive term ({} when off or absent)."""
+    c = dict(to_plain(cfg.get("contrast")) or {})
+    if not float(c.get("weight") or 0.0):
+        return {}
+    if int(c.get("max_shift") or 0) < 1:
+        raise ValueError(f"contrast.max_shift must be >= 1 frame, got {c.get('max_shift')}")
+    return c
 
 
 def data_step(cfg: DictConfig) -> int:
@@ -150,6 +161,7 @@ def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arra
         half_window=int(cfg.half_window if half_window is None else half_window),
         sim=to_plain(cfg.get("sim")),
         seed=int(cfg.seed),
+        pair_shift=int(contrast_config(cfg).get("max_shift") or 0),
         **data,
     )
 
