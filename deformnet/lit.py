@@ -13,8 +13,10 @@ frame's output and the window's mean, in the mid frame's canonical coordinates),
 (a small MLP, training only) and must pick each other out of the batch. Behaviors last tens to
 hundreds of frames, so this pulls a bout's windows together and pushes other bouts' apart, with
 no labels. Logged: `train/loss` (the sum), `train/deform_loss`, `train/contrast_loss`,
-`train/contrast_acc` (how often the pair is the nearest). Checkpoints carry a `deformation_model` entry that
-`DeformationModel.from_checkpoint` rebuilds without Lightning.
+`train/contrast_acc` (how often the pair is the nearest).
+
+Checkpoints carry a `deformation_model` entry that `DeformationModel.from_checkpoint` rebuilds
+without Lightning.
 """
 
 from __future__ import annotations
@@ -63,9 +65,7 @@ class DeformLit(L.LightningModule):
         self.contrast_weight = float(c.get("weight") or 0.0)
         self.contrast_temperature = float(c.get("temperature", 0.1))
         if self.contrast_weight < 0 or self.contrast_temperature <= 0:
-            raise ValueError(
-                f"contrast.weight must be >= 0 and contrast.temperature > 0, got {c}"
-            )
+            raise ValueError(f"contrast.weight must be >= 0 and contrast.temperature > 0, got {c}")
         self.contrast_head: nn.Module | None = None
         if self.contrast_weight > 0:
             d = 2 * int(model.net.encode_dim)
