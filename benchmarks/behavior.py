@@ -114,17 +114,15 @@ def make_session(work: Path, seed: int, frames: int) -> dict:
     }
 
 
-def pretrain(out: Path, seconds: int) -> tuple[str, float]:
+def pretrain(out: Path, seconds: int, overrides: list[str] | None = None) -> tuple[str, float]:
+    """A `deformnet-train` run of `seconds` (extra `overrides`, e.g. contrast.weight=1);
+    (its best checkpoint, seconds taken)."""
     from deformnet.train import run
 
     t0 = time.perf_counter()
     secs = f"00:00:{seconds // 60:02d}:{seconds % 60:02d}"
-    res = run(
-        compose(
-            "train",
-            [f"output.dir={out}", "logger=none", "progress_bar=none", f"trainer.max_time={secs}"],
-        )
-    )
+    ov = [f"output.dir={out}", "logger=none", "progress_bar=none", f"trainer.max_time={secs}"]
+    res = run(compose("train", ov + list(overrides or [])))
     ckpt = res.get("best_checkpoint") or res.get("last_checkpoint")
     if not ckpt:
         raise RuntimeError(f"deformnet-train wrote no checkpoint into {out}")

@@ -194,7 +194,11 @@ def fit_head_lbfgs(
     multinomial logistic regression with C = 1 / l2).
 
     features (N, out_dim) as `model.features` gives them (standardised inside
-    `model.classify`), labels (N,) class indices. Returns {"loss", "iterations"}."""
+    `model.classify`), labels (N,) class indices. An `EnsembleHead`'s members are fitted each
+    on its own (from their own initialisations). Returns {"loss" (the members' mean),
+    "iterations" (their sum)}."""
+    from deformnet.heads import EnsembleHead
+
     labels = torch.as_tensor(labels, dtype=torch.long)
     if features.dim() != 2 or features.shape[0] != labels.shape[0] or labels.numel() == 0:
         raise ValueError(f"features (N, D) and labels (N,), got {features.shape}, {labels.shape}")
@@ -207,6 +211,17 @@ def fit_head_lbfgs(
         sw = torch.ones(labels.shape, dtype=dtype)
     else:
         sw = torch.as_tensor(class_weights, dtype=dtype)[labels]
+    members = list(head.members) if isinstance(head, EnsembleHead) else [head]
+    facts = [_lbfgs(m, x, labels, sw, l2, max_iter) for m in members]
+    head.train(was_training)
+    return {
+        "loss": float(np.mean([f[0] for f in facts])) / max(float(sw.sum()), 1e-12),
+        "iterations": int(sum(f[1] for f in facts)),
+    }
+
+
+def _lbfgs(head: nn.Module, x: Tensor, labels: Tensor, sw: Tensor, l2: float, max_iter: int):
+    """One head fitted by L-BFGS (see `fit_head_lbfgs`); (objective, iterations)."""
     params = [p for p in head.parameters() if p.requires_grad]
     mats = [p for p in params if p.dim() >= 2]
     opt = torch.optim.LBFGS(
@@ -228,10 +243,8 @@ def fit_head_lbfgs(
 
     with torch.enable_grad():
         opt.step(closure)
-        loss = float(closure())
-    n_iter = int(opt.state[opt._params[0]].get("n_iter", 0))
-    head.train(was_training)
-    return {"loss": loss / max(float(sw.sum()), 1e-12), "iterations": n_iter}
+        loss = float(closure().detach())
+    return loss, int(opt.state[opt._params[0]].get("n_iter", 0))
 
 
 def _loader(bank, idx: np.ndarray, batch_size: int, samples: int | None, seed: int):

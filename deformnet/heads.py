@@ -15,13 +15,15 @@ canonical frame removes but behavior depends on ("frame features"): the mid pose
 matrix, translation / pos_scale: height, pitch and place in the arena) and the mid frame's own
 deformation offsets (the net masks them when predicting them; here they are inputs).
 
-Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml).
+Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml), or an
+`EnsembleHead` of several (``head.ensemble``).
 `BehaviorClassifier` = encoder + temporal context (the mean and std of the encoder outputs of
 the surrounding frames, `context_frames`) + standardisation + head.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -36,6 +38,7 @@ __all__ = [
     "WindowEncoder",
     "LinearHead",
     "MLPHead",
+    "EnsembleHead",
     "BehaviorClassifier",
     "build_head",
     "context_offsets",
@@ -151,16 +154,43 @@ class MLPHead(nn.Module):
         return self.net(x)
 
 
+class EnsembleHead(nn.Module):
+    """Several heads of one kind (independently initialised), their class probabilities
+    averaged: logits = log(mean_i softmax(head_i(x))) (so softmax gives the mean probabilities
+    and cross-entropy trains the ensemble's prediction). With few labels one head's fit
+    depends on its initialisation by several macro-F1 points; the mean of a few does not
+    (a deep ensemble). `fit_head_lbfgs` fits each member on its own.
+    x (B, in_dim) -> (B, num_classes)."""
+
+    def __init__(self, members: Sequence[nn.Module]) -> None:
+        super().__init__()
+        if len(members) < 1:
+            raise ValueError("an ensemble head needs at least one member")
+        self.members = nn.ModuleList(members)
+
+    def forward(self, x: Tensor) -> Tensor:
+        logp = torch.stack([m(x).log_softmax(-1) for m in self.members])  # (M, B, C)
+        return torch.logsumexp(logp, 0) - math.log(len(self.members))
+
+
 HEADS = {"linear": LinearHead, "mlp": MLPHead}
 
 
 def build_head(config: Mapping[str, Any], in_dim: int, num_classes: int) -> nn.Module:
-    """A head from a plain config {"name": linear|mlp, ...constructor arguments}."""
+    """A head from a plain config {"name": linear|mlp, "ensemble": members (default 1),
+    ...constructor arguments}; ensemble > 1: an `EnsembleHead` of that many."""
     cfg = dict(config)
     name = str(cfg.pop("name", "linear"))
     if name not in HEADS:
         raise ValueError(f"head.name must be one of {sorted(HEADS)}, got '{name}'")
-    return HEADS[name](int(in_dim), int(num_classes), **cfg)
+    members = cfg.pop("ensemble", 1)
+    if members is None or int(members) < 1:
+        raise ValueError(f"head.ensemble must be an integer >= 1, got {members}")
+    if int(members) == 1:
+        return HEADS[name](int(in_dim), int(num_classes), **cfg)
+    return EnsembleHead(
+        [HEADS[name](int(in_dim), int(num_classes), **cfg) for _ in range(int(members))]
+    )
 
 
 def context_offsets(frames: Sequence[int], stride: int = 1) -> tuple[int, ...]:

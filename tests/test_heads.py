@@ -180,3 +180,44 @@ def test_temporal_context_pools_the_surrounding_windows(kind):
     assert torch.allclose(z[:, 1:].mean(0), torch.zeros(model.out_dim - 1), atol=1e-5)
     assert torch.allclose(z[:, 1:].std(0), torch.ones(model.out_dim - 1), atol=1e-4)
     assert float(model.feature_std[0]) == 1.0 and torch.all(z[:, 0] == 0)
+
+
+def test_ensemble_head_averages_its_members_probabilities_and_each_member_is_fitted_alone():
+    import copy
+
+    from deformnet.classify import fit_head_lbfgs
+    from deformnet.heads import EnsembleHead
+
+    torch.manual_seed(0)
+    ens = build_head({"name": "mlp", "hidden": 8, "ensemble": 3, "dropout": 0.0}, 5, 4)
+    assert isinstance(ens, EnsembleHead) and len(ens.members) == 3
+    assert isinstance(build_head({"name": "mlp", "hidden": 8}, 5, 4), MLPHead)
+    x = torch.randn(7, 5)
+    out = ens(x)
+    assert out.shape == (7, 4)
+    mean_p = torch.stack([m(x).softmax(-1) for m in ens.members]).mean(0)
+    torch.testing.assert_close(out.softmax(-1), mean_p)
+    torch.testing.assert_close(out.exp().sum(-1), torch.ones(7))  # log of the mean probabilities
+    with pytest.raises(ValueError, match="head.ensemble"):
+        build_head({"name": "linear", "ensemble": 0}, 5, 4)
+
+    class Probe(torch.nn.Module):  # what fit_head_lbfgs reads of a classifier
+        def __init__(self, head):
+            super().__init__()
+            self.head = head
+            self.register_buffer("feature_mean", torch.zeros(5))
+            self.register_buffer("feature_std", torch.ones(5))
+
+    g = torch.Generator().manual_seed(1)
+    X = torch.randn(60, 5, generator=g)
+    y = (X[:, 0] > 0).long() + 2 * (X[:, 1] > 0).long()
+    alone = [copy.deepcopy(m) for m in ens.members]
+    facts = fit_head_lbfgs(Probe(ens), X, y, l2=0.5, max_iter=50)
+    for m, a in zip(ens.members, alone):
+        fit_head_lbfgs(Probe(a), X, y, l2=0.5, max_iter=50)
+        for p, q in zip(m.parameters(), a.parameters()):
+            torch.testing.assert_close(p, q)
+    assert facts["iterations"] > 3
+    # the members start apart and end apart (independent fits), and the ensemble fits the data
+    assert (ens.members[0].net[1].weight - ens.members[1].net[1].weight).abs().max() > 1e-2
+    assert (ens(X).argmax(-1) == y).float().mean() > 0.9

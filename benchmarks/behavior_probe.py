@@ -1,0 +1,200 @@
+"""Behavior probe benchmark: how much a frozen encoder's features are worth with few labels.
+
+The encoders (each the default LSTM of `deformnet-train`): ``pretrained`` (deformnet-train's
+masked-token objective), ``contrast`` (the same plus the temporal-contrastive term,
+`contrast.weight=1`, `contrast.max_shift=12`), both trained here for `--pretrain-seconds`
+unless given as checkpoints, and ``random`` (the same architecture, random weights, seed 0).
+Each is frozen; the classifier's features (`deformnet-classify`'s: the encoder outputs with
+the frame features and the temporal context) are computed once for every frame of the
+behavior benchmark's sessions (`benchmarks/behavior.py`: 6 training and 4 test sessions,
+tracked by adjust-track, seeds no training uses), and the default head (conf/head: an
+ensemble of 5 MLPs) is fitted by L-BFGS (`fit_head_lbfgs`, the linear-probe protocol) on the
+labelled frames: 1% (three draws of the labelled frames, `labels.seed` 0-2, the same for every
+encoder and for the random forest) and 10%. Reported: test macro-F1 (scikit-learn), the
+mean over draws, and the SimBA-style random forest of `benchmarks/behavior.py` on the same
+labelled frames.
+
+    .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
+        [--pretrain-seconds 240] [--draws 3]
+
+Prints a table; the last line is JSON, also written atomically to
+runs/benchmarks/behavior_probe.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from behavior import ROOT, SEEDS, _round, make_session, pretrain, run_rf
+
+from adjust.app import finite_or_none
+from deformnet.atomic import write_text
+from deformnet.confutil import compose
+
+log = logging.getLogger("benchmarks.behavior_probe")
+
+CONTRAST = ["contrast.weight=1.0", "contrast.max_shift=12"]
+
+
+def encoder_features(spec: str, sessions: dict) -> tuple[dict, object]:
+    """Classifier features of every train / test frame for one encoder ("random" or a
+    deformnet-train checkpoint), with the classifier (its default head, untrained)."""
+    from deformnet.behavior_labels import Session, read_labels, read_tracks
+    from deformnet.classify import SessionBank, _build, _encoder_config, context_features
+    from deformnet.confutil import to_plain
+
+    cfg = compose("classify", [] if spec == "random" else [f"pretrained={spec}"])
+    classes = [str(c) for c in cfg.labels.classes]
+    net_cfg, body, hw, state = _encoder_config(cfg, classes)
+    torch.manual_seed(0)
+    model = _build(
+        net_cfg, body, hw, dict(to_plain(cfg.head)), bool(cfg.frame_features), len(classes),
+        dict(to_plain(cfg.context)),
+    )  # fmt: skip
+    if state is not None:
+        model.encoder.net.load_state_dict(state)
+    model.eval()
+    out = {}
+    for split in ("train", "test"):
+        ss = []
+        for s in sessions[split]:
+            tr = read_tracks(str(s["track"]), body)
+            lab = read_labels(str(s["labels"]), tr["fnum"], classes)
+            ss.append(Session(str(s["track"]), tr["rigid"], tr["deformed"], tr["observed"],
+                              tr["fnum"], lab))  # fmt: skip
+        bank = SessionBank(ss, model.half_window)
+        out[split] = {
+            "features": context_features(model, bank, torch.arange(len(bank))),
+            "labels": bank.labels.clone(),
+            "sessions": ss,
+        }
+    return out, (model, cfg, classes)
+
+
+def probe(feats: dict, built, fraction: float, draw: int) -> dict:
+    """Fit the (fresh, seed 0) head on the labelled training frames; test macro-F1."""
+    import copy
+
+    from deformnet.behavior_labels import Session, subsample_labels
+    from deformnet.behavior_report import evaluate
+    from deformnet.classify import fit_head_lbfgs
+
+    model, cfg, classes = built
+    ss = [Session(s.name, None, None, None, s.fnum, s.labels.copy())
+          for s in feats["train"]["sessions"]]  # fmt: skip
+    subsample_labels(ss, fraction, int(cfg.labels.segment), draw)
+    lab = torch.from_numpy(np.concatenate([s.labels for s in ss]))
+    idx = torch.nonzero(lab >= 0).flatten()
+    y = lab[idx]
+    C = len(classes)
+    counts = np.bincount(y.numpy(), minlength=C)
+    w = np.where(counts > 0, counts.sum() / np.maximum(C * counts, 1), 0.0)
+    m = copy.deepcopy(model)
+    torch.manual_seed(0)
+    m.head.load_state_dict(model.head.state_dict())
+    X = feats["train"]["features"][idx]
+    m.set_standardization(X)
+    t0 = time.perf_counter()
+    fit_head_lbfgs(m, X, y, w.tolist(), float(cfg.head_l2), int(cfg.head_max_iter))
+    with torch.no_grad():
+        pred = m.classify(feats["test"]["features"]).argmax(-1).numpy()
+    ev = evaluate(feats["test"]["labels"].numpy(), pred, classes)
+    return {
+        "macro_f1": ev["macro_f1"],
+        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
+        "labelled_frames": int(len(y)),
+        "fit_seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=3000)
+    ap.add_argument("--train", type=int, default=6)
+    ap.add_argument("--test", type=int, default=4)
+    ap.add_argument("--pretrained", default=None, help="deformnet-train checkpoint (else train)")
+    ap.add_argument("--contrast", default=None, help="the same with contrast (else train)")
+    ap.add_argument("--pretrain-seconds", type=int, default=240)
+    ap.add_argument("--draws", type=int, default=3, help="label draws at 1%%")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_probe.json"))
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    torch.set_num_threads(1)
+    t_start = time.perf_counter()
+    work = Path(args.work)
+    sessions = {
+        split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
+        for split, n in (("train", args.train), ("test", args.test))
+    }
+    extra: dict = {}
+    ckpts = {"pretrained": args.pretrained, "contrast": args.contrast}
+    for name, overrides in (("pretrained", []), ("contrast", CONTRAST)):
+        if ckpts[name] is None:
+            log.info("%s: a %d s deformnet-train run %s", name, args.pretrain_seconds, overrides)
+            ckpts[name], secs = pretrain(work / f"probe_{name}", args.pretrain_seconds, overrides)
+            extra[f"{name}_pretrain_seconds"] = round(secs, 1)
+    encoders = {**ckpts, "random": "random"}
+    plan = [(0.01, d) for d in range(args.draws)] + [(0.1, 0)]
+    results: dict = {}
+    for name, spec in encoders.items():
+        t0 = time.perf_counter()
+        feats, built = encoder_features(spec, sessions)
+        runs = {f"{f:g}/{d}": probe(feats, built, f, d) for f, d in plan}
+        results[name] = {"runs": runs, "features_seconds": round(time.perf_counter() - t0, 1)}
+        log.info("%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in runs.items()})
+    sess_rf = {split: [{**s} for s in sessions[split]] for split in ("train", "test")}
+    results["rf"] = {
+        "runs": {f"{f:g}/{d}": run_rf(sess_rf, "track", f, label_seed=d) for f, d in plan}
+    }
+    table = {}
+    for name, r in results.items():
+        one = [r["runs"][f"0.01/{d}"]["macro_f1"] for d in range(args.draws)]
+        table[name] = {"1%": float(np.mean(one)), "1%_draws": one,
+                       "10%": r["runs"]["0.1/0"]["macro_f1"]}  # fmt: skip
+    print(f"\nbehavior probe: frozen encoders, the default head fitted by L-BFGS; test macro-F1 "
+          f"({args.train} train / {args.test} test sessions x {args.frames} frames)")  # fmt: skip
+    print(f"{'encoder':<12}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}")
+    for name, t in table.items():
+        draws = " / ".join(f"{x:.3f}" for x in t["1%_draws"])
+        print(f"{name:<12}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
+    best_scratch = table["random"]["1%"]
+    checks = {
+        "pretrained_beats_random_1pct": table["pretrained"]["1%"] > best_scratch,
+        "contrast_beats_pretrained_1pct": table["contrast"]["1%"] > table["pretrained"]["1%"],
+        "pretrained_beats_rf_1pct": table["pretrained"]["1%"] > table["rf"]["1%"],
+    }
+    print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
+    summary = {
+        "table": table,
+        "results": results,
+        "checks": checks,
+        "checkpoints": ckpts,
+        **extra,
+        "setup": {
+            "frames": args.frames,
+            "train": args.train,
+            "test": args.test,
+            "draws": args.draws,
+            "seeds": SEEDS,
+        },  # fmt: skip
+        "total_seconds": round(time.perf_counter() - t_start, 1),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    line = json.dumps(finite_or_none(_round(summary)))
+    write_text(args.out, line + "\n")
+    print(line, flush=True)
+    return summary
+
+
+if __name__ == "__main__":
+    main()
