@@ -36,6 +36,7 @@ from deformnet.tokens import canonicalize
 
 __all__ = [
     "WindowEncoder",
+    "window_summary",
     "LinearHead",
     "MLPHead",
     "EnsembleHead",
@@ -43,6 +44,23 @@ __all__ = [
     "build_head",
     "context_offsets",
 ]
+
+
+def window_summary(
+    net: nn.Module, body_points: Tensor, rigid: Tensor, deformed: Tensor, observed: Tensor
+) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """A deformation net's summary of global windows: its `encode` outputs in the mid frame's
+    canonical coordinates, at the mid frame and averaged over the window (B, 2 encode_dim),
+    and the canonical window (rigid_c, deformed_c (B, W, K, 3), R (B, 3, 3), t (B, 3)).
+
+    rigid, deformed (B, W, K, 3) global mm (unobserved deformed values are ignored), observed
+    (B, W, K) bool; body_points (K, 3)."""
+    observed = observed.bool()
+    deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
+    mid = net.half_window
+    rigid_c, deformed_c, R, t = canonicalize(rigid, deformed, body_points.to(rigid.dtype), mid)
+    seq, _ = net.encode(rigid_c, deformed_c, observed)  # (B, W, encode_dim)
+    return torch.cat((seq[:, mid], seq.mean(1)), -1), (rigid_c, deformed_c, R, t)
 
 
 class WindowEncoder(nn.Module):
@@ -93,15 +111,11 @@ class WindowEncoder(nn.Module):
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
         self._check(rigid, deformed, observed)
         observed = observed.bool()
-        deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
-        mid = self.half_window
-        rigid_c, deformed_c, R, t = canonicalize(
-            rigid, deformed, self.body_points.to(rigid.dtype), mid
+        summary, (rigid_c, deformed_c, R, t) = window_summary(
+            self.net, self.body_points, rigid, deformed, observed
         )
-        net = self.net
-        seq, _ = net.encode(rigid_c, deformed_c, observed)  # (B, W, D)
-        B = seq.shape[0]
-        out = [seq[:, mid], seq.mean(1)]
+        mid, net, B = self.half_window, self.net, summary.shape[0]
+        out = [summary]
         if self.frame_features:
             obs_mid = observed[:, mid]
             off = (deformed_c[:, mid] - rigid_c[:, mid]) / net.offset_scale

@@ -31,7 +31,8 @@ import torch
 from torch import Tensor, nn
 
 from deformnet.deformation import CHECKPOINT_KEY, DeformationModel
-from deformnet.tokens import canonicalize, linear_baseline, masked_mse
+from deformnet.heads import window_summary
+from deformnet.tokens import linear_baseline, masked_mse
 
 __all__ = ["DeformLit"]
 
@@ -100,14 +101,7 @@ class DeformLit(L.LightningModule):
         """The encoder's window summaries (B, 2 encode_dim): the mid frame's output and the
         window's mean, in the mid frame's canonical coordinates (as `deformnet.heads`
         reads them)."""
-        m = self.model
-        observed = observed.bool()
-        deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
-        rigid_c, deformed_c, _, _ = canonicalize(
-            rigid, deformed, m.body_points.to(rigid.dtype), m.half_window
-        )
-        seq, _ = m.net.encode(rigid_c, deformed_c, observed)
-        return torch.cat((seq[:, m.half_window], seq.mean(1)), -1)
+        return window_summary(self.model.net, self.model.body_points, rigid, deformed, observed)[0]
 
     def contrast_loss(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
         """Symmetric InfoNCE between the windows and their pairs; (loss, top-1 accuracy)."""
