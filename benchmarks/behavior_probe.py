@@ -24,7 +24,6 @@ runs/benchmarks/behavior_probe.json.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import time
@@ -33,9 +32,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from behavior import ROOT, SEEDS, _round, make_session, pretrain, run_rf
+from common import emit, start
 
-from adjust.app import finite_or_none
-from deformnet.atomic import write_text
 from deformnet.confutil import compose
 
 log = logging.getLogger("benchmarks.behavior_probe")
@@ -125,11 +123,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--draws", type=int, default=3, help="label draws at 1%%")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_probe.json"))
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
-        logging.getLogger(name).setLevel(logging.WARNING)
-    torch.set_num_threads(1)
+    ap.add_argument("--threads", type=int, default=1)
+    args = start(ap, argv)
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
     t_start = time.perf_counter()
     work = Path(args.work)
     sessions = {
@@ -190,10 +186,7 @@ def main(argv: list[str] | None = None) -> dict:
         "total_seconds": round(time.perf_counter() - t_start, 1),
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
-    line = json.dumps(finite_or_none(_round(summary)))
-    write_text(args.out, line + "\n")
-    print(line, flush=True)
-    return summary
+    return emit(_round(summary), args.out)
 
 
 if __name__ == "__main__":
