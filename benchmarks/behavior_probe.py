@@ -94,9 +94,7 @@ def probe(feats: dict, built, fraction: float, draw: int) -> dict:
     C = len(classes)
     counts = np.bincount(y.numpy(), minlength=C)
     w = np.where(counts > 0, counts.sum() / np.maximum(C * counts, 1), 0.0)
-    m = copy.deepcopy(model)
-    torch.manual_seed(0)
-    m.head.load_state_dict(model.head.state_dict())
+    m = copy.deepcopy(model)  # the same untrained head for every draw and fraction
     X = feats["train"]["features"][idx]
     m.set_standardization(X)
     t0 = time.perf_counter()
