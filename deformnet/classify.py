@@ -67,6 +67,7 @@ __all__ = [
     "SessionBank",
     "context_features",
     "fit_head_lbfgs",
+    "fit_head_forest",
     "load_classifier",
     "predict_probs",
     "predict_session",
@@ -245,6 +246,52 @@ def _lbfgs(head: nn.Module, x: Tensor, labels: Tensor, sw: Tensor, l2: float, ma
         opt.step(closure)
         loss = float(closure().detach())
     return loss, int(opt.state[opt._params[0]].get("n_iter", 0))
+
+
+def fit_head_forest(
+    model, features: Tensor, labels: Tensor, class_weights: Sequence[float] | None = None
+) -> dict:
+    """Fit the classifier's `ForestHead` (scikit-learn's RandomForestClassifier with the head's
+    settings, class-weighted) on fixed features (N, out_dim) as `model.features` gives them
+    (standardised as `model.classify` does; trees do not care) and labels (N,). With
+    ``head.inputs == "frame"`` the forest reads only the frame-feature columns
+    (`BehaviorClassifier.frame_columns`). Returns {"trees", "nodes", "depth", "columns"}."""
+    from sklearn.ensemble import RandomForestClassifier
+
+    from deformnet.heads import ForestHead
+
+    head = model.head
+    if not isinstance(head, ForestHead):
+        raise TypeError(f"fit_head_forest needs a ForestHead, got {type(head).__name__}")
+    labels = torch.as_tensor(labels, dtype=torch.long)
+    if features.dim() != 2 or features.shape[0] != labels.shape[0] or labels.numel() == 0:
+        raise ValueError(f"features (N, D) and labels (N,), got {features.shape}, {labels.shape}")
+    if head.inputs == "frame":
+        cols = model.frame_columns()
+    else:
+        cols = torch.arange(features.shape[1])
+    x = ((features.detach() - model.feature_mean) / model.feature_std)[:, cols]
+    y = labels.numpy()
+    present = np.unique(y)
+    weights = None
+    if class_weights is not None:
+        weights = {int(c): float(class_weights[int(c)]) for c in present}
+    forest = RandomForestClassifier(
+        n_estimators=head.trees,
+        min_samples_leaf=head.min_samples_leaf,
+        max_features=head.max_features,
+        class_weight=weights,
+        random_state=head.seed,
+        n_jobs=1,
+    )
+    forest.fit(x.double().numpy(), y)
+    head.set_forest(forest, cols.numpy(), forest.classes_)
+    return {
+        "trees": head.trees,
+        "nodes": int(head.feature.numel()),
+        "depth": int(head.depth),
+        "columns": int(cols.numel()),
+    }
 
 
 def _loader(bank, idx: np.ndarray, batch_size: int, samples: int | None, seed: int):
@@ -484,6 +531,13 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     solver = str(cfg.get("head_solver", "sgd"))
     if solver not in ("sgd", "lbfgs"):
         raise ValueError(f"head_solver must be 'sgd' or 'lbfgs', got '{solver}'")
+    forest = head_cfg.get("name") == "forest"
+    if forest and not bool(cfg.freeze):
+        raise ValueError(
+            "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
+        )
+    if forest:
+        solver = "forest"
     probe = int(cfg.get("probe_epochs") or 0) if state is not None else 0
     if solver == "lbfgs" and state is not None:
         probe = max(probe, 1)
@@ -497,15 +551,18 @@ def _train(cfg: DictConfig, out: Path) -> dict:
             fv = _FeatureBank(model, vbank, vidx)
             fval = _loader(fv, np.arange(len(fv)), 512, None, 0)
         lit.head_only = True
-        if solver == "lbfgs":
-            probe_facts = fit_head_lbfgs(
-                model,
-                fbank.features,
-                fbank.labels,
-                weights,
-                float(cfg.get("head_l2", 1.0)),
-                int(cfg.get("head_max_iter", 200)),
-            )
+        if solver in ("lbfgs", "forest"):
+            if forest:
+                probe_facts = fit_head_forest(model, fbank.features, fbank.labels, weights)
+            else:
+                probe_facts = fit_head_lbfgs(
+                    model,
+                    fbank.features,
+                    fbank.labels,
+                    weights,
+                    float(cfg.get("head_l2", 1.0)),
+                    int(cfg.get("head_max_iter", 200)),
+                )
             if fv is not None:  # the probe's validation score: the state to beat
                 with torch.no_grad():
                     pv = model.classify(fv.features).argmax(-1).numpy()
@@ -517,11 +574,12 @@ def _train(cfg: DictConfig, out: Path) -> dict:
                 lit.best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
                 if logger:
                     logger.log_metrics(
-                        {"val/macro_f1": score, "train/loss": probe_facts["loss"]}
+                        {"val/macro_f1": score}
+                        | ({"train/loss": probe_facts["loss"]} if "loss" in probe_facts else {})
                         | {f"val/f1/{c}": float(f) for c, f in zip(classes, per) if np.isfinite(f)},
                         step=0,
                     )
-            log.info("head fitted by L-BFGS (%s)", probe_facts)
+            log.info("head fitted by %s (%s)", "scikit-learn" if forest else "L-BFGS", probe_facts)
         else:
             n = int(d.steps_per_epoch) * bs
             floader = _loader(fbank, np.arange(len(fbank)), bs, n, cfg.seed)

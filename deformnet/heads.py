@@ -15,8 +15,9 @@ canonical frame removes but behavior depends on ("frame features"): the mid pose
 matrix, translation / pos_scale: height, pitch and place in the arena) and the mid frame's own
 deformation offsets (the net masks them when predicting them; here they are inputs).
 
-Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml), or an
-`EnsembleHead` of several (``head.ensemble``).
+Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml), an
+`EnsembleHead` of several (``head.ensemble``), or `ForestHead` (a random forest fitted by
+scikit-learn on a frozen encoder's features, evaluated in torch; for few labels).
 `BehaviorClassifier` = encoder + temporal context (the mean and std of the encoder outputs of
 the surrounding frames, `context_frames`) + standardisation + head.
 """
@@ -40,6 +41,7 @@ __all__ = [
     "LinearHead",
     "MLPHead",
     "EnsembleHead",
+    "ForestHead",
     "BehaviorClassifier",
     "build_head",
     "context_offsets",
@@ -187,7 +189,109 @@ class EnsembleHead(nn.Module):
         return torch.logsumexp(logp, 0) - math.log(len(self.members))
 
 
-HEADS = {"linear": LinearHead, "mlp": MLPHead}
+class ForestHead(nn.Module):
+    """A random forest as a head: fitted by scikit-learn (`deformnet.classify.fit_head_forest`,
+    on a frozen encoder's features), stored as flat tensors (weights-only checkpoints, no
+    pickled estimator) and evaluated here in torch. logits = log(mean over the trees of the
+    class fractions of the leaf each tree sends x to) (softmax gives the forest's
+    `predict_proba`). Not trainable by gradient.
+
+    trees, min_samples_leaf, max_features: the forest's settings; inputs: "frame" (only the
+    classifier's frame-feature columns: the pose, the offsets and their temporal context, set
+    by `fit_head_forest`) or "all" (every feature); seed: the forest's random_state.
+    x (B, in_dim) -> (B, num_classes).
+    """
+
+    INPUTS = ("frame", "all")
+
+    def __init__(
+        self,
+        in_dim: int,
+        num_classes: int,
+        trees: int = 200,
+        min_samples_leaf: int = 2,
+        max_features: str | float | int = "sqrt",
+        inputs: str = "frame",
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if inputs not in self.INPUTS:
+            raise ValueError(f"head.inputs must be one of {self.INPUTS}, got '{inputs}'")
+        if int(trees) < 1 or int(min_samples_leaf) < 1:
+            raise ValueError(f"head.trees and head.min_samples_leaf must be >= 1, got {trees}, "
+                             f"{min_samples_leaf}")  # fmt: skip
+        self.in_dim, self.num_classes = int(in_dim), int(num_classes)
+        self.trees, self.min_samples_leaf = int(trees), int(min_samples_leaf)
+        self.max_features, self.inputs, self.seed = max_features, str(inputs), int(seed)
+        for name, dtype in (("columns", torch.long), ("roots", torch.long),
+                            ("feature", torch.long), ("left", torch.long),
+                            ("right", torch.long), ("threshold", torch.float64)):  # fmt: skip
+            self.register_buffer(name, torch.zeros(0, dtype=dtype))
+        self.register_buffer("value", torch.zeros(0, self.num_classes))
+        self.register_buffer("depth", torch.zeros((), dtype=torch.long))
+
+    @property
+    def fitted(self) -> bool:
+        return self.roots.numel() > 0
+
+    def set_forest(self, forest, columns: Sequence[int], class_index: Sequence[int]) -> None:
+        """Store a fitted scikit-learn forest (its estimators_' tree_ arrays) that reads the
+        input columns ``columns`` and whose classes_ are the head's classes ``class_index``."""
+        cols = torch.as_tensor(np.asarray(columns), dtype=torch.long)
+        if cols.numel() < 1 or int(cols.max()) >= self.in_dim or int(cols.min()) < 0:
+            raise ValueError(f"columns must index the head's {self.in_dim} inputs")
+        cidx = np.asarray(class_index, dtype=np.int64)
+        feat, thr, left, right, val, roots = [], [], [], [], [], []
+        off, depth = 0, 0
+        for est in forest.estimators_:
+            t = est.tree_
+            n = int(t.node_count)
+            leaf = t.children_left < 0
+            ids = np.arange(n)
+            roots.append(off)
+            feat.append(np.where(leaf, 0, t.feature))
+            thr.append(np.where(leaf, np.inf, t.threshold))
+            # a leaf points at itself: every tree walks `depth` steps and stays at its leaf
+            left.append(off + np.where(leaf, ids, t.children_left))
+            right.append(off + np.where(leaf, ids, t.children_right))
+            v = np.zeros((n, self.num_classes))
+            frac = t.value[:, 0, :]
+            v[:, cidx] = frac / np.maximum(frac.sum(-1, keepdims=True), 1e-300)
+            val.append(v)
+            off += n
+            depth = max(depth, int(t.max_depth))
+        self.columns = cols
+        self.roots = torch.as_tensor(np.asarray(roots), dtype=torch.long)
+        self.feature = torch.as_tensor(np.concatenate(feat), dtype=torch.long)
+        self.threshold = torch.as_tensor(np.concatenate(thr), dtype=torch.float64)
+        self.left = torch.as_tensor(np.concatenate(left), dtype=torch.long)
+        self.right = torch.as_tensor(np.concatenate(right), dtype=torch.long)
+        self.value = torch.as_tensor(np.concatenate(val), dtype=torch.float32)
+        self.depth = torch.tensor(depth, dtype=torch.long)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # the forest's size is known only once fitted: take the stored tensors' shapes
+        for name, buf in self.named_buffers(recurse=False):
+            key = prefix + name
+            if key in state_dict and state_dict[key].shape != buf.shape:
+                setattr(self, name, torch.empty_like(state_dict[key], dtype=buf.dtype))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.dim() != 2 or x.shape[1] != self.in_dim:
+            raise ValueError(f"x must be (B, {self.in_dim}), got {tuple(x.shape)}")
+        if not self.fitted:
+            raise RuntimeError("ForestHead is not fitted (deformnet.classify.fit_head_forest)")
+        x = x[:, self.columns].double()  # scikit-learn's thresholds are float64
+        node = self.roots.expand(x.shape[0], -1)  # (B, trees)
+        for _ in range(int(self.depth)):
+            go_left = torch.gather(x, 1, self.feature[node]) <= self.threshold[node]
+            node = torch.where(go_left, self.left[node], self.right[node])
+        p = self.value[node].mean(1)  # (B, C)
+        return torch.log(p.clamp_min(1e-12))
+
+
+HEADS = {"linear": LinearHead, "mlp": MLPHead, "forest": ForestHead}
 
 
 def build_head(config: Mapping[str, Any], in_dim: int, num_classes: int) -> nn.Module:
@@ -200,6 +304,8 @@ def build_head(config: Mapping[str, Any], in_dim: int, num_classes: int) -> nn.M
     members = cfg.pop("ensemble", 1)
     if members is None or int(members) < 1:
         raise ValueError(f"head.ensemble must be an integer >= 1, got {members}")
+    if name == "forest" and int(members) != 1:
+        raise ValueError("head.ensemble must be 1 for a forest (it is an ensemble: head.trees)")
     if int(members) == 1:
         return HEADS[name](int(in_dim), int(num_classes), **cfg)
     return EnsembleHead(
@@ -257,6 +363,15 @@ class BehaviorClassifier(nn.Module):
         self.out_dim = encoder.out_dim * (1 + 2 * len(self.context_frames))
         self.register_buffer("feature_mean", torch.zeros(self.out_dim))
         self.register_buffer("feature_std", torch.ones(self.out_dim))
+
+    def frame_columns(self) -> Tensor:
+        """Indices (F,) of the frame features (the pose, the offsets, the observed flags: see
+        `WindowEncoder`) and of their context statistics among the classifier's features."""
+        enc = self.encoder
+        if not enc.frame_features:
+            raise ValueError("the classifier has no frame features (frame_features=false)")
+        i = torch.arange(self.out_dim)
+        return i[(i % enc.out_dim) >= 2 * enc.net.encode_dim]
 
     @staticmethod
     def feature_dim(encoder_dim: int, context_frames: Sequence[int]) -> int:

@@ -275,3 +275,46 @@ def test_lbfgs_probe_is_logistic_regression():
     np.testing.assert_allclose(W - W.mean(0), ref.coef_ - ref.coef_.mean(0), atol=2e-3)
     np.testing.assert_array_equal(logits.argmax(-1), ref.predict(X))
     assert facts["iterations"] > 0 and facts["loss"] > 0
+
+
+def test_forest_head_on_a_frozen_encoder_and_predict(tmp_path):
+    """head=forest (freeze=true): fitted on the labelled frames' features, stored in
+    classifier.pt, and mode=predict reloads it and labels the test track."""
+    from deformnet.classify import load_classifier, run
+
+    train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
+    test = [_toy_session(tmp_path, "test", 8)]
+    base = [
+        *TINY,
+        "head=forest",
+        "head.trees=25",
+        f"labels.classes=[{','.join(CLASSES)}]",
+        "labels.fraction=0.05",
+        *_files("train", train),
+        *_files("test", test),
+        "logger=none",
+        "smoothing.median=0",
+        "smoothing.min_bout=0",
+    ]
+    with pytest.raises(ValueError, match="freeze=true"):
+        run(_compose([*base, "freeze=false", f"output.dir={tmp_path / 'no'}"]))
+    out = tmp_path / "forest"
+    rep = run(_compose([*base, "freeze=true", f"output.dir={out}"]))["report"]
+    assert rep["labelled_training_frames"] == 2 * 18
+    assert rep["head_solver"] == "forest" and rep["probe"]["trees"] == 25
+    assert rep["raw"]["macro_f1"] >= 0.95, rep["raw"]
+    model, meta = load_classifier(out / "classifier.pt")
+    assert meta["head"]["name"] == "forest" and int(model.head.roots.numel()) == 25
+    p = run(
+        _compose(
+            [
+                "mode=predict",
+                f"checkpoint={out / 'classifier.pt'}",
+                f"tracks={test[0][0]}",
+                f"output.dir={tmp_path / 'pred'}",
+            ]
+        )
+    )
+    df = pd.read_csv(p["predictions"])
+    np.testing.assert_allclose(df[["p_walk", "p_rear"]].sum(axis=1), 1.0, atol=1e-5)
+    assert np.mean(df["label"].to_numpy() == np.asarray(CLASSES)[test[0][2]]) >= 0.95

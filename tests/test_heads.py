@@ -221,3 +221,51 @@ def test_ensemble_head_averages_its_members_probabilities_and_each_member_is_fit
     # the members start apart and end apart (independent fits), and the ensemble fits the data
     assert (ens.members[0].net[1].weight - ens.members[1].net[1].weight).abs().max() > 1e-2
     assert (ens(X).argmax(-1) == y).float().mean() > 0.9
+
+
+def test_forest_head_is_scikit_learns_forest_and_reads_only_the_frame_features():
+    """fit_head_forest: the torch evaluation equals RandomForestClassifier.predict_proba on the
+    columns it read (the frame features with inputs=frame); a stored forest reloads into a
+    fresh head; changing the encoder's outputs does not move an inputs=frame forest."""
+    from sklearn.ensemble import RandomForestClassifier
+
+    from deformnet.classify import fit_head_forest
+
+    enc = _encoder("lstm")
+    model = BehaviorClassifier(enc, build_head({"name": "forest", "trees": 15}, enc.out_dim, 3))
+    cols = model.frame_columns()
+    E = 2 * enc.net.encode_dim
+    assert cols.tolist() == list(range(E, enc.out_dim))  # no context: one block
+    g = np.random.default_rng(0)
+    N = 240
+    X = torch.tensor(g.normal(size=(N, enc.out_dim)), dtype=torch.float32)
+    y = (X[:, E + 2] > 0.0).long() + (X[:, E + 5] > 1.0).long()  # from frame features alone
+    X[:, :E] += y[:, None] * 3.0  # the encoder outputs separate the classes too (not read)
+    w = [1.0, 2.0, 3.0]
+    model.set_standardization(X)
+    facts = fit_head_forest(model, X, y, w)
+    assert facts["trees"] == 15 and facts["columns"] == cols.numel() and facts["depth"] >= 2
+    x = (X - model.feature_mean) / model.feature_std
+    ref = RandomForestClassifier(
+        15, min_samples_leaf=2, class_weight={0: 1.0, 1: 2.0, 2: 3.0}, random_state=0
+    ).fit(x[:, cols].numpy(), y.numpy())
+    Xt = torch.tensor(g.normal(size=(500, enc.out_dim)), dtype=torch.float32)
+    p = model.classify(Xt).softmax(-1)
+    xt = ((Xt - model.feature_mean) / model.feature_std)[:, cols].numpy()
+    np.testing.assert_allclose(p.numpy(), ref.predict_proba(xt), atol=1e-6)
+    moved = Xt.clone()
+    moved[:, :E] += 100.0
+    torch.testing.assert_close(model.classify(moved), model.classify(Xt))
+    # a forest head's state (its size known only once fitted) reloads into a fresh one
+    fresh = build_head({"name": "forest", "trees": 15}, enc.out_dim, 3)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        fresh(Xt)
+    fresh.load_state_dict(model.head.state_dict())
+    torch.testing.assert_close(fresh(x), model.head(x))
+    with pytest.raises(ValueError, match="ensemble must be 1"):
+        build_head({"name": "forest", "ensemble": 3}, enc.out_dim, 3)
+    with pytest.raises(ValueError, match="head.inputs"):
+        build_head({"name": "forest", "inputs": "encoder"}, enc.out_dim, 3)
+    no_frame = BehaviorClassifier(_encoder("lstm", frame_features=False), fresh)
+    with pytest.raises(ValueError, match="no frame features"):
+        no_frame.frame_columns()
