@@ -19,6 +19,10 @@ one draw moves macro-F1 by several points.
 - ``scratch_frozen``: the same architecture, random weights frozen, the head probed (L-BFGS) on
   their context features (what pretraining adds over the architecture and the pooling alone;
   "pretrained beats scratch" is checked against the better of the two);
+- ``forest``: the forest head (`head=forest freeze=true`: the same random-forest settings as
+  ``rf``) on the classifier's frame features (the tracked pose, the per-part offsets and their
+  temporal context; the encoder's outputs are not read): ``rf`` and ``forest`` are the same
+  learner on SimBA's features and on the tracked pose's;
 - ``rf``: a random forest (scikit-learn, balanced class weights) on SimBA-style hand-made
   per-frame features: centroid, body length, heading / elevation of the nose-tail axis, part
   heights, all pairwise part distances, part speeds, each with rolling means and standard
@@ -39,11 +43,12 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
 
     .venv/bin/python benchmarks/behavior.py [--frames 3000] [--train 6] [--test 4]
         [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--seconds 75]
-        [--label-draws 3] [--fractions 0.01,0.1,1]
+        [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
 and five L-BFGS fits on all 18000 training frames take about 20 min per method. A run with a
-subset of `--fractions` (part of the table) still runs the 10% input comparison and the events.
+subset of `--fractions` or `--methods` (part of the table) still runs the 10% input comparison
+and the events.
 
 Prints tables; the last line is JSON, also written atomically to runs/benchmarks/behavior.json.
 """
@@ -72,6 +77,7 @@ log = logging.getLogger("benchmarks.behavior")
 ROOT = CONF_DIR.parent
 SEEDS = {"train": 95_000, "val": 95_100, "test": 95_200}
 MECHANISMS = ("lever", "splint", "ball", "slider")
+METHODS = ("pretrained", "frozen", "scratch", "scratch_frozen", "forest", "rf")
 
 
 # --------------------------------------------------------------------------------------------
@@ -165,6 +171,8 @@ def run_classifier(
         ov.append("pretrained=null")
     elif method == "scratch_frozen":
         ov += ["pretrained=null", "freeze=true"]
+    elif method == "forest":
+        ov += [f"pretrained={ckpt}", "freeze=true", "head=forest"]
     else:
         ov += [f"pretrained={ckpt}", f"freeze={'true' if method == 'frozen' else 'false'}"]
     t0 = time.perf_counter()
@@ -400,9 +408,19 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument(
         "--fractions", default="0.01,0.1,1", help="label fractions (a subset: part of a run)"
     )
+    ap.add_argument(
+        "--methods",
+        default=",".join(METHODS),
+        help="classifiers to run (a subset: part of a run; the 10%% input comparison and the "
+        "events always run)",
+    )
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    bad = sorted(set(methods) - set(METHODS))
+    if bad or not methods:
+        ap.error(f"--methods: unknown {bad}; choose from {', '.join(METHODS)}")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
         logging.getLogger(name).setLevel(logging.WARNING)
@@ -433,7 +451,7 @@ def main(argv: list[str] | None = None) -> dict:
         # at 1% (a few labelled frames per class) which frames get labels moves macro-F1 by
         # several points: every method is run on the same `--label-draws` draws, averaged
         draws = range(args.label_draws if frac <= 0.01 else 1)
-        for method in ("pretrained", "frozen", "scratch", "scratch_frozen"):
+        for method in [m for m in methods if m != "rf"]:
             runs = [
                 run_classifier(
                     work / f"cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
@@ -444,11 +462,13 @@ def main(argv: list[str] | None = None) -> dict:
             ]  # fmt: skip
             results[key][method] = averaged(runs)
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
-        results[key]["rf"] = averaged(
-            [run_rf(sessions, "track", frac, label_seed=d) for d in draws]
-        )
-        log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
-    r10 = results.get("0.1") or {
+        if "rf" in methods:
+            results[key]["rf"] = averaged(
+                [run_rf(sessions, "track", frac, label_seed=d) for d in draws]
+            )
+            log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
+    r10 = results.get("0.1") or {}
+    r10 = r10 if {"pretrained", "rf"} <= set(r10) else {
         "pretrained": run_classifier(
             work / "cls_track_pretrained_0.1", sessions, "track", 0.1, "pretrained", ckpt,
             args.seconds,
@@ -481,7 +501,6 @@ def main(argv: list[str] | None = None) -> dict:
         f"\nbehavior: {sum(counts.values())} sessions x {args.frames} frames (train "
         f"{args.train}, val {args.val}, test {args.test}); test macro-F1 (raw / smoothed)"
     )
-    methods = ("pretrained", "frozen", "scratch", "scratch_frozen", "rf")
     print(f"{'labels':<8}" + "".join(f"{m:>22}" for m in methods))
     for key, r in results.items():
         cells = []
@@ -502,13 +521,15 @@ def main(argv: list[str] | None = None) -> dict:
             f"{r['true_operations']:>6}{r['detected_operations']:>10}"
         )
     checks = {"pretrained_10pct_ge_0.9": r10["pretrained"]["macro_f1"] >= 0.9}
-    if "0.01" in results:
-        r1 = results["0.01"]
+    r1 = results.get("0.01", {})
+    if {"pretrained", "scratch", "scratch_frozen", "rf"} <= set(r1):
         # against the better of the two from-scratch variants (end to end; random encoder, probe)
         checks["pretrained_beats_scratch_1pct"] = r1["pretrained"]["macro_f1"] > max(
             r1["scratch"]["macro_f1"], r1["scratch_frozen"]["macro_f1"]
         )
         checks["pretrained_beats_rf_1pct"] = r1["pretrained"]["macro_f1"] > r1["rf"]["macro_f1"]
+    if {"forest", "rf"} <= set(r1):
+        checks["forest_beats_rf_1pct"] = r1["forest"]["macro_f1"] > r1["rf"]["macro_f1"]
     checks |= {
         "events_track_ge_0.9": events["track"]["precision"] >= 0.9
         and events["track"]["recall"] >= 0.9,
@@ -534,6 +555,7 @@ def main(argv: list[str] | None = None) -> dict:
             "seconds_per_classifier": args.seconds,
             "label_draws_at_1pct": args.label_draws,
             "fractions": args.fractions,
+            "methods": methods,
         },
         **extra,
         "total_seconds": round(time.perf_counter() - t_start, 1),
