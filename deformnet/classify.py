@@ -449,7 +449,14 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     C = len(classes)
     net_cfg, body, hw, state = _encoder_config(cfg, classes)
     head_cfg = dict(to_plain(cfg.head))
+    forest = head_cfg.get("name") == "forest"
+    if forest and not bool(cfg.freeze):  # before any data is read
+        raise ValueError(
+            "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
+        )
     ff = bool(cfg.get("frame_features", True))
+    if forest and head_cfg.get("inputs", "frame") == "frame" and not ff:
+        raise ValueError("head.inputs=frame needs frame_features=true (or head.inputs=all)")
     context = dict(to_plain(cfg.get("context")) or {})
     model = _build(net_cfg, body, hw, head_cfg, ff, C, context)
     if state is not None:
@@ -531,11 +538,6 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     solver = str(cfg.get("head_solver", "sgd"))
     if solver not in ("sgd", "lbfgs"):
         raise ValueError(f"head_solver must be 'sgd' or 'lbfgs', got '{solver}'")
-    forest = head_cfg.get("name") == "forest"
-    if forest and not bool(cfg.freeze):
-        raise ValueError(
-            "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
-        )
     if forest:
         solver = "forest"
     probe = int(cfg.get("probe_epochs") or 0) if state is not None else 0

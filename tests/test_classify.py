@@ -298,6 +298,12 @@ def test_forest_head_on_a_frozen_encoder_and_predict(tmp_path):
     ]
     with pytest.raises(ValueError, match="freeze=true"):
         run(_compose([*base, "freeze=false", f"output.dir={tmp_path / 'no'}"]))
+    with pytest.raises(ValueError, match="needs frame_features=true"):
+        run(
+            _compose(
+                [*base, "freeze=true", "frame_features=false", f"output.dir={tmp_path / 'no'}"]
+            )
+        )
     out = tmp_path / "forest"
     rep = run(_compose([*base, "freeze=true", f"output.dir={out}"]))["report"]
     assert rep["labelled_training_frames"] == 2 * 18
