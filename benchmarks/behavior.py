@@ -66,6 +66,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
+from common import subset
 
 from adjust.app import finite_or_none
 from deformnet.atomic import write_text
@@ -417,10 +418,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    bad = sorted(set(methods) - set(METHODS))
-    if bad or not methods:
-        ap.error(f"--methods: unknown {bad}; choose from {', '.join(METHODS)}")
+    methods = subset(ap, args.methods, METHODS, "--methods")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
         logging.getLogger(name).setLevel(logging.WARNING)
@@ -467,14 +465,14 @@ def main(argv: list[str] | None = None) -> dict:
                 [run_rf(sessions, "track", frac, label_seed=d) for d in draws]
             )
             log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
-    r10 = results.get("0.1") or {}
-    r10 = r10 if {"pretrained", "rf"} <= set(r10) else {
-        "pretrained": run_classifier(
+    r10 = dict(results.get("0.1") or {})  # what a partial run did not measure, run here
+    if "pretrained" not in r10:
+        r10["pretrained"] = run_classifier(
             work / "cls_track_pretrained_0.1", sessions, "track", 0.1, "pretrained", ckpt,
             args.seconds,
-        ),
-        "rf": run_rf(sessions, "track", 0.1),
-    }  # fmt: skip
+        )  # fmt: skip
+    if "rf" not in r10:
+        r10["rf"] = run_rf(sessions, "track", 0.1)
     inputs = {
         "track": {
             "pretrained": r10["pretrained"]["macro_f1"],

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from behavior import ROOT, SEEDS, _round, make_session, pretrain, run_rf
-from common import emit, start
+from common import emit, start, subset
 
 from deformnet.confutil import compose, to_plain
 
@@ -146,10 +146,7 @@ def main(argv: list[str] | None = None) -> dict:
         for split, n in (("train", args.train), ("test", args.test))
     }
     extra: dict = {}
-    chosen = [e.strip() for e in str(args.encoders).split(",") if e.strip()]
-    bad = sorted(set(chosen) - {"pretrained", "contrast", "random"})
-    if bad or not chosen:
-        raise SystemExit(f"--encoders: unknown {bad} (pretrained, contrast, random)")
+    chosen = subset(ap, args.encoders, ("pretrained", "contrast", "random"), "--encoders")
     ckpts = {"pretrained": args.pretrained, "contrast": args.contrast}
     ckpts = {k: v for k, v in ckpts.items() if k in chosen}
     for name, overrides in (("pretrained", []), ("contrast", CONTRAST)):

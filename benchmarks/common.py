@@ -1,6 +1,7 @@
-"""What the benchmarks share: their start (`start`: arguments, logging, torch's thread count)
-and their last line (`emit`). A benchmark runs as a script, so ``from common import ...``
-(imports inside the functions: a benchmark's child processes load nothing more for them)."""
+"""What the benchmarks share: their start (`start`: arguments, logging, torch's thread count),
+a comma-separated choice among options (`subset`) and their last line (`emit`). A benchmark
+runs as a script, so ``from common import ...`` (imports inside the functions: a benchmark's
+child processes load nothing more for them)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,16 @@ def start(ap: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Names
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     set_torch_threads(getattr(args, "threads", None))
     return args
+
+
+def subset(ap: argparse.ArgumentParser, text: str, allowed, flag: str) -> list[str]:
+    """A comma-separated choice of some of `allowed` (in the order given); a usage error
+    naming ``flag`` for an empty or unknown choice."""
+    chosen = [c.strip() for c in str(text).split(",") if c.strip()]
+    bad = sorted(set(chosen) - set(allowed))
+    if bad or not chosen:
+        ap.error(f"{flag}: unknown {bad}; choose from {', '.join(allowed)}")
+    return chosen
 
 
 def emit(summary: dict, out: str | Path) -> dict:
