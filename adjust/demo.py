@@ -13,8 +13,10 @@ Each step is the app a user runs, called through Hydra's compose API (`run(cfg)`
 4. ``adjust-track``           OUT/rigid (deformation=rigid), OUT/interp (the default), OUT/net
                               (deformation=<the trained LSTM checkpoint>), OUT/self
                               (deformation=self: the shipped net fine-tuned on the recording)
-5. ``deformnet-classify``     OUT/classify: fine-tune the LSTM's encoder on simulated labelled
-                              sessions, then label the primary tracks (OUT/classify/predict)
+5. ``deformnet-classify``     OUT/classify: labelled sessions simulated and tracked like the
+                              primary tracks (OUT/classify/sessions/<seed>), the LSTM's encoder
+                              fine-tuned on them, then the primary tracks labelled
+                              (OUT/classify/predict)
 6. ``adjust-events``          OUT/events: lock-box contacts on the primary tracks
 7. `adjust.report`            OUT/report.json, report.md, report.html, figures/
 
@@ -58,6 +60,94 @@ def max_time(minutes: float) -> str:
     return f"00:{s // 3600:02d}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
+DEFORMATION = {"rigid": "rigid", "interp": "interp", "self": "self"}  # "net": the checkpoint
+
+
+def track_config(method: str, scene, out, ckpt, p: DictConfig, cfg: DictConfig) -> DictConfig:
+    """The config that tracks the scene folder ``scene`` into ``out`` with one of `METHODS`:
+    ``dlt`` is `adjust-triangulate`, the others `adjust-track` (``net``: deformation=``ckpt``;
+    ``self``: the shipped net fine-tuned on the recording for ``p.adapt_minutes``)."""
+    inputs = [
+        f"input.calibration={scene / 'calibration.toml'}",
+        f"input.detections={scene / 'detections'}",
+        f"output.dir={out}",
+    ]
+    if method == "dlt":
+        return compose("triangulate", [*inputs, "body=mouse"])
+    extra = []
+    if method == "self":
+        extra = [f"adapt.max_time={max_time(p.adapt_minutes)}", "adapt.tensorboard=false"]
+    return compose(
+        "track",
+        [
+            *inputs,
+            f"deformation={DEFORMATION.get(method, ckpt)}",
+            "progress=false",
+            f"threads={int(cfg.threads)}",
+            *extra,
+        ],
+    )
+
+
+def labelled_sessions(folder, p: DictConfig, method: str, ckpt, cfg: DictConfig) -> dict:
+    """The behavior classifier's labelled sessions, made as a lab makes them: each seed of
+    ``p.classify_{train,val,test}_seeds`` simulated (`adjust-simulate`, ``p.classify_frames``
+    frames), tracked with ``method`` (the demo's primary tracks) and its true labels written as
+    ``labels.csv``: ``folder/<seed>/{scene, <method>, labels.csv}``. Returns the
+    `deformnet-classify` ``data.*`` lists: {"train_tracks": "[...]", "train_labels": ..., ...}.
+    """
+    from adjust import scene_cli, track, triangulate_cli
+    from adjust.scene import write_truth_labels
+
+    data: dict[str, list[str]] = {}
+    for split, seeds in session_seeds(p, int(cfg.seed)).items():
+        for s in seeds:
+            d = folder / str(s)
+            scene_cli.run(
+                compose(
+                    "scene",
+                    [
+                        f"num_frames={int(p.classify_frames)}",
+                        f"seed={s}",
+                        f"output.dir={d / 'scene'}",
+                    ],
+                )
+            )
+            app = triangulate_cli if method == "dlt" else track
+            app.run(track_config(method, d / "scene", d / method, ckpt, p, cfg))
+            data.setdefault(f"{split}_tracks", []).append(str(d / method / "points3d.csv"))
+            data.setdefault(f"{split}_labels", []).append(
+                str(write_truth_labels(d / "scene", d / "labels.csv"))
+            )
+    return {k: "[" + ",".join(v) + "]" for k, v in data.items()}
+
+
+def session_seeds(p: DictConfig, scene_seed: int) -> dict[str, list[int]]:
+    """The labelled sessions' seeds per split ({"train", "val", "test"} -> seeds), or a
+    ValueError naming the preset key that is empty, holds the demo scene's own seed or a seed
+    of another split (sessions are split by session: none in two splits)."""
+    out: dict[str, list[int]] = {}
+    for split in ("train", "val", "test"):
+        key = f"classify_{split}_seeds"
+        seeds = [int(s) for s in p[key]]
+        if not seeds:
+            raise ValueError(f"{key} is empty: the behavior classifier needs a {split} session")
+        if scene_seed in seeds:
+            raise ValueError(
+                f"{key} holds the demo scene's seed {scene_seed}: the scene the demo labels "
+                "must not be one of the classifier's labelled sessions"
+            )
+        for other, prev in out.items():
+            both = sorted(set(seeds) & set(prev))
+            if both:
+                raise ValueError(
+                    f"classify_{other}_seeds and {key} share seed(s) {both}: a session belongs "
+                    "to one split"
+                )
+        out[split] = seeds
+    return out
+
+
 class _Steps:
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
@@ -99,6 +189,8 @@ def _run(cfg: DictConfig) -> dict:
     out = output_dir(cfg).resolve()
     step = _Steps()
     seed = int(cfg.seed)
+    if bool(cfg.behavior):
+        session_seeds(p, seed)  # before anything runs
 
     # 1. the scene
     scene = out / "scene"
@@ -138,40 +230,19 @@ def _run(cfg: DictConfig) -> dict:
         raise RuntimeError(f"deformnet-train net={deform_net} wrote no checkpoint")
 
     # 3-4. tracking: DLT, rigid, interp, the deformable net
-    inputs = [
-        f"input.calibration={scene / 'calibration.toml'}",
-        f"input.detections={scene / 'detections'}",
-    ]
     step(
         "dlt",
         "adjust-triangulate (DLT)",
         triangulate_cli.run,
-        compose("triangulate", [*inputs, "body=mouse", f"output.dir={out / 'dlt'}"]),
+        track_config("dlt", scene, out / "dlt", ckpt, p, cfg),
     )
-    for method, deformation in (
-        ("rigid", "rigid"),
-        ("interp", "interp"),
-        ("net", ckpt),
-        ("self", "self"),  # the shipped net fine-tuned on this recording (no training run before)
-    ):
-        extra = []
-        if method == "self":
-            extra = [
-                f"adapt.max_time={max_time(p.adapt_minutes)}",
-                "adapt.tensorboard=false",
-            ]
-        tcfg = compose(
-            "track",
-            [
-                *inputs,
-                f"deformation={deformation}",
-                "progress=false",
-                f"threads={int(cfg.threads)}",
-                f"output.dir={out / method}",
-                *extra,
-            ],
+    for method in ("rigid", "interp", "net", "self"):
+        step(
+            method,
+            f"adjust-track deformation={DEFORMATION.get(method, ckpt)}",
+            track.run,
+            track_config(method, scene, out / method, ckpt, p, cfg),
         )
-        step(method, f"adjust-track deformation={deformation}", track.run, tcfg)
     tracks = out / primary / "points3d.csv"
 
     # 5. behavior
@@ -179,14 +250,20 @@ def _run(cfg: DictConfig) -> dict:
     if bool(cfg.behavior):
         from deformnet import classify as cls_app
 
-        seeds = "[" + ",".join(str(int(s)) for s in p.classify_train_seeds) + "]"
+        sessions = step(
+            "classify_sessions",
+            f"labelled sessions: adjust-simulate, then tracked as the {primary} tracks",
+            lambda _: labelled_sessions(out / "classify" / "sessions", p, primary, ckpt, cfg),
+            None,
+        )
+        data = [f"data.{k}={v}" for k, v in sessions.items()]
+        if primary == "dlt":
+            data.append("data.interpolate=true")  # DLT's gaps, filled the way the demo's are
         ccfg = compose(
             "classify",
             [
                 f"pretrained={ckpt}",
-                "data.source=sim",
-                f"data.sim.num_frames={int(p.classify_frames)}",
-                f"data.sim.train_seeds={seeds}",
+                *data,
                 f"data.steps_per_epoch={int(p.classify_steps_per_epoch)}",
                 f"trainer.max_time={max_time(p.classify_minutes)}",
                 f"trainer.max_epochs={int(p.classify_max_epochs)}",

@@ -703,7 +703,8 @@ def blocks(rep: Mapping) -> list[tuple]:
         b.append(
             (
                 "p",
-                "`deformnet-classify` fine-tuned the LSTM's encoder on simulated sessions "
+                "`deformnet-classify` fine-tuned the LSTM's encoder on simulated labelled "
+                f"sessions tracked like the `{s['tracks']}` tracks "
                 f"({c['labelled_training_frames']} labelled frames, "
                 f"{c['training_steps']} steps): on its own {c['split']} split macro-F1 "
                 f"{_f(c['macro_f1'], 3)} (smoothed {_f(c['macro_f1_smoothed'], 3)}). Its "

@@ -86,6 +86,7 @@ METHODS = ("pretrained", "frozen", "scratch", "scratch_frozen", "forest", "rf")
 # --------------------------------------------------------------------------------------------
 def make_session(work: Path, seed: int, frames: int) -> dict:
     """Scene, adjust-track and DLT outputs and a labels CSV for one seed (cached in `work`)."""
+    from adjust.scene import write_truth_labels
     from adjust.scene_cli import run as simulate
     from adjust.track import run as track
     from adjust.triangulate_cli import run as triangulate
@@ -107,8 +108,7 @@ def make_session(work: Path, seed: int, frames: int) -> dict:
     behaviors = [str(b) for b in truth["behaviors"]]
     labels = d / "labels.csv"
     if not labels.exists():
-        names = np.asarray(behaviors, dtype=object)[truth["labels"]]
-        pd.DataFrame({"fnum": np.arange(len(names)), "label": names}).to_csv(labels, index=False)
+        write_truth_labels(scene, labels)
     log.info("session %d: %d frames ready (%.1f s)", seed, frames, time.perf_counter() - t0)
     return {
         "seed": seed,

@@ -12,6 +12,7 @@ import hydra
 import numpy as np
 import pandas as pd
 import pytest
+from omegaconf import OmegaConf
 
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
@@ -88,6 +89,17 @@ def test_training_behavior_events_numbers_equal_the_run_files(demo):
         assert rep["training"][net]["validations"] >= 1  # read from the event files
         assert (out / "tb" / net).is_dir()
     cls = json.loads((out / "classify" / "report.json").read_text())
+    # the classifier learnt from labelled sessions tracked like the demo's primary tracks (not
+    # from simulator truth), and the demo's own scene is not one of them
+    ccfg = OmegaConf.load(out / "classify" / "config.yaml")
+    sessions = out.resolve() / "classify" / "sessions"
+    assert ccfg.data.source == "files"
+    assert list(ccfg.data.train_tracks) == [str(sessions / "0" / "interp" / "points3d.csv")]
+    assert list(ccfg.data.test_labels) == [str(sessions / "20000" / "labels.csv")]
+    with np.load(sessions / "0" / "scene" / "truth.npz") as z:
+        names = [str(b) for b in z["behaviors"]]
+        want = [names[i] for i in z["labels"]]
+    assert pd.read_csv(sessions / "0" / "labels.csv")["label"].tolist() == want
     beh = rep["behavior"]
     assert beh["classifier"]["macro_f1"] == cls["raw"]["macro_f1"]
     assert beh["classifier"]["training_steps"] == cls["training_steps"]
@@ -119,6 +131,30 @@ def test_deformnet_never_imports_adjust():
             else:
                 continue
             assert not any(m == "adjust" or m.startswith("adjust.") for m in mods), path
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (
+            "presets.quick.classify_train_seeds=[7]",
+            "classify_train_seeds holds the demo scene's seed 7",
+        ),
+        (
+            "presets.quick.classify_test_seeds=[0]",
+            "classify_train_seeds and classify_test_seeds share seed",
+        ),
+        ("presets.quick.classify_val_seeds=[]", "classify_val_seeds is empty"),
+    ],
+)
+def test_bad_labelled_sessions_fail_before_anything_runs(tmp_path, override, message):
+    from adjust.demo import run
+
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose("demo", overrides=["preset=quick", f"output.dir={tmp_path}", override])
+    with pytest.raises(ValueError, match=message):
+        run(cfg)
+    assert not (tmp_path / "scene").exists()
 
 
 def test_unknown_preset_is_one_clear_error(tmp_path):

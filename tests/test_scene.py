@@ -6,6 +6,7 @@ from dataclasses import fields
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -322,6 +323,30 @@ def test_write_scene_reads_back(tmp_path, rig, sim):
     assert truth["nviews"].shape == det.likelihood.shape[:2]
     assert truth["visible"].shape == det.likelihood.shape
     assert list(truth["parts"]) == list(body.parts)
+
+
+def test_truth_labels_csv_is_what_classify_reads(tmp_path, rig, sim):
+    from adjust.scene import write_scene, write_truth_labels
+    from deformnet.behavior_labels import read_labels
+
+    det = simulate_scene(sim, rig, None, seed=0)
+    res = write_scene(tmp_path / "scene", sim, rig, det)
+    path = write_truth_labels(res["dir"], tmp_path / "labels.csv")
+    truth = np.load(res["truth"])
+    names = [str(b) for b in truth["behaviors"]]
+    assert (truth["labels"] >= 0).all()
+    labels = read_labels(path, np.arange(len(truth["labels"])), names)  # the classifier's reader
+    assert np.array_equal(labels, truth["labels"])
+    df = pd.read_csv(path)
+    assert list(df.columns) == ["fnum", "label"] and df["fnum"].tolist() == list(range(len(df)))
+    # a scene without behavior labels: an error naming its truth file
+    z = dict(truth)
+    z["labels"] = np.full_like(truth["labels"], -1)
+    (tmp_path / "nolabels").mkdir()
+    np.savez(tmp_path / "nolabels" / "truth.npz", **z)
+    with pytest.raises(ValueError, match=r"nolabels/truth.npz: the scene has no behavior labels"):
+        write_truth_labels(tmp_path / "nolabels", tmp_path / "x.csv")
+    assert not (tmp_path / "x.csv").exists()
 
 
 def test_adjust_simulate_compose_run(tmp_path):

@@ -15,7 +15,7 @@ pixel noise and likelihoods. One module per concern, every public name re-export
 - `adjust.scene.detector` -- `DetectorConfig` / `simulate_scene`: the detector model,
   vectorised over (T, K, C) in numpy; deterministic for a seed.
 - `adjust.scene.folder` -- `write_scene`: the scene folder (calibration.toml, detections/,
-  truth.npz).
+  truth.npz); `write_truth_labels`: its true behavior labels as a `fnum,label` CSV.
 
 Shapes: T frames, K parts, C cameras. Points in mm, pixels in px.
 """
@@ -29,7 +29,7 @@ from adjust.scene.detector import (
     detector_config,
     simulate_scene,
 )
-from adjust.scene.folder import write_scene
+from adjust.scene.folder import write_scene, write_truth_labels
 from adjust.scene.occlusion import (
     Ellipsoid,
     ellipsoids_from_config,
@@ -55,4 +55,5 @@ __all__ = [
     "rig_from_config",
     "simulate_scene",
     "write_scene",
+    "write_truth_labels",
 ]

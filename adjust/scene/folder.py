@@ -89,3 +89,35 @@ def write_scene(
     with atomic_path(truth_path) as tmp:
         np.savez_compressed(tmp, **truth)
     return {"dir": out, "calibration": calib, "detections": paths, "truth": truth_path}
+
+
+def write_truth_labels(scene_dir: Any, path: Any) -> Any:
+    """The scene's true behavior labels (``truth.npz``: ``labels``, ``behaviors``) as the
+    per-frame ``fnum,label`` CSV that `deformnet-classify` reads, written atomically at ``path``.
+    A ValueError names the scene when it has no behavior labels (every label -1)."""
+    from pathlib import Path
+
+    import pandas as pd
+
+    from deformnet.atomic import atomic_path
+
+    src = Path(scene_dir) / "truth.npz"
+    with np.load(src) as z:
+        labels = np.asarray(z["labels"], dtype=np.int64)
+        behaviors = [str(b) for b in z["behaviors"]]
+    if not behaviors or labels.size == 0 or np.all(labels < 0):
+        raise ValueError(f"{src}: the scene has no behavior labels")
+    bad = (labels >= len(behaviors)) | (labels < -1)
+    if bad.any():
+        f = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"{src}: frame {f} has label index {labels[f]}, not one of the "
+            f"{len(behaviors)} behaviors"
+        )
+    keep = labels >= 0
+    names = np.asarray(behaviors, dtype=object)[labels[keep]]
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        pd.DataFrame({"fnum": np.flatnonzero(keep), "label": names}).to_csv(tmp, index=False)
+    return out
