@@ -256,9 +256,8 @@ def _run(cfg: DictConfig) -> dict:
             lambda _: labelled_sessions(out / "classify" / "sessions", p, primary, ckpt, cfg),
             None,
         )
-        data = [f"data.{k}={v}" for k, v in sessions.items()]
-        if primary == "dlt":
-            data.append("data.interpolate=true")  # DLT's gaps, filled the way the demo's are
+        fill = ["data.interpolate=true"] if primary == "dlt" else []  # DLT's gaps, filled
+        data = [f"data.{k}={v}" for k, v in sessions.items()] + fill
         ccfg = compose(
             "classify",
             [
@@ -283,6 +282,7 @@ def _run(cfg: DictConfig) -> dict:
                 "mode=predict",
                 f"checkpoint={res['checkpoint']}",
                 f"tracks={tracks}",
+                *fill,  # DLT: the gaps filled as in training
                 f"output.dir={out / 'classify' / 'predict'}",
             ],
         )

@@ -164,3 +164,26 @@ def test_unknown_preset_is_one_clear_error(tmp_path):
         cfg = hydra.compose("demo", overrides=["preset=huge", f"output.dir={tmp_path}"])
     with pytest.raises(ValueError, match="preset=huge is not one of"):
         run(cfg)
+
+
+@pytest.mark.slow
+def test_dlt_primary_classifier_fills_gaps_in_training_and_prediction(tmp_path):
+    """primary=dlt: the labelled sessions are DLT-triangulated, and both the classifier's training
+    and its prediction fill the gaps (data.interpolate=true); every frame gets a label."""
+    from adjust.demo import run
+
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose(
+            "demo", overrides=["preset=quick", f"output.dir={tmp_path}", "primary=dlt"]
+        )
+    run(cfg)
+    out = tmp_path.resolve()
+    ccfg = OmegaConf.load(out / "classify" / "config.yaml")
+    assert ccfg.data.interpolate is True
+    assert list(ccfg.data.train_tracks) == [
+        str(out / "classify" / "sessions" / "0" / "dlt" / "points3d.csv")
+    ]
+    pcfg = OmegaConf.load(out / "classify" / "predict" / "config.yaml")
+    assert pcfg.data.interpolate is True
+    pred = pd.read_csv(out / "classify" / "predict" / "predictions.csv")
+    assert len(pred) == 300 and pred["label"].notna().all()
