@@ -240,13 +240,30 @@ def test_pretrained_build_is_reproducible(tmp_path):
 
 @pytest.mark.slow
 def test_shipped_net_is_the_build_scripts_output(tmp_path):
-    """`python -m deformnet.pretrained.build` reproduces the shipped file's weights bit for bit
-    (about 5 minutes on 2 cores)."""
-    from deformnet.pretrained import load_default
-    from deformnet.pretrained.build import build, weights_sha256
+    """`python -m deformnet.pretrained.build` reproduces the shipped file: bit for bit on the
+    kind of CPU that built it; elsewhere (other float kernels: 3000 steps of rounding apart) a
+    net as good as the shipped one on the build's validation windows, within 5% of its val
+    RMSE (about 5 minutes on 2 cores)."""
+    from helpers import quiet_trainer
 
+    from deformnet.deformation import DeformationModel
+    from deformnet.pretrained import load_default
+    from deformnet.pretrained.build import STEPS, build, overrides, weights_sha256
+    from deformnet.train import build_datamodule, build_model
+
+    shipped = load_default()
     res = build(out=tmp_path / "rebuilt.pt")
-    assert res["sha256"] == weights_sha256(load_default())
+    if res["sha256"] == weights_sha256(shipped):
+        return
+    cfg = compose("train", overrides(STEPS, 0, tmp_path / "eval"))
+    rmse = {}
+    for name, model in (("shipped", shipped), ("rebuilt", DeformationModel.from_checkpoint(res["checkpoint"]))):
+        lit, body, _ = build_model(cfg, pretrained=model)
+        dm = build_datamodule(cfg, body, lit.mid)
+        rmse[name] = quiet_trainer(1).validate(lit, datamodule=dm, verbose=False)[0][
+            "val/rmse_mm"
+        ]
+    assert rmse["rebuilt"] <= 1.05 * rmse["shipped"], rmse
 
 
 def test_self_falls_back_to_interp_when_the_net_does_not_beat_interpolation(scene, tmp_path):
