@@ -197,6 +197,33 @@ def make_deformable_observation(
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
 
+def check_world_up(model, poses: np.ndarray, where: str, max_deg: float = 45.0) -> float | None:
+    """A net trained in the heading frame (``model.up``) assumes the world's up; the rigid
+    poses (T, 6) (Rodrigues + translation, model -> world; NaN rows ignored) say where this
+    session's body up axis (model Z) points. Returns the median angle (degrees) between them
+    (None for a body-frame net); InputError (naming `where`) when it is over `max_deg`: the
+    calibration's world is not that up (a mouse stands on its floor most of the time)."""
+    up = getattr(model, "up", None)
+    if up is None:
+        return None
+    from deformnet.so3 import rodrigues_to_matrix
+
+    p = np.asarray(poses, dtype=float)
+    p = p[np.isfinite(p).all(1)]
+    if not len(p):
+        return None
+    body_up = rodrigues_to_matrix(torch.as_tensor(p[:, :3]))[:, :, 2].numpy()
+    angle = float(np.median(np.degrees(np.arccos(np.clip(body_up @ np.asarray(up), -1, 1)))))
+    if angle > max_deg:
+        raise InputError(
+            f"{where}: the deformation net reads windows in the heading frame of world up "
+            f"{list(up)}, but this session's mouse has its up axis a median {angle:.0f} deg "
+            f"away from it: the calibration's world is not up={list(up)}; use a net trained "
+            "with up=null (the body frame, e.g. the default) or one trained with this world's up"
+        )
+    return angle
+
+
 def deform_step(model, cfg_def) -> int:
     """Frames between the net's window tokens: ``deform.step`` (null: the step the net was
     trained with, `DeformationModel.step`)."""
@@ -593,6 +620,9 @@ def _run(cfg: DictConfig) -> dict:
             model = None  # `res`: the interp adjustment's, outputs complete
         else:
             adapt_facts["used"] = True
+    up_deg = None
+    if model is not None and init_poses is not None:
+        up_deg = check_world_up(model, init_poses, str(detections))
     if model is not None:
         t1 = time.perf_counter()
         observation, def_facts = make_deformable_observation(
@@ -600,6 +630,8 @@ def _run(cfg: DictConfig) -> dict:
         )
         if adapt_facts is not None:
             def_facts["adapt"] = adapt_facts
+        if up_deg is not None:  # a heading-frame net: how far the mouse's up is from its up
+            def_facts["world_up"] = {"up": list(model.up), "median_body_up_deg": round(up_deg, 1)}
     if observation is not None and mode != "interp":
         t_net = time.perf_counter()
     if observation is not None:

@@ -318,11 +318,14 @@ def _build(
     frame_features: bool,
     C: int,
     context: dict | None = None,
+    up=None,
 ):
     from deformnet.deformation import build_net
     from deformnet.heads import BehaviorClassifier, WindowEncoder, build_head
 
-    enc = WindowEncoder(build_net(net_cfg), np.asarray(body.points), half_window, frame_features)
+    enc = WindowEncoder(
+        build_net(net_cfg), np.asarray(body.points), half_window, frame_features, up
+    )
     ctx = dict(context or {})
     frames = [int(f) for f in (ctx.get("frames") or [])]
     dim = BehaviorClassifier.feature_dim(enc.out_dim, frames)
@@ -361,6 +364,7 @@ def load_classifier(path: str | os.PathLike):
         bool(blob["frame_features"]),
         len(blob["classes"]),
         blob.get("context"),
+        blob.get("up"),
     )
     model.load_state_dict(blob["state_dict"])
     return model.eval(), {**{k: v for k, v in blob.items() if k != "state_dict"}, "body": body}
@@ -422,7 +426,8 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
 
 
 def _encoder_config(cfg: DictConfig, classes):
-    """(net config, body, half_window, pretrained-net state or None)."""
+    """(net config, body, half_window, pretrained-net state or None, world up or None: the
+    canonical frame the encoder reads, `deformnet.tokens.canonicalize`)."""
     from deformnet.body import BodyModel
     from deformnet.train import net_config
 
@@ -433,10 +438,13 @@ def _encoder_config(cfg: DictConfig, classes):
         log.info(
             "encoder: %s from %s", dm.net_config.get("_target_"), cfg.pretrained
         )  # fmt: skip
-        return dict(dm.net_config), dm.body, dm.half_window, dm.net.state_dict()
+        return dict(dm.net_config), dm.body, dm.half_window, dm.net.state_dict(), dm.up
+    from deformnet.deformation import check_up
+
     body = BodyModel.from_config(cfg.body)
     _, ncfg = net_config(cfg, body.num_parts)
-    return ncfg, body, int(cfg.half_window), None
+    up = check_up(to_plain(cfg.get("up")))
+    return ncfg, body, int(cfg.half_window), None, up
 
 
 def _train(cfg: DictConfig, out: Path) -> dict:
@@ -447,7 +455,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
 
     classes = [str(c) for c in cfg.labels.classes]
     C = len(classes)
-    net_cfg, body, hw, state = _encoder_config(cfg, classes)
+    net_cfg, body, hw, state, up = _encoder_config(cfg, classes)
     head_cfg = dict(to_plain(cfg.head))
     forest = head_cfg.get("name") == "forest"
     if forest and not bool(cfg.freeze):  # before any data is read
@@ -458,7 +466,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     if forest and head_cfg.get("inputs", "frame") == "frame" and not ff:
         raise ValueError("head.inputs=frame needs frame_features=true (or head.inputs=all)")
     context = dict(to_plain(cfg.get("context")) or {})
-    model = _build(net_cfg, body, hw, head_cfg, ff, C, context)
+    model = _build(net_cfg, body, hw, head_cfg, ff, C, context, up)
     if state is not None:
         model.encoder.net.load_state_dict(state)
     span = model.half_window  # the encoder's half window plus the context's
@@ -603,6 +611,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "net_config": net_cfg,
         "body": body.to_mapping(),
         "half_window": hw,
+        "up": None if up is None else list(up),
         "head": head_cfg,
         "frame_features": ff,
         "context": {"frames": list(model.context_frames), "stride": model.stride},

@@ -4,7 +4,8 @@
     pred = model(rigid, deformed, observed)   # (..., W, K, 3) x2, (..., W, K) -> (..., K, 3)
 
 All in global mm. The model canonicalises internally (mid pose by Kabsch of the mid frame's rigid
-points onto its body model), runs the net, and maps the prediction back. It ignores the mid
+points onto its body model; or, for a net trained with a world up direction (`up`), that pose's
+heading frame, `deformnet.tokens.canonicalize`), runs the net, and maps the prediction back. It ignores the mid
 frame's deformed input, is differentiable in `rigid` and `deformed` with plain reverse-mode
 autograd over batched independent windows (nn.LSTM does not support torch.func vmap-Jacobians,
 and CPU scaled-dot-product attention has no forward-mode AD), and supports `.double()`.
@@ -89,6 +90,21 @@ def build_net(config: Mapping[str, Any]) -> nn.Module:
         raise ValueError(f"cannot build net '{target}': {first}") from None
 
 
+def check_up(up: Sequence[float] | None) -> tuple[float, float, float] | None:
+    """A world up direction: None, or 3 finite numbers, not all zero (returned unit length);
+    ValueError otherwise."""
+    if up is None:
+        return None
+    try:
+        v = np.asarray(list(up), dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"up must be 3 numbers (the world's up direction), got {up!r}") from None
+    if v.shape != (3,) or not np.isfinite(v).all() or not np.linalg.norm(v) > 0:
+        raise ValueError(f"up must be 3 finite numbers, not all zero, got {list(v.ravel())}")
+    v = v / np.linalg.norm(v)
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
 class DeformationModel(nn.Module):
     """A net plus what is needed to call it in global coordinates.
 
@@ -97,7 +113,10 @@ class DeformationModel(nn.Module):
     (K parts); half_window: n (W = 2n + 1); step: frames between the window's tokens (the
     frame step it was trained with: a window covers frames t - n step .. t + n step).
     steps: every token step it was trained with (`deformnet.data.Augment.steps`; default
-    (step,)). Attributes: body, window, half_window, step, steps, net_config.
+    (step,)). up: None (canonical frame = the mid frame's body frame) or the world's up
+    direction (3,) (the heading frame: the net sees pitch and roll; such a net assumes that its
+    windows' world has that up, as the simulator's and the lock box's z up).
+    Attributes: body, window, half_window, step, steps, net_config, up (tuple or None).
     """
 
     def __init__(
@@ -108,10 +127,12 @@ class DeformationModel(nn.Module):
         net_config: Mapping[str, Any] | None = None,
         step: int = 1,
         steps: Sequence[int] | None = None,
+        up: Sequence[float] | None = None,
     ) -> None:
         super().__init__()
         if int(step) < 1:
             raise ValueError(f"step must be >= 1, got {step}")
+        self.up = check_up(up)
         self.net = net
         self.body = body
         self.step = int(step)
@@ -123,6 +144,10 @@ class DeformationModel(nn.Module):
         self.register_buffer(
             "body_points", torch.tensor(np.array(body.points), dtype=torch.float32)
         )
+
+    def up_tensor(self, like: Tensor) -> Tensor | None:
+        """`up` as a tensor of `like`'s dtype and device (None for the body frame)."""
+        return None if self.up is None else torch.tensor(self.up, dtype=like.dtype, device=like.device)
 
     @property
     def num_parts(self) -> int:
@@ -139,7 +164,7 @@ class DeformationModel(nn.Module):
         rigid, deformed (B, W, K, 3) global, observed (B, W, K)."""
         deformed = torch.where(observed[..., None].bool(), deformed, torch.zeros_like(deformed))
         rigid_c, deformed_c, R, t = canonicalize(
-            rigid, deformed, self.body_points.to(rigid.dtype), self.half_window
+            rigid, deformed, self.body_points.to(rigid.dtype), self.half_window, self.up_tensor(rigid)
         )
         return self.net(rigid_c, deformed_c, observed.bool()), R, t
 
@@ -168,6 +193,8 @@ class DeformationModel(nn.Module):
             blob["step"] = self.step
         if self.steps != (self.step,):
             blob["steps"] = list(self.steps)
+        if self.up is not None:  # (no key: the body frame, as in every earlier checkpoint)
+            blob["up"] = list(self.up)
         return blob
 
     @classmethod
@@ -183,6 +210,7 @@ class DeformationModel(nn.Module):
             blob["net_config"],
             int(blob.get("step", 1)),
             blob.get("steps"),
+            blob.get("up"),
         )
         model.load_state_dict(blob["state_dict"])
         return model.eval()

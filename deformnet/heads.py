@@ -33,6 +33,7 @@ import torch
 from torch import Tensor, nn
 
 from deformnet.nets import LSTMPredictor, TransformerPredictor
+from deformnet.so3 import kabsch
 from deformnet.tokens import canonicalize
 
 __all__ = [
@@ -49,18 +50,26 @@ __all__ = [
 
 
 def window_summary(
-    net: nn.Module, body_points: Tensor, rigid: Tensor, deformed: Tensor, observed: Tensor
+    net: nn.Module,
+    body_points: Tensor,
+    rigid: Tensor,
+    deformed: Tensor,
+    observed: Tensor,
+    up: Tensor | None = None,
 ) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor, Tensor]]:
     """A deformation net's summary of global windows: its `encode` outputs in the mid frame's
     canonical coordinates, at the mid frame and averaged over the window (B, 2 encode_dim),
     and the canonical window (rigid_c, deformed_c (B, W, K, 3), R (B, 3, 3), t (B, 3)).
 
     rigid, deformed (B, W, K, 3) global mm (unobserved deformed values are ignored), observed
-    (B, W, K) bool; body_points (K, 3)."""
+    (B, W, K) bool; body_points (K, 3); up: the world's up (3,) for a net trained in the heading
+    frame (`deformnet.tokens.canonicalize`), None for the body frame."""
     observed = observed.bool()
     deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
     mid = net.half_window
-    rigid_c, deformed_c, R, t = canonicalize(rigid, deformed, body_points.to(rigid.dtype), mid)
+    rigid_c, deformed_c, R, t = canonicalize(
+        rigid, deformed, body_points.to(rigid.dtype), mid, up
+    )
     seq, _ = net.encode(rigid_c, deformed_c, observed)  # (B, W, encode_dim)
     return torch.cat((seq[:, mid], seq.mean(1)), -1), (rigid_c, deformed_c, R, t)
 
@@ -70,7 +79,8 @@ class WindowEncoder(nn.Module):
 
     net: an `LSTMPredictor` or `TransformerPredictor` (its `head`, the per-part output layer, is
     not used); body_points (K, 3) the rigid body model (mm); frame_features: append the mid pose
-    and the mid frame's offsets (12 + 4 K values).
+    and the mid frame's offsets (12 + 4 K values; always the body frame's pose and offsets);
+    up: the world's up (3,) when the net was trained in the heading frame, else None.
     """
 
     def __init__(
@@ -79,8 +89,11 @@ class WindowEncoder(nn.Module):
         body_points: Tensor,
         half_window: int,
         frame_features: bool = True,
+        up: Sequence[float] | None = None,
     ) -> None:
         super().__init__()
+        from deformnet.deformation import check_up
+
         if not isinstance(net, (LSTMPredictor, TransformerPredictor)):
             raise TypeError(
                 f"WindowEncoder needs an LSTMPredictor or TransformerPredictor, got "
@@ -93,6 +106,7 @@ class WindowEncoder(nn.Module):
         self.window = net.window
         self.num_parts = net.num_parts
         self.frame_features = bool(frame_features)
+        self.up = check_up(up)
         self.register_buffer("body_points", torch.tensor(np.array(body_points, dtype=np.float32)))
         self.out_dim = 2 * net.encode_dim + (12 + 4 * self.num_parts if self.frame_features else 0)
 
@@ -113,15 +127,21 @@ class WindowEncoder(nn.Module):
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
         self._check(rigid, deformed, observed)
         observed = observed.bool()
+        up = None if self.up is None else rigid.new_tensor(self.up)
         summary, (rigid_c, deformed_c, R, t) = window_summary(
-            self.net, self.body_points, rigid, deformed, observed
+            self.net, self.body_points, rigid, deformed, observed, up
         )
         mid, net, B = self.half_window, self.net, summary.shape[0]
         out = [summary]
         if self.frame_features:
             obs_mid = observed[:, mid]
-            off = (deformed_c[:, mid] - rigid_c[:, mid]) / net.offset_scale
-            off = torch.where(obs_mid[..., None], off, torch.zeros_like(off))
+            if up is None:
+                off = deformed_c[:, mid] - rigid_c[:, mid]
+            else:  # the frame features are the body frame's, whatever frame the net reads
+                R, t = kabsch(rigid[:, mid], self.body_points.to(rigid.dtype))
+                d_mid = torch.where(obs_mid[..., None], deformed[:, mid], rigid[:, mid])
+                off = (d_mid - rigid[:, mid]) @ R
+            off = torch.where(obs_mid[..., None], off / net.offset_scale, torch.zeros_like(off))
             out += [
                 R.reshape(B, 9),
                 t / (10.0 * net.pos_scale),

@@ -101,7 +101,10 @@ class DeformLit(L.LightningModule):
         """The encoder's window summaries (B, 2 encode_dim): the mid frame's output and the
         window's mean, in the mid frame's canonical coordinates (as `deformnet.heads`
         reads them)."""
-        return window_summary(self.model.net, self.model.body_points, rigid, deformed, observed)[0]
+        m = self.model
+        return window_summary(
+            m.net, m.body_points, rigid, deformed, observed, m.up_tensor(rigid)
+        )[0]
 
     def contrast_loss(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
         """Symmetric InfoNCE between the windows and their pairs; (loss, top-1 accuracy)."""

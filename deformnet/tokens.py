@@ -11,6 +11,14 @@ Every window is expressed in the mid frame's rigid-model coordinates ("canonical
 points), and X_c = R^T (X - t). The prediction then does not depend on where the mouse is or which
 way it faces.
 
+Or, with a world ``up`` direction, the mid frame's *heading* frame: the same origin t, rotated by
+R_h, the rotation nearest R whose Z axis is the world's up (R's pitch and roll removed, its yaw
+kept: R_h = Q R, Q the smallest rotation taking the body's up axis R e_z onto up). The window is
+then invariant to where the mouse is and which way it faces, but not to its pitch and roll,
+which gravity makes meaningful (a rearing mouse stands up against gravity, a walking one does
+not): the net sees them in its inputs. The body's up axis pointing straight down (upside down)
+is the one singular pose; there Q is the half-turn about the body's X axis.
+
 Shapes: B batch (any leading dims where stated), W window, K parts. Points in mm. All functions
 are pure torch, batched and differentiable (reverse mode) in the point inputs.
 """
@@ -20,12 +28,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from deformnet.so3 import kabsch
+from deformnet.so3 import kabsch, skew
 
 __all__ = [
     "kabsch",
     "canonicalize",
     "uncanonicalize",
+    "heading_rotation",
     "token_features",
     "check_window",
     "NUM_FEATURES",
@@ -37,16 +46,50 @@ __all__ = [
 NUM_FEATURES = 7  # rigid_c (3), deformation offset in the frame's own body frame (3), observed (1)
 
 
+def heading_rotation(R: Tensor, up: Tensor) -> Tensor:
+    """The heading part of body rotations: R_h = Q R, Q the smallest rotation taking the body's
+    up axis R e_z onto ``up`` (so R_h e_z = up, and R_h keeps R's heading about up).
+
+    R: (..., 3, 3) rotations (model -> world); up: (3,) world up direction (any length > 0).
+    Returns (..., 3, 3). Differentiable except where R e_z = -up (upside down), where Q is the
+    half-turn about R e_x.
+    """
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
+    if tuple(up.shape) != (3,):
+        raise ValueError(f"up must have shape (3,), got {tuple(up.shape)}")
+    norm = torch.linalg.vector_norm(up)
+    if not bool(norm > 0):
+        raise ValueError("up must be a non-zero direction")
+    b = (up / norm).to(R.dtype).expand(R.shape[:-2] + (3,))
+    a = R[..., :, 2]  # the body's up axis in the world
+    v = torch.linalg.cross(a, b)
+    c = (a * b).sum(-1)
+    vx = skew(v)
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    flip = c < -1.0 + 1e-6
+    denom = torch.where(flip, torch.ones_like(c), 1.0 + c)
+    Q = eye + vx + vx @ vx / denom[..., None, None]  # Rodrigues: a -> b
+    x = R[..., :, 0]
+    half_turn = 2.0 * x[..., :, None] * x[..., None, :] - eye  # about the body's X axis
+    Q = torch.where(flip[..., None, None], half_turn, Q)
+    return Q @ R
+
+
 def canonicalize(
-    rigid: Tensor, deformed: Tensor, body_points: Tensor, mid: int
+    rigid: Tensor, deformed: Tensor, body_points: Tensor, mid: int, up: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Express a window in the mid frame's rigid-model coordinates.
+    """Express a window in the mid frame's rigid-model coordinates (``up`` None), or in its
+    heading frame (``up``: the world's up direction (3,); see the module doc).
 
     rigid, deformed: (..., W, K, 3) global mm; body_points: (K, 3) model mm; mid: index of the mid
-    frame. Returns rigid_c, deformed_c (..., W, K, 3) and the mid pose R (..., 3, 3), t (..., 3)
-    (model -> global) recovered by Kabsch of rigid[..., mid, :, :] onto the body model.
+    frame. Returns rigid_c, deformed_c (..., W, K, 3) and the frame R (..., 3, 3), t (..., 3)
+    (canonical -> global: X = R X_c + t): the mid pose recovered by Kabsch of
+    rigid[..., mid, :, :] onto the body model, or its heading part.
     """
     R, t = kabsch(rigid[..., mid, :, :], body_points)
+    if up is not None:
+        R = heading_rotation(R, up)
     Rw, tw = R[..., None, :, :], t[..., None, None, :]
     rigid_c = (rigid - tw) @ Rw
     deformed_c = (deformed - tw) @ Rw

@@ -89,12 +89,13 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
     body: the body model (default: ``cfg.body``); pretrained: a `DeformationModel` whose net
     (config, window and weights) is fine-tuned instead of a fresh ``cfg.net``."""
     from deformnet.body import BodyModel
-    from deformnet.deformation import DeformationModel, build_net
+    from deformnet.deformation import DeformationModel, build_net, check_up
     from deformnet.lit import DeformLit
 
     body = BodyModel.from_config(cfg.body) if body is None else body
     name, ncfg = net_config(cfg, body.num_parts)
     half_window = int(cfg.half_window)
+    up = check_up(to_plain(cfg.get("up")))
     if pretrained is not None:
         if pretrained.num_parts != body.num_parts:
             raise ValueError(
@@ -104,13 +105,20 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
             )
         ncfg = dict(pretrained.net_config)
         half_window = int(pretrained.half_window)
+        if cfg.get("up") is not None and pretrained.up != up:
+            raise ValueError(
+                f"up={list(up)} but the pretrained net reads windows in "
+                + ("the body frame" if pretrained.up is None else f"up={list(pretrained.up)}")
+                + ": a fine-tuned net keeps its checkpoint's frame (leave up unset)"
+            )
+        up = pretrained.up
         name = f"{name}_ft"
     hp = {k: v for k, v in _flatten(to_plain(cfg)).items() if not k.startswith(("sim/", "body/"))}
     net = build_net(ncfg)
     if pretrained is not None:
         net.load_state_dict(pretrained.net.state_dict())
     lit = DeformLit(
-        DeformationModel(net, body, half_window, ncfg, data_step(cfg), data_steps(cfg)),
+        DeformationModel(net, body, half_window, ncfg, data_step(cfg), data_steps(cfg), up),
         lr=float(cfg.optim.lr),
         weight_decay=float(cfg.optim.weight_decay),
         warmup_steps=int(cfg.optim.warmup_steps),

@@ -20,12 +20,13 @@ def tiny_lstm_config(num_parts: int) -> dict:
     }
 
 
-def tiny_deformation_model(seed: int = 0) -> DeformationModel:
-    """An untrained tiny LSTM DeformationModel of the default mouse (predicts the rigid model)."""
+def tiny_deformation_model(seed: int = 0, up=None) -> DeformationModel:
+    """An untrained tiny LSTM DeformationModel of the default mouse (predicts the rigid model);
+    up: the world up of its heading frame (None: the body frame)."""
     torch.manual_seed(seed)
     body = default_mouse()
     config = tiny_lstm_config(body.num_parts)
-    return DeformationModel(build_net(config), body, 2, config)
+    return DeformationModel(build_net(config), body, 2, config, up=up)
 
 
 def quiet_trainer(max_steps: int, **kwargs):

@@ -184,13 +184,13 @@ def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
     assert ((bdf["mean_probability"] > 0.5) & (bdf["mean_probability"] <= 1.0)).all()
 
 
-def _fit_from_pretrained(tmp_path, overrides: list[str]):
-    """Fine-tune from a saved tiny deformation net (seed 3) on one toy session (3 steps an
-    epoch); returns that net, its checkpoint path and the run's result."""
+def _fit_from_pretrained(tmp_path, overrides: list[str], up=None):
+    """Fine-tune from a saved tiny deformation net (seed 3; up: its heading frame) on one toy
+    session (3 steps an epoch); returns that net, its checkpoint path and the run's result."""
     from deformnet.classify import run
 
     ckpt = tmp_path / "net.ckpt"
-    pre = tiny_deformation_model(seed=3)
+    pre = tiny_deformation_model(seed=3, up=up)
     pre.save(ckpt)
     train = [_toy_session(tmp_path, "train", 0, T=120)]
     res = run(
@@ -219,6 +219,62 @@ def test_pretrained_frozen_encoder_is_kept(tmp_path):
     for k, v in pre.net.state_dict().items():
         torch.testing.assert_close(model.encoder.net.state_dict()[k], v)
     assert res["report"]["split"] == "train"
+
+
+def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_path):
+    """A net pretrained in the heading frame (up = z): the classifier reads windows in that
+    frame, its checkpoint says so, and predicting from the checkpoint gives the same
+    probabilities as the trained model."""
+    from deformnet.classify import SessionBank, load_classifier, predict_probs, run
+
+    pre, ckpt, res = _fit_from_pretrained(
+        tmp_path, ["freeze=true", "trainer.max_epochs=1"], up=(0, 0, 1)
+    )
+    model, meta = load_classifier(res["checkpoint"])
+    assert meta["up"] == [0.0, 0.0, 1.0] and model.encoder.up == (0.0, 0.0, 1.0)
+    body_frame, _ = load_classifier(res["checkpoint"])
+    body_frame.encoder.up = None  # the same weights reading the body frame: other outputs
+    test = _toy_session(tmp_path, "test", 9, T=60)
+    from deformnet.behavior_labels import Session, read_labels, read_tracks
+
+    tr = read_tracks(str(test[0]), pre.body)
+    lab = read_labels(str(test[1]), tr["fnum"], CLASSES)
+    s = Session(str(test[0]), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], lab)
+    bank = SessionBank([s], model.half_window)
+    p_head = predict_probs(model, bank)
+    assert np.abs(p_head - predict_probs(body_frame, bank)).max() > 1e-4
+    out = run(
+        _compose(
+            [
+                "mode=predict",
+                f"checkpoint={res['checkpoint']}",
+                f"tracks={test[0]}",
+                f"output.dir={tmp_path / 'pred'}",
+            ]
+        )
+    )
+    df = pd.read_csv(out["predictions"])
+    np.testing.assert_allclose(df[[f"p_{c}" for c in CLASSES]].to_numpy(), p_head, atol=1e-5)
+    # scratch: the config's up
+    res2 = run(
+        _compose(
+            [
+                "pretrained=null",
+                "up=[0,0,1]",
+                f"labels.classes=[{','.join(CLASSES)}]",
+                *_files("train", [_toy_session(tmp_path, "train", 0, T=120)]),
+                "data.batch_size=16",
+                "data.steps_per_epoch=2",
+                "trainer.max_epochs=1",
+                "logger=none",
+                f"output.dir={tmp_path / 'scratch'}",
+            ]
+        )
+    )
+    assert load_classifier(res2["checkpoint"])[1]["up"] == [0.0, 0.0, 1.0]
+    with pytest.raises(ValueError, match="up must be"):
+        run(_compose(["pretrained=null", "up=[0,0,0]", *_files("train", []) ,
+                      f"output.dir={tmp_path / 'bad'}"]))  # fmt: skip
 
 
 def test_pretrained_probe_then_fine_tune_changes_the_encoder(tmp_path):

@@ -65,6 +65,31 @@ def test_encoder_ignores_unobserved_values():
     torch.testing.assert_close(enc(rigid, deformed, observed), enc(rigid, other, observed))
 
 
+@pytest.mark.parametrize("kind", ["lstm", "transformer"])
+def test_heading_frame_encoder_sees_pitch_and_keeps_the_body_frame_features(kind):
+    """up set: the encoder reads the heading frame (a pitch changes its summary; a turn about up
+    does not), while the frame features are the body frame's, as without up."""
+    from deformnet.so3 import rodrigues_to_matrix
+
+    torch.manual_seed(0)
+    enc = _encoder(kind).eval()
+    head = WindowEncoder(enc.net, enc.body_points.numpy(), enc.half_window, True, up=[0, 0, 1])
+    rigid, deformed, observed = _windows(5, enc.window)
+    rigid, deformed = rigid.double(), deformed.double()
+    enc, head = enc.double(), head.double()
+    a, b = enc(rigid, deformed, observed), head(rigid, deformed, observed)
+    S = 2 * enc.net.encode_dim  # the encoder summary; the frame features after it
+    torch.testing.assert_close(a[:, S:], b[:, S:])
+    P = rodrigues_to_matrix(torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64))
+    Z = rodrigues_to_matrix(torch.tensor([0.0, 0.0, 1.9], dtype=torch.float64))
+    c = rigid[:, :, :1].mean(1, keepdim=True)  # tilt about the window's own place
+    tilt = [(x - c) @ P.T + c for x in (rigid, deformed)]
+    torch.testing.assert_close(enc(*tilt, observed)[:, :S], a[:, :S])
+    assert (head(*tilt, observed)[:, :S] - b[:, :S]).abs().max() > 1e-3
+    turn = [x @ Z.T for x in (rigid, deformed)]
+    torch.testing.assert_close(head(*turn, observed)[:, :S], b[:, :S])
+
+
 def _compose(overrides):
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         return hydra.compose("classify", overrides=overrides)

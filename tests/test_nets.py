@@ -106,6 +106,47 @@ def test_rigid_motion_of_window_is_equivariant(body, kind):
     assert not torch.allclose(out, rigid[:, N], atol=1e-3)  # the test has teeth
 
 
+@pytest.mark.parametrize("kind", ["lstm", "transformer"])
+def test_heading_frame_model_is_equivariant_to_yaw_not_to_tilt_and_round_trips(
+    body, kind, tmp_path
+):
+    """up = world z: turning the window about z (and shifting it) turns the prediction with it;
+    tilting it does not (the net sees pitch and roll); the checkpoint keeps up."""
+    net = _randomise_head(_make(kind, body.num_parts))
+    cfg = {"_target_": f"deformnet.nets.{type(net).__name__}", "num_parts": body.num_parts,
+           "half_window": N, **({"hidden": 16, "layers": 2, "embed": 16} if kind == "lstm" else
+           {"d_model": 16, "heads": 2, "layers": 2, "ff": 32, "d_part": 8})}  # fmt: skip
+    model = DeformationModel(net, body, N, cfg, up=(0.0, 0.0, 2.0)).eval()
+    model.save(tmp_path / "m.ckpt")
+    back = DeformationModel.from_checkpoint(tmp_path / "m.ckpt")
+    assert back.up == (0.0, 0.0, 1.0)
+    model, back = model.double(), back.double()
+    assert model.up == (0.0, 0.0, 1.0)
+    rigid, deformed, observed = (x.double() if x.is_floating_point() else x for x in _window(body))
+    shift = torch.tensor([300.0, -150.0, 40.0], dtype=torch.float64)
+    out = model(rigid, deformed, observed)
+    assert torch.allclose(back(rigid, deformed, observed), out, atol=1e-10)
+    Q = rodrigues_to_matrix(torch.tensor([0.0, 0.0, 2.3], dtype=torch.float64))
+    out2 = model(rigid @ Q.T + shift, deformed @ Q.T + shift, observed)
+    assert torch.allclose(out2, out @ Q.T + shift, atol=1e-8)
+    P = rodrigues_to_matrix(torch.tensor([0.6, 0.0, 0.0], dtype=torch.float64))
+    out3 = model(rigid @ P.T, deformed @ P.T, observed)
+    assert (out3 - out @ P.T).abs().max() > 1e-3
+    body_frame = DeformationModel(net, body, N, cfg).eval().double()  # same weights, body frame
+    b1 = body_frame(rigid, deformed, observed)
+    assert torch.allclose(body_frame(rigid @ P.T, deformed @ P.T, observed), b1 @ P.T, atol=1e-8)
+    assert "up" not in body_frame.export() and model.export()["up"] == [0.0, 0.0, 1.0]
+
+
+def test_check_up_errors():
+    from deformnet.deformation import check_up
+
+    assert check_up(None) is None and check_up([0, 0, 3]) == (0.0, 0.0, 1.0)
+    for bad in ([0, 0, 0], [0, 1], [0, "a", 1], [float("nan"), 0, 1], 5):
+        with pytest.raises(ValueError, match="up must be"):
+            check_up(bad)
+
+
 def test_positional_encoding_changes_transformer_output(body):
     K = body.num_parts
     net = _randomise_head(_make("transformer", K))

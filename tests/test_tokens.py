@@ -13,6 +13,7 @@ from deformnet.data import MaskConfig, WindowBank, gap_masks, make_masks, toy_se
 from deformnet.so3 import rodrigues_to_matrix, transform_points
 from deformnet.tokens import (
     canonicalize,
+    heading_rotation,
     kabsch,
     linear_baseline,
     masked_mse,
@@ -66,6 +67,84 @@ def test_canonical_window_is_invariant_to_global_motion(body):
     assert torch.allclose(rc, rc2, atol=1e-8) and torch.allclose(dc, dc2, atol=1e-8)
     assert torch.allclose(
         uncanonicalize(dc2[:, 4], R2, t2), deformed[:, 4] @ Q.T + shift, atol=1e-8
+    )
+
+
+UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+
+def _about(axis, angle):
+    return rodrigues_to_matrix(torch.tensor(axis, dtype=torch.float64) * angle)
+
+
+def test_heading_rotation_keeps_yaw_and_puts_the_body_up_axis_on_the_world_up():
+    g = torch.Generator().manual_seed(1)
+    R = rodrigues_to_matrix(torch.randn(5, 4, 3, generator=g, dtype=torch.float64))
+    up = torch.tensor([0.2, -0.3, 2.0], dtype=torch.float64)  # any length, any direction
+    Rh = heading_rotation(R, up)
+    assert Rh.shape == (5, 4, 3, 3)
+    eye = torch.eye(3, dtype=torch.float64)
+    assert torch.allclose(Rh.transpose(-1, -2) @ Rh, eye.expand_as(Rh), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(Rh), torch.ones(5, 4, dtype=torch.float64))
+    assert torch.allclose(Rh[..., :, 2], (up / up.norm()).expand(5, 4, 3), atol=1e-12)
+    # Rh = Q R with Q a pure swing: its rotation axis is horizontal (no turn about up)
+    from deformnet.so3 import matrix_to_rodrigues
+
+    swing = matrix_to_rodrigues(Rh @ R.transpose(-1, -2))
+    assert torch.allclose(swing @ (up / up.norm()), torch.zeros(5, 4, dtype=torch.float64),
+                          atol=1e-10)  # fmt: skip
+    # a yaw, then a pitch or a roll (< 90 deg): the heading part is the yaw
+    for yaw in (0.0, 0.7, -2.5):
+        for axis, angle in (([1, 0, 0], 0.0), ([1, 0, 0], 0.9), ([1, 0, 0], -1.4), ([0, 1, 0], 0.6)):
+            Rb = _about([0, 0, 1], yaw) @ _about(axis, angle)
+            assert torch.allclose(heading_rotation(Rb, UP), _about([0, 0, 1], yaw), atol=1e-12)
+    # upside down (the one singular pose): still a rotation with Z on up, finite
+    Rd = _about([1, 0, 0], math.pi)
+    Rhd = heading_rotation(Rd, UP)
+    assert torch.isfinite(Rhd).all() and torch.allclose(Rhd[:, 2], UP, atol=1e-12)
+    assert torch.allclose(torch.linalg.det(Rhd), torch.ones((), dtype=torch.float64))
+    with pytest.raises(ValueError, match="non-zero"):
+        heading_rotation(R, torch.zeros(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"\(3,\)"):
+        heading_rotation(R, torch.ones(2, dtype=torch.float64))
+
+
+def test_heading_rotation_gradcheck():
+    r = torch.tensor([[0.3, -0.5, 1.1], [1.2, 0.4, -0.2]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: heading_rotation(rodrigues_to_matrix(v), UP), (r,))
+
+
+def test_heading_frame_is_invariant_to_yaw_and_place_not_to_pitch(body):
+    _, rigid, deformed, _ = _window(body)
+    M = torch.tensor(np.array(body.points))
+    rc, dc, R, t = canonicalize(rigid, deformed, M, mid=4, up=UP)
+    # the mid frame's rigid points: the body model tilted by the mid pose's pitch and roll
+    Rb, tb = kabsch(rigid[:, 4], M)
+    tilt = R.transpose(-1, -2) @ Rb
+    assert torch.allclose(rc[:, 4], M @ tilt.transpose(-1, -2), atol=1e-9)
+    assert torch.allclose(t, tb, atol=1e-9) and torch.allclose(R[..., :, 2], UP.expand(3, 3))
+    Q = _about([0, 0, 1], 2.2)  # a turn about the world's up, and any shift
+    shift = torch.tensor([500.0, -20.0, 30.0], dtype=torch.float64)
+    rc2, dc2, R2, t2 = canonicalize(rigid @ Q.T + shift, deformed @ Q.T + shift, M, 4, UP)
+    assert torch.allclose(rc, rc2, atol=1e-8) and torch.allclose(dc, dc2, atol=1e-8)
+    assert torch.allclose(
+        uncanonicalize(dc2[:, 4], R2, t2), deformed[:, 4] @ Q.T + shift, atol=1e-8
+    )
+    P = _about([1, 0, 0], 0.5)  # a pitch is seen (the body frame would remove it)
+    rc3, _, _, _ = canonicalize(rigid @ P.T, deformed @ P.T, M, 4, UP)
+    assert (rc3 - rc).abs().max() > 5.0
+    rb, _, _, _ = canonicalize(rigid, deformed, M, 4)
+    rb3, _, _, _ = canonicalize(rigid @ P.T, deformed @ P.T, M, 4)
+    assert torch.allclose(rb, rb3, atol=1e-8)
+
+
+def test_heading_canonicalize_gradcheck(body):
+    _, rigid, deformed, _ = _window(body, B=1, W=3)
+    M = torch.tensor(np.array(body.points))
+    rigid.requires_grad_(True)
+    deformed.requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda r, d: canonicalize(r, d, M, 1, UP)[:2], (rigid, deformed)
     )
 
 

@@ -215,6 +215,24 @@ def test_deformable_run_with_tiny_checkpoint(scene, rigid_run, tmp_path):
     assert rmse < rmse_rigid + 2.0  # measured 4.66 vs 3.36 mm
 
 
+def test_heading_frame_net_needs_the_worlds_up(scene, tmp_path):
+    """A net trained in the heading frame of world up z tracks the (z-up) scene and reports how
+    far the mouse's up was from z; one that assumes x is up is refused, naming the input."""
+    from helpers import tiny_deformation_model
+
+    tiny_deformation_model(up=(0, 0, 1)).save(tmp_path / "z.ckpt")
+    summary = _track(
+        scene, tmp_path / "z", [f"deformation={tmp_path / 'z.ckpt'}", "deform.max_iterations=2"]
+    )
+    facts = summary["deformation"]["world_up"]
+    assert facts["up"] == [0.0, 0.0, 1.0] and facts["median_body_up_deg"] < 20.0
+    assert summary["completeness"] == 1.0
+    tiny_deformation_model(up=(1, 0, 0)).save(tmp_path / "x.ckpt")
+    with pytest.raises(InputError, match=r"detections: the deformation net reads .* world up "
+                       r"\[1.0, 0.0, 0.0\].* median \d+ deg"):  # fmt: skip
+        _track(scene, tmp_path / "x", [f"deformation={tmp_path / 'x.ckpt'}"])
+
+
 @pytest.mark.slow
 def test_deformable_run_with_trained_tiny_checkpoint(scene, tmp_path):
     """Train a tiny net with deformnet-train's run() (toy data), then track with it."""

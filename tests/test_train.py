@@ -56,6 +56,27 @@ def test_fast_dev_run(tmp_path, net):
     assert "train/loss" in result["metrics"]
 
 
+def test_heading_frame_training_and_its_config(tmp_path):
+    """up=[0,0,1]: the model reads the heading frame (also in the contrastive term), a
+    fast_dev_run trains; a fine-tuned net keeps its checkpoint's frame (a conflicting up is an
+    error)."""
+    from deformnet.train import build_model
+
+    ov = [*_common(tmp_path, "lstm"), "trainer.fast_dev_run=true", "contrast.weight=1.0"]
+    cfg = _compose([*ov, "up=[0,0,1]"])
+    lit, _, _ = build_model(cfg)
+    assert lit.model.up == (0.0, 0.0, 1.0)
+    assert "train/loss" in run(cfg)["metrics"]
+    lit_body, _, _ = build_model(_compose(ov))
+    assert lit_body.model.up is None
+    kept, _, _ = build_model(_compose(ov), pretrained=lit.model)
+    assert kept.model.up == (0.0, 0.0, 1.0)
+    with pytest.raises(ValueError, match="keeps its checkpoint's frame"):
+        build_model(cfg, pretrained=lit_body.model)
+    with pytest.raises(ValueError, match="up must be"):
+        build_model(_compose([*ov, "up=[1,2]"]))
+
+
 def test_short_run_writes_checkpoints_and_metrics(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
