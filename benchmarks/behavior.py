@@ -15,7 +15,8 @@ one draw moves macro-F1 by several points.
 - ``pretrained``: the encoder of a deformnet-train checkpoint (`--pretrained`, else a short
   `deformnet-train` run here), fine-tuned with its head;
 - ``frozen``: the same encoder frozen, head only;
-- ``scratch``: the same architecture from random weights, trained end to end;
+- ``scratch``: the same architecture from random weights, trained end to end (reading windows
+  in the checkpoint's frame: body, or heading with its `up`);
 - ``scratch_frozen``: the same architecture, random weights frozen, the head probed (L-BFGS) on
   their context features (what pretraining adds over the architecture and the pooling alone;
   "pretrained beats scratch" is checked against the better of the two);
@@ -42,7 +43,8 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
 > rf at 1%; event precision and recall >= 0.9 from adjust-track and better than from DLT.
 
     .venv/bin/python benchmarks/behavior.py [--frames 3000] [--train 6] [--test 4]
-        [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--seconds 75]
+        [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--frame body]
+        [--seconds 75]
         [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
@@ -146,6 +148,15 @@ def _list(paths) -> str:
     return "[" + ",".join(str(p) for p in paths) + "]"
 
 
+def scratch_like(ckpt: str) -> list[str]:
+    """deformnet-classify overrides for a from-scratch encoder that reads windows in the
+    checkpoint's frame (its `up`, the heading frame; none for the body frame)."""
+    from deformnet.deformation import DeformationModel
+
+    up = DeformationModel.from_checkpoint(ckpt).up
+    return [] if up is None else ["up=[" + ",".join(f"{v:g}" for v in up) + "]"]
+
+
 def run_classifier(
     out: Path,
     sessions: dict,
@@ -168,10 +179,10 @@ def run_classifier(
         ov.append("data.interpolate=true")
     if fraction >= 1.0:  # the head's ensemble is for few labels; one MLP on all 18000 frames
         ov.append("head.ensemble=1")  # (five L-BFGS fits on them: about 20 min per method)
-    if method == "scratch":
-        ov.append("pretrained=null")
-    elif method == "scratch_frozen":
-        ov += ["pretrained=null", "freeze=true"]
+    if method in ("scratch", "scratch_frozen"):  # the checkpoint's architecture and frame
+        ov += ["pretrained=null", *scratch_like(ckpt)]
+        if method == "scratch_frozen":
+            ov.append("freeze=true")
     elif method == "forest":
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest"]
     else:
@@ -403,6 +414,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--test", type=int, default=4, help="test sessions")
     ap.add_argument("--pretrained", default=None, help="deformnet-train checkpoint (else train)")
     ap.add_argument("--pretrain-seconds", type=int, default=240)
+    ap.add_argument(
+        "--frame",
+        choices=("body", "heading"),
+        default="body",
+        help="without --pretrained: the pretraining run's canonical frame (heading: up=[0,0,1])",
+    )
     ap.add_argument("--seconds", type=int, default=75, help="trainer.max_time per classifier")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--label-draws", type=int, default=3, help="label draws averaged at 1%% labels")
@@ -438,9 +455,15 @@ def main(argv: list[str] | None = None) -> dict:
         log.info(
             "no --pretrained: a %d s deformnet-train run (default LSTM)", args.pretrain_seconds
         )
-        ckpt, secs = pretrain(work / "pretrain", args.pretrain_seconds)
+        heading = args.frame == "heading"
+        ckpt, secs = pretrain(
+            work / ("pretrain_heading" if heading else "pretrain"),
+            args.pretrain_seconds,
+            ["up=[0,0,1]"] if heading else [],
+        )
         extra["pretrain_seconds"] = round(secs, 1)
     extra["pretrained"] = str(ckpt)
+    extra["scratch_overrides"] = scratch_like(ckpt)  # the encoder's frame (up) for scratch
 
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:

@@ -3,7 +3,11 @@
 The encoders (each the default LSTM of `deformnet-train`): ``pretrained`` (deformnet-train's
 masked-token objective), ``contrast`` (the same plus the temporal-contrastive term,
 `contrast.weight=1`, `contrast.max_shift=12`), both trained here for `--pretrain-seconds`
-unless given as checkpoints, and ``random`` (the same architecture, random weights, seed 0).
+unless given as checkpoints, and ``random`` (the same architecture, random weights, seed 0);
+``heading`` and ``random_heading``: the masked-token net trained, and the random net, reading
+each window in its heading frame (`up=[0,0,1]`: yaw removed, pitch and roll against gravity
+kept, `deformnet.tokens.canonicalize`) instead of the body frame (which removes the whole mid
+pose; the classifier's frame features carry it either way).
 Each is frozen; the classifier's features (`deformnet-classify`'s: the encoder outputs with
 the frame features and the temporal context) are computed once for every frame of the
 behavior benchmark's sessions (`benchmarks/behavior.py`: 6 training and 4 test sessions,
@@ -21,7 +25,8 @@ their temporal context; no encoder output: the same for every encoder), ``forest
 feature. forest_frame vs rf is the same learner on the tracked-pose features vs SimBA's.
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
-        [--pretrain-seconds 240] [--draws 3] [--encoders pretrained,contrast,random]
+        [--heading CKPT] [--pretrain-seconds 240] [--draws 3]
+        [--encoders pretrained,contrast,random,heading,random_heading]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_probe.json.
@@ -30,6 +35,7 @@ runs/benchmarks/behavior_probe.json.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import time
@@ -45,22 +51,24 @@ from deformnet.confutil import compose, to_plain
 log = logging.getLogger("benchmarks.behavior_probe")
 
 CONTRAST = ["contrast.weight=1.0", "contrast.max_shift=12"]
+HEADING = ["up=[0,0,1]"]  # the heading frame (the simulator's z is up)
 
 
-def encoder_features(spec: str, sessions: dict) -> tuple[dict, object]:
+def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, object]:
     """Classifier features of every train / test frame for one encoder ("random" or a
-    deformnet-train checkpoint), with the classifier (its default head, untrained)."""
+    deformnet-train checkpoint; overrides: deformnet-classify's, for the random one), with the
+    classifier (its default head, untrained)."""
     from deformnet.behavior_labels import Session, read_labels, read_tracks
     from deformnet.classify import SessionBank, _build, _encoder_config, context_features
     from deformnet.confutil import to_plain
 
-    cfg = compose("classify", [] if spec == "random" else [f"pretrained={spec}"])
+    cfg = compose("classify", list(overrides) if spec == "random" else [f"pretrained={spec}"])
     classes = [str(c) for c in cfg.labels.classes]
-    net_cfg, body, hw, state = _encoder_config(cfg, classes)
+    net_cfg, body, hw, state, up = _encoder_config(cfg, classes)
     torch.manual_seed(0)
     model = _build(
         net_cfg, body, hw, dict(to_plain(cfg.head)), bool(cfg.frame_features), len(classes),
-        dict(to_plain(cfg.context)),
+        dict(to_plain(cfg.context)), up,
     )  # fmt: skip
     if state is not None:
         model.encoder.net.load_state_dict(state)
@@ -130,9 +138,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--test", type=int, default=4)
     ap.add_argument("--pretrained", default=None, help="deformnet-train checkpoint (else train)")
     ap.add_argument("--contrast", default=None, help="the same with contrast (else train)")
+    ap.add_argument("--heading", default=None, help="the same in the heading frame (else train)")
     ap.add_argument("--pretrain-seconds", type=int, default=240)
     ap.add_argument("--draws", type=int, default=3, help="label draws at 1%%")
-    ap.add_argument("--encoders", default="pretrained,contrast,random",
+    ap.add_argument("--encoders", default="pretrained,contrast,random,heading,random_heading",
                     help="which encoders to probe (comma-separated)")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_probe.json"))
@@ -146,21 +155,27 @@ def main(argv: list[str] | None = None) -> dict:
         for split, n in (("train", args.train), ("test", args.test))
     }
     extra: dict = {}
-    chosen = subset(ap, args.encoders, ("pretrained", "contrast", "random"), "--encoders")
-    ckpts = {"pretrained": args.pretrained, "contrast": args.contrast}
+    names = ("pretrained", "contrast", "random", "heading", "random_heading")
+    chosen = subset(ap, args.encoders, names, "--encoders")
+    ckpts = {"pretrained": args.pretrained, "contrast": args.contrast, "heading": args.heading}
     ckpts = {k: v for k, v in ckpts.items() if k in chosen}
-    for name, overrides in (("pretrained", []), ("contrast", CONTRAST)):
+    for name, overrides in (("pretrained", []), ("contrast", CONTRAST), ("heading", HEADING)):
         if name in ckpts and ckpts[name] is None:
             log.info("%s: a %d s deformnet-train run %s", name, args.pretrain_seconds, overrides)
             ckpts[name], secs = pretrain(work / f"probe_{name}", args.pretrain_seconds, overrides)
             extra[f"{name}_pretrain_seconds"] = round(secs, 1)
-    encoders = {**ckpts, **({"random": "random"} if "random" in chosen else {})}
+            m = json.loads((work / f"probe_{name}" / "metrics.json").read_text())["metrics"]
+            extra[f"{name}_best_val_rmse_mm"] = m.get("best/val_rmse_mm")
+    randoms = {"random": (), "random_heading": HEADING}
+    encoders = {k: (v, ()) for k, v in ckpts.items()}
+    encoders |= {k: ("random", ov) for k, ov in randoms.items() if k in chosen}
+    encoders = {k: encoders[k] for k in names if k in encoders}  # the table's order
     plan = [(0.01, d) for d in range(args.draws)] + [(0.1, 0)]
     results: dict = {}
     forest = dict(to_plain(compose("classify", ["head=forest"]).head))
-    for name, spec in encoders.items():
+    for name, (spec, overrides) in encoders.items():
         t0 = time.perf_counter()
-        feats, built = encoder_features(spec, sessions)
+        feats, built = encoder_features(spec, sessions, overrides)
         runs = {f"{f:g}/{d}": probe(feats, built, f, d) for f, d in plan}
         results[name] = {"runs": runs, "features_seconds": round(time.perf_counter() - t0, 1)}
         log.info("%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in runs.items()})
@@ -183,13 +198,19 @@ def main(argv: list[str] | None = None) -> dict:
                        "10%": r["runs"]["0.1/0"]["macro_f1"]}  # fmt: skip
     print(f"\nbehavior probe: frozen encoders, the default head fitted by L-BFGS; test macro-F1 "
           f"({args.train} train / {args.test} test sessions x {args.frames} frames)")  # fmt: skip
-    print(f"{'encoder':<12}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}")
+    print(f"{'encoder':<16}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}")
     for name, t in table.items():
         draws = " / ".join(f"{x:.3f}" for x in t["1%_draws"])
-        print(f"{name:<12}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
+        print(f"{name:<16}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
     checks = {}
     if "pretrained" in table and "random" in table:
         checks["pretrained_beats_random_1pct"] = table["pretrained"]["1%"] > table["random"]["1%"]
+    if "heading" in table and "random_heading" in table:
+        checks["heading_beats_random_heading_1pct"] = (
+            table["heading"]["1%"] > table["random_heading"]["1%"]
+        )  # fmt: skip
+    if "heading" in table:
+        checks["heading_beats_rf_1pct"] = table["heading"]["1%"] > table["rf"]["1%"]
     if "pretrained" in table and "contrast" in table:
         checks["contrast_beats_pretrained_1pct"] = (
             table["contrast"]["1%"] > table["pretrained"]["1%"]
