@@ -197,31 +197,21 @@ def make_deformable_observation(
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
 
-def check_world_up(model, poses: np.ndarray, where: str, max_deg: float = 45.0) -> float | None:
-    """A net trained in the heading frame (``model.up``) assumes the world's up; the rigid
-    poses (T, 6) (Rodrigues + translation, model -> world; NaN rows ignored) say where this
-    session's body up axis (model Z) points. Returns the median angle (degrees) between them
-    (None for a body-frame net); InputError (naming `where`) when it is over `max_deg`: the
-    calibration's world is not that up (a mouse stands on its floor most of the time)."""
+def check_world_up(model, poses: np.ndarray, where: str) -> float | None:
+    """`deformnet.deformation.check_world_up` for the rigid poses (T, 6) (Rodrigues +
+    translation, model -> world) of a session tracked with `model`; an InputError naming
+    `where` when the session's world is not the up of the model's heading frame."""
+    from deformnet.deformation import check_world_up as check
+    from deformnet.so3 import rodrigues_to_matrix
+
     up = getattr(model, "up", None)
     if up is None:
         return None
-    from deformnet.so3 import rodrigues_to_matrix
-
-    p = np.asarray(poses, dtype=float)
-    p = p[np.isfinite(p).all(1)]
-    if not len(p):
-        return None
-    body_up = rodrigues_to_matrix(torch.as_tensor(p[:, :3]))[:, :, 2].numpy()
-    angle = float(np.median(np.degrees(np.arccos(np.clip(body_up @ np.asarray(up), -1, 1)))))
-    if angle > max_deg:
-        raise InputError(
-            f"{where}: the deformation net reads windows in the heading frame of world up "
-            f"{list(up)}, but this session's mouse has its up axis a median {angle:.0f} deg "
-            f"away from it: the calibration's world is not up={list(up)}; use a net trained "
-            "with up=null (the body frame, e.g. the default) or one trained with this world's up"
-        )
-    return angle
+    R = rodrigues_to_matrix(torch.as_tensor(np.asarray(poses, dtype=float)[:, :3])).numpy()
+    try:
+        return check(R, up, where)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
 
 
 def deform_step(model, cfg_def) -> int:

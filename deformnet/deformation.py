@@ -30,7 +30,7 @@ from deformnet.tokens import canonicalize, check_window, uncanonicalize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DeformationModel", "build_net", "CHECKPOINT_KEY"]
+__all__ = ["DeformationModel", "build_net", "check_up", "check_world_up", "CHECKPOINT_KEY"]
 
 CHECKPOINT_KEY = "deformation_model"  # extra entry the Lightning module adds to its checkpoints
 
@@ -103,6 +103,36 @@ def check_up(up: Sequence[float] | None) -> tuple[float, float, float] | None:
         raise ValueError(f"up must be 3 finite numbers, not all zero, got {list(v.ravel())}")
     v = v / np.linalg.norm(v)
     return (float(v[0]), float(v[1]), float(v[2]))
+
+
+MAX_UP_DEG = 45.0  # a mouse stands on its floor most of the time: its median tilt is far less
+
+
+def check_world_up(
+    R, up: Sequence[float] | None, where: str, max_deg: float = MAX_UP_DEG
+) -> float | None:
+    """Whether a session's world has the up a heading-frame net assumes.
+
+    R: (T, 3, 3) the session's body rotations (model -> world; non-finite frames ignored); up:
+    the net's world up (None: a body-frame net, nothing to check). Returns the median angle
+    (degrees) between the body's up axis (model Z, R e_z) and up; ValueError naming `where`
+    when it is over `max_deg` (the world of that calibration is not up)."""
+    if up is None:
+        return None
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    R = R[np.isfinite(R).all((1, 2))]
+    if not len(R):
+        return None
+    cos = np.clip(R[:, :, 2] @ np.asarray(up, dtype=float), -1.0, 1.0)
+    angle = float(np.median(np.degrees(np.arccos(cos))))
+    if angle > max_deg:
+        raise ValueError(
+            f"{where}: the deformation net reads windows in the heading frame of world up "
+            f"{list(up)}, but this session's mouse has its up axis a median {angle:.0f} deg "
+            f"away from it: the calibration's world is not up={list(up)}; use a net trained "
+            "with up=null (the body frame, e.g. the default) or one trained with this world's up"
+        )
+    return angle
 
 
 class DeformationModel(nn.Module):

@@ -174,8 +174,9 @@ def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arra
     )
 
 
-def session_data(cfg: DictConfig, out: Path, window: int):
-    """``data=sessions``: the sessions' tokens, their body model and the train/val split."""
+def session_data(cfg: DictConfig, out: Path, window: int, up=None):
+    """``data=sessions``: the sessions' tokens, their body model and the train/val split;
+    up: the world up of a heading-frame net (each session's world must have it)."""
     from deformnet.body import BodyModel
     from deformnet.sessions import (
         check_compatible,
@@ -198,6 +199,18 @@ def session_data(cfg: DictConfig, out: Path, window: int):
 
     tokens = [load_session_tokens(p, builder) for p in paths]
     check_compatible(tokens)
+    if up is not None:
+        import numpy as np
+        import torch
+
+        from deformnet.deformation import check_world_up
+        from deformnet.so3 import kabsch
+
+        for t in tokens:
+            ok = np.isfinite(t.rigid).all((1, 2))
+            R, _ = kabsch(torch.as_tensor(t.rigid[ok], dtype=torch.float64),
+                          torch.as_tensor(t.body_points, dtype=torch.float64))  # fmt: skip
+            check_world_up(R.numpy(), up, t.source or "a session")
     first = tokens[0]
     body = BodyModel.from_mapping(
         {p: [float(c) for c in xyz] for p, xyz in zip(first.parts, first.body_points)},
@@ -264,7 +277,10 @@ def _run(cfg: DictConfig) -> dict:
     n = int(pretrained.half_window if pretrained is not None else cfg.half_window)
     window = 2 * n * data_step(cfg) + 1  # frames a window spans (wider steps: where they fit)
     if str(cfg.data.get("source")) == "sessions":
-        body, arrays, data_facts = session_data(cfg, out, window)
+        from deformnet.deformation import check_up
+
+        up = pretrained.up if pretrained is not None else check_up(to_plain(cfg.get("up")))
+        body, arrays, data_facts = session_data(cfg, out, window, up)
     lit, body, name = build_model(cfg, body, pretrained)
     dm = build_datamodule(cfg, body, lit.mid, arrays)
 

@@ -221,6 +221,21 @@ def test_train_on_sessions_splits_by_session(tracked, tmp_path):
     assert meta["pretrained"] == "default"
 
 
+def test_heading_frame_training_on_sessions_checks_their_worlds_up(tracked, tmp_path):
+    """data=sessions with up: each session's mouse must stand on that up (the simulated scene's
+    z), else a clear error naming the session before any training."""
+    from deformnet.train import run
+
+    folder = str(tracked["interp"][1])
+    base = ["data=sessions", f"data.sessions=[{folder}]", "pretrained=null", "net=lstm_small",
+            "logger=none", "progress_bar=none", "trainer.fast_dev_run=true",
+            "data.val_windows=64"]  # fmt: skip
+    res = run(compose("train", [*base, "up=[0,0,1]", f"output.dir={tmp_path / 'z'}"]))
+    assert np.isfinite(res["metrics"]["train/loss"])
+    with pytest.raises(ValueError, match=r"interp.*heading frame of world up \[0.0, 1.0, 0.0\]"):
+        run(compose("train", [*base, "up=[0,1,0]", f"output.dir={tmp_path / 'y'}"]))
+
+
 def test_sessions_glob_that_matches_nothing_is_a_clear_error(tmp_path):
     from deformnet.sessions import resolve_sessions
 
