@@ -2,7 +2,8 @@
 
 ``mouse_lstm_small.pt``: an `LSTMPredictor` (conf/net/lstm_small.yaml, half-window 16) trained
 on the default simulator's mice (Table 1 body) by `deformnet.pretrained.build`, which reproduces
-it bit for bit from its seed::
+it from its seed, bit for bit on the kind of CPU that built it (elsewhere other float kernels
+give other bits and a net as good)::
 
     python -m deformnet.pretrained.build   # writes deformnet/pretrained/mouse_lstm_small.pt
 
