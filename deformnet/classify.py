@@ -59,6 +59,7 @@ from deformnet.behavior_report import (
     save_figure,
 )
 from deformnet.confutil import to_plain
+from deformnet.deformation import check_track_up
 from deformnet.paths import CONF_DIR, output_dir
 
 log = logging.getLogger(__name__)
@@ -474,6 +475,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     train = _sessions(cfg, "train", body, classes)
     val = _sessions(cfg, "val", body, classes)
     test = _sessions(cfg, "test", body, classes)
+    for s in (*train, *val, *test):  # a heading-frame encoder: the tracks' world has its up
+        check_track_up(s.rigid, body.points, up, s.name)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
@@ -698,6 +701,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     model, meta = load_classifier(str(cfg.checkpoint))
     classes = list(meta["classes"])
     tr = read_tracks(str(cfg.tracks), meta["body"], interpolate=bool(cfg.data.get("interpolate")))
+    check_track_up(tr["rigid"], meta["body"].points, model.encoder.up, str(cfg.tracks))
     T = len(tr["fnum"])
     s = Session(str(cfg.tracks), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
                 np.full(T, -1))  # fmt: skip

@@ -30,7 +30,8 @@ from deformnet.tokens import canonicalize, check_window, uncanonicalize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DeformationModel", "build_net", "check_up", "check_world_up", "CHECKPOINT_KEY"]
+__all__ = ["DeformationModel", "build_net", "check_up", "check_world_up", "check_track_up",
+           "CHECKPOINT_KEY"]
 
 CHECKPOINT_KEY = "deformation_model"  # extra entry the Lightning module adds to its checkpoints
 
@@ -105,7 +106,8 @@ def check_up(up: Sequence[float] | None) -> tuple[float, float, float] | None:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
-MAX_UP_DEG = 45.0  # a mouse stands on its floor most of the time: its median tilt is far less
+MAX_UP_DEG = 60.0  # a mouse stands on its floor most of the time (median tilt far less; a
+#                   world whose up is another axis: about 90 or 180)
 
 
 def check_world_up(
@@ -133,6 +135,23 @@ def check_world_up(
             "with up=null (the body frame, e.g. the default) or one trained with this world's up"
         )
     return angle
+
+
+def check_track_up(
+    rigid, body_points, up: Sequence[float] | None, where: str
+) -> float | None:
+    """`check_world_up` for a track's rigid points (T, K, 3) mm (frames with a non-finite
+    value ignored) of the body model `body_points` (K, 3): its rotations by Kabsch."""
+    if up is None:
+        return None
+    from deformnet.so3 import kabsch
+
+    rigid = np.array(rigid, dtype=float)  # a writable copy
+    ok = np.isfinite(rigid).all((1, 2))
+    if not ok.any():
+        return None
+    R, _ = kabsch(torch.as_tensor(rigid[ok]), torch.as_tensor(np.asarray(body_points, float)))
+    return check_world_up(R.numpy(), up, where)
 
 
 class DeformationModel(nn.Module):

@@ -200,17 +200,10 @@ def session_data(cfg: DictConfig, out: Path, window: int, up=None):
     tokens = [load_session_tokens(p, builder) for p in paths]
     check_compatible(tokens)
     if up is not None:
-        import numpy as np
-        import torch
-
-        from deformnet.deformation import check_world_up
-        from deformnet.so3 import kabsch
+        from deformnet.deformation import check_track_up
 
         for t in tokens:
-            ok = np.isfinite(t.rigid).all((1, 2))
-            R, _ = kabsch(torch.as_tensor(t.rigid[ok], dtype=torch.float64),
-                          torch.as_tensor(t.body_points, dtype=torch.float64))  # fmt: skip
-            check_world_up(R.numpy(), up, t.source or "a session")
+            check_track_up(t.rigid, t.body_points, up, t.source or "a session")
     first = tokens[0]
     body = BodyModel.from_mapping(
         {p: [float(c) for c in xyz] for p, xyz in zip(first.parts, first.body_points)},

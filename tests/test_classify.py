@@ -19,8 +19,9 @@ CLASSES = ["walk", "rear"]
 TINY = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
 
 
-def _toy_session(tmp_path, name: str, seed: int, T: int = 360, bout: int = 40):
-    """Alternating bouts: 'walk' (flat, moving) and 'rear' (standing, pitched up 45 deg)."""
+def _toy_session(tmp_path, name: str, seed: int, T: int = 360, bout: int = 40, world=None):
+    """Alternating bouts: 'walk' (flat, moving) and 'rear' (standing, pitched up 45 deg).
+    world: a rotation vector turning the whole scene (a world whose up is not z)."""
     rng = np.random.default_rng(seed)
     body = default_mouse()
     lab = (np.arange(T) // bout + seed) % 2
@@ -36,6 +37,13 @@ def _toy_session(tmp_path, name: str, seed: int, T: int = 360, bout: int = 40):
     model = torch.tensor(np.asarray(body.points))
     pts = transform_points(torch.tensor(poses), model.expand(T, -1, -1)).numpy()
     pts = pts + rng.normal(0, 0.5, pts.shape)
+    if world is not None:
+        from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
+
+        Q = rodrigues_to_matrix(torch.tensor(world, dtype=torch.float64))
+        R = Q @ rodrigues_to_matrix(torch.tensor(poses[:, :3]))
+        poses = np.concatenate((matrix_to_rodrigues(R).numpy(), poses[:, 3:] @ Q.numpy().T), 1)
+        pts = pts @ Q.numpy().T
     K = body.num_parts
     extra = {c: poses[:, i] for i, c in enumerate(("pose_rx", "pose_ry", "pose_rz"))}
     extra |= {c: poses[:, 3 + i] for i, c in enumerate(("pose_tx", "pose_ty", "pose_tz"))}
@@ -255,6 +263,11 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
     )
     df = pd.read_csv(out["predictions"])
     np.testing.assert_allclose(df[[f"p_{c}" for c in CLASSES]].to_numpy(), p_head, atol=1e-5)
+    # tracks from a world whose up is y, not z: refused, naming the file
+    sideways = _toy_session(tmp_path, "sideways", 0, T=120, world=[-np.pi / 2, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"sideways.csv: the deformation net reads .* 90 deg"):
+        run(_compose(["mode=predict", f"checkpoint={res['checkpoint']}",
+                      f"tracks={sideways[0]}", f"output.dir={tmp_path / 'pred2'}"]))  # fmt: skip
     # scratch: the config's up
     res2 = run(
         _compose(
