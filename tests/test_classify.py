@@ -285,6 +285,9 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
         )
     )
     assert load_classifier(res2["checkpoint"])[1]["up"] == [0.0, 0.0, 1.0]
+    with pytest.raises(ValueError, match=r"up=\[0, 1, 0\] but the pretrained net .* reads "
+                       r"up=\[0.0, 0.0, 1.0\]"):  # fmt: skip
+        run(_compose([f"pretrained={ckpt}", "up=[0,1,0]", f"output.dir={tmp_path / 'bad'}"]))
     with pytest.raises(ValueError, match="up must be"):
         run(_compose(["pretrained=null", "up=[0,0,0]", *_files("train", []) ,
                       f"output.dir={tmp_path / 'bad'}"]))  # fmt: skip
