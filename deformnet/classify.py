@@ -430,27 +430,20 @@ def _encoder_config(cfg: DictConfig, classes):
     """(net config, body, half_window, pretrained-net state or None, world up or None: the
     canonical frame the encoder reads, `deformnet.tokens.canonicalize`)."""
     from deformnet.body import BodyModel
-    from deformnet.deformation import DeformationModel, check_up
+    from deformnet.deformation import DeformationModel, frame_up
     from deformnet.train import net_config
 
     if cfg.get("pretrained"):
-
         dm = DeformationModel.from_checkpoint(str(cfg.pretrained))
         log.info(
             "encoder: %s from %s", dm.net_config.get("_target_"), cfg.pretrained
         )  # fmt: skip
-        if cfg.get("up") is not None and check_up(to_plain(cfg.up)) != dm.up:
-            raise ValueError(
-                f"up={list(to_plain(cfg.up))} but the pretrained net {cfg.pretrained} reads "
-                + ("the body frame" if dm.up is None else f"up={list(dm.up)}")
-                + ": the encoder keeps its checkpoint's frame (leave up unset)"
-            )
-        return dict(dm.net_config), dm.body, dm.half_window, dm.net.state_dict(), dm.up
+        up = frame_up(to_plain(cfg.get("up")), dm, str(cfg.pretrained))
+        return dict(dm.net_config), dm.body, dm.half_window, dm.net.state_dict(), up
 
     body = BodyModel.from_config(cfg.body)
     _, ncfg = net_config(cfg, body.num_parts)
-    up = check_up(to_plain(cfg.get("up")))
-    return ncfg, body, int(cfg.half_window), None, up
+    return ncfg, body, int(cfg.half_window), None, frame_up(to_plain(cfg.get("up")))
 
 
 def _train(cfg: DictConfig, out: Path) -> dict:

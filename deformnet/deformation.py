@@ -4,11 +4,12 @@
     pred = model(rigid, deformed, observed)   # (..., W, K, 3) x2, (..., W, K) -> (..., K, 3)
 
 All in global mm. The model canonicalises internally (mid pose by Kabsch of the mid frame's rigid
-points onto its body model; or, for a net trained with a world up direction (`up`), that pose's
-heading frame, `deformnet.tokens.canonicalize`), runs the net, and maps the prediction back. It ignores the mid
-frame's deformed input, is differentiable in `rigid` and `deformed` with plain reverse-mode
-autograd over batched independent windows (nn.LSTM does not support torch.func vmap-Jacobians,
-and CPU scaled-dot-product attention has no forward-mode AD), and supports `.double()`.
+points onto its body model; or, for a net trained with a world up direction (`up`), that
+pose's heading frame, `deformnet.tokens.canonicalize`), runs the net, and maps the prediction
+back. It ignores the mid frame's deformed input, is differentiable in `rigid` and `deformed`
+with plain reverse-mode autograd over batched independent windows (nn.LSTM does not support
+torch.func vmap-Jacobians, and CPU scaled-dot-product attention has no forward-mode AD), and
+supports `.double()`.
 
 Checkpoints are data, never code: `from_checkpoint` reads them with ``weights_only=True`` and
 never imports Lightning (a deformnet-train checkpoint holds only tensors and plain data).
@@ -30,8 +31,15 @@ from deformnet.tokens import canonicalize, check_window, uncanonicalize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DeformationModel", "build_net", "check_up", "check_world_up", "check_track_up",
-           "CHECKPOINT_KEY"]
+__all__ = [
+    "DeformationModel",
+    "build_net",
+    "check_up",
+    "frame_up",
+    "check_world_up",
+    "check_track_up",
+    "CHECKPOINT_KEY",
+]
 
 CHECKPOINT_KEY = "deformation_model"  # extra entry the Lightning module adds to its checkpoints
 
@@ -106,6 +114,22 @@ def check_up(up: Sequence[float] | None) -> tuple[float, float, float] | None:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
+def frame_up(configured, pretrained=None, source: str = "") -> tuple[float, float, float] | None:
+    """The world up a net reads its windows in: a pretrained net's own (`DeformationModel.up`;
+    a configured up that differs is a ValueError naming `source`, its checkpoint: the net keeps
+    its checkpoint's frame), else the configured one (`check_up`; None: the body frame)."""
+    up = check_up(configured)
+    if pretrained is None:
+        return up
+    if configured is not None and up != pretrained.up:
+        raise ValueError(
+            f"up={list(configured)} but the pretrained net {source or '(no path)'} reads "
+            + ("the body frame" if pretrained.up is None else f"up={list(pretrained.up)}")
+            + ": a pretrained net keeps its checkpoint's frame (leave up unset)"
+        )
+    return pretrained.up
+
+
 MAX_UP_DEG = 60.0  # a mouse stands on its floor most of the time (median tilt far less; a
 #                   world whose up is another axis: about 90 or 180)
 
@@ -137,9 +161,7 @@ def check_world_up(
     return angle
 
 
-def check_track_up(
-    rigid, body_points, up: Sequence[float] | None, where: str
-) -> float | None:
+def check_track_up(rigid, body_points, up: Sequence[float] | None, where: str) -> float | None:
     """`check_world_up` for a track's rigid points (T, K, 3) mm (frames with a non-finite
     value ignored) of the body model `body_points` (K, 3): its rotations by Kabsch."""
     if up is None:
@@ -196,7 +218,9 @@ class DeformationModel(nn.Module):
 
     def up_tensor(self, like: Tensor) -> Tensor | None:
         """`up` as a tensor of `like`'s dtype and device (None for the body frame)."""
-        return None if self.up is None else torch.tensor(self.up, dtype=like.dtype, device=like.device)
+        if self.up is None:
+            return None
+        return torch.tensor(self.up, dtype=like.dtype, device=like.device)
 
     @property
     def num_parts(self) -> int:
@@ -213,7 +237,11 @@ class DeformationModel(nn.Module):
         rigid, deformed (B, W, K, 3) global, observed (B, W, K)."""
         deformed = torch.where(observed[..., None].bool(), deformed, torch.zeros_like(deformed))
         rigid_c, deformed_c, R, t = canonicalize(
-            rigid, deformed, self.body_points.to(rigid.dtype), self.half_window, self.up_tensor(rigid)
+            rigid,
+            deformed,
+            self.body_points.to(rigid.dtype),
+            self.half_window,
+            self.up_tensor(rigid),
         )
         return self.net(rigid_c, deformed_c, observed.bool()), R, t
 

@@ -67,9 +67,7 @@ def window_summary(
     observed = observed.bool()
     deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
     mid = net.half_window
-    rigid_c, deformed_c, R, t = canonicalize(
-        rigid, deformed, body_points.to(rigid.dtype), mid, up
-    )
+    rigid_c, deformed_c, R, t = canonicalize(rigid, deformed, body_points.to(rigid.dtype), mid, up)
     seq, _ = net.encode(rigid_c, deformed_c, observed)  # (B, W, encode_dim)
     return torch.cat((seq[:, mid], seq.mean(1)), -1), (rigid_c, deformed_c, R, t)
 

@@ -102,9 +102,9 @@ class DeformLit(L.LightningModule):
         window's mean, in the mid frame's canonical coordinates (as `deformnet.heads`
         reads them)."""
         m = self.model
-        return window_summary(
-            m.net, m.body_points, rigid, deformed, observed, m.up_tensor(rigid)
-        )[0]
+        return window_summary(m.net, m.body_points, rigid, deformed, observed, m.up_tensor(rigid))[
+            0
+        ]
 
     def contrast_loss(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
         """Symmetric InfoNCE between the windows and their pairs; (loss, top-1 accuracy)."""

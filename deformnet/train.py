@@ -89,13 +89,13 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
     body: the body model (default: ``cfg.body``); pretrained: a `DeformationModel` whose net
     (config, window and weights) is fine-tuned instead of a fresh ``cfg.net``."""
     from deformnet.body import BodyModel
-    from deformnet.deformation import DeformationModel, build_net, check_up
+    from deformnet.deformation import DeformationModel, build_net, frame_up
     from deformnet.lit import DeformLit
 
     body = BodyModel.from_config(cfg.body) if body is None else body
     name, ncfg = net_config(cfg, body.num_parts)
     half_window = int(cfg.half_window)
-    up = check_up(to_plain(cfg.get("up")))
+    up = frame_up(to_plain(cfg.get("up")), pretrained, str(cfg.get("pretrained") or ""))
     if pretrained is not None:
         if pretrained.num_parts != body.num_parts:
             raise ValueError(
@@ -105,13 +105,6 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
             )
         ncfg = dict(pretrained.net_config)
         half_window = int(pretrained.half_window)
-        if cfg.get("up") is not None and pretrained.up != up:
-            raise ValueError(
-                f"up={list(up)} but the pretrained net reads windows in "
-                + ("the body frame" if pretrained.up is None else f"up={list(pretrained.up)}")
-                + ": a fine-tuned net keeps its checkpoint's frame (leave up unset)"
-            )
-        up = pretrained.up
         name = f"{name}_ft"
     hp = {k: v for k, v in _flatten(to_plain(cfg)).items() if not k.startswith(("sim/", "body/"))}
     net = build_net(ncfg)
@@ -270,9 +263,9 @@ def _run(cfg: DictConfig) -> dict:
     n = int(pretrained.half_window if pretrained is not None else cfg.half_window)
     window = 2 * n * data_step(cfg) + 1  # frames a window spans (wider steps: where they fit)
     if str(cfg.data.get("source")) == "sessions":
-        from deformnet.deformation import check_up
+        from deformnet.deformation import frame_up
 
-        up = pretrained.up if pretrained is not None else check_up(to_plain(cfg.get("up")))
+        up = frame_up(to_plain(cfg.get("up")), pretrained, str(cfg.get("pretrained") or ""))
         body, arrays, data_facts = session_data(cfg, out, window, up)
     lit, body, name = build_model(cfg, body, pretrained)
     dm = build_datamodule(cfg, body, lit.mid, arrays)

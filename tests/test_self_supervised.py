@@ -272,12 +272,11 @@ def test_shipped_net_is_the_build_scripts_output(tmp_path):
         return
     cfg = compose("train", overrides(STEPS, 0, tmp_path / "eval"))
     rmse = {}
-    for name, model in (("shipped", shipped), ("rebuilt", DeformationModel.from_checkpoint(res["checkpoint"]))):
+    rebuilt = DeformationModel.from_checkpoint(res["checkpoint"])
+    for name, model in (("shipped", shipped), ("rebuilt", rebuilt)):
         lit, body, _ = build_model(cfg, pretrained=model)
         dm = build_datamodule(cfg, body, lit.mid)
-        rmse[name] = quiet_trainer(1).validate(lit, datamodule=dm, verbose=False)[0][
-            "val/rmse_mm"
-        ]
+        rmse[name] = quiet_trainer(1).validate(lit, datamodule=dm, verbose=False)[0]["val/rmse_mm"]
     assert rmse["rebuilt"] <= 1.05 * rmse["shipped"], rmse
 
 

@@ -95,7 +95,8 @@ def test_heading_rotation_keeps_yaw_and_puts_the_body_up_axis_on_the_world_up():
                           atol=1e-10)  # fmt: skip
     # a yaw, then a pitch or a roll (< 90 deg): the heading part is the yaw
     for yaw in (0.0, 0.7, -2.5):
-        for axis, angle in (([1, 0, 0], 0.0), ([1, 0, 0], 0.9), ([1, 0, 0], -1.4), ([0, 1, 0], 0.6)):
+        turns = (([1, 0, 0], 0.0), ([1, 0, 0], 0.9), ([1, 0, 0], -1.4), ([0, 1, 0], 0.6))
+        for axis, angle in turns:
             Rb = _about([0, 0, 1], yaw) @ _about(axis, angle)
             assert torch.allclose(heading_rotation(Rb, UP), _about([0, 0, 1], yaw), atol=1e-12)
     # upside down (the one singular pose): still a rotation with Z on up, finite
