@@ -7,7 +7,9 @@ unless given as checkpoints, and ``random`` (the same architecture, random weigh
 ``heading`` and ``random_heading``: the masked-token net trained, and the random net, reading
 each window in its heading frame (`up=[0,0,1]`: yaw removed, pitch and roll against gravity
 kept, `deformnet.tokens.canonicalize`) instead of the body frame (which removes the whole mid
-pose; the classifier's frame features carry it either way).
+pose; the classifier's frame features carry it either way); ``forecast``: ``heading`` plus the
+forecasting term (`forecast.weight=1`: predict every part 10-45 frames before or after the
+window, `deformnet.lit`).
 Each is frozen; the classifier's features (`deformnet-classify`'s: the encoder outputs with
 the frame features and the temporal context) are computed once for every frame of the
 behavior benchmark's sessions (`benchmarks/behavior.py`: 6 training and 4 test sessions,
@@ -25,8 +27,8 @@ their temporal context; no encoder output: the same for every encoder), ``forest
 feature. forest_frame vs rf is the same learner on the tracked-pose features vs SimBA's.
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
-        [--heading CKPT] [--pretrain-seconds 240] [--draws 3]
-        [--encoders pretrained,contrast,random,heading,random_heading]
+        [--heading CKPT] [--forecast CKPT] [--pretrain-seconds 240] [--draws 3]
+        [--encoders pretrained,contrast,random,heading,random_heading,forecast]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_probe.json.
@@ -52,6 +54,8 @@ log = logging.getLogger("benchmarks.behavior_probe")
 
 CONTRAST = ["contrast.weight=1.0", "contrast.max_shift=12"]
 HEADING = ["up=[0,0,1]"]  # the heading frame (the simulator's z is up)
+NAMES = ("pretrained", "contrast", "random", "heading", "random_heading", "forecast")
+FORECAST = [*HEADING, "forecast.weight=1.0"]  # + the forecasting term (conf/train.yaml)
 
 
 def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, object]:
@@ -139,9 +143,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--pretrained", default=None, help="deformnet-train checkpoint (else train)")
     ap.add_argument("--contrast", default=None, help="the same with contrast (else train)")
     ap.add_argument("--heading", default=None, help="the same in the heading frame (else train)")
+    ap.add_argument("--forecast", default=None, help="heading + forecasting term (else train)")
     ap.add_argument("--pretrain-seconds", type=int, default=240)
     ap.add_argument("--draws", type=int, default=3, help="label draws at 1%%")
-    ap.add_argument("--encoders", default="pretrained,contrast,random,heading,random_heading",
+    ap.add_argument("--encoders", default=",".join(NAMES),
                     help="which encoders to probe (comma-separated)")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_probe.json"))
@@ -155,11 +160,14 @@ def main(argv: list[str] | None = None) -> dict:
         for split, n in (("train", args.train), ("test", args.test))
     }
     extra: dict = {}
-    names = ("pretrained", "contrast", "random", "heading", "random_heading")
+    names = NAMES
     chosen = subset(ap, args.encoders, names, "--encoders")
-    ckpts = {"pretrained": args.pretrained, "contrast": args.contrast, "heading": args.heading}
+    ckpts = {"pretrained": args.pretrained, "contrast": args.contrast, "heading": args.heading,
+             "forecast": args.forecast}  # fmt: skip
     ckpts = {k: v for k, v in ckpts.items() if k in chosen}
-    for name, overrides in (("pretrained", []), ("contrast", CONTRAST), ("heading", HEADING)):
+    todo = (("pretrained", []), ("contrast", CONTRAST), ("heading", HEADING),
+            ("forecast", FORECAST))  # fmt: skip
+    for name, overrides in todo:
         if name in ckpts and ckpts[name] is None:
             log.info("%s: a %d s deformnet-train run %s", name, args.pretrain_seconds, overrides)
             ckpts[name], secs = pretrain(work / f"probe_{name}", args.pretrain_seconds, overrides)
@@ -204,7 +212,9 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"{name:<16}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
     checks = {}
     pairs = [("pretrained", "random"), ("heading", "random_heading"), ("heading", "rf"),
-             ("contrast", "pretrained"), ("pretrained", "rf"), ("forest_frame", "rf")]  # fmt: skip
+             ("contrast", "pretrained"), ("pretrained", "rf"), ("forest_frame", "rf"),
+             ("forecast", "random_heading"), ("forecast", "heading"),
+             ("forecast", "rf")]  # fmt: skip
     for a, b in pairs:  # a beats b at 1% labels (the mean over the draws)
         if a in table and b in table:
             checks[f"{a}_beats_{b}_1pct"] = table[a]["1%"] > table[b]["1%"]

@@ -15,6 +15,11 @@ A batch is a dict of float32 / bool tensors:
     pair (with pair_shift > 0)                  {rigid, deformed, observed} of windows a few
                                                 frames away in the same sequence (positives of
                                                 the temporal-contrastive term, `DeformLit`).
+    ahead (with ahead_shift)                    {points (B, K, 3) global mm, mask (B, K), shift
+                                                (B,)}: the true positions of the frame `shift`
+                                                token steps from each window's mid frame (signed:
+                                                > 0 later; 0 where the sequence has no such frame,
+                                                mask false), the targets of the forecasting term.
 """
 
 from __future__ import annotations
@@ -403,6 +408,16 @@ class WindowBank:
         }
 
 
+def check_ahead_shift(ahead_shift: Sequence[int] | None) -> tuple[int, int] | None:
+    """(lo, hi) token steps, 1 <= lo <= hi, or None (no forecasting targets)."""
+    if ahead_shift is None:
+        return None
+    lo, hi = (int(x) for x in ahead_shift)
+    if not 1 <= lo <= hi:
+        raise ValueError(f"ahead_shift must be (lo, hi) with 1 <= lo <= hi, got {ahead_shift}")
+    return lo, hi
+
+
 class RandomWindowBatches(IterableDataset):
     """`steps` random batches per pass (epoch), freshly masked each time; seeded by
     (seed, rank, pass)."""
@@ -418,9 +433,11 @@ class RandomWindowBatches(IterableDataset):
         augment: Augment | None = None,
         mirror_perm: Sequence[int] | None = None,
         pair_shift: int = 0,
+        ahead_shift: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self.bank, self.batch_size, self.steps = bank, int(batch_size), int(steps)
+        self.ahead_shift = check_ahead_shift(ahead_shift)
         self.masking, self.seed, self.noise_mm = masking, int(seed), float(noise_mm)
         self.augment = augment or Augment()
         self.mirror_perm = None if mirror_perm is None else list(mirror_perm)
@@ -445,6 +462,31 @@ class RandomWindowBatches(IterableDataset):
         out["pair"] = {k: pair[k] for k in ("rigid", "deformed", "observed")}
         return out
 
+    def _with_ahead(self, out: dict, idx: Tensor, gen, step, flip=None, rev=None) -> dict:
+        """With `ahead_shift` (lo, hi): add out["ahead"], the true positions of the frame lo..hi
+        token steps before or after each window's mid frame (same sequence, same mirror; a
+        reversed window's shift changes sign)."""
+        if self.ahead_shift is None:
+            return out
+        b, B = self.bank, len(idx)
+        step = b.step if step is None else int(step)
+        lo, hi = self.ahead_shift
+        shift = torch.randint(lo, hi + 1, (B,), generator=gen)
+        shift = torch.where(torch.rand(B, generator=gen) < 0.5, shift, -shift)
+        j = b.shifted(idx, shift * step, step)
+        mids = b.mids_for(step)
+        actual = torch.div(mids[j] - mids[idx], step, rounding_mode="trunc")
+        if rev is not None:
+            actual = torch.where(rev, -actual, actual)
+        none = torch.zeros(B, b.W, b.K, dtype=torch.bool)
+        far = b.batch(j, none, 0.0, gen, step, flip, None, self.mirror_perm)
+        out["ahead"] = {
+            "points": far["target"],
+            "mask": far["target_mask"] & (actual != 0)[:, None],
+            "shift": actual.to(far["target"].dtype),
+        }
+        return out
+
     def __len__(self) -> int:
         return self.steps
 
@@ -458,7 +500,8 @@ class RandomWindowBatches(IterableDataset):
             if a.mirror <= 0 and a.reverse <= 0 and a.steps is None:  # the plain windows
                 idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
                 hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
-                yield self._with_pair(b.batch(idx, hide, self.noise_mm, gen), idx, gen, None)
+                out = self._with_pair(b.batch(idx, hide, self.noise_mm, gen), idx, gen, None)
+                yield self._with_ahead(out, idx, gen, None)
                 continue
             step = None
             if steps is not None:  # a step some sequence is long enough for
@@ -470,7 +513,8 @@ class RandomWindowBatches(IterableDataset):
             flip = torch.rand(B, generator=gen) < a.mirror
             rev = torch.rand(B, generator=gen) < a.reverse
             out = b.batch(idx, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
-            yield self._with_pair(out, idx, gen, step, flip, rev)
+            out = self._with_pair(out, idx, gen, step, flip, rev)
+            yield self._with_ahead(out, idx, gen, step, flip, rev)
 
 
 class FixedWindowBatches(Dataset):
@@ -551,9 +595,11 @@ class DeformDataModule(L.LightningDataModule):
         train_data: Sequence[SequenceArrays] | None = None,
         val_data: Sequence[SequenceArrays] | None = None,
         pair_shift: int = 0,
+        ahead_shift: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self.pair_shift = int(pair_shift)
+        self.ahead_shift = check_ahead_shift(ahead_shift)
         if source not in ("sim", "files", "toy", "arrays"):
             raise ValueError(
                 f"data.source must be 'sim', 'files', 'toy' or 'arrays', got '{source}'"
@@ -623,6 +669,7 @@ class DeformDataModule(L.LightningDataModule):
                 self.augment,
                 self.mirror_perm,
                 self.pair_shift,
+                self.ahead_shift,
             )
             log.info("training windows: %d mid frames, %d parts", len(bank), bank.K)
         if self.val_set is None and stage in (None, "fit", "validate"):

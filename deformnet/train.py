@@ -118,6 +118,7 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
         time_budget_s=_seconds(cfg.trainer.get("max_time")),
         hparams=hp,
         contrast=contrast_config(cfg),
+        forecast=forecast_config(cfg),
     )
     return lit, body, name
 
@@ -130,6 +131,28 @@ def contrast_config(cfg: DictConfig) -> dict:
     if int(c.get("max_shift") or 0) < 1:
         raise ValueError(f"contrast.max_shift must be >= 1 frame, got {c.get('max_shift')}")
     return c
+
+
+def forecast_config(cfg: DictConfig) -> dict:
+    """``forecast``: the forecasting term ({} when off or absent)."""
+    f = dict(to_plain(cfg.get("forecast")) or {})
+    if not float(f.get("weight") or 0.0):
+        return {}
+    from deformnet.data import check_ahead_shift
+
+    try:
+        check_ahead_shift((f.get("min_shift"), f.get("max_shift")))
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"forecast.min_shift and forecast.max_shift must be token steps with "
+            f"1 <= min_shift <= max_shift, got {f.get('min_shift')}, {f.get('max_shift')}"
+        ) from None
+    return f
+
+
+def forecast_shift(cfg: DictConfig) -> tuple[int, int] | None:
+    f = forecast_config(cfg)
+    return (int(f["min_shift"]), int(f["max_shift"])) if f else None
 
 
 def data_step(cfg: DictConfig) -> int:
@@ -163,6 +186,7 @@ def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arra
         sim=to_plain(cfg.get("sim")),
         seed=int(cfg.seed),
         pair_shift=int(contrast_config(cfg).get("max_shift") or 0),
+        ahead_shift=forecast_shift(cfg),
         **data,
     )
 
