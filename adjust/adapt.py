@@ -65,6 +65,7 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
         f"optim.lr={float(a.get('lr', 1e-3))}",
         f"optim.warmup_steps={int(a.get('warmup_steps', 20))}",
         f"seed={int(a.get('seed', 0))}",
+        f"forecast.weight={float(a.get('forecast') or 0.0)}",
         f"trainer.max_time={a.get('max_time', '00:00:03:00')}",
         f"trainer.accelerator={a.get('accelerator', 'auto')}",
         "trainer.enable_model_summary=false",

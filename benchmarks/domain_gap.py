@@ -20,7 +20,10 @@ seen by >= 2 cameras / occluded (< 2) / fraction within 5 mm (missing = miss), a
   detections (self-supervised tokens, no truth) for ``--adapt-minutes``, then used;
 - ``sessions``: `deformnet-train data=sessions pretrained=default` on three *other* mouse_b
   sessions (seeds + 1..3, tracked with adjust-track), ``--adapt-minutes`` of training, then
-  `adjust-track deformation=CKPT` on this scene (``--no-self`` skips the last three).
+  `adjust-track deformation=CKPT` on this scene (``--no-self`` skips the last three,
+  ``--no-sessions`` this one);
+- ``self_forecast`` (with ``--self-forecast W``): ``self`` with deformnet-train's forecasting
+  term (weight W, `adapt.forecast`) in the fine-tuning.
 
 Also printed: the scene's rigid floor (generalized Procrustes against the truth), and per
 adjust-track variant the uncertainty calibration ratios rms error / rms ``{part}_sigma`` on seen
@@ -31,6 +34,7 @@ aniposelib's and below interp's. ``self``'s fine-tuning time is reported apart (
 
     .venv/bin/python benchmarks/domain_gap.py [--frames 1500] [--seed 92000] [--checkpoint CKPT]
         [--train-minutes 3] [--adapt-minutes 3] [--no-net] [--no-self] [--no-anipose]
+        [--no-sessions] [--self-forecast W]
 
 Last line JSON, also written to runs/benchmarks/domain_gap.json.
 """
@@ -179,6 +183,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-anipose", action="store_true")
     ap.add_argument("--no-self", action="store_true")
     ap.add_argument("--adapt-minutes", type=float, default=3.0)
+    ap.add_argument("--no-sessions", action="store_true", help="skip the sessions variant")
+    ap.add_argument("--self-forecast", type=float, default=0.0,
+                    help="> 0: also self_forecast, self with adapt.forecast=W")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "domain_gap"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "domain_gap.json"))
     args = ap.parse_args(argv)
@@ -243,9 +250,12 @@ def main(argv: list[str] | None = None) -> dict:
     if not args.no_self:
         variants["default"] = ["deformation=default"]
         variants["self"] = ["deformation=self", f"adapt.max_time={budget}"]
-        ckpt, facts = train_on_sessions(work, args.frames, args.seed, budget)
-        extra["sessions_training"] = facts
-        variants["sessions"] = [f"deformation={ckpt}"]
+        if args.self_forecast > 0:
+            variants["self_forecast"] = [*variants["self"], f"adapt.forecast={args.self_forecast}"]
+        if not args.no_sessions:
+            ckpt, facts = train_on_sessions(work, args.frames, args.seed, budget)
+            extra["sessions_training"] = facts
+            variants["sessions"] = [f"deformation={ckpt}"]
     for name, ov in variants.items():
         est, secs, summ = run_track(scene, work / name, ["threads=1", *ov])
         results[name] = {
@@ -309,6 +319,10 @@ def main(argv: list[str] | None = None) -> dict:
             and checks["self_occl_over_aniposelib"] <= 0.7
             and checks["self_occl_over_interp"] < 1.0
         )
+    if "self_forecast" in results:
+        a, b = results["self_forecast"], results["self"]
+        for c in ("rmse_all", "rmse_occluded"):
+            checks[f"self_forecast_over_self_{c}"] = round(a[c] / b[c], 3)
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {
         **results,
