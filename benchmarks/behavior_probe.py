@@ -25,10 +25,15 @@ settings as the SimBA-style baseline) on the first encoder's classifier features
 ``forest_frame`` reads only the frame features (the tracked pose, the per-part offsets and
 their temporal context; no encoder output: the same for every encoder), ``forest_all`` every
 feature. forest_frame vs rf is the same learner on the tracked-pose features vs SimBA's.
+``forest_pca_<encoder>`` (``--pca K``, default 16; 0 skips): the same forest on the frame
+features plus the first K principal components of that encoder's outputs (PCA fitted on every
+training frame, labelled or not), so the encoder can add to the frame features without
+outnumbering them; against forest_frame it says whether the encoder adds anything, against the
+random encoder's whether pretraining does. Per-class F1 at 1% labels is printed too.
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
         [--heading CKPT] [--forecast CKPT] [--pretrain-seconds 240] [--draws 3]
-        [--encoders pretrained,contrast,random,heading,random_heading,forecast]
+        [--encoders pretrained,contrast,random,heading,random_heading,forecast] [--pca 16]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_probe.json.
@@ -94,18 +99,12 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
     return out, (model, cfg, classes)
 
 
-def probe(feats: dict, built, fraction: float, draw: int, head: dict | None = None) -> dict:
-    """Fit the (fresh, seed 0) head on the labelled training frames; test macro-F1. head: a
-    forest head's config (fitted by `fit_head_forest`), else the classifier's own head
-    (L-BFGS)."""
-    import copy
-
+def labelled(feats: dict, built, fraction: float, draw: int) -> tuple:
+    """The labelled training frames of one draw: their indices (N,), labels (N,) and the
+    balanced class weights (C,) (the classifier's: total / (C count), 0 for absent classes)."""
     from deformnet.behavior_labels import Session, subsample_labels
-    from deformnet.behavior_report import evaluate
-    from deformnet.classify import fit_head_forest, fit_head_lbfgs
-    from deformnet.heads import build_head
 
-    model, cfg, classes = built
+    _, cfg, classes = built
     ss = [Session(s.name, None, None, None, s.fnum, s.labels.copy())
           for s in feats["train"]["sessions"]]  # fmt: skip
     subsample_labels(ss, fraction, int(cfg.labels.segment), draw)
@@ -115,6 +114,59 @@ def probe(feats: dict, built, fraction: float, draw: int, head: dict | None = No
     C = len(classes)
     counts = np.bincount(y.numpy(), minlength=C)
     w = np.where(counts > 0, counts.sum() / np.maximum(C * counts, 1), 0.0)
+    return idx, y, w
+
+
+def probe_pca(feats: dict, built, fraction: float, draw: int, forest: dict, k: int) -> dict:
+    """The forest head's learner (scikit-learn's random forest with `forest`'s settings,
+    class-weighted) on the frame features plus the first `k` principal components of the
+    encoder's outputs (the remaining columns, standardised; PCA fitted on every training
+    frame, labelled or not); test macro-F1. Whether the encoder adds anything to the
+    frame features once it cannot swamp them."""
+    from sklearn.decomposition import PCA
+    from sklearn.ensemble import RandomForestClassifier
+
+    from deformnet.behavior_report import evaluate
+
+    model, _, classes = built
+    idx, y, w = labelled(feats, built, fraction, draw)
+    xtr, xte = feats["train"]["features"].double(), feats["test"]["features"].double()
+    mu, sd = xtr.mean(0), xtr.std(0)
+    sd = torch.where(sd > 1e-3, sd, torch.ones_like(sd))
+    xtr, xte = ((xtr - mu) / sd).numpy(), ((xte - mu) / sd).numpy()
+    fcols = model.frame_columns().numpy()
+    ecols = np.setdiff1d(np.arange(xtr.shape[1]), fcols)
+    pca = PCA(int(k), random_state=0).fit(xtr[:, ecols])
+    ztr = np.hstack([xtr[:, fcols], pca.transform(xtr[:, ecols])])
+    zte = np.hstack([xte[:, fcols], pca.transform(xte[:, ecols])])
+    yy = y.numpy()
+    rf = RandomForestClassifier(
+        n_estimators=int(forest["trees"]), min_samples_leaf=int(forest["min_samples_leaf"]),
+        max_features=forest["max_features"], random_state=int(forest["seed"]), n_jobs=1,
+        class_weight={int(c): float(w[int(c)]) for c in np.unique(yy)},
+    ).fit(ztr[idx.numpy()], yy)  # fmt: skip
+    ev = evaluate(feats["test"]["labels"].numpy(), rf.predict(zte), classes)
+    return {
+        "macro_f1": ev["macro_f1"],
+        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
+        "labelled_frames": int(len(yy)),
+        "explained_variance": float(pca.explained_variance_ratio_.sum()),
+    }
+
+
+def probe(feats: dict, built, fraction: float, draw: int, head: dict | None = None) -> dict:
+    """Fit the (fresh, seed 0) head on the labelled training frames; test macro-F1. head: a
+    forest head's config (fitted by `fit_head_forest`), else the classifier's own head
+    (L-BFGS)."""
+    import copy
+
+    from deformnet.behavior_report import evaluate
+    from deformnet.classify import fit_head_forest, fit_head_lbfgs
+    from deformnet.heads import build_head
+
+    model, cfg, classes = built
+    idx, y, w = labelled(feats, built, fraction, draw)
+    C = len(classes)
     m = copy.deepcopy(model)  # the same untrained head for every draw and fraction
     X = feats["train"]["features"][idx]
     m.set_standardization(X)
@@ -150,6 +202,9 @@ def main(argv: list[str] | None = None) -> dict:
                     help="which encoders to probe (comma-separated)")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_probe.json"))
+    ap.add_argument("--pca", type=int, default=16,
+                    help="forest_pca_<encoder>: frame features + this many principal "
+                         "components of the encoder's outputs (0: skip)")  # fmt: skip
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
@@ -187,6 +242,10 @@ def main(argv: list[str] | None = None) -> dict:
         runs = {f"{f:g}/{d}": probe(feats, built, f, d) for f, d in plan}
         results[name] = {"runs": runs, "features_seconds": round(time.perf_counter() - t0, 1)}
         log.info("%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in runs.items()})
+        if args.pca > 0:
+            fp = {f"{f:g}/{d}": probe_pca(feats, built, f, d, forest, args.pca) for f, d in plan}
+            results[f"forest_pca_{name}"] = {"runs": fp, "encoder": name, "components": args.pca}
+            log.info("forest_pca_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in fp.items()})
         if name == next(iter(encoders)):  # the forest heads, on the first encoder's features
             for inputs in ("frame", "all"):
                 head = {**forest, "inputs": inputs}
@@ -202,19 +261,35 @@ def main(argv: list[str] | None = None) -> dict:
     table = {}
     for name, r in results.items():
         one = [r["runs"][f"0.01/{d}"]["macro_f1"] for d in range(args.draws)]
+        per = [r["runs"][f"0.01/{d}"].get("f1") for d in range(args.draws)]
+        f1 = None
+        if all(per):  # a class absent from the test labels: None, left out of its mean
+            f1 = {c: float(np.nanmean([np.nan if p[c] is None else p[c] for p in per]))
+                  for c in per[0]}  # fmt: skip
         table[name] = {"1%": float(np.mean(one)), "1%_draws": one,
-                       "10%": r["runs"]["0.1/0"]["macro_f1"]}  # fmt: skip
+                       "10%": r["runs"]["0.1/0"]["macro_f1"], "1%_f1": f1}  # fmt: skip
     print(f"\nbehavior probe: frozen encoders, the default head fitted by L-BFGS; test macro-F1 "
           f"({args.train} train / {args.test} test sessions x {args.frames} frames)")  # fmt: skip
     print(f"{'encoder':<16}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}")
     for name, t in table.items():
         draws = " / ".join(f"{x:.3f}" for x in t["1%_draws"])
         print(f"{name:<16}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
+    classes = next((t["1%_f1"] for t in table.values() if t["1%_f1"]), None)
+    if classes:
+        print("\nper-class F1 at 1% labels (mean over the draws)")
+        print(f"{'':<16}" + "".join(f"{c:>8}" for c in classes))
+        for name, t in table.items():
+            if t["1%_f1"]:
+                print(f"{name:<16}" + "".join(f"{t['1%_f1'][c]:>8.3f}" for c in classes))
     checks = {}
     pairs = [("pretrained", "random"), ("heading", "random_heading"), ("heading", "rf"),
              ("contrast", "pretrained"), ("pretrained", "rf"), ("forest_frame", "rf"),
              ("forecast", "random_heading"), ("forecast", "heading"),
              ("forecast", "rf")]  # fmt: skip
+    pairs += [(f"forest_pca_{n}", "forest_frame") for n in encoders]
+    pairs += [(f"forest_pca_{n}", f"forest_pca_{r}") for n, r in
+              (("pretrained", "random"), ("heading", "random_heading"),
+               ("forecast", "random_heading"))]  # fmt: skip
     for a, b in pairs:  # a beats b at 1% labels (the mean over the draws)
         if a in table and b in table:
             checks[f"{a}_beats_{b}_1pct"] = table[a]["1%"] > table[b]["1%"]
