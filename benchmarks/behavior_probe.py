@@ -25,6 +25,8 @@ settings as the SimBA-style baseline) on the first encoder's classifier features
 ``forest_frame`` reads only the frame features (the tracked pose, the per-part offsets and
 their temporal context; no encoder output: the same for every encoder), ``forest_all`` every
 feature. forest_frame vs rf is the same learner on the tracked-pose features vs SimBA's.
+``mlp_frame``: the default head (the same MLP ensemble, L-BFGS) on the frame features alone:
+against an encoder's row, what the encoder's outputs add to that head.
 ``forest_pca_<encoder>`` (``--pca K``, default 16; 0 skips): the same forest on the frame
 features plus the first K principal components of that encoder's outputs (PCA fitted on every
 training frame, labelled or not), so the encoder can add to the frame features without
@@ -154,6 +156,52 @@ def probe_pca(feats: dict, built, fraction: float, draw: int, forest: dict, k: i
     }
 
 
+class _FrameHead(torch.nn.Module):
+    """The classifier's default head on the frame-feature columns alone, in the shape
+    `fit_head_lbfgs` fits (head, feature_mean, feature_std)."""
+
+    def __init__(self, head_cfg: dict, cols: torch.Tensor, classes: int) -> None:
+        from deformnet.heads import build_head
+
+        super().__init__()
+        torch.manual_seed(0)  # the same initialisation as the classifier's head
+        self.cols = cols
+        self.head = build_head(head_cfg, len(cols), classes)
+        self.register_buffer("feature_mean", torch.zeros(len(cols)))
+        self.register_buffer("feature_std", torch.ones(len(cols)))
+
+    def classify(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head((x[:, self.cols] - self.feature_mean) / self.feature_std)
+
+
+def probe_frame(feats: dict, built, fraction: float, draw: int) -> dict:
+    """The default head (the same MLP ensemble and L-BFGS probe) on the frame features alone
+    (the tracked pose, the per-part offsets and their temporal context; no encoder output):
+    what the encoder's outputs add to the MLP head, as forest_frame says for the forest."""
+    from deformnet.behavior_report import evaluate
+    from deformnet.classify import fit_head_lbfgs
+
+    model, cfg, classes = built
+    idx, y, w = labelled(feats, built, fraction, draw)
+    cols = model.frame_columns()
+    m = _FrameHead(dict(to_plain(cfg.head)), cols, len(classes))
+    X = feats["train"]["features"][idx]
+    sd = X[:, cols].std(0)
+    m.feature_mean.copy_(X[:, cols].mean(0))
+    m.feature_std.copy_(torch.where(sd > 1e-3, sd, torch.ones_like(sd)))
+    t0 = time.perf_counter()
+    fit_head_lbfgs(m, X[:, cols], y, w.tolist(), float(cfg.head_l2), int(cfg.head_max_iter))
+    with torch.no_grad():
+        pred = m.classify(feats["test"]["features"]).argmax(-1).numpy()
+    ev = evaluate(feats["test"]["labels"].numpy(), pred, classes)
+    return {
+        "macro_f1": ev["macro_f1"],
+        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
+        "labelled_frames": int(len(y)),
+        "fit_seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
 def probe(feats: dict, built, fraction: float, draw: int, head: dict | None = None) -> dict:
     """Fit the (fresh, seed 0) head on the labelled training frames; test macro-F1. head: a
     forest head's config (fitted by `fit_head_forest`), else the classifier's own head
@@ -246,7 +294,10 @@ def main(argv: list[str] | None = None) -> dict:
             fp = {f"{f:g}/{d}": probe_pca(feats, built, f, d, forest, args.pca) for f, d in plan}
             results[f"forest_pca_{name}"] = {"runs": fp, "encoder": name, "components": args.pca}
             log.info("forest_pca_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in fp.items()})
-        if name == next(iter(encoders)):  # the forest heads, on the first encoder's features
+        if name == next(iter(encoders)):  # the encoder-free heads, on the first one's features
+            fr = {f"{f:g}/{d}": probe_frame(feats, built, f, d) for f, d in plan}
+            results["mlp_frame"] = {"runs": fr, "encoder": name}
+            log.info("mlp_frame: %s", {k: round(v["macro_f1"], 3) for k, v in fr.items()})
             for inputs in ("frame", "all"):
                 head = {**forest, "inputs": inputs}
                 fr = {f"{f:g}/{d}": probe(feats, built, f, d, head) for f, d in plan}
@@ -285,7 +336,8 @@ def main(argv: list[str] | None = None) -> dict:
     pairs = [("pretrained", "random"), ("heading", "random_heading"), ("heading", "rf"),
              ("contrast", "pretrained"), ("pretrained", "rf"), ("forest_frame", "rf"),
              ("forecast", "random_heading"), ("forecast", "heading"),
-             ("forecast", "rf")]  # fmt: skip
+             ("forecast", "rf"), ("pretrained", "mlp_frame"), ("heading", "mlp_frame"),
+             ("random_heading", "mlp_frame"), ("forecast", "mlp_frame")]  # fmt: skip
     pairs += [(f"forest_pca_{n}", "forest_frame") for n in encoders]
     pairs += [(f"forest_pca_{n}", f"forest_pca_{r}") for n, r in
               (("pretrained", "random"), ("heading", "random_heading"),
