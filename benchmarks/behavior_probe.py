@@ -174,38 +174,14 @@ class _FrameHead(torch.nn.Module):
         return self.head((x[:, self.cols] - self.feature_mean) / self.feature_std)
 
 
-def probe_frame(feats: dict, built, fraction: float, draw: int) -> dict:
-    """The default head (the same MLP ensemble and L-BFGS probe) on the frame features alone
-    (the tracked pose, the per-part offsets and their temporal context; no encoder output):
-    what the encoder's outputs add to the MLP head, as forest_frame says for the forest."""
-    from deformnet.behavior_report import evaluate
-    from deformnet.classify import fit_head_lbfgs
-
-    model, cfg, classes = built
-    idx, y, w = labelled(feats, built, fraction, draw)
-    cols = model.frame_columns()
-    m = _FrameHead(dict(to_plain(cfg.head)), cols, len(classes))
-    X = feats["train"]["features"][idx]
-    sd = X[:, cols].std(0)
-    m.feature_mean.copy_(X[:, cols].mean(0))
-    m.feature_std.copy_(torch.where(sd > 1e-3, sd, torch.ones_like(sd)))
-    t0 = time.perf_counter()
-    fit_head_lbfgs(m, X[:, cols], y, w.tolist(), float(cfg.head_l2), int(cfg.head_max_iter))
-    with torch.no_grad():
-        pred = m.classify(feats["test"]["features"]).argmax(-1).numpy()
-    ev = evaluate(feats["test"]["labels"].numpy(), pred, classes)
-    return {
-        "macro_f1": ev["macro_f1"],
-        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
-        "labelled_frames": int(len(y)),
-        "fit_seconds": round(time.perf_counter() - t0, 1),
-    }
-
-
-def probe(feats: dict, built, fraction: float, draw: int, head: dict | None = None) -> dict:
+def probe(
+    feats: dict, built, fraction: float, draw: int, head: dict | None = None, frame: bool = False
+) -> dict:
     """Fit the (fresh, seed 0) head on the labelled training frames; test macro-F1. head: a
     forest head's config (fitted by `fit_head_forest`), else the classifier's own head
-    (L-BFGS)."""
+    (L-BFGS); frame: that head on the frame features alone (`_FrameHead`: the tracked pose,
+    the per-part offsets and their temporal context; no encoder output), what the encoder's
+    outputs add to the MLP head as forest_frame says for the forest."""
     import copy
 
     from deformnet.behavior_report import evaluate
@@ -215,9 +191,16 @@ def probe(feats: dict, built, fraction: float, draw: int, head: dict | None = No
     model, cfg, classes = built
     idx, y, w = labelled(feats, built, fraction, draw)
     C = len(classes)
-    m = copy.deepcopy(model)  # the same untrained head for every draw and fraction
     X = feats["train"]["features"][idx]
-    m.set_standardization(X)
+    if frame:
+        m = _FrameHead(dict(to_plain(cfg.head)), model.frame_columns(), C)
+        X = X[:, m.cols]
+        sd = X.std(0)
+        m.feature_mean.copy_(X.mean(0))
+        m.feature_std.copy_(torch.where(sd > 1e-3, sd, torch.ones_like(sd)))
+    else:
+        m = copy.deepcopy(model)  # the same untrained head for every draw and fraction
+        m.set_standardization(X)
     t0 = time.perf_counter()
     if head is not None:
         m.head = build_head(head, m.out_dim, C)
@@ -295,7 +278,7 @@ def main(argv: list[str] | None = None) -> dict:
             results[f"forest_pca_{name}"] = {"runs": fp, "encoder": name, "components": args.pca}
             log.info("forest_pca_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in fp.items()})
         if name == next(iter(encoders)):  # the encoder-free heads, on the first one's features
-            fr = {f"{f:g}/{d}": probe_frame(feats, built, f, d) for f, d in plan}
+            fr = {f"{f:g}/{d}": probe(feats, built, f, d, frame=True) for f, d in plan}
             results["mlp_frame"] = {"runs": fr, "encoder": name}
             log.info("mlp_frame: %s", {k: round(v["macro_f1"], 3) for k, v in fr.items()})
             for inputs in ("frame", "all"):
