@@ -164,7 +164,7 @@ class _FrameHead(torch.nn.Module):
         from deformnet.heads import build_head
 
         super().__init__()
-        torch.manual_seed(0)  # the same initialisation as the classifier's head
+        torch.manual_seed(0)  # a fresh head, the same for every draw and fraction
         self.cols = cols
         self.head = build_head(head_cfg, len(cols), classes)
         self.register_buffer("feature_mean", torch.zeros(len(cols)))
