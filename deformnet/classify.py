@@ -320,12 +320,19 @@ def _build(
     C: int,
     context: dict | None = None,
     up=None,
+    mechanisms: dict | None = None,
 ):
     from deformnet.deformation import build_net
-    from deformnet.heads import BehaviorClassifier, WindowEncoder, build_head
+    from deformnet.heads import BehaviorClassifier, MechanismFeatures, WindowEncoder, build_head
 
+    mech = None
+    if mechanisms:
+        parts = [body.parts.index(p) for p in mechanisms["parts"]]
+        mech = MechanismFeatures(
+            mechanisms["positions"], parts, mechanisms["names"], float(mechanisms["scale"])
+        )
     enc = WindowEncoder(
-        build_net(net_cfg), np.asarray(body.points), half_window, frame_features, up
+        build_net(net_cfg), np.asarray(body.points), half_window, frame_features, up, mech
     )
     ctx = dict(context or {})
     frames = [int(f) for f in (ctx.get("frames") or [])]
@@ -366,6 +373,7 @@ def load_classifier(path: str | os.PathLike):
         len(blob["classes"]),
         blob.get("context"),
         blob.get("up"),
+        blob.get("mechanisms"),
     )
     model.load_state_dict(blob["state_dict"])
     return model.eval(), {**{k: v for k, v in blob.items() if k != "state_dict"}, "body": body}
@@ -426,6 +434,69 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
     return out
 
 
+def mechanism_setup(cfg: DictConfig, body) -> dict | None:
+    """The lock-box context (`deformnet.heads.MechanismFeatures`) from the config's
+    ``mechanisms`` block: {"names", "positions" (M x [x, y, z] mm), "parts" (the body model's
+    names), "scale", "source"}, or None when neither ``mechanisms.positions`` ({name: [x, y,
+    z]}, or ``sim``: the simulator's lock box) nor ``mechanisms.calibration`` (a
+    calibration.toml with a [metadata.mechanisms] table, as `adjust-scene` writes and
+    `adjust-events` reads) is set. Errors name the file, mechanism or part."""
+    m = cfg.get("mechanisms") or {}
+    pos, calib = to_plain(m.get("positions")), m.get("calibration")
+    if pos is None and not calib:
+        return None
+    if pos is not None and calib:
+        raise ValueError("set mechanisms.positions or mechanisms.calibration, not both")
+    if calib:
+        import tomllib
+
+        path = Path(str(calib))
+        if not path.is_file():
+            raise ValueError(f"mechanisms.calibration: file not found: {path}")
+        try:
+            meta = tomllib.loads(path.read_text()).get("metadata") or {}
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: not a TOML calibration file ({exc})") from None
+        pos, source = meta.get("mechanisms"), f"{path} [metadata.mechanisms]"
+        if not pos:
+            raise ValueError(f"{path}: no [metadata.mechanisms] table; set mechanisms.positions")
+    elif pos == "sim":
+        from deformnet.sim import MECHANISMS, SimConfig
+        from deformnet.sim.scene import build_scene
+
+        scene = build_scene(SimConfig.from_config(cfg.get("sim")), body)
+        pos = dict(zip(MECHANISMS, scene.mech_pos.tolist()))
+        source = "the simulator's lock box (sim.lockbox)"
+    else:
+        source = "mechanisms.positions"
+    if not isinstance(pos, dict) or not pos:
+        raise ValueError(f"{source}: expected a table name -> [x, y, z] (mm), got {pos!r}")
+    names, xyz = [], []
+    for name, p in pos.items():
+        try:
+            v = np.asarray(p, dtype=np.float64)
+        except (TypeError, ValueError):
+            v = np.array([])
+        if v.shape != (3,) or not np.isfinite(v).all():
+            raise ValueError(f"{source}: mechanism '{name}' needs [x, y, z] (mm), got {p!r}")
+        names.append(str(name))
+        xyz.append(v.tolist())
+    parts = []
+    for q in list(to_plain(m.get("parts")) or []):
+        r = body.resolve(str(q))
+        if r is None:
+            raise ValueError(
+                f"mechanisms.parts: unknown body part '{q}' (the body model's: {list(body.parts)})"
+            )
+        parts.append(r)
+    if not parts:
+        raise ValueError("mechanisms.parts: name at least one body part (e.g. nose_tip)")
+    scale = float(m.get("scale", 50.0))
+    if not scale > 0:
+        raise ValueError(f"mechanisms.scale must be > 0 mm, got {scale}")
+    return {"names": names, "positions": xyz, "parts": parts, "scale": scale, "source": source}
+
+
 def _encoder_config(cfg: DictConfig, classes):
     """(net config, body, half_window, pretrained-net state or None, world up or None: the
     canonical frame the encoder reads, `deformnet.tokens.canonicalize`)."""
@@ -462,10 +533,17 @@ def _train(cfg: DictConfig, out: Path) -> dict:
             "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
         )
     ff = bool(cfg.get("frame_features", True))
-    if forest and head_cfg.get("inputs", "frame") == "frame" and not ff:
-        raise ValueError("head.inputs=frame needs frame_features=true (or head.inputs=all)")
+    mech = mechanism_setup(cfg, body)
+    if forest and head_cfg.get("inputs", "frame") == "frame" and not ff and mech is None:
+        raise ValueError(
+            "head.inputs=frame needs frame_features=true or lock-box context (mechanisms.*), "
+            "or head.inputs=all"
+        )
     context = dict(to_plain(cfg.get("context")) or {})
-    model = _build(net_cfg, body, hw, head_cfg, ff, C, context, up)
+    if mech is not None:
+        log.info("lock-box context: %s from %s (parts %s)", mech["names"], mech["source"],
+                 mech["parts"])  # fmt: skip
+    model = _build(net_cfg, body, hw, head_cfg, ff, C, context, up, mech)
     if state is not None:
         model.encoder.net.load_state_dict(state)
     span = model.half_window  # the encoder's half window plus the context's
@@ -616,6 +694,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "head": head_cfg,
         "frame_features": ff,
         "context": {"frames": list(model.context_frames), "stride": model.stride},
+        "mechanisms": mech,
         "classes": classes,
         "smoothing": smoothing,
         "pretrained": str(cfg.pretrained) if cfg.get("pretrained") else None,
@@ -691,6 +770,35 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     }
 
 
+def _predict_mechanisms(cfg: DictConfig, model, meta: dict) -> None:
+    """mode=predict: the mechanisms' positions in this recording's frame. The classifier's own
+    (its training rig's) unless ``mechanisms.positions`` / ``mechanisms.calibration`` give
+    this session's (the same mechanisms by name; a moved lock box); its parts and scale stay
+    the classifier's."""
+    trained = meta.get("mechanisms")
+    here = mechanism_setup(cfg, meta["body"])
+    if here is None:
+        if trained:
+            log.info("lock-box context: the classifier's mechanism positions (%s)",
+                     trained.get("source"))  # fmt: skip
+        return
+    if not trained:
+        raise ValueError(
+            f"{cfg.checkpoint} was trained without lock-box context: unset mechanisms.positions "
+            "/ mechanisms.calibration"
+        )
+    pos = dict(zip(here["names"], here["positions"]))
+    missing = [n for n in trained["names"] if n not in pos]
+    if missing:
+        raise ValueError(f"{here['source']}: no position for mechanism(s) {missing} "
+                         f"(the classifier's: {trained['names']})")  # fmt: skip
+    mech = model.encoder.mechanisms
+    mech.positions.copy_(torch.tensor([pos[n] for n in trained["names"]], dtype=torch.float32))
+    meta["mechanisms"] = {**trained, "positions": [pos[n] for n in trained["names"]],
+                          "source": here["source"]}  # fmt: skip
+    log.info("lock-box context: mechanism positions from %s", here["source"])
+
+
 def _predict(cfg: DictConfig, out: Path) -> dict:
     from deformnet.atomic import atomic_path
 
@@ -698,6 +806,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         raise ValueError("mode=predict needs checkpoint=CLASSIFIER.pt and tracks=points3d.csv")
     model, meta = load_classifier(str(cfg.checkpoint))
     classes = list(meta["classes"])
+    _predict_mechanisms(cfg, model, meta)
     tr = read_tracks(str(cfg.tracks), meta["body"], interpolate=bool(cfg.data.get("interpolate")))
     check_track_up(tr["rigid"], meta["body"].points, model.encoder.up, str(cfg.tracks))
     T = len(tr["fnum"])

@@ -13,7 +13,9 @@ the net's encoder (the LSTM's mid-frame output and embedding plus its time-avera
 transformer's normalised mid-frame output plus its time-average), and appends what the
 canonical frame removes but behavior depends on ("frame features"): the mid pose (rotation
 matrix, translation / pos_scale: height, pitch and place in the arena) and the mid frame's own
-deformation offsets (the net masks them when predicting them; here they are inputs).
+deformation offsets (the net masks them when predicting them; here they are inputs). With a
+lock box's mechanism positions (`MechanismFeatures`) it also appends where the mouse is
+relative to each mechanism: the distance of chosen parts (snout, front paws) to each one.
 
 Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml), an
 `EnsembleHead` of several (``head.ensemble``), or `ForestHead` (a random forest fitted by
@@ -37,6 +39,7 @@ from deformnet.so3 import kabsch
 from deformnet.tokens import canonicalize
 
 __all__ = [
+    "MechanismFeatures",
     "WindowEncoder",
     "window_summary",
     "LinearHead",
@@ -72,13 +75,61 @@ def window_summary(
     return torch.cat((seq[:, mid], seq.mean(1)), -1), (rigid_c, deformed_c, R, t)
 
 
+class MechanismFeatures(nn.Module):
+    """Where the mouse is relative to a lock box's mechanisms, as frame features: the distance
+    of each chosen part to each mechanism and, per mechanism, the nearest of those parts
+    (SimBA's ROI distances), divided by ``scale`` mm.
+
+    positions (M, 3) the mechanisms' global positions (mm, the tracks' frame); parts (P,) the
+    chosen parts' indices in the body model's part order; names: the mechanisms' names (M,).
+    points (B, K, 3) global mm -> (B, M (P + 1)): [part p, mechanism m] at p M + m, then the
+    per-mechanism minimum over the parts.
+    """
+
+    def __init__(
+        self,
+        positions: Sequence[Sequence[float]],
+        parts: Sequence[int],
+        names: Sequence[str] | None = None,
+        scale: float = 50.0,
+    ) -> None:
+        super().__init__()
+        pos = np.asarray(positions, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[0] < 1 or pos.shape[1] != 3 or not np.isfinite(pos).all():
+            raise ValueError(f"mechanism positions must be (M >= 1, 3) finite mm, got {pos!r}")
+        parts = [int(k) for k in parts]
+        if not parts or min(parts) < 0:
+            raise ValueError(f"mechanism parts must be >= 1 part indices, got {parts}")
+        if not float(scale) > 0:
+            raise ValueError(f"mechanism scale must be > 0 mm, got {scale}")
+        self.names = tuple(str(n) for n in (names or [f"m{i}" for i in range(len(pos))]))
+        if len(self.names) != len(pos):
+            raise ValueError(f"{len(self.names)} mechanism names for {len(pos)} positions")
+        self.scale = float(scale)
+        self.register_buffer("positions", torch.tensor(pos, dtype=torch.float32))
+        self.register_buffer("parts", torch.tensor(parts, dtype=torch.long))
+        self.out_dim = len(pos) * (len(parts) + 1)
+
+    def forward(self, points: Tensor) -> Tensor:
+        if points.dim() != 3 or points.shape[-1] != 3:
+            raise ValueError(f"points must be (B, K, 3), got {tuple(points.shape)}")
+        if int(self.parts.max()) >= points.shape[1]:
+            raise ValueError(f"part index {int(self.parts.max())} >= {points.shape[1]} parts")
+        p = points[:, self.parts]  # (B, P, 3)
+        d = torch.linalg.vector_norm(p[:, :, None] - self.positions.to(p.dtype), dim=-1)
+        d = d / self.scale  # (B, P, M)
+        return torch.cat((d.flatten(1), d.amin(1)), -1)
+
+
 class WindowEncoder(nn.Module):
     """The encoder of a deformation net, as a window -> feature-vector map (see module doc).
 
     net: an `LSTMPredictor` or `TransformerPredictor` (its `head`, the per-part output layer, is
     not used); body_points (K, 3) the rigid body model (mm); frame_features: append the mid pose
     and the mid frame's offsets (12 + 4 K values; always the body frame's pose and offsets);
-    up: the world's up (3,) when the net was trained in the heading frame, else None.
+    up: the world's up (3,) when the net was trained in the heading frame, else None;
+    mechanisms: a `MechanismFeatures` appended after the frame features (from the mid frame's
+    points: observed parts where seen, the rigid model's elsewhere), or None.
     """
 
     def __init__(
@@ -88,6 +139,7 @@ class WindowEncoder(nn.Module):
         half_window: int,
         frame_features: bool = True,
         up: Sequence[float] | None = None,
+        mechanisms: MechanismFeatures | None = None,
     ) -> None:
         super().__init__()
         from deformnet.deformation import check_up
@@ -106,7 +158,15 @@ class WindowEncoder(nn.Module):
         self.frame_features = bool(frame_features)
         self.up = check_up(up)
         self.register_buffer("body_points", torch.tensor(np.array(body_points, dtype=np.float32)))
-        self.out_dim = 2 * net.encode_dim + (12 + 4 * self.num_parts if self.frame_features else 0)
+        self.mechanisms = mechanisms
+        if mechanisms is not None and int(mechanisms.parts.max()) >= self.num_parts:
+            raise ValueError(f"mechanism part index {int(mechanisms.parts.max())} >= the net's "
+                             f"{self.num_parts} parts")  # fmt: skip
+        self.out_dim = (
+            2 * net.encode_dim
+            + (12 + 4 * self.num_parts if self.frame_features else 0)
+            + (0 if mechanisms is None else mechanisms.out_dim)
+        )
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
         want = (self.window, self.num_parts, 3)
@@ -146,6 +206,9 @@ class WindowEncoder(nn.Module):
                 off.reshape(B, -1),
                 obs_mid.to(off.dtype),
             ]
+        if self.mechanisms is not None:
+            pts = torch.where(observed[:, mid, :, None], deformed[:, mid], rigid[:, mid])
+            out.append(self.mechanisms(pts))
         return torch.cat(out, -1)
 
 
@@ -383,10 +446,11 @@ class BehaviorClassifier(nn.Module):
         self.register_buffer("feature_std", torch.ones(self.out_dim))
 
     def frame_columns(self) -> Tensor:
-        """Indices (F,) of the frame features (the pose, the offsets, the observed flags: see
-        `WindowEncoder`) and of their context statistics among the classifier's features."""
+        """Indices (F,) of the frame features (the pose, the offsets, the observed flags, the
+        mechanism distances: see `WindowEncoder`) and of their context statistics among the
+        classifier's features."""
         enc = self.encoder
-        if not enc.frame_features:
+        if not enc.frame_features and enc.mechanisms is None:
             raise ValueError("the classifier has no frame features (frame_features=false)")
         i = torch.arange(self.out_dim)
         return i[(i % enc.out_dim) >= 2 * enc.net.encode_dim]

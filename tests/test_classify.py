@@ -396,3 +396,142 @@ def test_forest_head_on_a_frozen_encoder_and_predict(tmp_path):
     df = pd.read_csv(p["predictions"])
     np.testing.assert_allclose(df[["p_walk", "p_rear"]].sum(axis=1), 1.0, atol=1e-5)
     assert np.mean(df["label"].to_numpy() == np.asarray(CLASSES)[test[0][2]]) >= 0.95
+
+
+def _box_session(tmp_path, name: str, seed: int, at, away, T: int = 240, bout: int = 40):
+    """A still mouse whose two behaviors differ only by where it stands: 'lever' with its snout
+    at the mechanism `at`, 'walk' (here: standing) at `away`; same pose and jitter, so only the
+    lock-box context tells them apart. Returns (tracks, labels, per-frame labels)."""
+    rng = np.random.default_rng(seed)
+    body = default_mouse()
+    lab = (np.arange(T) // bout + seed) % 2  # 1: at the lever
+    model = torch.tensor(np.asarray(body.points))
+    nose = np.asarray(body.points)[body.parts.index("nose_tip")]
+    poses = np.zeros((T, 6))
+    poses[:, 2] = rng.normal(0, 0.05, T)
+    spot = np.where(lab[:, None] == 1, np.asarray(at) - nose, np.asarray(away) - nose)
+    poses[:, 3:] = spot + rng.normal(0, 1.0, (T, 3))
+    pts = transform_points(torch.tensor(poses), model.expand(T, -1, -1)).numpy()
+    pts = pts + rng.normal(0, 0.5, pts.shape)
+    K = body.num_parts
+    extra = {c: poses[:, i] for i, c in enumerate(POSE)}
+    tracks = write_points3d(tmp_path / f"{name}.csv", body.parts, pts, np.zeros((T, K)),
+                            np.full((T, K), 2), np.ones((T, K)), extra=extra)  # fmt: skip
+    names = ["walk", "lever"]
+    labels = tmp_path / f"{name}_labels.csv"
+    pd.DataFrame([{"start": a, "stop": b, "label": names[c]} for a, b, c in bouts(lab)]).to_csv(
+        labels, index=False
+    )
+    return tracks, labels, lab
+
+
+POSE = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
+
+
+def _calibration(path, mechanisms: dict) -> str:
+    rows = "\n".join(
+        f"{k} = [{', '.join(str(float(v)) for v in p)}]" for k, p in mechanisms.items()
+    )
+    path.write_text(f"[metadata.mechanisms]\n{rows}\n")
+    return str(path)
+
+
+def test_lock_box_context_tells_apart_what_only_the_place_does(tmp_path):
+    """mechanisms.calibration: two behaviors with the same still pose, one at the lever and one
+    away from it, in a world where the encoder's canonical frame and no pose features are read
+    (frame_features=false): without the lock-box context the classifier cannot tell them
+    apart, with it it does; mode=predict on a recording whose lock box stands elsewhere reads
+    that recording's positions (mechanisms.calibration) and stays right, while the training
+    rig's positions would not be."""
+    from deformnet.classify import load_classifier, run
+
+    lever, ball = [200.0, 250.0, 12.0], [120.0, 250.0, 10.0]
+    away = [80.0, 120.0, 12.0]
+    calib = _calibration(tmp_path / "calibration.toml", {"lever": lever, "ball": ball})
+    train = [_box_session(tmp_path, f"train{i}", i, lever, away) for i in range(2)]
+    test = [_box_session(tmp_path, "test", 5, lever, away)]
+    base = [
+        *TINY,
+        "head=forest",
+        "head.trees=25",
+        "freeze=true",
+        "frame_features=false",
+        "labels.classes=[walk,lever]",
+        "labels.fraction=0.1",
+        *_files("train", train),
+        *_files("test", test),
+        "logger=none",
+        "smoothing.median=0",
+        "smoothing.min_bout=0",
+    ]
+    with pytest.raises(ValueError, match="needs frame_features=true or lock-box context"):
+        run(_compose([*base, f"output.dir={tmp_path / 'none'}"]))
+    blind = run(_compose([*base, "head.inputs=all", f"output.dir={tmp_path / 'blind'}"]))
+    assert blind["report"]["raw"]["macro_f1"] < 0.8, blind["report"]["raw"]
+    out = tmp_path / "box"
+    res = run(_compose([*base, f"mechanisms.calibration={calib}", f"output.dir={out}"]))
+    assert res["report"]["raw"]["macro_f1"] >= 0.95, res["report"]["raw"]
+    model, meta = load_classifier(out / "classifier.pt")
+    assert meta["mechanisms"]["names"] == ["lever", "ball"]
+    assert meta["mechanisms"]["parts"] == ["nose_tip", "left_front_paw", "right_front_paw"]
+    assert model.encoder.mechanisms.out_dim == 2 * 4
+
+    # a second rig: the lock box 300 mm further along x
+    moved = {"lever": [lever[0] + 300, *lever[1:]], "ball": [ball[0] + 300, *ball[1:]]}
+    far = _box_session(tmp_path, "moved", 6, moved["lever"], [away[0] + 300, *away[1:]])
+    calib2 = _calibration(tmp_path / "calibration2.toml", moved)
+
+    def accuracy(extra, tag):
+        p = run(_compose(["mode=predict", f"checkpoint={out / 'classifier.pt'}",
+                          f"tracks={far[0]}", f"output.dir={tmp_path / tag}", *extra]))  # fmt: skip
+        df = pd.read_csv(p["predictions"])
+        return float(np.mean(df["label_raw"].to_numpy() == np.array(["walk", "lever"])[far[2]]))
+
+    assert accuracy([f"mechanisms.calibration={calib2}"], "p2") >= 0.95
+    assert accuracy([], "p1") < 0.8  # the training rig's positions: wrong for this recording
+    with pytest.raises(ValueError, match=r"no position for mechanism\(s\) \['ball'\]"):
+        accuracy([f"mechanisms.positions={{lever: {moved['lever']}}}"], "p3")
+    with pytest.raises(ValueError, match="trained without lock-box context"):
+        run(_compose(["mode=predict", f"checkpoint={tmp_path / 'blind' / 'classifier.pt'}",
+                      f"tracks={far[0]}", f"mechanisms.calibration={calib2}",
+                      f"output.dir={tmp_path / 'p4'}"]))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "overrides, match",
+    [
+        (["mechanisms.positions={lever: [1, 2]}"], r"mechanism 'lever' needs \[x, y, z\]"),
+        (["mechanisms.positions={lever: [1, 2, 3]}", "mechanisms.parts=[tail_tip]"],
+         "unknown body part 'tail_tip'"),
+        (["mechanisms.positions={lever: [1, 2, 3]}", "mechanisms.calibration=x.toml"],
+         "not both"),
+        (["mechanisms.calibration=missing.toml"], "file not found: missing.toml"),
+        (["mechanisms.positions={lever: [1, 2, 3]}", "mechanisms.scale=0"], "scale must be > 0"),
+    ],
+)  # fmt: skip
+def test_mechanism_config_errors(overrides, match):
+    from deformnet.body import BodyModel
+    from deformnet.classify import mechanism_setup
+
+    cfg = _compose(overrides)
+    with pytest.raises(ValueError, match=match):
+        mechanism_setup(cfg, BodyModel.from_config(cfg.body))
+
+
+def test_mechanism_setup_sources(tmp_path):
+    """positions=sim: the simulator's lock box; a calibration without the table is named."""
+    from deformnet.body import BodyModel
+    from deformnet.classify import mechanism_setup
+    from deformnet.sim import MECHANISMS, simulate
+
+    cfg = _compose(["mechanisms.positions=sim", "mechanisms.parts=[snout]"])
+    body = BodyModel.from_config(cfg.body)
+    m = mechanism_setup(cfg, body)
+    data = simulate(cfg, num_frames=30, seed=0, body=body)
+    assert m["names"] == list(MECHANISMS) and m["parts"] == ["nose_tip"]
+    np.testing.assert_allclose(m["positions"], data.mechanism_positions)
+    bad = tmp_path / "calibration.toml"
+    bad.write_text("[cam_0]\nname = 'a'\n")
+    with pytest.raises(ValueError, match=r"calibration.toml: no \[metadata.mechanisms\] table"):
+        mechanism_setup(_compose([f"mechanisms.calibration={bad}"]), body)
+    assert mechanism_setup(_compose([]), body) is None

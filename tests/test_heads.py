@@ -294,3 +294,62 @@ def test_forest_head_is_scikit_learns_forest_and_reads_only_the_frame_features()
     no_frame = BehaviorClassifier(_encoder("lstm", frame_features=False), fresh)
     with pytest.raises(ValueError, match="no frame features"):
         no_frame.frame_columns()
+
+
+def test_mechanism_features_shape_value_gradient():
+    """MechanismFeatures: each chosen part's distance to each mechanism, then the nearest part
+    per mechanism, / scale; float64 gradcheck; bad input named."""
+    from deformnet.heads import MechanismFeatures
+
+    pos = [[0.0, 0.0, 0.0], [100.0, 0.0, 0.0]]
+    mech = MechanismFeatures(pos, [0, 2], ["lever", "ball"], scale=10.0)
+    assert mech.out_dim == 6
+    pts = torch.zeros(2, 3, 3)
+    pts[0, 0] = torch.tensor([3.0, 4.0, 0.0])  # part 0: 5 mm from lever, ~97 from ball
+    pts[0, 2] = torch.tensor([100.0, 0.0, 2.0])  # part 2: at the ball (2 mm)
+    f = mech(pts)
+    assert f.shape == (2, 6)
+    d_ball0 = float(np.hypot(97.0, 4.0))
+    # [part 0 to lever, part 0 to ball, part 2 to lever, part 2 to ball, nearest to each]
+    want = [0.5, d_ball0 / 10, float(np.hypot(100.0, 2.0)) / 10, 0.2, 0.5, 0.2]
+    torch.testing.assert_close(f[0], torch.tensor(want))
+    x = pts[:1].double().requires_grad_()
+    mech64 = MechanismFeatures(pos, [0, 2], scale=10.0).double()
+    assert torch.autograd.gradcheck(mech64, (x + 0.1,), eps=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="points must be"):
+        mech(pts[0])
+    with pytest.raises(ValueError, match="positions must be"):
+        MechanismFeatures([[0.0, 0.0]], [0])
+    with pytest.raises(ValueError, match="names"):
+        MechanismFeatures(pos, [0], ["lever"])
+
+
+@pytest.mark.parametrize("kind", ["lstm", "transformer"])
+def test_encoder_appends_mechanism_distances_as_frame_features(kind):
+    """The lock-box context comes after the frame features (from the mid frame's points:
+    observed where seen, rigid elsewhere), counts among the frame columns, and moves with the
+    mouse while the canonical encoder outputs do not."""
+    from deformnet.heads import MechanismFeatures
+
+    body = default_mouse()
+    cfg = {**TINY[kind], "num_parts": body.num_parts, "half_window": 2}
+    mech = MechanismFeatures([[150.0, 250.0, 10.0], [200.0, 250.0, 10.0]], [0, 1])
+    enc = WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, None, mech).eval()
+    plain = _encoder(kind)
+    assert enc.out_dim == plain.out_dim + 6
+    rigid, deformed, observed = _windows(3, enc.window)
+    z = enc(rigid, deformed, observed)
+    mid = enc.half_window
+    pts = torch.where(observed[:, mid, :, None], deformed[:, mid], rigid[:, mid])
+    torch.testing.assert_close(z[:, -6:], mech(pts))
+    model = BehaviorClassifier(enc, LinearHead(enc.out_dim * 3, 2), context_frames=(3,))
+    cols = model.frame_columns()
+    E = 2 * enc.net.encode_dim
+    assert all(int(c) % enc.out_dim >= E for c in cols) and cols.numel() == 3 * (enc.out_dim - E)
+    shift = torch.tensor([40.0, 0.0, 0.0])
+    z2 = enc(rigid + shift, deformed + shift, observed)
+    torch.testing.assert_close(z2[:, :E], z[:, :E], atol=1e-4, rtol=1e-4)
+    assert (z2[:, -6:] - z[:, -6:]).abs().max() > 0.1
+    with pytest.raises(ValueError, match="part index"):
+        WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, None,
+                      MechanismFeatures([[0.0, 0.0, 0.0]], [8]))  # fmt: skip
