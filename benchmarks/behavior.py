@@ -28,6 +28,10 @@ one draw moves macro-F1 by several points.
   per-frame features: centroid, body length, heading / elevation of the nose-tail axis, part
   heights, all pairwise part distances, part speeds, each with rolling means and standard
   deviations over 5, 15 and 33 frames.
+``--box``: lock-box context for every method: `deformnet-classify mechanisms.calibration=` (the
+sessions' calibration: each frame's distance of the snout and front paws to each mechanism
+among the frame features, `deformnet.heads.MechanismFeatures`), and for ``rf`` SimBA's ROI
+features (the same distances, with the same rolling statistics).
 Input comparison: ``pretrained`` and ``rf`` at 10% on DLT (gap-filled) vs adjust-track output.
 Test macro-F1 over the test sessions (scikit-learn), raw and with the smoothing (median 9 +
 min bout 5) reported separately.
@@ -45,7 +49,7 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
     .venv/bin/python benchmarks/behavior.py [--frames 3000] [--train 6] [--test 4]
         [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--frame body]
         [--seconds 75]
-        [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf]
+        [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf] [--box]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
 and five L-BFGS fits on all 18000 training frames take about 20 min per method. A run with a
@@ -166,7 +170,10 @@ def run_classifier(
     ckpt: str,
     seconds: int,
     label_seed: int = 0,
+    box: str | None = None,
 ) -> dict:
+    """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
+    context (`mechanisms.calibration`), None: without it."""
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
@@ -177,6 +184,8 @@ def run_classifier(
         ov.append(f"data.{split}_labels={_list(s['labels'] for s in sessions[split])}")
     if source == "dlt":
         ov.append("data.interpolate=true")
+    if box:
+        ov.append(f"mechanisms.calibration={box}")
     if fraction >= 1.0:  # the head's ensemble is for few labels; one MLP on all 18000 frames
         ov.append("head.ensemble=1")  # (five L-BFGS fits on them: about 20 min per method)
     if method in ("scratch", "scratch_frozen"):  # the checkpoint's architecture and frame
@@ -199,8 +208,32 @@ def run_classifier(
     }
 
 
-def window_features(path: Path, parts: list[str], interpolate: bool) -> np.ndarray:
-    """SimBA-style per-frame features (T, F) from a points3d CSV (see the module docstring)."""
+#: the parts whose distances to the mechanisms are SimBA's ROI features (--box)
+ROI_PARTS = ("nose_tip", "left_front_paw", "right_front_paw")
+
+
+def rig_mechanisms(sessions: dict) -> tuple[str, np.ndarray]:
+    """The sessions' lock box: (the first session's calibration.toml, the mechanisms' positions
+    (M, 3) from its [metadata.mechanisms]); every session's must be the same (one rig)."""
+    import tomllib
+
+    pos, first = None, None
+    for s in (x for split in sessions.values() for x in split):
+        meta = tomllib.loads(Path(s["calibration"]).read_text())["metadata"]["mechanisms"]
+        p = np.asarray([meta[m] for m in sorted(meta)], dtype=np.float64)
+        if pos is None:
+            pos, first = p, str(s["calibration"])
+        elif p.shape != pos.shape or not np.allclose(p, pos):
+            raise ValueError(f"{s['calibration']}: its lock box differs from {first}'s")
+    return first, pos
+
+
+def window_features(
+    path: Path, parts: list[str], interpolate: bool, mechanisms: np.ndarray | None = None
+) -> np.ndarray:
+    """SimBA-style per-frame features (T, F) from a points3d CSV (see the module docstring);
+    mechanisms (M, 3): with SimBA's ROI features (the distances of `ROI_PARTS` to each, and
+    the nearest of them per mechanism, mm)."""
     df = pd.read_csv(path)
     P = np.stack([df[[f"{p}_{a}" for a in "xyz"]].to_numpy(np.float64) for p in parts], 1)
     if interpolate:
@@ -230,6 +263,10 @@ def window_features(path: Path, parts: list[str], interpolate: bool) -> np.ndarr
         ],
         1,
     )
+    if mechanisms is not None:
+        roi = P[:, [parts.index(p) for p in ROI_PARTS]]
+        d = np.linalg.norm(roi[:, :, None] - np.asarray(mechanisms)[None, None], axis=-1)
+        base = np.concatenate([base, d.reshape(T, -1), d.min(1)], 1)
     frame = pd.DataFrame(base)
     feats = [base]
     for w in (5, 15, 33):
@@ -239,7 +276,12 @@ def window_features(path: Path, parts: list[str], interpolate: bool) -> np.ndarr
 
 
 def run_rf(
-    sessions: dict, source: str, fraction: float, seed: int = 0, label_seed: int = 0
+    sessions: dict,
+    source: str,
+    fraction: float,
+    seed: int = 0,
+    label_seed: int = 0,
+    mechanisms: np.ndarray | None = None,
 ) -> dict:
     from sklearn.ensemble import RandomForestClassifier
 
@@ -251,7 +293,8 @@ def run_rf(
     t0 = time.perf_counter()
 
     def load(split):
-        X = [window_features(s[source], parts, source == "dlt") for s in sessions[split]]
+        X = [window_features(s[source], parts, source == "dlt", mechanisms)
+             for s in sessions[split]]  # fmt: skip
         y = [np.asarray(s["truth_labels"], np.int64) for s in sessions[split]]
         return X, y
 
@@ -432,6 +475,8 @@ def main(argv: list[str] | None = None) -> dict:
         help="classifiers to run (a subset: part of a run; the 10%% input comparison and the "
         "events always run)",
     )
+    ap.add_argument("--box", action="store_true",
+                    help="lock-box context for every method (ROI features for rf)")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
@@ -464,6 +509,9 @@ def main(argv: list[str] | None = None) -> dict:
         extra["pretrain_seconds"] = round(secs, 1)
     extra["pretrained"] = str(ckpt)
     extra["scratch_overrides"] = scratch_like(ckpt)  # the encoder's frame (up) for scratch
+    box, mech = rig_mechanisms(sessions) if args.box else (None, None)
+    extra["box"] = box
+    tag = "box_" if box else ""  # the classifiers' output folders
 
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:
@@ -475,9 +523,9 @@ def main(argv: list[str] | None = None) -> dict:
         for method in [m for m in methods if m != "rf"]:
             runs = [
                 run_classifier(
-                    work / f"cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
-                    else work / f"cls_track_{method}_{key}",
-                    sessions, "track", frac, method, ckpt, args.seconds, label_seed=d,
+                    work / f"{tag}cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
+                    else work / f"{tag}cls_track_{method}_{key}",
+                    sessions, "track", frac, method, ckpt, args.seconds, label_seed=d, box=box,
                 )
                 for d in draws
             ]  # fmt: skip
@@ -485,17 +533,17 @@ def main(argv: list[str] | None = None) -> dict:
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
         if "rf" in methods:
             results[key]["rf"] = averaged(
-                [run_rf(sessions, "track", frac, label_seed=d) for d in draws]
+                [run_rf(sessions, "track", frac, label_seed=d, mechanisms=mech) for d in draws]
             )
             log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
     r10 = dict(results.get("0.1") or {})  # what a partial run did not measure, run here
     if "pretrained" not in r10:
         r10["pretrained"] = run_classifier(
-            work / "cls_track_pretrained_0.1", sessions, "track", 0.1, "pretrained", ckpt,
-            args.seconds,
+            work / f"{tag}cls_track_pretrained_0.1", sessions, "track", 0.1, "pretrained", ckpt,
+            args.seconds, box=box,
         )  # fmt: skip
     if "rf" not in r10:
-        r10["rf"] = run_rf(sessions, "track", 0.1)
+        r10["rf"] = run_rf(sessions, "track", 0.1, mechanisms=mech)
     inputs = {
         "track": {
             "pretrained": r10["pretrained"]["macro_f1"],
@@ -503,15 +551,16 @@ def main(argv: list[str] | None = None) -> dict:
         },
         "dlt": {
             "pretrained": run_classifier(
-                work / "cls_dlt_pretrained_0.1",
+                work / f"{tag}cls_dlt_pretrained_0.1",
                 sessions,
                 "dlt",
                 0.1,
                 "pretrained",
                 ckpt,
                 args.seconds,
+                box=box,
             )["macro_f1"],  # fmt: skip
-            "rf": run_rf(sessions, "dlt", 0.1)["macro_f1"],
+            "rf": run_rf(sessions, "dlt", 0.1, mechanisms=mech)["macro_f1"],
         },
     }
     all_sessions = [s for split in ("train", "val", "test") for s in sessions[split]]

@@ -32,10 +32,14 @@ features plus the first K principal components of that encoder's outputs (PCA fi
 training frame, labelled or not), so the encoder can add to the frame features without
 outnumbering them; against forest_frame it says whether the encoder adds anything, against the
 random encoder's whether pretraining does. Per-class F1 at 1% labels is printed too.
+``--box``: every classifier with the lock-box context (`mechanisms.calibration`: the distance
+of the snout and front paws to each mechanism among the frame features) and the random forest
+with the same distances as SimBA's ROI features (`benchmarks/behavior.py --box`).
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
         [--heading CKPT] [--forecast CKPT] [--pretrain-seconds 240] [--draws 3]
         [--encoders pretrained,contrast,random,heading,random_heading,forecast] [--pca 16]
+        [--box]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_probe.json.
@@ -52,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from behavior import ROOT, SEEDS, _round, make_session, pretrain, run_rf
+from behavior import ROOT, SEEDS, _round, make_session, pretrain, rig_mechanisms, run_rf
 from common import emit, start, subset
 
 from deformnet.confutil import compose, to_plain
@@ -67,19 +71,25 @@ FORECAST = [*HEADING, "forecast.weight=1.0"]  # + the forecasting term (conf/tra
 
 def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, object]:
     """Classifier features of every train / test frame for one encoder ("random" or a
-    deformnet-train checkpoint; overrides: deformnet-classify's, for the random one), with the
-    classifier (its default head, untrained)."""
+    deformnet-train checkpoint; overrides: deformnet-classify's), with the classifier (its
+    default head, untrained)."""
     from deformnet.behavior_labels import Session, read_labels, read_tracks
-    from deformnet.classify import SessionBank, _build, _encoder_config, context_features
+    from deformnet.classify import (
+        SessionBank,
+        _build,
+        _encoder_config,
+        context_features,
+        mechanism_setup,
+    )
     from deformnet.confutil import to_plain
 
-    cfg = compose("classify", list(overrides) if spec == "random" else [f"pretrained={spec}"])
+    cfg = compose("classify", [*overrides, *([] if spec == "random" else [f"pretrained={spec}"])])
     classes = [str(c) for c in cfg.labels.classes]
     net_cfg, body, hw, state, up = _encoder_config(cfg, classes)
     torch.manual_seed(0)
     model = _build(
         net_cfg, body, hw, dict(to_plain(cfg.head)), bool(cfg.frame_features), len(classes),
-        dict(to_plain(cfg.context)), up,
+        dict(to_plain(cfg.context)), up, mechanism_setup(cfg, body),
     )  # fmt: skip
     if state is not None:
         model.encoder.net.load_state_dict(state)
@@ -236,6 +246,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--pca", type=int, default=16,
                     help="forest_pca_<encoder>: frame features + this many principal "
                          "components of the encoder's outputs (0: skip)")  # fmt: skip
+    ap.add_argument("--box", action="store_true",
+                    help="lock-box context for every classifier (ROI features for rf)")  # fmt: skip
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
@@ -245,7 +257,8 @@ def main(argv: list[str] | None = None) -> dict:
         split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
         for split, n in (("train", args.train), ("test", args.test))
     }
-    extra: dict = {}
+    box, mech = rig_mechanisms(sessions) if args.box else (None, None)
+    extra: dict = {"box": box}
     names = NAMES
     chosen = subset(ap, args.encoders, names, "--encoders")
     ckpts = {"pretrained": args.pretrained, "contrast": args.contrast, "heading": args.heading,
@@ -261,8 +274,9 @@ def main(argv: list[str] | None = None) -> dict:
             m = json.loads((work / f"probe_{name}" / "metrics.json").read_text())["metrics"]
             extra[f"{name}_best_val_rmse_mm"] = m.get("best/val_rmse_mm")
     randoms = {"random": (), "random_heading": HEADING}
-    encoders = {k: (v, ()) for k, v in ckpts.items()}
-    encoders |= {k: ("random", ov) for k, ov in randoms.items() if k in chosen}
+    ctx = [f"mechanisms.calibration={box}"] if box else []
+    encoders = {k: (v, tuple(ctx)) for k, v in ckpts.items()}
+    encoders |= {k: ("random", (*ov, *ctx)) for k, ov in randoms.items() if k in chosen}
     encoders = {k: encoders[k] for k in names if k in encoders}  # the table's order
     plan = [(0.01, d) for d in range(args.draws)] + [(0.1, 0)]
     results: dict = {}
@@ -290,7 +304,10 @@ def main(argv: list[str] | None = None) -> dict:
                 )
     sess_rf = {split: [{**s} for s in sessions[split]] for split in ("train", "test")}
     results["rf"] = {
-        "runs": {f"{f:g}/{d}": run_rf(sess_rf, "track", f, label_seed=d) for f, d in plan}
+        "runs": {
+            f"{f:g}/{d}": run_rf(sess_rf, "track", f, label_seed=d, mechanisms=mech)
+            for f, d in plan
+        }
     }
     table = {}
     for name, r in results.items():
