@@ -258,11 +258,18 @@ def _run(cfg: DictConfig) -> dict:
         )
         fill = ["data.interpolate=true"] if primary == "dlt" else []  # DLT's gaps, filled
         data = [f"data.{k}={v}" for k, v in sessions.items()] + fill
+        box_train, box_here = [], []
+        if bool(cfg.get("behavior_box", True)):  # the lock-box context: where the mouse is
+            first = session_seeds(p, int(cfg.seed))["train"][0]  # relative to each mechanism
+            rig = out / "classify" / "sessions" / str(first) / "scene" / "calibration.toml"
+            box_train = [f"mechanisms.calibration={rig}"]  # the labelled sessions' lock box
+            box_here = [f"mechanisms.calibration={scene / 'calibration.toml'}"]  # the scene's
         ccfg = compose(
             "classify",
             [
                 f"pretrained={ckpt}",
                 *data,
+                *box_train,
                 f"data.steps_per_epoch={int(p.classify_steps_per_epoch)}",
                 f"trainer.max_time={max_time(p.classify_minutes)}",
                 f"trainer.max_epochs={int(p.classify_max_epochs)}",
@@ -283,6 +290,7 @@ def _run(cfg: DictConfig) -> dict:
                 f"checkpoint={res['checkpoint']}",
                 f"tracks={tracks}",
                 *fill,  # DLT: the gaps filled as in training
+                *box_here,
                 f"output.dir={out / 'classify' / 'predict'}",
             ],
         )

@@ -335,6 +335,7 @@ def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
             "frames": rep["raw"]["frames"],
             "training_steps": rep.get("training_steps"),
             "labelled_training_frames": rep.get("labelled_training_frames"),
+            "mechanisms": rep.get("mechanisms"),
             "checkpoint": rep.get("checkpoint"),
             "report": str(Path(cls["dir"]) / "report.json"),
         },
@@ -699,12 +700,17 @@ def blocks(rep: Mapping) -> list[tuple]:
     beh = rep.get("behavior")
     if beh:
         c, s = beh["classifier"], beh["session"]
+        box = ""
+        if c.get("mechanisms"):
+            m = c["mechanisms"]
+            box = (f" with the lock-box context (the distances of {', '.join(m['parts'])} to "
+                   f"{', '.join(m['names'])} among its frame features)")  # fmt: skip
         b.append(("h", 2, "Behavior"))
         b.append(
             (
                 "p",
                 "`deformnet-classify` fine-tuned the LSTM's encoder on simulated labelled "
-                f"sessions tracked like the `{s['tracks']}` tracks "
+                f"sessions tracked like the `{s['tracks']}` tracks{box} "
                 f"({c['labelled_training_frames']} labelled frames, "
                 f"{c['training_steps']} steps): on its own {c['split']} split macro-F1 "
                 f"{_f(c['macro_f1'], 3)} (smoothed {_f(c['macro_f1_smoothed'], 3)}). Its "

@@ -439,7 +439,7 @@ def mechanism_setup(cfg: DictConfig, body) -> dict | None:
     ``mechanisms`` block: {"names", "positions" (M x [x, y, z] mm), "parts" (the body model's
     names), "scale", "source"}, or None when neither ``mechanisms.positions`` ({name: [x, y,
     z]}, or ``sim``: the simulator's lock box) nor ``mechanisms.calibration`` (a
-    calibration.toml with a [metadata.mechanisms] table, as `adjust-scene` writes and
+    calibration.toml with a [metadata.mechanisms] table, as `adjust-simulate` writes and
     `adjust-events` reads) is set. Errors name the file, mechanism or part."""
     m = cfg.get("mechanisms") or {}
     pos, calib = to_plain(m.get("positions")), m.get("calibration")
@@ -738,6 +738,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "labelled_training_frames": int(idx.size),
         "training_steps": steps,
         "head_solver": solver,
+        "mechanisms": None if mech is None else {k: mech[k] for k in ("names", "parts", "source")},
         "probe": probe_facts or None,
         "best_val_macro_f1": lit.best_score if lit.best_state is not None else None,
         "checkpoint": str(ckpt),

@@ -471,6 +471,7 @@ def test_lock_box_context_tells_apart_what_only_the_place_does(tmp_path):
     out = tmp_path / "box"
     res = run(_compose([*base, f"mechanisms.calibration={calib}", f"output.dir={out}"]))
     assert res["report"]["raw"]["macro_f1"] >= 0.95, res["report"]["raw"]
+    assert res["report"]["mechanisms"]["names"] == ["lever", "ball"]
     model, meta = load_classifier(out / "classifier.pt")
     assert meta["mechanisms"]["names"] == ["lever", "ball"]
     assert meta["mechanisms"]["parts"] == ["nose_tip", "left_front_paw", "right_front_paw"]

@@ -96,6 +96,11 @@ def test_training_behavior_events_numbers_equal_the_run_files(demo):
     assert ccfg.data.source == "files"
     assert list(ccfg.data.train_tracks) == [str(sessions / "0" / "interp" / "points3d.csv")]
     assert list(ccfg.data.test_labels) == [str(sessions / "20000" / "labels.csv")]
+    # with the lock-box context: the labelled sessions' lock box to train, the scene's to predict
+    assert ccfg.mechanisms.calibration == str(sessions / "0" / "scene" / "calibration.toml")
+    pcfg = OmegaConf.load(out / "classify" / "predict" / "config.yaml")
+    assert pcfg.mechanisms.calibration == str(out.resolve() / "scene" / "calibration.toml")
+    assert cls["mechanisms"]["names"] == ["lever", "splint", "ball", "slider"]
     with np.load(sessions / "0" / "scene" / "truth.npz") as z:
         names = [str(b) for b in z["behaviors"]]
         want = [names[i] for i in z["labels"]]
@@ -115,6 +120,7 @@ def test_training_behavior_events_numbers_equal_the_run_files(demo):
     assert rep["events"]["count"] == ev["events"] == len(rep["events"]["list"])
     md = (out / "report.md").read_text()
     assert f"macro-F1 {beh['session']['macro_f1']:.3f}" in md
+    assert "with the lock-box context (the distances of nose_tip, left_front_paw" in md
     assert "Order of first operation: " + (" > ".join(ev["order"]) or "none") in md
     assert set(rep["timings_s"]) >= {"scene", "train_lstm", "train_transformer", "dlt", "net"}
 
