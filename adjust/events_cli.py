@@ -27,6 +27,7 @@ from adjust.events import detect_events, first_operated, operations
 from adjust.io import InputError, load_calibration_metadata, read_points3d
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
+from deformnet.lockbox import mechanism_table
 from deformnet.paths import output_dir
 from deformnet.series import interpolate_gaps
 
@@ -56,18 +57,7 @@ def mechanism_positions(cfg: DictConfig) -> dict[str, list[float]]:
             raise InputError(f"{cfg.calibration}: no [metadata.mechanisms] table; set mechanisms=")
     if not mech:
         raise ValueError("set mechanisms={name: [x, y, z], ...} or calibration=calibration.toml")
-    if not isinstance(mech, dict):
-        raise ValueError(f"{source}: expected a table name -> [x, y, z], got {mech!r}")
-    out = {}
-    for name, pos in mech.items():
-        try:
-            p = np.asarray(pos, dtype=np.float64)
-        except (TypeError, ValueError):
-            p = np.array([])
-        if p.shape != (3,) or not np.isfinite(p).all():
-            raise ValueError(f"{source}: mechanism '{name}' needs [x, y, z], got {pos!r}")
-        out[str(name)] = p.tolist()
-    return out
+    return mechanism_table(mech, source)
 
 
 def run(cfg: DictConfig) -> dict:

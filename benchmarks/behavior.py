@@ -215,12 +215,12 @@ ROI_PARTS = ("nose_tip", "left_front_paw", "right_front_paw")
 def rig_mechanisms(sessions: dict) -> tuple[str, np.ndarray]:
     """The sessions' lock box: (the first session's calibration.toml, the mechanisms' positions
     (M, 3) from its [metadata.mechanisms]); every session's must be the same (one rig)."""
-    import tomllib
+    from deformnet.lockbox import calibration_mechanisms
 
     pos, first = None, None
     for s in (x for split in sessions.values() for x in split):
-        meta = tomllib.loads(Path(s["calibration"]).read_text())["metadata"]["mechanisms"]
-        p = np.asarray([meta[m] for m in sorted(meta)], dtype=np.float64)
+        table = calibration_mechanisms(s["calibration"])
+        p = np.asarray([table[m] for m in sorted(table)], dtype=np.float64)
         if pos is None:
             pos, first = p, str(s["calibration"])
         elif p.shape != pos.shape or not np.allclose(p, pos):

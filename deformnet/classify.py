@@ -60,6 +60,7 @@ from deformnet.behavior_report import (
 )
 from deformnet.confutil import to_plain
 from deformnet.deformation import check_track_up
+from deformnet.lockbox import calibration_mechanisms, mechanism_table
 from deformnet.paths import CONF_DIR, output_dir
 
 log = logging.getLogger(__name__)
@@ -448,18 +449,11 @@ def mechanism_setup(cfg: DictConfig, body) -> dict | None:
     if pos is not None and calib:
         raise ValueError("set mechanisms.positions or mechanisms.calibration, not both")
     if calib:
-        import tomllib
-
-        path = Path(str(calib))
-        if not path.is_file():
-            raise ValueError(f"mechanisms.calibration: file not found: {path}")
         try:
-            meta = tomllib.loads(path.read_text()).get("metadata") or {}
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: not a TOML calibration file ({exc})") from None
-        pos, source = meta.get("mechanisms"), f"{path} [metadata.mechanisms]"
-        if not pos:
-            raise ValueError(f"{path}: no [metadata.mechanisms] table; set mechanisms.positions")
+            pos = calibration_mechanisms(str(calib))
+        except ValueError as exc:
+            raise ValueError(f"mechanisms.calibration: {exc}") from None
+        source = f"{calib} [metadata.mechanisms]"
     elif pos == "sim":
         from deformnet.sim import MECHANISMS, SimConfig
         from deformnet.sim.scene import build_scene
@@ -469,18 +463,8 @@ def mechanism_setup(cfg: DictConfig, body) -> dict | None:
         source = "the simulator's lock box (sim.lockbox)"
     else:
         source = "mechanisms.positions"
-    if not isinstance(pos, dict) or not pos:
-        raise ValueError(f"{source}: expected a table name -> [x, y, z] (mm), got {pos!r}")
-    names, xyz = [], []
-    for name, p in pos.items():
-        try:
-            v = np.asarray(p, dtype=np.float64)
-        except (TypeError, ValueError):
-            v = np.array([])
-        if v.shape != (3,) or not np.isfinite(v).all():
-            raise ValueError(f"{source}: mechanism '{name}' needs [x, y, z] (mm), got {p!r}")
-        names.append(str(name))
-        xyz.append(v.tolist())
+    table = mechanism_table(pos, source)
+    names, xyz = list(table), list(table.values())
     parts = []
     for q in list(to_plain(m.get("parts")) or []):
         r = body.resolve(str(q))
