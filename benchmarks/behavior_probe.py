@@ -35,11 +35,13 @@ random encoder's whether pretraining does. Per-class F1 at 1% labels is printed 
 ``--box``: every classifier with the lock-box context (`mechanisms.calibration`: the distance
 of the snout and front paws to each mechanism among the frame features) and the random forest
 with the same distances as SimBA's ROI features (`benchmarks/behavior.py --box`).
+``--measurements``: every classifier with `measurements=true` (SimBA-style pairwise part
+distances and part speeds among the frame features, `deformnet.heads.pose_measurements`).
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
         [--heading CKPT] [--forecast CKPT] [--pretrain-seconds 240] [--draws 3]
         [--encoders pretrained,contrast,random,heading,random_heading,forecast] [--pca 16]
-        [--box]
+        [--box] [--measurements]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_probe.json.
@@ -90,6 +92,7 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
     model = _build(
         net_cfg, body, hw, dict(to_plain(cfg.head)), bool(cfg.frame_features), len(classes),
         dict(to_plain(cfg.context)), up, mechanism_setup(cfg, body),
+        bool(cfg.get("measurements", False)),
     )  # fmt: skip
     if state is not None:
         model.encoder.net.load_state_dict(state)
@@ -248,6 +251,8 @@ def main(argv: list[str] | None = None) -> dict:
                          "components of the encoder's outputs (0: skip)")  # fmt: skip
     ap.add_argument("--box", action="store_true",
                     help="lock-box context for every classifier (ROI features for rf)")  # fmt: skip
+    ap.add_argument("--measurements", action="store_true",
+                    help="measurements=true for every classifier")  # fmt: skip
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
@@ -275,6 +280,8 @@ def main(argv: list[str] | None = None) -> dict:
             extra[f"{name}_best_val_rmse_mm"] = m.get("best/val_rmse_mm")
     randoms = {"random": (), "random_heading": HEADING}
     ctx = [f"mechanisms.calibration={box}"] if box else []
+    ctx += ["measurements=true"] if args.measurements else []
+    extra["measurements"] = bool(args.measurements)
     encoders = {k: (v, tuple(ctx)) for k, v in ckpts.items()}
     encoders |= {k: ("random", (*ov, *ctx)) for k, ov in randoms.items() if k in chosen}
     encoders = {k: encoders[k] for k in names if k in encoders}  # the table's order

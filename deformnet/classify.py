@@ -322,6 +322,7 @@ def _build(
     context: dict | None = None,
     up=None,
     mechanisms: dict | None = None,
+    measurements: bool = False,
 ):
     from deformnet.deformation import build_net
     from deformnet.heads import BehaviorClassifier, MechanismFeatures, WindowEncoder, build_head
@@ -333,8 +334,9 @@ def _build(
             mechanisms["positions"], parts, mechanisms["names"], float(mechanisms["scale"])
         )
     enc = WindowEncoder(
-        build_net(net_cfg), np.asarray(body.points), half_window, frame_features, up, mech
-    )
+        build_net(net_cfg), np.asarray(body.points), half_window, frame_features, up, mech,
+        measurements,
+    )  # fmt: skip
     ctx = dict(context or {})
     frames = [int(f) for f in (ctx.get("frames") or [])]
     dim = BehaviorClassifier.feature_dim(enc.out_dim, frames)
@@ -375,6 +377,7 @@ def load_classifier(path: str | os.PathLike):
         blob.get("context"),
         blob.get("up"),
         blob.get("mechanisms"),
+        bool(blob.get("measurements", False)),
     )
     model.load_state_dict(blob["state_dict"])
     return model.eval(), {**{k: v for k, v in blob.items() if k != "state_dict"}, "body": body}
@@ -518,16 +521,17 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         )
     ff = bool(cfg.get("frame_features", True))
     mech = mechanism_setup(cfg, body)
-    if forest and head_cfg.get("inputs", "frame") == "frame" and not ff and mech is None:
+    meas = bool(cfg.get("measurements", False))
+    if forest and head_cfg.get("inputs", "frame") == "frame" and not (ff or mech or meas):
         raise ValueError(
-            "head.inputs=frame needs frame_features=true or lock-box context (mechanisms.*), "
-            "or head.inputs=all"
+            "head.inputs=frame needs frame_features=true or lock-box context (mechanisms.*) or "
+            "measurements=true, or head.inputs=all"
         )
     context = dict(to_plain(cfg.get("context")) or {})
     if mech is not None:
         log.info("lock-box context: %s from %s (parts %s)", mech["names"], mech["source"],
                  mech["parts"])  # fmt: skip
-    model = _build(net_cfg, body, hw, head_cfg, ff, C, context, up, mech)
+    model = _build(net_cfg, body, hw, head_cfg, ff, C, context, up, mech, meas)
     if state is not None:
         model.encoder.net.load_state_dict(state)
     span = model.half_window  # the encoder's half window plus the context's
@@ -679,6 +683,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "frame_features": ff,
         "context": {"frames": list(model.context_frames), "stride": model.stride},
         "mechanisms": mech,
+        "measurements": meas,
         "classes": classes,
         "smoothing": smoothing,
         "pretrained": str(cfg.pretrained) if cfg.get("pretrained") else None,

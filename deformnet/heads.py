@@ -40,6 +40,7 @@ from deformnet.tokens import canonicalize
 
 __all__ = [
     "MechanismFeatures",
+    "pose_measurements",
     "WindowEncoder",
     "window_summary",
     "LinearHead",
@@ -121,6 +122,24 @@ class MechanismFeatures(nn.Module):
         return torch.cat((d.flatten(1), d.amin(1)), -1)
 
 
+def pose_measurements(points: Tensor, before: Tensor, scale: float = 50.0) -> Tensor:
+    """Hand-made measurements of a frame, as SimBA computes them: every pairwise distance
+    between the parts (upper triangle, row-major) and each part's speed (its displacement since
+    the frame before), all divided by ``scale`` mm. Rotation- and translation-invariant.
+
+    points, before (B, K, 3) global mm -> (B, K (K - 1) / 2 + K)."""
+    if points.dim() != 3 or points.shape[-1] != 3 or before.shape != points.shape:
+        raise ValueError(
+            f"points and before must be (B, K, 3) alike, got {tuple(points.shape)}, "
+            f"{tuple(before.shape)}"
+        )
+    K = points.shape[1]
+    iu = torch.triu_indices(K, K, 1, device=points.device)
+    dist = torch.linalg.vector_norm(points[:, iu[0]] - points[:, iu[1]], dim=-1)
+    speed = torch.linalg.vector_norm(points - before, dim=-1)
+    return torch.cat((dist, speed), -1) / float(scale)
+
+
 class WindowEncoder(nn.Module):
     """The encoder of a deformation net, as a window -> feature-vector map (see module doc).
 
@@ -129,7 +148,9 @@ class WindowEncoder(nn.Module):
     and the mid frame's offsets (12 + 4 K values; always the body frame's pose and offsets);
     up: the world's up (3,) when the net was trained in the heading frame, else None;
     mechanisms: a `MechanismFeatures` appended after the frame features (from the mid frame's
-    points: observed parts where seen, the rigid model's elsewhere), or None.
+    points: observed parts where seen, the rigid model's elsewhere), or None; measurements:
+    append hand-made measurements of the mid frame's points (SimBA-style: every pairwise part
+    distance and each part's speed since the frame before, `pose_measurements`).
     """
 
     def __init__(
@@ -140,6 +161,7 @@ class WindowEncoder(nn.Module):
         frame_features: bool = True,
         up: Sequence[float] | None = None,
         mechanisms: MechanismFeatures | None = None,
+        measurements: bool = False,
     ) -> None:
         super().__init__()
         from deformnet.deformation import check_up
@@ -159,6 +181,10 @@ class WindowEncoder(nn.Module):
         self.up = check_up(up)
         self.register_buffer("body_points", torch.tensor(np.array(body_points, dtype=np.float32)))
         self.mechanisms = mechanisms
+        self.measurements = bool(measurements)
+        if self.measurements and self.half_window < 1:
+            raise ValueError("measurements need a window of at least 3 frames (half_window >= 1)")
+        K = self.num_parts
         if mechanisms is not None and int(mechanisms.parts.max()) >= self.num_parts:
             raise ValueError(f"mechanism part index {int(mechanisms.parts.max())} >= the net's "
                              f"{self.num_parts} parts")  # fmt: skip
@@ -166,6 +192,7 @@ class WindowEncoder(nn.Module):
             2 * net.encode_dim
             + (12 + 4 * self.num_parts if self.frame_features else 0)
             + (0 if mechanisms is None else mechanisms.out_dim)
+            + (K * (K - 1) // 2 + K if self.measurements else 0)
         )
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
@@ -206,9 +233,12 @@ class WindowEncoder(nn.Module):
                 off.reshape(B, -1),
                 obs_mid.to(off.dtype),
             ]
-        if self.mechanisms is not None:
-            pts = torch.where(observed[:, mid, :, None], deformed[:, mid], rigid[:, mid])
-            out.append(self.mechanisms(pts))
+        if self.mechanisms is not None or self.measurements:
+            pts = torch.where(observed[..., None], deformed, rigid)  # (B, W, K, 3)
+            if self.mechanisms is not None:
+                out.append(self.mechanisms(pts[:, mid]))
+            if self.measurements:
+                out.append(pose_measurements(pts[:, mid], pts[:, mid - 1]))
         return torch.cat(out, -1)
 
 
@@ -450,7 +480,7 @@ class BehaviorClassifier(nn.Module):
         mechanism distances: see `WindowEncoder`) and of their context statistics among the
         classifier's features."""
         enc = self.encoder
-        if not enc.frame_features and enc.mechanisms is None:
+        if not enc.frame_features and enc.mechanisms is None and not enc.measurements:
             raise ValueError("the classifier has no frame features (frame_features=false)")
         i = torch.arange(self.out_dim)
         return i[(i % enc.out_dim) >= 2 * enc.net.encode_dim]

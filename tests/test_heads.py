@@ -353,3 +353,41 @@ def test_encoder_appends_mechanism_distances_as_frame_features(kind):
     with pytest.raises(ValueError, match="part index"):
         WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, None,
                       MechanismFeatures([[0.0, 0.0, 0.0]], [8]))  # fmt: skip
+
+
+def test_pose_measurements_shape_value_gradient_and_encoder():
+    """pose_measurements: pairwise part distances (upper triangle) then part speeds, / scale;
+    invariant to a rigid motion of both frames; float64 gradcheck; WindowEncoder appends them
+    after the frame features (measurements=True) from the mid frame and the one before."""
+    from deformnet.heads import pose_measurements
+    from deformnet.so3 import rodrigues_to_matrix
+
+    g = torch.Generator().manual_seed(3)
+    pts = torch.randn(2, 4, 3, generator=g, dtype=torch.float64) * 10
+    before = pts + torch.randn(2, 4, 3, generator=g, dtype=torch.float64)
+    m = pose_measurements(pts, before, scale=10.0)
+    assert m.shape == (2, 6 + 4)
+    torch.testing.assert_close(m[0, 0], (pts[0, 0] - pts[0, 1]).norm() / 10)
+    torch.testing.assert_close(m[1, 5], (pts[1, 2] - pts[1, 3]).norm() / 10)
+    torch.testing.assert_close(m[1, 6 + 2], (pts[1, 2] - before[1, 2]).norm() / 10)
+    R = rodrigues_to_matrix(torch.tensor([0.3, -0.2, 1.1], dtype=torch.float64))
+    t = torch.tensor([5.0, -7.0, 2.0], dtype=torch.float64)
+    torch.testing.assert_close(pose_measurements(pts @ R.T + t, before @ R.T + t, 10.0), m)
+    x = pts.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda p: pose_measurements(p, before), (x,), eps=1e-6)
+    with pytest.raises(ValueError, match="points and before"):
+        pose_measurements(pts, before[:, :3])
+
+    body = default_mouse()
+    cfg = {**TINY["lstm"], "num_parts": body.num_parts, "half_window": 2}
+    enc = WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, None, None, True)
+    K = body.num_parts
+    assert enc.out_dim == _encoder("lstm").out_dim + K * (K - 1) // 2 + K
+    rigid, deformed, observed = _windows(3, enc.window)
+    z = enc(rigid, deformed, observed)
+    seen = torch.where(observed[..., None], deformed, rigid)
+    torch.testing.assert_close(
+        z[:, -(K * (K - 1) // 2 + K) :], pose_measurements(seen[:, 2], seen[:, 1])
+    )
+    cols = BehaviorClassifier(enc, LinearHead(enc.out_dim, 2)).frame_columns()
+    assert int(cols[-1]) == enc.out_dim - 1
