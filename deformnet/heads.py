@@ -122,22 +122,28 @@ class MechanismFeatures(nn.Module):
         return torch.cat((d.flatten(1), d.amin(1)), -1)
 
 
-def pose_measurements(points: Tensor, before: Tensor, scale: float = 50.0) -> Tensor:
+def pose_measurements(
+    points: Tensor, before: Tensor, scale: float = 50.0, up: Tensor | None = None
+) -> Tensor:
     """Hand-made measurements of a frame, as SimBA computes them: every pairwise distance
-    between the parts (upper triangle, row-major) and each part's speed (its displacement since
-    the frame before), all divided by ``scale`` mm. Rotation- and translation-invariant.
+    between the parts (upper triangle, row-major), each part's speed (its displacement since
+    the frame before) and, given the world's unit ``up`` (3,), each part's height along it, all
+    divided by ``scale`` mm. Without ``up`` rotation- and translation-invariant.
 
-    points, before (B, K, 3) global mm -> (B, K (K - 1) / 2 + K)."""
+    points, before (B, K, 3) global mm -> (B, K (K - 1) / 2 + K (+ K with up))."""
     if points.dim() != 3 or points.shape[-1] != 3 or before.shape != points.shape:
         raise ValueError(
             f"points and before must be (B, K, 3) alike, got {tuple(points.shape)}, "
             f"{tuple(before.shape)}"
         )
+    if up is not None and tuple(up.shape) != (3,):
+        raise ValueError(f"up must be (3,), got {tuple(up.shape)}")
     K = points.shape[1]
     iu = torch.triu_indices(K, K, 1, device=points.device)
     dist = torch.linalg.vector_norm(points[:, iu[0]] - points[:, iu[1]], dim=-1)
     speed = torch.linalg.vector_norm(points - before, dim=-1)
-    return torch.cat((dist, speed), -1) / float(scale)
+    out = [dist, speed] + ([] if up is None else [points @ up.to(points.dtype)])
+    return torch.cat(out, -1) / float(scale)
 
 
 class WindowEncoder(nn.Module):
@@ -150,7 +156,8 @@ class WindowEncoder(nn.Module):
     mechanisms: a `MechanismFeatures` appended after the frame features (from the mid frame's
     points: observed parts where seen, the rigid model's elsewhere), or None; measurements:
     append hand-made measurements of the mid frame's points (SimBA-style: every pairwise part
-    distance and each part's speed since the frame before, `pose_measurements`).
+    distance, each part's speed since the frame before and, when the encoder has an ``up``,
+    each part's height along it: `pose_measurements`).
     """
 
     def __init__(
@@ -192,7 +199,7 @@ class WindowEncoder(nn.Module):
             2 * net.encode_dim
             + (12 + 4 * self.num_parts if self.frame_features else 0)
             + (0 if mechanisms is None else mechanisms.out_dim)
-            + (K * (K - 1) // 2 + K if self.measurements else 0)
+            + ((K * (K - 1) // 2 + K + (0 if self.up is None else K)) if self.measurements else 0)
         )
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
@@ -238,7 +245,7 @@ class WindowEncoder(nn.Module):
             if self.mechanisms is not None:
                 out.append(self.mechanisms(pts[:, mid]))
             if self.measurements:
-                out.append(pose_measurements(pts[:, mid], pts[:, mid - 1]))
+                out.append(pose_measurements(pts[:, mid], pts[:, mid - 1], up=up))
         return torch.cat(out, -1)
 
 

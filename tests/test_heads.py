@@ -377,6 +377,11 @@ def test_pose_measurements_shape_value_gradient_and_encoder():
     assert torch.autograd.gradcheck(lambda p: pose_measurements(p, before), (x,), eps=1e-6)
     with pytest.raises(ValueError, match="points and before"):
         pose_measurements(pts, before[:, :3])
+    up = torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64)
+    h = pose_measurements(pts, before, 10.0, up)
+    assert h.shape == (2, 6 + 4 + 4)
+    torch.testing.assert_close(h[:, :10], m)
+    torch.testing.assert_close(h[:, 10:], (pts @ up) / 10)
 
     body = default_mouse()
     cfg = {**TINY["lstm"], "num_parts": body.num_parts, "half_window": 2}
@@ -391,3 +396,8 @@ def test_pose_measurements_shape_value_gradient_and_encoder():
     )
     cols = BehaviorClassifier(enc, LinearHead(enc.out_dim, 2)).frame_columns()
     assert int(cols[-1]) == enc.out_dim - 1
+    # a heading-frame encoder (it has the world's up) also appends the parts' heights
+    up_enc = WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, [0, 0, 1], None, True)
+    assert up_enc.out_dim == enc.out_dim + K
+    zu = up_enc(rigid, deformed, observed)
+    torch.testing.assert_close(zu[:, -K:], seen[:, 2, :, 2] / 50.0)
