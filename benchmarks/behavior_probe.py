@@ -78,22 +78,16 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
     from deformnet.behavior_labels import Session, read_labels, read_tracks
     from deformnet.classify import (
         SessionBank,
-        _build,
         _encoder_config,
+        classifier_from_config,
         context_features,
-        mechanism_setup,
     )
-    from deformnet.confutil import to_plain
 
     cfg = compose("classify", [*overrides, *([] if spec == "random" else [f"pretrained={spec}"])])
     classes = [str(c) for c in cfg.labels.classes]
     net_cfg, body, hw, state, up = _encoder_config(cfg, classes)
     torch.manual_seed(0)
-    model = _build(
-        net_cfg, body, hw, dict(to_plain(cfg.head)), bool(cfg.frame_features), len(classes),
-        dict(to_plain(cfg.context)), up, mechanism_setup(cfg, body),
-        bool(cfg.get("measurements", False)),
-    )  # fmt: skip
+    model, _ = classifier_from_config(cfg, net_cfg, body, hw, len(classes), up)
     if state is not None:
         model.encoder.net.load_state_dict(state)
     model.eval()

@@ -484,6 +484,26 @@ def mechanism_setup(cfg: DictConfig, body) -> dict | None:
     return {"names": names, "positions": xyz, "parts": parts, "scale": scale, "source": source}
 
 
+def classifier_from_config(cfg: DictConfig, net_cfg: dict, body, half_window: int, C: int, up):
+    """The classifier the config describes (its head, frame features, lock-box context,
+    measurements and temporal context) on an encoder config (`_encoder_config`'s), untrained;
+    (model, its `mechanism_setup` or None). A forest head that reads only frame features needs
+    some (ValueError)."""
+    head_cfg = dict(to_plain(cfg.head))
+    ff = bool(cfg.get("frame_features", True))
+    mech = mechanism_setup(cfg, body)
+    meas = bool(cfg.get("measurements", False))
+    frame_only = head_cfg.get("name") == "forest" and head_cfg.get("inputs", "frame") == "frame"
+    if frame_only and not (ff or mech or meas):
+        raise ValueError(
+            "head.inputs=frame needs frame_features=true or lock-box context (mechanisms.*) or "
+            "measurements=true, or head.inputs=all"
+        )
+    context = dict(to_plain(cfg.get("context")) or {})
+    model = _build(net_cfg, body, half_window, head_cfg, ff, C, context, up, mech, meas)
+    return model, mech
+
+
 def _encoder_config(cfg: DictConfig, classes):
     """(net config, body, half_window, pretrained-net state or None, world up or None: the
     canonical frame the encoder reads, `deformnet.tokens.canonicalize`)."""
@@ -519,19 +539,11 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         raise ValueError(
             "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
         )
-    ff = bool(cfg.get("frame_features", True))
-    mech = mechanism_setup(cfg, body)
-    meas = bool(cfg.get("measurements", False))
-    if forest and head_cfg.get("inputs", "frame") == "frame" and not (ff or mech or meas):
-        raise ValueError(
-            "head.inputs=frame needs frame_features=true or lock-box context (mechanisms.*) or "
-            "measurements=true, or head.inputs=all"
-        )
-    context = dict(to_plain(cfg.get("context")) or {})
+    model, mech = classifier_from_config(cfg, net_cfg, body, hw, C, up)
+    ff, meas = model.encoder.frame_features, model.encoder.measurements
     if mech is not None:
         log.info("lock-box context: %s from %s (parts %s)", mech["names"], mech["source"],
                  mech["parts"])  # fmt: skip
-    model = _build(net_cfg, body, hw, head_cfg, ff, C, context, up, mech, meas)
     if state is not None:
         model.encoder.net.load_state_dict(state)
     span = model.half_window  # the encoder's half window plus the context's
@@ -782,10 +794,9 @@ def _predict_mechanisms(cfg: DictConfig, model, meta: dict) -> None:
     if missing:
         raise ValueError(f"{here['source']}: no position for mechanism(s) {missing} "
                          f"(the classifier's: {trained['names']})")  # fmt: skip
-    mech = model.encoder.mechanisms
-    mech.positions.copy_(torch.tensor([pos[n] for n in trained["names"]], dtype=torch.float32))
-    meta["mechanisms"] = {**trained, "positions": [pos[n] for n in trained["names"]],
-                          "source": here["source"]}  # fmt: skip
+    xyz = [pos[n] for n in trained["names"]]  # in the classifier's order
+    model.encoder.mechanisms.positions.copy_(torch.tensor(xyz, dtype=torch.float32))
+    meta["mechanisms"] = {**trained, "positions": xyz, "source": here["source"]}
     log.info("lock-box context: mechanism positions from %s", here["source"])
 
 

@@ -224,6 +224,10 @@ class WindowEncoder(nn.Module):
             self.net, self.body_points, rigid, deformed, observed, up
         )
         mid, net, B = self.half_window, self.net, summary.shape[0]
+
+        def seen(i: int) -> Tensor:  # frame i's points: observed where seen, else rigid (B, K, 3)
+            return torch.where(observed[:, i, :, None], deformed[:, i], rigid[:, i])
+
         out = [summary]
         if self.frame_features:
             obs_mid = observed[:, mid]
@@ -231,8 +235,7 @@ class WindowEncoder(nn.Module):
                 off = deformed_c[:, mid] - rigid_c[:, mid]
             else:  # the frame features are the body frame's, whatever frame the net reads
                 R, t = kabsch(rigid[:, mid], self.body_points.to(rigid.dtype))
-                d_mid = torch.where(obs_mid[..., None], deformed[:, mid], rigid[:, mid])
-                off = (d_mid - rigid[:, mid]) @ R
+                off = (seen(mid) - rigid[:, mid]) @ R
             off = torch.where(obs_mid[..., None], off / net.offset_scale, torch.zeros_like(off))
             out += [
                 R.reshape(B, 9),
@@ -240,12 +243,10 @@ class WindowEncoder(nn.Module):
                 off.reshape(B, -1),
                 obs_mid.to(off.dtype),
             ]
-        if self.mechanisms is not None or self.measurements:
-            pts = torch.where(observed[..., None], deformed, rigid)  # (B, W, K, 3)
-            if self.mechanisms is not None:
-                out.append(self.mechanisms(pts[:, mid]))
-            if self.measurements:
-                out.append(pose_measurements(pts[:, mid], pts[:, mid - 1], up=up))
+        if self.mechanisms is not None:
+            out.append(self.mechanisms(seen(mid)))
+        if self.measurements:
+            out.append(pose_measurements(seen(mid), seen(mid - 1), up=up))
         return torch.cat(out, -1)
 
 
@@ -484,8 +485,8 @@ class BehaviorClassifier(nn.Module):
 
     def frame_columns(self) -> Tensor:
         """Indices (F,) of the frame features (the pose, the offsets, the observed flags, the
-        mechanism distances: see `WindowEncoder`) and of their context statistics among the
-        classifier's features."""
+        mechanism distances, the measurements: see `WindowEncoder`) and of their context
+        statistics among the classifier's features."""
         enc = self.encoder
         if not enc.frame_features and enc.mechanisms is None and not enc.measurements:
             raise ValueError("the classifier has no frame features (frame_features=false)")
