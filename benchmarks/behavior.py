@@ -32,6 +32,9 @@ one draw moves macro-F1 by several points.
 sessions' calibration: each frame's distance of the snout and front paws to each mechanism
 among the frame features, `deformnet.heads.MechanismFeatures`), and for ``rf`` SimBA's ROI
 features (the same distances, with the same rolling statistics).
+``--measurements``: every `deformnet-classify` method with `measurements=true` (SimBA-style
+pairwise part distances, part speeds and part heights among the frame features, the measures
+``rf`` has; `deformnet.heads.pose_measurements`).
 Input comparison: ``pretrained`` and ``rf`` at 10% on DLT (gap-filled) vs adjust-track output.
 Test macro-F1 over the test sessions (scikit-learn), raw and with the smoothing (median 9 +
 min bout 5) reported separately.
@@ -50,6 +53,7 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
         [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--frame body]
         [--seconds 75]
         [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf] [--box]
+        [--measurements]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
 and five L-BFGS fits on all 18000 training frames take about 20 min per method. A run with a
@@ -171,9 +175,10 @@ def run_classifier(
     seconds: int,
     label_seed: int = 0,
     box: str | None = None,
+    measurements: bool = False,
 ) -> dict:
     """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
-    context (`mechanisms.calibration`), None: without it."""
+    context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`."""
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
@@ -186,6 +191,8 @@ def run_classifier(
         ov.append("data.interpolate=true")
     if box:
         ov.append(f"mechanisms.calibration={box}")
+    if measurements:
+        ov.append("measurements=true")
     if fraction >= 1.0:  # the head's ensemble is for few labels; one MLP on all 18000 frames
         ov.append("head.ensemble=1")  # (five L-BFGS fits on them: about 20 min per method)
     if method in ("scratch", "scratch_frozen"):  # the checkpoint's architecture and frame
@@ -477,6 +484,8 @@ def main(argv: list[str] | None = None) -> dict:
     )
     ap.add_argument("--box", action="store_true",
                     help="lock-box context for every method (ROI features for rf)")  # fmt: skip
+    ap.add_argument("--measurements", action="store_true",
+                    help="measurements=true for every deformnet-classify method")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
@@ -511,7 +520,8 @@ def main(argv: list[str] | None = None) -> dict:
     extra["scratch_overrides"] = scratch_like(ckpt)  # the encoder's frame (up) for scratch
     box, mech = rig_mechanisms(sessions) if args.box else (None, None)
     extra["box"] = box
-    tag = "box_" if box else ""  # the classifiers' output folders
+    extra["measurements"] = bool(args.measurements)
+    tag = ("box_" if box else "") + ("meas_" if args.measurements else "")  # output folders
 
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:
@@ -526,6 +536,7 @@ def main(argv: list[str] | None = None) -> dict:
                     work / f"{tag}cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
                     else work / f"{tag}cls_track_{method}_{key}",
                     sessions, "track", frac, method, ckpt, args.seconds, label_seed=d, box=box,
+                    measurements=args.measurements,
                 )
                 for d in draws
             ]  # fmt: skip
@@ -540,7 +551,7 @@ def main(argv: list[str] | None = None) -> dict:
     if "pretrained" not in r10:
         r10["pretrained"] = run_classifier(
             work / f"{tag}cls_track_pretrained_0.1", sessions, "track", 0.1, "pretrained", ckpt,
-            args.seconds, box=box,
+            args.seconds, box=box, measurements=args.measurements,
         )  # fmt: skip
     if "rf" not in r10:
         r10["rf"] = run_rf(sessions, "track", 0.1, mechanisms=mech)
@@ -559,6 +570,7 @@ def main(argv: list[str] | None = None) -> dict:
                 ckpt,
                 args.seconds,
                 box=box,
+                measurements=args.measurements,
             )["macro_f1"],  # fmt: skip
             "rf": run_rf(sessions, "dlt", 0.1, mechanisms=mech)["macro_f1"],
         },

@@ -323,6 +323,7 @@ def _build(
     up=None,
     mechanisms: dict | None = None,
     measurements: bool = False,
+    heights_up=None,
 ):
     from deformnet.deformation import build_net
     from deformnet.heads import BehaviorClassifier, MechanismFeatures, WindowEncoder, build_head
@@ -335,7 +336,7 @@ def _build(
         )
     enc = WindowEncoder(
         build_net(net_cfg), np.asarray(body.points), half_window, frame_features, up, mech,
-        measurements,
+        measurements, heights_up,
     )  # fmt: skip
     ctx = dict(context or {})
     frames = [int(f) for f in (ctx.get("frames") or [])]
@@ -378,6 +379,7 @@ def load_classifier(path: str | os.PathLike):
         blob.get("up"),
         blob.get("mechanisms"),
         bool(blob.get("measurements", False)),
+        blob.get("heights_up"),
     )
     model.load_state_dict(blob["state_dict"])
     return model.eval(), {**{k: v for k, v in blob.items() if k != "state_dict"}, "body": body}
@@ -493,6 +495,10 @@ def classifier_from_config(cfg: DictConfig, net_cfg: dict, body, half_window: in
     ff = bool(cfg.get("frame_features", True))
     mech = mechanism_setup(cfg, body)
     meas = bool(cfg.get("measurements", False))
+    heights_up = to_plain(cfg.get("heights_up"))
+    if heights_up is not None and not meas:
+        raise ValueError("heights_up is the up of the measurements' part heights: set "
+                         "measurements=true too (or leave heights_up unset)")  # fmt: skip
     frame_only = head_cfg.get("name") == "forest" and head_cfg.get("inputs", "frame") == "frame"
     if frame_only and not (ff or mech or meas):
         raise ValueError(
@@ -500,7 +506,7 @@ def classifier_from_config(cfg: DictConfig, net_cfg: dict, body, half_window: in
             "measurements=true, or head.inputs=all"
         )
     context = dict(to_plain(cfg.get("context")) or {})
-    model = _build(net_cfg, body, half_window, head_cfg, ff, C, context, up, mech, meas)
+    model = _build(net_cfg, body, half_window, head_cfg, ff, C, context, up, mech, meas, heights_up)
     return model, mech
 
 
@@ -551,8 +557,11 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     train = _sessions(cfg, "train", body, classes)
     val = _sessions(cfg, "val", body, classes)
     test = _sessions(cfg, "test", body, classes)
-    for s in (*train, *val, *test):  # a heading-frame encoder: the tracks' world has its up
-        check_track_up(s.rigid, body.points, up, s.name)
+    hup = model.encoder.heights_up if meas else None
+    for s in (*train, *val, *test):  # a heading-frame encoder (or the heights): the tracks'
+        check_track_up(s.rigid, body.points, up, s.name)  # world has its up
+        if hup is not None and up is None:
+            check_track_up(s.rigid, body.points, hup, s.name)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
@@ -696,6 +705,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "context": {"frames": list(model.context_frames), "stride": model.stride},
         "mechanisms": mech,
         "measurements": meas,
+        "heights_up": None if hup is None else list(hup),
         "classes": classes,
         "smoothing": smoothing,
         "pretrained": str(cfg.pretrained) if cfg.get("pretrained") else None,
@@ -809,7 +819,10 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     classes = list(meta["classes"])
     _predict_mechanisms(cfg, model, meta)
     tr = read_tracks(str(cfg.tracks), meta["body"], interpolate=bool(cfg.data.get("interpolate")))
-    check_track_up(tr["rigid"], meta["body"].points, model.encoder.up, str(cfg.tracks))
+    enc = model.encoder
+    check_track_up(tr["rigid"], meta["body"].points, enc.up, str(cfg.tracks))
+    if enc.measurements and enc.up is None and enc.heights_up is not None:
+        check_track_up(tr["rigid"], meta["body"].points, enc.heights_up, str(cfg.tracks))
     T = len(tr["fnum"])
     s = Session(str(cfg.tracks), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
                 np.full(T, -1))  # fmt: skip

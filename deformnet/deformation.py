@@ -172,7 +172,7 @@ def check_track_up(rigid, body_points, up: Sequence[float] | None, where: str) -
     ok = np.isfinite(rigid).all((1, 2))
     if not ok.any():
         return None
-    R, _ = kabsch(torch.as_tensor(rigid[ok]), torch.as_tensor(np.asarray(body_points, float)))
+    R, _ = kabsch(torch.as_tensor(rigid[ok]), torch.as_tensor(np.array(body_points, float)))
     return check_world_up(R.numpy(), up, where)
 
 

@@ -156,8 +156,10 @@ class WindowEncoder(nn.Module):
     mechanisms: a `MechanismFeatures` appended after the frame features (from the mid frame's
     points: observed parts where seen, the rigid model's elsewhere), or None; measurements:
     append hand-made measurements of the mid frame's points (SimBA-style: every pairwise part
-    distance, each part's speed since the frame before and, when the encoder has an ``up``,
-    each part's height along it: `pose_measurements`).
+    distance, each part's speed since the frame before and, given the world's up, each part's
+    height along it: `pose_measurements`); heights_up: that up (3,) for an encoder without one
+    (a body-frame net), None: the encoder's ``up`` (none: no heights); a heights_up that
+    differs from the encoder's up is a ValueError.
     """
 
     def __init__(
@@ -169,6 +171,7 @@ class WindowEncoder(nn.Module):
         up: Sequence[float] | None = None,
         mechanisms: MechanismFeatures | None = None,
         measurements: bool = False,
+        heights_up: Sequence[float] | None = None,
     ) -> None:
         super().__init__()
         from deformnet.deformation import check_up
@@ -191,6 +194,14 @@ class WindowEncoder(nn.Module):
         self.measurements = bool(measurements)
         if self.measurements and self.half_window < 1:
             raise ValueError("measurements need a window of at least 3 frames (half_window >= 1)")
+        hup = check_up(heights_up)
+        if hup is not None and self.up is not None and not np.allclose(hup, self.up):
+            raise ValueError(
+                f"heights_up {list(hup)} differs from the encoder's up {list(self.up)} (the "
+                "heading-frame net's; leave heights_up unset)"
+            )
+        #: the world's up the measurements' part heights are taken along (None: no heights)
+        self.heights_up = hup if hup is not None else self.up
         K = self.num_parts
         if mechanisms is not None and int(mechanisms.parts.max()) >= self.num_parts:
             raise ValueError(f"mechanism part index {int(mechanisms.parts.max())} >= the net's "
@@ -199,7 +210,11 @@ class WindowEncoder(nn.Module):
             2 * net.encode_dim
             + (12 + 4 * self.num_parts if self.frame_features else 0)
             + (0 if mechanisms is None else mechanisms.out_dim)
-            + ((K * (K - 1) // 2 + K + (0 if self.up is None else K)) if self.measurements else 0)
+            + (
+                (K * (K - 1) // 2 + K + (0 if self.heights_up is None else K))
+                if self.measurements
+                else 0
+            )
         )
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
@@ -246,7 +261,8 @@ class WindowEncoder(nn.Module):
         if self.mechanisms is not None:
             out.append(self.mechanisms(seen(mid)))
         if self.measurements:
-            out.append(pose_measurements(seen(mid), seen(mid - 1), up=up))
+            hup = None if self.heights_up is None else rigid.new_tensor(self.heights_up)
+            out.append(pose_measurements(seen(mid), seen(mid - 1), up=hup))
         return torch.cat(out, -1)
 
 

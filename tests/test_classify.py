@@ -19,9 +19,12 @@ CLASSES = ["walk", "rear"]
 TINY = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
 
 
-def _toy_session(tmp_path, name: str, seed: int, T: int = 360, bout: int = 40, world=None):
+def _toy_session(
+    tmp_path, name: str, seed: int, T: int = 360, bout: int = 40, world=None, still=False
+):
     """Alternating bouts: 'walk' (flat, moving) and 'rear' (standing, pitched up 45 deg).
-    world: a rotation vector turning the whole scene (a world whose up is not z)."""
+    world: a rotation vector turning the whole scene (a world whose up is not z); still: the
+    'walk' bouts do not move either (only the pitch, i.e. the parts' heights, tells them apart)."""
     rng = np.random.default_rng(seed)
     body = default_mouse()
     lab = (np.arange(T) // bout + seed) % 2
@@ -30,7 +33,7 @@ def _toy_session(tmp_path, name: str, seed: int, T: int = 360, bout: int = 40, w
     poses[:, 0] = np.where(lab == 1, 0.8, 0.0) * np.cos(yaw)  # pitch about the body x axis
     poses[:, 1] = np.where(lab == 1, 0.8, 0.0) * np.sin(yaw)
     poses[:, 2] = yaw
-    step = np.where(lab == 0, 2.0, 0.0)
+    step = np.where(lab == 0, 0.0 if still else 2.0, 0.0)
     poses[:, 3] = 150 + np.cumsum(step * -np.sin(yaw)) % 100
     poses[:, 4] = 150 + np.cumsum(step * np.cos(yaw)) % 100
     poses[:, 5] = 10.0
@@ -536,6 +539,45 @@ def test_mechanism_setup_sources(tmp_path):
     with pytest.raises(ValueError, match=r"calibration.toml: no \[metadata.mechanisms\] table"):
         mechanism_setup(_compose([f"mechanisms.calibration={bad}"]), body)
     assert mechanism_setup(_compose([]), body) is None
+
+
+def test_heights_up_gives_a_body_frame_encoder_the_part_heights(tmp_path):
+    """A toy that only the parts' heights solve (a still mouse, flat or pitched up; a rigid body
+    has constant part distances): a body-frame encoder's measurements with heights_up reach a
+    high F1, without it (no heights) about chance; heights_up is stored and mode=predict uses it
+    (and checks the recording's world against it); heights_up without measurements is an error."""
+    from deformnet.classify import load_classifier, run
+
+    train = [_toy_session(tmp_path, f"train{i}", i, still=True) for i in range(2)]
+    test = [_toy_session(tmp_path, "test", 8, still=True)]
+
+    def fit(extra, out):
+        return run(
+            _compose(
+                [*TINY, "head=forest", "head.trees=25", "freeze=true", "frame_features=false",
+                 "measurements=true", f"labels.classes=[{','.join(CLASSES)}]",
+                 "labels.fraction=0.25", "context.frames=[]", *_files("train", train),
+                 *_files("test", test), "logger=none", "smoothing.median=0",
+                 "smoothing.min_bout=0", f"output.dir={out}", *extra]
+            )
+        )["report"]["raw"]["macro_f1"]  # fmt: skip
+
+    out = tmp_path / "heights"
+    assert fit(["heights_up=[0,0,2]"], out) >= 0.95
+    assert fit([], tmp_path / "no_heights") <= 0.7  # distances constant, speeds only noise
+    model, meta = load_classifier(out / "classifier.pt")
+    assert meta["heights_up"] == [0.0, 0.0, 1.0] and model.encoder.up is None
+    p = run(_compose(["mode=predict", f"checkpoint={out / 'classifier.pt'}",
+                      f"tracks={test[0][0]}", f"output.dir={tmp_path / 'pred'}"]))  # fmt: skip
+    df = pd.read_csv(p["predictions"])
+    assert np.mean(df["label_raw"].to_numpy() == np.asarray(CLASSES)[test[0][2]]) >= 0.95
+    sideways = _toy_session(tmp_path, "sideways", 9, still=True, world=[np.pi / 2, 0.0, 0.0])
+    with pytest.raises(ValueError, match="sideways.csv"):
+        run(_compose(["mode=predict", f"checkpoint={out / 'classifier.pt'}",
+                      f"tracks={sideways[0]}", f"output.dir={tmp_path / 'pred2'}"]))  # fmt: skip
+    with pytest.raises(ValueError, match="heights_up .*measurements=true"):
+        run(_compose([*TINY, "heights_up=[0,0,1]", *_files("train", train), "logger=none",
+                      f"output.dir={tmp_path / 'bad'}"]))  # fmt: skip
 
 
 def test_measurements_alone_feed_a_forest_and_predict_round_trips(tmp_path):

@@ -401,3 +401,11 @@ def test_pose_measurements_shape_value_gradient_and_encoder():
     assert up_enc.out_dim == enc.out_dim + K
     zu = up_enc(rigid, deformed, observed)
     torch.testing.assert_close(zu[:, -K:], seen[:, 2, :, 2] / 50.0)
+    # a body-frame encoder given the world's up for the heights: the same heights
+    h_enc = WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, None, None, True,
+                          heights_up=[0, 0, 3])  # fmt: skip
+    assert h_enc.out_dim == up_enc.out_dim and h_enc.up is None
+    torch.testing.assert_close(h_enc(rigid, deformed, observed)[:, -K:], zu[:, -K:])
+    with pytest.raises(ValueError, match="heights_up .* differs from the encoder's up"):
+        WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, [0, 0, 1], None, True,
+                      heights_up=[0, 1, 0])  # fmt: skip
