@@ -94,18 +94,22 @@ METHODS = ("pretrained", "frozen", "scratch", "scratch_frozen", "forest", "rf")
 # --------------------------------------------------------------------------------------------
 # sessions
 # --------------------------------------------------------------------------------------------
-def make_session(work: Path, seed: int, frames: int) -> dict:
-    """Scene, adjust-track and DLT outputs and a labels CSV for one seed (cached in `work`)."""
+def make_session(work: Path, seed: int, frames: int, sim: tuple[str, ...] = ()) -> dict:
+    """Scene, adjust-track and DLT outputs and a labels CSV for one seed (cached in `work`);
+    sim: `adjust-simulate` overrides (e.g. ("sim=mouse_b", "sim.fps=30"): another mouse), named
+    in the folder."""
     from adjust.scene import write_truth_labels
     from adjust.scene_cli import run as simulate
     from adjust.track import run as track
     from adjust.triangulate_cli import run as triangulate
 
-    d = work / f"session_{seed}_{frames}"
+    tag = "".join(f"{o.split('=')[-1].replace('.', '')}_" for o in sim)  # mouse_b_30_
+    d = work / f"session_{tag}{seed}_{frames}"
     scene = d / "scene"
     t0 = time.perf_counter()
     if not (scene / "truth.npz").exists():
-        simulate(compose("scene", [f"output.dir={scene}", f"num_frames={frames}", f"seed={seed}"]))
+        ov = [f"output.dir={scene}", f"num_frames={frames}", f"seed={seed}", *sim]
+        simulate(compose("scene", ov))
     inputs = [
         f"input.calibration={scene / 'calibration.toml'}",
         f"input.detections={scene / 'detections'}",
