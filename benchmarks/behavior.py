@@ -24,6 +24,10 @@ one draw moves macro-F1 by several points.
   ``rf``) on the classifier's frame features (the tracked pose, the per-part offsets and their
   temporal context; the encoder's outputs are not read): ``rf`` and ``forest`` are the same
   learner on SimBA's features and on the tracked pose's;
+- ``forest_all``: the same forest head on every feature (`head.inputs=all`: the pretrained
+  encoder's outputs with their temporal context besides the frame features);
+  ``scratch_forest_all``: the same on the same architecture's random weights (what pretraining
+  adds to it);
 - ``rf``: a random forest (scikit-learn, balanced class weights) on SimBA-style hand-made
   per-frame features: centroid, body length, heading / elevation of the nose-tail axis, part
   heights, all pairwise part distances, part speeds, each with rolling means and standard
@@ -35,6 +39,12 @@ features (the same distances, with the same rolling statistics).
 ``--measurements``: every `deformnet-classify` method with `measurements=true` (SimBA-style
 pairwise part distances, part speeds and part heights among the frame features, the measures
 ``rf`` has; `deformnet.heads.pose_measurements`).
+``--transfer-sim sim=mouse_b,sim.fps=30``: every classifier (trained on the default mouse's
+sessions) also labels `--test` sessions of another simulated mouse (these `adjust-simulate`
+overrides; seeds 95300..; same rig, lock box and frame rate; tracked the same way), each
+`deformnet-classify` classifier through its `mode=predict` path (`load_classifier`,
+`predict_session`), ``rf`` refitted identically: the macro-F1 on a mouse that neither the labels
+nor the pretraining saw ("transfer").
 Input comparison: ``pretrained`` and ``rf`` at 10% on DLT (gap-filled) vs adjust-track output.
 Test macro-F1 over the test sessions (scikit-learn), raw and with the smoothing (median 9 +
 min bout 5) reported separately.
@@ -53,7 +63,7 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
         [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--frame body]
         [--seconds 75]
         [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf] [--box]
-        [--measurements]
+        [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
 and five L-BFGS fits on all 18000 training frames take about 20 min per method. A run with a
@@ -88,7 +98,17 @@ log = logging.getLogger("benchmarks.behavior")
 ROOT = CONF_DIR.parent
 SEEDS = {"train": 95_000, "val": 95_100, "test": 95_200}
 MECHANISMS = ("lever", "splint", "ball", "slider")
-METHODS = ("pretrained", "frozen", "scratch", "scratch_frozen", "forest", "rf")
+METHODS = (
+    "pretrained",
+    "frozen",
+    "scratch",
+    "scratch_frozen",
+    "forest",
+    "forest_all",
+    "scratch_forest_all",
+    "rf",
+)
+TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's sessions (nothing trains on them)
 
 
 # --------------------------------------------------------------------------------------------
@@ -180,9 +200,11 @@ def run_classifier(
     label_seed: int = 0,
     box: str | None = None,
     measurements: bool = False,
+    transfer: list[dict] | None = None,
 ) -> dict:
     """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
-    context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`."""
+    context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`;
+    transfer: sessions the trained classifier then labels (`transfer_score`)."""
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
@@ -199,23 +221,58 @@ def run_classifier(
         ov.append("measurements=true")
     if fraction >= 1.0:  # the head's ensemble is for few labels; one MLP on all 18000 frames
         ov.append("head.ensemble=1")  # (five L-BFGS fits on them: about 20 min per method)
-    if method in ("scratch", "scratch_frozen"):  # the checkpoint's architecture and frame
-        ov += ["pretrained=null", *scratch_like(ckpt)]
-        if method == "scratch_frozen":
+    if method in ("scratch", "scratch_frozen", "scratch_forest_all"):  # the checkpoint's
+        ov += ["pretrained=null", *scratch_like(ckpt)]  # architecture and frame
+        if method != "scratch":
             ov.append("freeze=true")
-    elif method == "forest":
+        if method == "scratch_forest_all":
+            ov += ["head=forest", "head.inputs=all"]
+    elif method in ("forest", "forest_all"):
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest"]
+        ov += ["head.inputs=all"] if method == "forest_all" else []
     else:
         ov += [f"pretrained={ckpt}", f"freeze={'true' if method == 'frozen' else 'false'}"]
     t0 = time.perf_counter()
     rep = run(compose("classify", ov))["report"]
-    return {
+    out_ = {
         "macro_f1": rep["raw"]["macro_f1"],
         "macro_f1_smoothed": rep["smoothed"]["macro_f1"],
         "f1": {c: v["f1"] for c, v in rep["raw"]["per_class"].items()},
         "labelled_frames": rep["labelled_training_frames"],
         "steps": rep["training_steps"],
         "seconds": round(time.perf_counter() - t0, 1),
+    }
+    if transfer:
+        out_ |= transfer_score(out / "classifier.pt", transfer, source)
+    return out_
+
+
+def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
+    """A trained classifier on other sessions (another mouse), as `deformnet-classify
+    mode=predict` labels them (its own mechanism positions and smoothing): macro-F1 and
+    per-class F1 over all their frames, raw and smoothed ({"transfer_macro_f1", ...})."""
+    from deformnet.behavior_labels import Session, read_tracks
+    from deformnet.behavior_report import evaluate
+    from deformnet.classify import load_classifier, predict_session
+
+    model, meta = load_classifier(ckpt)
+    truth, raw, smoothed = [], [], []
+    for s in sessions:
+        tr = read_tracks(str(s[source]), meta["body"], interpolate=source == "dlt")
+        T = len(tr["fnum"])
+        sess = Session(str(s[source]), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
+                       np.full(T, -1))  # fmt: skip
+        pr = predict_session(model, sess, dict(meta.get("smoothing") or {}))
+        truth.append(np.asarray(s["truth_labels"])[tr["fnum"]])
+        raw.append(pr["raw"])
+        smoothed.append(pr["labels"])
+    y = np.concatenate(truth)
+    classes = list(meta["classes"])
+    ev = evaluate(y, np.concatenate(raw), classes)
+    return {
+        "transfer_macro_f1": ev["macro_f1"],
+        "transfer_macro_f1_smoothed": evaluate(y, np.concatenate(smoothed), classes)["macro_f1"],
+        "transfer_f1": {c: v["f1"] for c, v in ev["per_class"].items()},
     }
 
 
@@ -338,14 +395,19 @@ def averaged(runs: list[dict]) -> dict:
     if len(runs) == 1:
         return runs[0]
     out = dict(runs[0])
-    out["macro_f1"] = float(np.mean([r["macro_f1"] for r in runs]))
-    out["macro_f1_draws"] = [r["macro_f1"] for r in runs]
-    if runs[0].get("macro_f1_smoothed") is not None:
-        out["macro_f1_smoothed"] = float(np.mean([r["macro_f1_smoothed"] for r in runs]))
-    out["f1"] = {
-        c: float(np.nanmean([r["f1"][c] if r["f1"][c] is not None else np.nan for r in runs]))
-        for c in runs[0]["f1"]
-    }
+    for pre in ("", "transfer_"):  # the test sessions' and (--transfer-sim) the other mouse's
+        if f"{pre}macro_f1" not in runs[0]:
+            continue
+        out[f"{pre}macro_f1"] = float(np.mean([r[f"{pre}macro_f1"] for r in runs]))
+        out[f"{pre}macro_f1_draws"] = [r[f"{pre}macro_f1"] for r in runs]
+        if runs[0].get(f"{pre}macro_f1_smoothed") is not None:
+            sm = [r[f"{pre}macro_f1_smoothed"] for r in runs]
+            out[f"{pre}macro_f1_smoothed"] = float(np.mean(sm))
+        out[f"{pre}f1"] = {
+            c: float(np.nanmean([np.nan if r[f"{pre}f1"][c] is None else r[f"{pre}f1"][c]
+                                 for r in runs]))
+            for c in runs[0][f"{pre}f1"]
+        }  # fmt: skip
     out["seconds"] = round(sum(r["seconds"] for r in runs), 1)
     return out
 
@@ -490,6 +552,12 @@ def main(argv: list[str] | None = None) -> dict:
                     help="lock-box context for every method (ROI features for rf)")  # fmt: skip
     ap.add_argument("--measurements", action="store_true",
                     help="measurements=true for every deformnet-classify method")  # fmt: skip
+    ap.add_argument(
+        "--transfer-sim",
+        default=None,
+        help="also label --test sessions of another simulated mouse with every classifier "
+        "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
+    )
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
@@ -506,6 +574,14 @@ def main(argv: list[str] | None = None) -> dict:
         split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
         for split, n in counts.items()
     }
+    transfer = tuple(o.strip() for o in (args.transfer_sim or "").split(",") if o.strip())
+    if transfer:
+        sessions["transfer"] = [make_session(work, TRANSFER_SEED + i, args.frames, transfer)
+                                for i in range(args.test)]  # fmt: skip
+        behaviors = sessions["train"][0]["behaviors"]
+        for s in sessions["transfer"]:
+            if s["behaviors"] != behaviors:
+                raise ValueError(f"{s['dir']}: behaviors {s['behaviors']} != {behaviors}")
     t_sessions = time.perf_counter() - t_start
     extra: dict = {"sessions_seconds": round(t_sessions, 1)}
     ckpt = args.pretrained
@@ -525,6 +601,7 @@ def main(argv: list[str] | None = None) -> dict:
     box, mech = rig_mechanisms(sessions) if args.box else (None, None)
     extra["box"] = box
     extra["measurements"] = bool(args.measurements)
+    extra["transfer_sim"] = list(transfer) or None
     tag = ("box_" if box else "") + ("meas_" if args.measurements else "")  # output folders
 
     results: dict[str, dict] = {}
@@ -540,16 +617,20 @@ def main(argv: list[str] | None = None) -> dict:
                     work / f"{tag}cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
                     else work / f"{tag}cls_track_{method}_{key}",
                     sessions, "track", frac, method, ckpt, args.seconds, label_seed=d, box=box,
-                    measurements=args.measurements,
+                    measurements=args.measurements, transfer=sessions.get("transfer"),
                 )
                 for d in draws
             ]  # fmt: skip
             results[key][method] = averaged(runs)
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
         if "rf" in methods:
-            results[key]["rf"] = averaged(
-                [run_rf(sessions, "track", frac, label_seed=d, mechanisms=mech) for d in draws]
-            )
+            runs = [run_rf(sessions, "track", frac, label_seed=d, mechanisms=mech) for d in draws]
+            if transfer:  # the same forests (same frames and seed) on the other mouse
+                other = {"train": sessions["train"], "test": sessions["transfer"]}
+                for d, r in zip(draws, runs):
+                    t = run_rf(other, "track", frac, label_seed=d, mechanisms=mech)
+                    r |= {"transfer_macro_f1": t["macro_f1"], "transfer_f1": t["f1"]}
+            results[key]["rf"] = averaged(runs)
             log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
     r10 = dict(results.get("0.1") or {})  # what a partial run did not measure, run here
     if "pretrained" not in r10:
@@ -594,6 +675,12 @@ def main(argv: list[str] | None = None) -> dict:
             sm = r[m].get("macro_f1_smoothed")
             cells.append(f"{_fmt(r[m]['macro_f1'])}" + (f" / {_fmt(sm)}" if sm is not None else ""))
         print(f"{key:<8}" + "".join(f"{c:>22}" for c in cells))
+    if transfer:
+        print(f"\nthe other mouse ({', '.join(transfer)}; {args.test} sessions): macro-F1 (raw)")
+        print(f"{'labels':<8}" + "".join(f"{m:>22}" for m in methods))
+        for key, r in results.items():
+            print(f"{key:<8}" + "".join(f"{_fmt(r[m].get('transfer_macro_f1')):>22}"
+                                        for m in methods))  # fmt: skip
     print("\ninput (10% labels)  pretrained      rf")
     for src, r in inputs.items():
         print(f"{src:<18}{_fmt(r['pretrained']):>11}{_fmt(r['rf']):>9}")
@@ -616,6 +703,15 @@ def main(argv: list[str] | None = None) -> dict:
         checks["pretrained_beats_rf_1pct"] = r1["pretrained"]["macro_f1"] > r1["rf"]["macro_f1"]
     if {"forest", "rf"} <= set(r1):
         checks["forest_beats_rf_1pct"] = r1["forest"]["macro_f1"] > r1["rf"]["macro_f1"]
+    for key in [k for k in ("0.01", "0.1") if transfer and k in results]:
+        r, pct = results[key], f"{float(key) * 100:g}pct"
+        for a, b in (("pretrained", "rf"), ("forest_all", "rf"), ("forest_all", "forest"),
+                     ("pretrained", "scratch"), ("frozen", "scratch_frozen"),
+                     ("forest_all", "scratch_forest_all")):  # fmt: skip
+            if {a, b} <= set(r):
+                checks[f"{a}_beats_{b}_transfer_{pct}"] = (
+                    r[a]["transfer_macro_f1"] > r[b]["transfer_macro_f1"]
+                )
     checks |= {
         "events_track_ge_0.9": events["track"]["precision"] >= 0.9
         and events["track"]["recall"] >= 0.9,
@@ -637,7 +733,7 @@ def main(argv: list[str] | None = None) -> dict:
         "setup": {
             "frames": args.frames,
             "sessions": counts,
-            "seeds": SEEDS,
+            "seeds": SEEDS | ({"transfer": TRANSFER_SEED} if transfer else {}),
             "seconds_per_classifier": args.seconds,
             "label_draws_at_1pct": args.label_draws,
             "fractions": args.fractions,

@@ -24,7 +24,9 @@ Beside them, the forest head (`head=forest`, conf/head/forest.yaml: the same ran
 settings as the SimBA-style baseline) on the first encoder's classifier features:
 ``forest_frame`` reads only the frame features (the tracked pose, the per-part offsets and
 their temporal context; no encoder output: the same for every encoder), ``forest_all`` every
-feature. forest_frame vs rf is the same learner on the tracked-pose features vs SimBA's.
+feature; ``forest_all_<encoder>``: the same on each further encoder's features (pretrained vs
+random encoder under the forest). forest_frame vs rf is the same learner on the tracked-pose
+features vs SimBA's.
 ``mlp_frame``: the default head (the same MLP ensemble, L-BFGS) on the frame features alone:
 against an encoder's row, what the encoder's outputs add to that head.
 ``forest_pca_<encoder>`` (``--pca K``, default 16; 0 skips): the same forest on the frame
@@ -37,11 +39,15 @@ of the snout and front paws to each mechanism among the frame features) and the 
 with the same distances as SimBA's ROI features (`benchmarks/behavior.py --box`).
 ``--measurements``: every classifier with `measurements=true` (SimBA-style pairwise part
 distances and part speeds among the frame features, `deformnet.heads.pose_measurements`).
+``--transfer-sim sim=mouse_b,sim.fps=30``: every classifier (fitted on the default mouse's
+sessions as above) is also tested on `--test` sessions of another simulated mouse (these
+`adjust-simulate` overrides, seeds 95300..; same rig, lock box and frame rate, tracked the same
+way): the macro-F1 on a mouse the labels and the pretraining never saw ("transfer" columns).
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
         [--heading CKPT] [--forecast CKPT] [--pretrain-seconds 240] [--draws 3]
         [--encoders pretrained,contrast,random,heading,random_heading,forecast] [--pca 16]
-        [--box] [--measurements]
+        [--box] [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_probe.json.
@@ -69,6 +75,7 @@ CONTRAST = ["contrast.weight=1.0", "contrast.max_shift=12"]
 HEADING = ["up=[0,0,1]"]  # the heading frame (the simulator's z is up)
 NAMES = ("pretrained", "contrast", "random", "heading", "random_heading", "forecast")
 FORECAST = [*HEADING, "forecast.weight=1.0"]  # + the forecasting term (conf/train.yaml)
+TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's test sessions (nothing trains on them)
 
 
 def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, object]:
@@ -92,7 +99,7 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
         model.encoder.net.load_state_dict(state)
     model.eval()
     out = {}
-    for split in ("train", "test"):
+    for split in [k for k in ("train", "test", "transfer") if k in sessions]:
         ss = []
         for s in sessions[split]:
             tr = read_tracks(str(s["track"]), body)
@@ -135,32 +142,41 @@ def probe_pca(feats: dict, built, fraction: float, draw: int, forest: dict, k: i
     from sklearn.decomposition import PCA
     from sklearn.ensemble import RandomForestClassifier
 
-    from deformnet.behavior_report import evaluate
-
     model, _, classes = built
     idx, y, w = labelled(feats, built, fraction, draw)
-    xtr, xte = feats["train"]["features"].double(), feats["test"]["features"].double()
+    xtr = feats["train"]["features"].double()
     mu, sd = xtr.mean(0), xtr.std(0)
     sd = torch.where(sd > 1e-3, sd, torch.ones_like(sd))
-    xtr, xte = ((xtr - mu) / sd).numpy(), ((xte - mu) / sd).numpy()
+    xtr = ((xtr - mu) / sd).numpy()
     fcols = model.frame_columns().numpy()
     ecols = np.setdiff1d(np.arange(xtr.shape[1]), fcols)
     pca = PCA(int(k), random_state=0).fit(xtr[:, ecols])
     ztr = np.hstack([xtr[:, fcols], pca.transform(xtr[:, ecols])])
-    zte = np.hstack([xte[:, fcols], pca.transform(xte[:, ecols])])
     yy = y.numpy()
     rf = RandomForestClassifier(
         n_estimators=int(forest["trees"]), min_samples_leaf=int(forest["min_samples_leaf"]),
         max_features=forest["max_features"], random_state=int(forest["seed"]), n_jobs=1,
         class_weight={int(c): float(w[int(c)]) for c in np.unique(yy)},
     ).fit(ztr[idx.numpy()], yy)  # fmt: skip
-    ev = evaluate(feats["test"]["labels"].numpy(), rf.predict(zte), classes)
-    return {
-        "macro_f1": ev["macro_f1"],
-        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
-        "labelled_frames": int(len(yy)),
-        "explained_variance": float(pca.explained_variance_ratio_.sum()),
-    }
+    out = {"labelled_frames": int(len(yy)),
+           "explained_variance": float(pca.explained_variance_ratio_.sum())}  # fmt: skip
+    for split in [k for k in ("test", "transfer") if k in feats]:
+        x = ((feats[split]["features"].double() - mu) / sd).numpy()
+        z = np.hstack([x[:, fcols], pca.transform(x[:, ecols])])
+        out |= scores(feats[split]["labels"].numpy(), rf.predict(z), classes, split)
+    return out
+
+
+def scores(truth: np.ndarray, pred: np.ndarray, classes, split: str) -> dict:
+    """macro-F1 and per-class F1 (scikit-learn, `deformnet.behavior_report.evaluate`) of one
+    test split: {"macro_f1", "f1"} for "test", {"transfer_macro_f1", "transfer_f1"} for the
+    other mouse's sessions."""
+    from deformnet.behavior_report import evaluate
+
+    ev = evaluate(truth, pred, classes)
+    pre = "" if split == "test" else f"{split}_"
+    return {f"{pre}macro_f1": ev["macro_f1"],
+            f"{pre}f1": {c: v["f1"] for c, v in ev["per_class"].items()}}  # fmt: skip
 
 
 class _FrameHead(torch.nn.Module):
@@ -191,7 +207,6 @@ def probe(
     outputs add to the MLP head as forest_frame says for the forest."""
     import copy
 
-    from deformnet.behavior_report import evaluate
     from deformnet.classify import fit_head_forest, fit_head_lbfgs
     from deformnet.heads import build_head
 
@@ -214,15 +229,12 @@ def probe(
         fit_head_forest(m, X, y, w.tolist())
     else:
         fit_head_lbfgs(m, X, y, w.tolist(), float(cfg.head_l2), int(cfg.head_max_iter))
-    with torch.no_grad():
-        pred = m.classify(feats["test"]["features"]).argmax(-1).numpy()
-    ev = evaluate(feats["test"]["labels"].numpy(), pred, classes)
-    return {
-        "macro_f1": ev["macro_f1"],
-        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
-        "labelled_frames": int(len(y)),
-        "fit_seconds": round(time.perf_counter() - t0, 1),
-    }
+    out = {"labelled_frames": int(len(y)), "fit_seconds": round(time.perf_counter() - t0, 1)}
+    for split in [k for k in ("test", "transfer") if k in feats]:
+        with torch.no_grad():
+            pred = m.classify(feats[split]["features"]).argmax(-1).numpy()
+        out |= scores(feats[split]["labels"].numpy(), pred, classes, split)
+    return out
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -247,6 +259,12 @@ def main(argv: list[str] | None = None) -> dict:
                     help="lock-box context for every classifier (ROI features for rf)")  # fmt: skip
     ap.add_argument("--measurements", action="store_true",
                     help="measurements=true for every classifier")  # fmt: skip
+    ap.add_argument(
+        "--transfer-sim",
+        default=None,
+        help="also test every classifier on --test sessions of another simulated mouse "
+        "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
+    )
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
@@ -256,8 +274,12 @@ def main(argv: list[str] | None = None) -> dict:
         split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
         for split, n in (("train", args.train), ("test", args.test))
     }
+    transfer = tuple(o.strip() for o in (args.transfer_sim or "").split(",") if o.strip())
+    if transfer:
+        sessions["transfer"] = [make_session(work, TRANSFER_SEED + i, args.frames, transfer)
+                                for i in range(args.test)]  # fmt: skip
     box, mech = rig_mechanisms(sessions) if args.box else (None, None)
-    extra: dict = {"box": box}
+    extra: dict = {"box": box, "transfer_sim": list(transfer) or None}
     names = NAMES
     chosen = subset(ap, args.encoders, names, "--encoders")
     ckpts = {"pretrained": args.pretrained, "contrast": args.contrast, "heading": args.heading,
@@ -303,13 +325,19 @@ def main(argv: list[str] | None = None) -> dict:
                 log.info(
                     "forest_%s: %s", inputs, {k: round(v["macro_f1"], 3) for k, v in fr.items()}
                 )
-    sess_rf = {split: [{**s} for s in sessions[split]] for split in ("train", "test")}
-    results["rf"] = {
-        "runs": {
-            f"{f:g}/{d}": run_rf(sess_rf, "track", f, label_seed=d, mechanisms=mech)
-            for f, d in plan
-        }
-    }
+        else:  # the forest on every feature of this encoder too (pretrained vs random)
+            head = {**forest, "inputs": "all"}
+            fr = {f"{f:g}/{d}": probe(feats, built, f, d, head) for f, d in plan}
+            results[f"forest_all_{name}"] = {"runs": fr, "encoder": name}
+            log.info("forest_all_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in fr.items()})
+    rf_runs = {f"{f:g}/{d}": run_rf(sessions, "track", f, label_seed=d, mechanisms=mech)
+               for f, d in plan}  # fmt: skip
+    if transfer:  # the same forests (same frames, same seed) tested on the other mouse
+        other = {"train": sessions["train"], "test": sessions["transfer"]}
+        for (f, d), r in zip(plan, rf_runs.values()):
+            t = run_rf(other, "track", f, label_seed=d, mechanisms=mech)
+            r |= {"transfer_macro_f1": t["macro_f1"], "transfer_f1": t["f1"]}
+    results["rf"] = {"runs": rf_runs}
     table = {}
     for name, r in results.items():
         one = [r["runs"][f"0.01/{d}"]["macro_f1"] for d in range(args.draws)]
@@ -320,12 +348,18 @@ def main(argv: list[str] | None = None) -> dict:
                   for c in per[0]}  # fmt: skip
         table[name] = {"1%": float(np.mean(one)), "1%_draws": one,
                        "10%": r["runs"]["0.1/0"]["macro_f1"], "1%_f1": f1}  # fmt: skip
+        if transfer:
+            tr = [r["runs"][f"0.01/{d}"]["transfer_macro_f1"] for d in range(args.draws)]
+            table[name] |= {"transfer_1%": float(np.mean(tr)), "transfer_1%_draws": tr,
+                            "transfer_10%": r["runs"]["0.1/0"]["transfer_macro_f1"]}  # fmt: skip
     print(f"\nbehavior probe: frozen encoders, the default head fitted by L-BFGS; test macro-F1 "
           f"({args.train} train / {args.test} test sessions x {args.frames} frames)")  # fmt: skip
-    print(f"{'encoder':<16}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}")
+    other = f"  {'/'.join(transfer)}: 1% / 10%" if transfer else ""
+    print(f"{'encoder':<16}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}{other}")
     for name, t in table.items():
         draws = " / ".join(f"{x:.3f}" for x in t["1%_draws"])
-        print(f"{name:<16}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
+        tr = f"{t['transfer_1%']:>12.3f} / {t['transfer_10%']:.3f}" if transfer else ""
+        print(f"{name:<16}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}{tr}")
     classes = next((t["1%_f1"] for t in table.values() if t["1%_f1"]), None)
     if classes:
         print("\nper-class F1 at 1% labels (mean over the draws)")
@@ -340,12 +374,19 @@ def main(argv: list[str] | None = None) -> dict:
              ("forecast", "rf"), ("pretrained", "mlp_frame"), ("heading", "mlp_frame"),
              ("random_heading", "mlp_frame"), ("forecast", "mlp_frame")]  # fmt: skip
     pairs += [(f"forest_pca_{n}", "forest_frame") for n in encoders]
+    first = next(iter(encoders))  # forest_all is the first encoder's
+    pairs += [("forest_all", f"forest_all_{n}") for n in encoders if n != first]
+    pairs += [("forest_all", "rf"), ("forest_all", "forest_frame")]
     pairs += [(f"forest_pca_{n}", f"forest_pca_{r}") for n, r in
               (("pretrained", "random"), ("heading", "random_heading"),
                ("forecast", "random_heading"))]  # fmt: skip
     for a, b in pairs:  # a beats b at 1% labels (the mean over the draws)
         if a in table and b in table:
             checks[f"{a}_beats_{b}_1pct"] = table[a]["1%"] > table[b]["1%"]
+            if transfer:
+                checks[f"{a}_beats_{b}_transfer_1pct"] = (
+                    table[a]["transfer_1%"] > table[b]["transfer_1%"]
+                )
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {
         "table": table,
@@ -358,7 +399,7 @@ def main(argv: list[str] | None = None) -> dict:
             "train": args.train,
             "test": args.test,
             "draws": args.draws,
-            "seeds": SEEDS,
+            "seeds": SEEDS | ({"transfer": TRANSFER_SEED} if transfer else {}),
         },  # fmt: skip
         "total_seconds": round(time.perf_counter() - t_start, 1),
         "load_avg_1min": round(os.getloadavg()[0], 2),
