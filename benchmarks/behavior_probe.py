@@ -38,7 +38,8 @@ random encoder's whether pretraining does. Per-class F1 at 1% labels is printed 
 of the snout and front paws to each mechanism among the frame features) and the random forest
 with the same distances as SimBA's ROI features (`benchmarks/behavior.py --box`).
 ``--measurements``: every classifier with `measurements=true` (SimBA-style pairwise part
-distances and part speeds among the frame features, `deformnet.heads.pose_measurements`).
+distances, part speeds and part heights among the frame features,
+`deformnet.heads.pose_measurements`; the body-frame encoders with `heights_up=[0,0,1]`).
 ``--transfer-sim sim=mouse_b,sim.fps=30``: every classifier (fitted on the default mouse's
 sessions as above) is also tested on `--test` sessions of another simulated mouse (these
 `adjust-simulate` overrides, seeds 95300..; same rig, lock box and frame rate, tracked the same
@@ -75,6 +76,8 @@ CONTRAST = ["contrast.weight=1.0", "contrast.max_shift=12"]
 HEADING = ["up=[0,0,1]"]  # the heading frame (the simulator's z is up)
 NAMES = ("pretrained", "contrast", "random", "heading", "random_heading", "forecast")
 FORECAST = [*HEADING, "forecast.weight=1.0"]  # + the forecasting term (conf/train.yaml)
+BODY_FRAME = ("pretrained", "contrast", "random")  # the encoders reading the body frame
+HEIGHTS = ["heights_up=[0,0,1]"]  # --measurements: their part heights (the simulator's up)
 TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's test sessions (nothing trains on them)
 
 
@@ -301,6 +304,10 @@ def main(argv: list[str] | None = None) -> dict:
     encoders = {k: (v, tuple(ctx)) for k, v in ckpts.items()}
     encoders |= {k: ("random", (*ov, *ctx)) for k, ov in randoms.items() if k in chosen}
     encoders = {k: encoders[k] for k in names if k in encoders}  # the table's order
+    if args.measurements:  # the body-frame encoders' measurements get the heights too (the
+        for k in BODY_FRAME:  # heading-frame ones have them from their up): the same features
+            if k in encoders:
+                encoders[k] = (encoders[k][0], (*encoders[k][1], *HEIGHTS))
     plan = [(0.01, d) for d in range(args.draws)] + [(0.1, 0)]
     results: dict = {}
     forest = dict(to_plain(compose("classify", ["head=forest"]).head))
@@ -355,18 +362,19 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"\nbehavior probe: frozen encoders, the default head fitted by L-BFGS; test macro-F1 "
           f"({args.train} train / {args.test} test sessions x {args.frames} frames)")  # fmt: skip
     other = f"  {'/'.join(transfer)}: 1% / 10%" if transfer else ""
-    print(f"{'encoder':<16}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}{other}")
+    w = max(16, *(len(n) + 2 for n in table))  # the name column
+    print(f"{'encoder':<{w}}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}{other}")
     for name, t in table.items():
         draws = " / ".join(f"{x:.3f}" for x in t["1%_draws"])
         tr = f"{t['transfer_1%']:>12.3f} / {t['transfer_10%']:.3f}" if transfer else ""
-        print(f"{name:<16}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}{tr}")
+        print(f"{name:<{w}}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}{tr}")
     classes = next((t["1%_f1"] for t in table.values() if t["1%_f1"]), None)
     if classes:
         print("\nper-class F1 at 1% labels (mean over the draws)")
-        print(f"{'':<16}" + "".join(f"{c:>8}" for c in classes))
+        print(f"{'':<{w}}" + "".join(f"{c:>8}" for c in classes))
         for name, t in table.items():
             if t["1%_f1"]:
-                print(f"{name:<16}" + "".join(f"{t['1%_f1'][c]:>8.3f}" for c in classes))
+                print(f"{name:<{w}}" + "".join(f"{t['1%_f1'][c]:>8.3f}" for c in classes))
     checks = {}
     pairs = [("pretrained", "random"), ("heading", "random_heading"), ("heading", "rf"),
              ("contrast", "pretrained"), ("pretrained", "rf"), ("forest_frame", "rf"),
