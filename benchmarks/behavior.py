@@ -239,6 +239,7 @@ def run_classifier(
         "macro_f1_smoothed": rep["smoothed"]["macro_f1"],
         "f1": {c: v["f1"] for c, v in rep["raw"]["per_class"].items()},
         "labelled_frames": rep["labelled_training_frames"],
+        "unfamiliar_frames": rep.get("unfamiliar_frames"),
         "steps": rep["training_steps"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
@@ -250,19 +251,25 @@ def run_classifier(
 def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
     """A trained classifier on other sessions (another mouse), as `deformnet-classify
     mode=predict` labels them (its own mechanism positions and smoothing): macro-F1 and
-    per-class F1 over all their frames, raw and smoothed ({"transfer_macro_f1", ...})."""
+    per-class F1 over all their frames, raw and smoothed, and the share of their frames that
+    the classifier finds unlike its training data ({"transfer_macro_f1", ...,
+    "transfer_unfamiliar_frames"})."""
     from deformnet.behavior_labels import Session, read_tracks
     from deformnet.behavior_report import evaluate
     from deformnet.classify import load_classifier, predict_session
 
     model, meta = load_classifier(ckpt)
-    truth, raw, smoothed = [], [], []
+    truth, raw, smoothed, unfamiliar = [], [], [], []
+    frame_share = float(compose("classify").unfamiliar.frame_share)
     for s in sessions:
         tr = read_tracks(str(s[source]), meta["body"], interpolate=source == "dlt")
         T = len(tr["fnum"])
         sess = Session(str(s[source]), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
                        np.full(T, -1))  # fmt: skip
-        pr = predict_session(model, sess, dict(meta.get("smoothing") or {}))
+        pr = predict_session(model, sess, dict(meta.get("smoothing") or {}),
+                             meta.get("feature_range"))  # fmt: skip
+        if pr["unfamiliar"] is not None:
+            unfamiliar.append(pr["unfamiliar"] > frame_share)
         truth.append(np.asarray(s["truth_labels"])[tr["fnum"]])
         raw.append(pr["raw"])
         smoothed.append(pr["labels"])
@@ -273,6 +280,9 @@ def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
         "transfer_macro_f1": ev["macro_f1"],
         "transfer_macro_f1_smoothed": evaluate(y, np.concatenate(smoothed), classes)["macro_f1"],
         "transfer_f1": {c: v["f1"] for c, v in ev["per_class"].items()},
+        "transfer_unfamiliar_frames": (
+            float(np.concatenate(unfamiliar).mean()) if unfamiliar else None
+        ),
     }
 
 
@@ -408,6 +418,9 @@ def averaged(runs: list[dict]) -> dict:
                                  for r in runs]))
             for c in runs[0][f"{pre}f1"]
         }  # fmt: skip
+    for k in ("unfamiliar_frames", "transfer_unfamiliar_frames"):
+        if all(r.get(k) is not None for r in runs):
+            out[k] = float(np.mean([r[k] for r in runs]))
     out["seconds"] = round(sum(r["seconds"] for r in runs), 1)
     return out
 
@@ -681,6 +694,12 @@ def main(argv: list[str] | None = None) -> dict:
         for key, r in results.items():
             print(f"{key:<8}" + "".join(f"{_fmt(r[m].get('transfer_macro_f1')):>22}"
                                         for m in methods))  # fmt: skip
+        print("unfamiliar frames (deformnet-classify's check), test sessions / the other mouse")
+        for key, r in results.items():
+            cells = [f"{_fmt(r[m].get('unfamiliar_frames'))} / "
+                     f"{_fmt(r[m].get('transfer_unfamiliar_frames'))}" if m != "rf" else "n/a"
+                     for m in methods]  # fmt: skip
+            print(f"{key:<8}" + "".join(f"{c:>22}" for c in cells))
     print("\ninput (10% labels)  pretrained      rf")
     for src, r in inputs.items():
         print(f"{src:<18}{_fmt(r['pretrained']):>11}{_fmt(r['rf']):>9}")

@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +42,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
-from deformnet.atomic import finite_or_none
+from deformnet.atomic import finite_or_none, write_text
 from deformnet.behavior_labels import (
     Session,
     bouts,
@@ -73,6 +73,8 @@ __all__ = [
     "load_classifier",
     "predict_probs",
     "predict_session",
+    "feature_range",
+    "unfamiliar_share",
     "run",
     "main",
 ]
@@ -392,12 +394,54 @@ def predict_probs(model, bank: SessionBank, batch_size: int = 512) -> np.ndarray
     return torch.softmax(model.classify(feats), -1).numpy()
 
 
-def predict_session(model, session: Session, smoothing: dict) -> dict:
-    """{"probs" (T, C), "raw" (T,), "labels" (T,) smoothed (= raw without smoothing)}."""
-    probs = predict_probs(model, SessionBank([session], model.half_window))
+#: the training frames' range of each classifier feature that a recording's frames are compared
+#: with (`feature_range`): its RANGE_QUANTILE and 1 - RANGE_QUANTILE quantiles
+RANGE_QUANTILE = 0.001
+
+
+def feature_range(features: Tensor, q: float = RANGE_QUANTILE) -> dict:
+    """The range of the training frames' classifier features (N, D) (`context_features`):
+    {"low", "high" (D,) float32, the q and 1 - q quantiles; "quantile": q}; stored in
+    classifier.pt so that `unfamiliar_share` can tell a recording unlike the training data."""
+    if features.dim() != 2 or features.shape[0] < 2:
+        raise ValueError(f"features must be (N >= 2, D), got {tuple(features.shape)}")
+    if not 0.0 <= float(q) < 0.5:
+        raise ValueError(f"the range quantile must be in [0, 0.5), got {q}")
+    x = features.detach().double().numpy()
+    low, high = np.quantile(x, float(q), axis=0), np.quantile(x, 1.0 - float(q), axis=0)
+    return {
+        "low": torch.from_numpy(low).float(),
+        "high": torch.from_numpy(high).float(),
+        "quantile": float(q),
+    }
+
+
+def unfamiliar_share(features: Tensor, rng: Mapping) -> np.ndarray:
+    """Per frame, the share of its classifier features (N, D) outside the training frames'
+    range (`feature_range`) -> (N,) in [0, 1]. About 2 RANGE_QUANTILE on frames like the
+    training data; frames of another animal, another rig or wrong tracks have far more."""
+    low, high = torch.as_tensor(rng["low"]), torch.as_tensor(rng["high"])
+    if features.dim() != 2 or features.shape[1] != low.shape[0]:
+        raise ValueError(
+            f"features must be (N, {low.shape[0]}) like the training range, got "
+            f"{tuple(features.shape)}"
+        )
+    f = features.to(low.dtype)
+    return ((f < low) | (f > high)).double().mean(-1).numpy()
+
+
+def predict_session(model, session: Session, smoothing: dict, rng: Mapping | None = None) -> dict:
+    """{"probs" (T, C), "raw" (T,), "labels" (T,) smoothed (= raw without smoothing),
+    "unfamiliar" (T,) each frame's `unfamiliar_share` given the training range `rng`, else
+    None}."""
+    bank = SessionBank([session], model.half_window)
+    with torch.no_grad():
+        feats = context_features(model, bank, torch.arange(len(bank)))
+        probs = torch.softmax(model.classify(feats), -1).numpy()
     raw = probs.argmax(-1)
     lab = smooth(probs, int(smoothing.get("median") or 0), int(smoothing.get("min_bout") or 0))
-    return {"probs": probs, "raw": raw, "labels": lab}
+    unfamiliar = None if rng is None else unfamiliar_share(feats, rng)
+    return {"probs": probs, "raw": raw, "labels": lab, "unfamiliar": unfamiliar}
 
 
 # --------------------------------------------------------------------------------------------
@@ -693,6 +737,10 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     if lit.best_state is not None:
         model.load_state_dict(lit.best_state)
     model.eval()
+    # what the training data look like to the trained classifier: each feature's range over
+    # every training frame (labelled or not), for telling a recording unlike them (predict)
+    rng = feature_range(context_features(model, bank, torch.arange(len(bank))))
+    unf = _unfamiliar_settings(cfg)
 
     smoothing = dict(to_plain(cfg.smoothing) or {})
     meta = {
@@ -711,6 +759,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "pretrained": str(cfg.pretrained) if cfg.get("pretrained") else None,
         "freeze": bool(cfg.freeze),
         "label_fraction": frac,
+        "feature_range": rng,
     }
     ckpt = out / "classifier.pt"
     from deformnet.atomic import atomic_path
@@ -723,10 +772,11 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         ("test", test) if test else (("val", val) if val else ("train", train))
     )  # noqa: E501
     fps = float(cfg.get("fps", 30.0))
-    yt, yr, ys = [], [], []
+    yt, yr, ys, unfamiliar = [], [], [], []
     first = None
     for s in eval_sessions:
-        pr = predict_session(model, s, smoothing)
+        pr = predict_session(model, s, smoothing, rng)
+        unfamiliar.append(pr["unfamiliar"] > unf["frame_share"])
         yt.append(s.labels)
         yr.append(pr["raw"])
         ys.append(pr["labels"])
@@ -747,6 +797,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
             "smoothed": bout_stats(ys, classes, fps),
         },
         "labelled_training_frames": int(idx.size),
+        "unfamiliar_frames": float(np.concatenate(unfamiliar).mean()),
         "training_steps": steps,
         "head_solver": solver,
         "mechanisms": None if mech is None else {k: mech[k] for k in ("names", "parts", "source")},
@@ -810,6 +861,16 @@ def _predict_mechanisms(cfg: DictConfig, model, meta: dict) -> None:
     log.info("lock-box context: mechanism positions from %s", here["source"])
 
 
+def _unfamiliar_settings(cfg: DictConfig) -> dict:
+    """``unfamiliar.frame_share`` and ``unfamiliar.warn_share``, checked (ValueError)."""
+    u = cfg.get("unfamiliar") or {}
+    out = {k: float(u.get(k, d)) for k, d in (("frame_share", 0.05), ("warn_share", 0.1))}
+    for k, v in out.items():
+        if not 0.0 <= v < 1.0:
+            raise ValueError(f"unfamiliar.{k} must be in [0, 1), got {v}")
+    return out
+
+
 def _predict(cfg: DictConfig, out: Path) -> dict:
     from deformnet.atomic import atomic_path
 
@@ -827,13 +888,32 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     s = Session(str(cfg.tracks), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
                 np.full(T, -1))  # fmt: skip
     smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
-    pr = predict_session(model, s, smoothing)
+    rng = meta.get("feature_range")
+    pr = predict_session(model, s, smoothing, rng)
     fnum = tr["fnum"]
     names = np.asarray(classes, dtype=object)
     df = pd.DataFrame(
         {"fnum": fnum, "label": names[pr["labels"]], "label_raw": names[pr["raw"]]}
         | {f"p_{c}": pr["probs"][:, i] for i, c in enumerate(classes)}
     )
+    warning, share = None, None
+    if rng is None:
+        log.info("%s stores no training feature range (an older classifier): the recording is "
+                 "not compared with the training data", cfg.checkpoint)  # fmt: skip
+    else:
+        unf = _unfamiliar_settings(cfg)
+        df["unfamiliar"] = pr["unfamiliar"]
+        share = float(np.mean(pr["unfamiliar"] > unf["frame_share"]))
+        if share > unf["warn_share"]:
+            warning = (
+                f"{cfg.tracks}: {100 * share:.0f}% of the frames are unlike the classifier's "
+                f"training data (more than {100 * unf['frame_share']:g}% of their features "
+                "outside the training range; column 'unfamiliar'): its labels there are not to "
+                "be trusted (another animal, rig or tracker?). Label some of this recording's "
+                "frames and train on them too; head=forest head.inputs=all on a pretrained "
+                "encoder transfers best"
+            )
+            log.warning("%s", warning)
     pred_path, bouts_path = out / "predictions.csv", out / "bouts.csv"
     with atomic_path(pred_path) as tmp:
         df.to_csv(tmp, index=False)
@@ -851,13 +931,17 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
             tmp, index=False
         )
     log.info("%d frames, %d bouts -> %s, %s", T, len(rows), pred_path, bouts_path)
-    return {
+    summary = {
         "output_dir": str(out),
         "predictions": str(pred_path),
         "bouts": str(bouts_path),
         "frames": T,
         "num_bouts": len(rows),
+        "unfamiliar_frames": share,
+        "warning": warning,
     }
+    write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")
+    return summary
 
 
 def run(cfg: DictConfig) -> dict:

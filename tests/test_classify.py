@@ -20,11 +20,13 @@ TINY = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
 
 
 def _toy_session(
-    tmp_path, name: str, seed: int, T: int = 360, bout: int = 40, world=None, still=False
-):
+    tmp_path, name: str, seed: int, T: int = 360, bout: int = 40, world=None, still=False,
+    size=1.0,
+):  # fmt: skip
     """Alternating bouts: 'walk' (flat, moving) and 'rear' (standing, pitched up 45 deg).
     world: a rotation vector turning the whole scene (a world whose up is not z); still: the
-    'walk' bouts do not move either (only the pitch, i.e. the parts' heights, tells them apart)."""
+    'walk' bouts do not move either (only the pitch, i.e. the parts' heights, tells them apart);
+    size: the mouse's size (its body points scaled about the model origin)."""
     rng = np.random.default_rng(seed)
     body = default_mouse()
     lab = (np.arange(T) // bout + seed) % 2
@@ -37,7 +39,7 @@ def _toy_session(
     poses[:, 3] = 150 + np.cumsum(step * -np.sin(yaw)) % 100
     poses[:, 4] = 150 + np.cumsum(step * np.cos(yaw)) % 100
     poses[:, 5] = 10.0
-    model = torch.tensor(np.asarray(body.points))
+    model = torch.tensor(np.asarray(body.points)) * float(size)
     pts = transform_points(torch.tensor(poses), model.expand(T, -1, -1)).numpy()
     pts = pts + rng.normal(0, 0.5, pts.shape)
     if world is not None:
@@ -578,6 +580,66 @@ def test_heights_up_gives_a_body_frame_encoder_the_part_heights(tmp_path):
     with pytest.raises(ValueError, match="heights_up .*measurements=true"):
         run(_compose([*TINY, "heights_up=[0,0,1]", *_files("train", train), "logger=none",
                       f"output.dir={tmp_path / 'bad'}"]))  # fmt: skip
+
+
+def test_feature_range_and_unfamiliar_share():
+    """feature_range: each feature's q / 1 - q quantiles over the frames; unfamiliar_share: per
+    frame the share of its features outside them; shapes and bad input are checked."""
+    from deformnet.classify import feature_range, unfamiliar_share
+
+    x = torch.arange(1000, dtype=torch.float32)[:, None].repeat(1, 4)  # 0..999 in every column
+    x[:, 1] *= 2
+    rng = feature_range(x, 0.01)
+    torch.testing.assert_close(rng["low"], torch.tensor([9.99, 19.98, 9.99, 9.99]))
+    torch.testing.assert_close(rng["high"], torch.tensor([989.01, 1978.02, 989.01, 989.01]))
+    y = torch.tensor([[500.0, 1000.0, 500.0, 500.0], [0.0, 1000.0, 995.0, 500.0],
+                      [-1.0, 5000.0, 2000.0, 0.0]])  # fmt: skip
+    np.testing.assert_allclose(unfamiliar_share(y, rng), [0.0, 0.5, 1.0])
+    with pytest.raises(ValueError, match=r"features must be \(N, 4\)"):
+        unfamiliar_share(y[:, :3], rng)
+    with pytest.raises(ValueError, match="N >= 2"):
+        feature_range(x[:1])
+
+
+def test_predict_warns_on_a_recording_unlike_the_training_data(tmp_path, caplog):
+    """classifier.pt stores the training frames' feature range; mode=predict on a recording like
+    them flags almost no frame, on a mouse 1.5x the size (another animal) most frames, and then
+    warns in the log and summary.json; the per-frame share is the predictions' `unfamiliar`."""
+    import json
+    import logging
+
+    from deformnet.classify import load_classifier, run
+
+    train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
+    test = [_toy_session(tmp_path, "test", 8)]
+    out = tmp_path / "cls"
+    rep = run(
+        _compose(
+            [*TINY, "freeze=true", f"labels.classes=[{','.join(CLASSES)}]",
+             *_files("train", train), *_files("test", test), "logger=none",
+             f"output.dir={out}"]
+        )
+    )["report"]  # fmt: skip
+    assert rep["unfamiliar_frames"] <= 0.05
+    _, meta = load_classifier(out / "classifier.pt")
+    assert meta["feature_range"]["low"].shape == meta["feature_range"]["high"].shape
+    same = _toy_session(tmp_path, "same", 9)
+    big = _toy_session(tmp_path, "big", 9, size=1.5)
+    res = {}
+    for name, (tracks, *_) in (("same", same), ("big", big)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="deformnet.classify"):
+            ov = ["mode=predict", f"checkpoint={out / 'classifier.pt'}", f"tracks={tracks}"]
+            res[name] = run(_compose([*ov, f"output.dir={tmp_path / name}"]))
+        res[name]["log"] = caplog.text
+        summary = json.loads((tmp_path / name / "summary.json").read_text())
+        assert summary["unfamiliar_frames"] == pytest.approx(res[name]["unfamiliar_frames"])
+    assert res["same"]["unfamiliar_frames"] <= 0.05 and res["same"]["warning"] is None
+    assert "unlike the classifier's training data" not in res["same"]["log"]
+    assert res["big"]["unfamiliar_frames"] >= 0.5
+    assert "big.csv" in res["big"]["warning"] and "unlike" in res["big"]["log"]
+    df = pd.read_csv(res["big"]["predictions"])
+    assert np.mean(df["unfamiliar"] > 0.05) == pytest.approx(res["big"]["unfamiliar_frames"])
 
 
 def test_measurements_alone_feed_a_forest_and_predict_round_trips(tmp_path):
