@@ -325,6 +325,8 @@ def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
     y_true = y_true[fnum]
     smoothed = evaluate(y_true, y_pred, classes)
     raw = evaluate(y_true, y_raw, classes)
+    summary_path = Path(cls["predictions"]).parent / "summary.json"  # mode=predict's summary
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     return {
         "classes": classes,
         "classifier": {
@@ -346,6 +348,8 @@ def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
             "accuracy": smoothed["accuracy"],
             "macro_f1_raw": raw["macro_f1"],
             "frames": smoothed["frames"],
+            "unfamiliar_frames": summary.get("unfamiliar_frames"),
+            "warning": summary.get("warning"),
             "per_class": smoothed["per_class"],
             "confusion": smoothed["confusion"],
             "true_bouts": len(bouts(y_true)),
@@ -718,9 +722,17 @@ def blocks(rep: Mapping) -> list[tuple]:
                 f"true labels: macro-F1 {_f(s['macro_f1'], 3)} (raw "
                 f"{_f(s['macro_f1_raw'], 3)}), accuracy {_f(s['accuracy'], 3)} over "
                 f"{s['frames']} frames; {s['predicted_bouts']} predicted bouts, "
-                f"{s['true_bouts']} true.",
+                f"{s['true_bouts']} true."
+                + (
+                    f" {_f(100 * s['unfamiliar_frames'], 1)}% of those frames are unlike its "
+                    "training data (`deformnet-classify`'s check, `unfamiliar`)."
+                    if s.get("unfamiliar_frames") is not None
+                    else ""
+                ),
             )
         )
+        if s.get("warning"):
+            b.append(("p", f"**Warning:** {s['warning']}"))
         b.append(
             (
                 "table",

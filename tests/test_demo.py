@@ -115,12 +115,17 @@ def test_training_behavior_events_numbers_equal_the_run_files(demo):
     acc = float(np.mean(pred["label"].to_numpy() == y[pred["fnum"].to_numpy()]))
     assert beh["session"]["accuracy"] == pytest.approx(acc, abs=1e-12)
     assert np.asarray(beh["session"]["confusion"]).sum() == len(pred)
+    # mode=predict's check of the recording against the training data, in the report
+    summ = json.loads((out / "classify" / "predict" / "summary.json").read_text())
+    assert 0.0 <= summ["unfamiliar_frames"] <= 1.0
+    assert beh["session"]["unfamiliar_frames"] == summ["unfamiliar_frames"]
     ev = json.loads((out / "events" / "summary.json").read_text())
     assert rep["events"]["order"] == ev["order"]
     assert rep["events"]["count"] == ev["events"] == len(rep["events"]["list"])
     md = (out / "report.md").read_text()
     assert f"macro-F1 {beh['session']['macro_f1']:.3f}" in md
     assert "with the lock-box context (the distances of nose_tip, left_front_paw" in md
+    assert "unlike its training data" in md
     assert "Order of first operation: " + (" > ".join(ev["order"]) or "none") in md
     assert set(rep["timings_s"]) >= {"scene", "train_lstm", "train_transformer", "dlt", "net"}
 
