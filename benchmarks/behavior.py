@@ -158,6 +158,36 @@ def make_session(work: Path, seed: int, frames: int, sim: tuple[str, ...] = ()) 
     }
 
 
+def add_context_args(ap: argparse.ArgumentParser) -> None:
+    """The options shared with `benchmarks/behavior_probe.py`: --box, --measurements and
+    --transfer-sim (see the module docstrings)."""
+    ap.add_argument("--box", action="store_true",
+                    help="lock-box context for every classifier (ROI features for rf)")  # fmt: skip
+    ap.add_argument("--measurements", action="store_true",
+                    help="measurements=true for every deformnet-classify classifier")  # fmt: skip
+    ap.add_argument(
+        "--transfer-sim",
+        default=None,
+        help="also test every classifier on --test sessions of another simulated mouse "
+        "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
+    )
+
+
+def add_transfer_sessions(sessions: dict, work: Path, args) -> tuple[str, ...]:
+    """--transfer-sim: the other mouse's sessions (`args.test` of them, seeds TRANSFER_SEED..)
+    as sessions["transfer"], with the training sessions' behaviors (ValueError otherwise);
+    the overrides (empty: none)."""
+    transfer = tuple(o.strip() for o in (args.transfer_sim or "").split(",") if o.strip())
+    if transfer:
+        sessions["transfer"] = [make_session(work, TRANSFER_SEED + i, args.frames, transfer)
+                                for i in range(args.test)]  # fmt: skip
+        behaviors = sessions["train"][0]["behaviors"]
+        for s in sessions["transfer"]:
+            if s["behaviors"] != behaviors:
+                raise ValueError(f"{s['dir']}: behaviors {s['behaviors']} != {behaviors}")
+    return transfer
+
+
 def pretrain(out: Path, seconds: int, overrides: list[str] | None = None) -> tuple[str, float]:
     """A `deformnet-train` run of `seconds` (extra `overrides`, e.g. contrast.weight=1);
     (its best checkpoint, seconds taken)."""
@@ -561,16 +591,7 @@ def main(argv: list[str] | None = None) -> dict:
         help="classifiers to run (a subset: part of a run; the 10%% input comparison and the "
         "events always run)",
     )
-    ap.add_argument("--box", action="store_true",
-                    help="lock-box context for every method (ROI features for rf)")  # fmt: skip
-    ap.add_argument("--measurements", action="store_true",
-                    help="measurements=true for every deformnet-classify method")  # fmt: skip
-    ap.add_argument(
-        "--transfer-sim",
-        default=None,
-        help="also label --test sessions of another simulated mouse with every classifier "
-        "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
-    )
+    add_context_args(ap)
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
@@ -587,14 +608,7 @@ def main(argv: list[str] | None = None) -> dict:
         split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
         for split, n in counts.items()
     }
-    transfer = tuple(o.strip() for o in (args.transfer_sim or "").split(",") if o.strip())
-    if transfer:
-        sessions["transfer"] = [make_session(work, TRANSFER_SEED + i, args.frames, transfer)
-                                for i in range(args.test)]  # fmt: skip
-        behaviors = sessions["train"][0]["behaviors"]
-        for s in sessions["transfer"]:
-            if s["behaviors"] != behaviors:
-                raise ValueError(f"{s['dir']}: behaviors {s['behaviors']} != {behaviors}")
+    transfer = add_transfer_sessions(sessions, work, args)
     t_sessions = time.perf_counter() - t_start
     extra: dict = {"sessions_seconds": round(t_sessions, 1)}
     ckpt = args.pretrained

@@ -65,7 +65,18 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from behavior import ROOT, SEEDS, _round, make_session, pretrain, rig_mechanisms, run_rf
+from behavior import (
+    ROOT,
+    SEEDS,
+    TRANSFER_SEED,
+    _round,
+    add_context_args,
+    add_transfer_sessions,
+    make_session,
+    pretrain,
+    rig_mechanisms,
+    run_rf,
+)
 from common import emit, start, subset
 
 from deformnet.confutil import compose, to_plain
@@ -78,7 +89,6 @@ NAMES = ("pretrained", "contrast", "random", "heading", "random_heading", "forec
 FORECAST = [*HEADING, "forecast.weight=1.0"]  # + the forecasting term (conf/train.yaml)
 BODY_FRAME = ("pretrained", "contrast", "random")  # the encoders reading the body frame
 HEIGHTS = ["heights_up=[0,0,1]"]  # --measurements: their part heights (the simulator's up)
-TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's test sessions (nothing trains on them)
 
 
 def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, object]:
@@ -258,16 +268,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--pca", type=int, default=16,
                     help="forest_pca_<encoder>: frame features + this many principal "
                          "components of the encoder's outputs (0: skip)")  # fmt: skip
-    ap.add_argument("--box", action="store_true",
-                    help="lock-box context for every classifier (ROI features for rf)")  # fmt: skip
-    ap.add_argument("--measurements", action="store_true",
-                    help="measurements=true for every classifier")  # fmt: skip
-    ap.add_argument(
-        "--transfer-sim",
-        default=None,
-        help="also test every classifier on --test sessions of another simulated mouse "
-        "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
-    )
+    add_context_args(ap)
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
@@ -277,10 +278,7 @@ def main(argv: list[str] | None = None) -> dict:
         split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
         for split, n in (("train", args.train), ("test", args.test))
     }
-    transfer = tuple(o.strip() for o in (args.transfer_sim or "").split(",") if o.strip())
-    if transfer:
-        sessions["transfer"] = [make_session(work, TRANSFER_SEED + i, args.frames, transfer)
-                                for i in range(args.test)]  # fmt: skip
+    transfer = add_transfer_sessions(sessions, work, args)
     box, mech = rig_mechanisms(sessions) if args.box else (None, None)
     extra: dict = {"box": box, "transfer_sim": list(transfer) or None}
     names = NAMES
