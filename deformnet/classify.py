@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -395,24 +396,37 @@ def predict_probs(model, bank: SessionBank, batch_size: int = 512) -> np.ndarray
 
 
 #: the training frames' range of each classifier feature that a recording's frames are compared
-#: with (`feature_range`): its RANGE_QUANTILE and 1 - RANGE_QUANTILE quantiles
+#: with (`feature_range`): its RANGE_QUANTILE and 1 - RANGE_QUANTILE quantiles, widened on each
+#: side by RANGE_MARGIN sqrt(RANGE_FRAMES / N) of their distance for N training frames (few
+#: frames give a narrow range: another session of the same animal would fall outside it)
 RANGE_QUANTILE = 0.001
+RANGE_MARGIN = 0.1
+RANGE_FRAMES = 3000
 
 
-def feature_range(features: Tensor, q: float = RANGE_QUANTILE) -> dict:
+def feature_range(features: Tensor, q: float = RANGE_QUANTILE, margin: float | None = None) -> dict:
     """The range of the training frames' classifier features (N, D) (`context_features`):
-    {"low", "high" (D,) float32, the q and 1 - q quantiles; "quantile": q}; stored in
-    classifier.pt so that `unfamiliar_share` can tell a recording unlike the training data."""
+    {"low", "high" (D,) float32: the q and 1 - q quantiles, each moved out by ``margin`` times
+    their distance (default RANGE_MARGIN sqrt(RANGE_FRAMES / N)); "quantile", "margin",
+    "frames": N}; stored in classifier.pt so that `unfamiliar_share` can tell a recording
+    unlike the training data."""
     if features.dim() != 2 or features.shape[0] < 2:
         raise ValueError(f"features must be (N >= 2, D), got {tuple(features.shape)}")
     if not 0.0 <= float(q) < 0.5:
         raise ValueError(f"the range quantile must be in [0, 0.5), got {q}")
+    n = int(features.shape[0])
+    m = RANGE_MARGIN * math.sqrt(RANGE_FRAMES / n) if margin is None else float(margin)
+    if not m >= 0:
+        raise ValueError(f"the range margin must be >= 0, got {margin}")
     x = features.detach().double().numpy()
     low, high = np.quantile(x, float(q), axis=0), np.quantile(x, 1.0 - float(q), axis=0)
+    span = high - low
     return {
-        "low": torch.from_numpy(low).float(),
-        "high": torch.from_numpy(high).float(),
+        "low": torch.from_numpy(low - m * span).float(),
+        "high": torch.from_numpy(high + m * span).float(),
         "quantile": float(q),
+        "margin": m,
+        "frames": n,
     }
 
 

@@ -583,15 +583,22 @@ def test_heights_up_gives_a_body_frame_encoder_the_part_heights(tmp_path):
 
 
 def test_feature_range_and_unfamiliar_share():
-    """feature_range: each feature's q / 1 - q quantiles over the frames; unfamiliar_share: per
-    frame the share of its features outside them; shapes and bad input are checked."""
+    """feature_range: each feature's q / 1 - q quantiles over the frames, widened by a margin
+    (by default shrinking with the frames); unfamiliar_share: per frame the share of its
+    features outside them; shapes and bad input are checked."""
     from deformnet.classify import feature_range, unfamiliar_share
 
     x = torch.arange(1000, dtype=torch.float32)[:, None].repeat(1, 4)  # 0..999 in every column
     x[:, 1] *= 2
-    rng = feature_range(x, 0.01)
+    rng = feature_range(x, 0.01, margin=0.0)
     torch.testing.assert_close(rng["low"], torch.tensor([9.99, 19.98, 9.99, 9.99]))
     torch.testing.assert_close(rng["high"], torch.tensor([989.01, 1978.02, 989.01, 989.01]))
+    # the default margin: 0.1 sqrt(3000 / N) of the quantiles' distance on each side
+    wide = feature_range(x, 0.01)
+    m = 0.1 * (3000 / 1000) ** 0.5
+    assert wide["margin"] == pytest.approx(m) and wide["frames"] == 1000
+    torch.testing.assert_close(wide["low"][0], torch.tensor(9.99 - m * 979.02))
+    torch.testing.assert_close(wide["high"][1], torch.tensor(1978.02 + m * 1958.04))
     y = torch.tensor([[500.0, 1000.0, 500.0, 500.0], [0.0, 1000.0, 995.0, 500.0],
                       [-1.0, 5000.0, 2000.0, 0.0]])  # fmt: skip
     np.testing.assert_allclose(unfamiliar_share(y, rng), [0.0, 0.5, 1.0])
