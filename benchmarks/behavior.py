@@ -391,6 +391,9 @@ def run_rf(
     label_seed: int = 0,
     mechanisms: np.ndarray | None = None,
 ) -> dict:
+    """The SimBA-style random forest trained on the labelled frames of sessions["train"],
+    scored on sessions["test"] and, when there (--transfer-sim), the same forest on
+    sessions["transfer"] ("transfer_macro_f1", "transfer_f1")."""
     from sklearn.ensemble import RandomForestClassifier
 
     from deformnet.behavior_labels import Session, subsample_labels
@@ -418,15 +421,14 @@ def run_rf(
         n_estimators=200, class_weight="balanced", n_jobs=1, random_state=seed, min_samples_leaf=2
     )
     rf.fit(X, y)
-    Xte, yte = load("test")
-    pred = rf.predict(np.concatenate(Xte))
-    ev = evaluate(np.concatenate(yte), pred, classes)
-    return {
-        "macro_f1": ev["macro_f1"],
-        "f1": {c: v["f1"] for c, v in ev["per_class"].items()},
-        "labelled_frames": int(len(y)),
-        "seconds": round(time.perf_counter() - t0, 1),
-    }
+    out = {"labelled_frames": int(len(y))}
+    for split in [k for k in ("test", "transfer") if k in sessions]:
+        Xte, yte = load(split)
+        ev = evaluate(np.concatenate(yte), rf.predict(np.concatenate(Xte)), classes)
+        pre = "" if split == "test" else "transfer_"
+        out |= {f"{pre}macro_f1": ev["macro_f1"],
+                f"{pre}f1": {c: v["f1"] for c, v in ev["per_class"].items()}}  # fmt: skip
+    return out | {"seconds": round(time.perf_counter() - t0, 1)}
 
 
 def averaged(runs: list[dict]) -> dict:
@@ -652,12 +654,7 @@ def main(argv: list[str] | None = None) -> dict:
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
         if "rf" in methods:
             runs = [run_rf(sessions, "track", frac, label_seed=d, mechanisms=mech) for d in draws]
-            if transfer:  # the same forests (same frames and seed) on the other mouse
-                other = {"train": sessions["train"], "test": sessions["transfer"]}
-                for d, r in zip(draws, runs):
-                    t = run_rf(other, "track", frac, label_seed=d, mechanisms=mech)
-                    r |= {"transfer_macro_f1": t["macro_f1"], "transfer_f1": t["f1"]}
-            results[key]["rf"] = averaged(runs)
+            results[key]["rf"] = averaged(runs)  # (and on the other mouse, --transfer-sim)
             log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
     r10 = dict(results.get("0.1") or {})  # what a partial run did not measure, run here
     if "pretrained" not in r10:
@@ -667,6 +664,7 @@ def main(argv: list[str] | None = None) -> dict:
         )  # fmt: skip
     if "rf" not in r10:
         r10["rf"] = run_rf(sessions, "track", 0.1, mechanisms=mech)
+    same_mouse = {k: v for k, v in sessions.items() if k != "transfer"}  # DLT: not transferred
     inputs = {
         "track": {
             "pretrained": r10["pretrained"]["macro_f1"],
@@ -684,7 +682,7 @@ def main(argv: list[str] | None = None) -> dict:
                 box=box,
                 measurements=args.measurements,
             )["macro_f1"],  # fmt: skip
-            "rf": run_rf(sessions, "dlt", 0.1, mechanisms=mech)["macro_f1"],
+            "rf": run_rf(same_mouse, "dlt", 0.1, mechanisms=mech)["macro_f1"],
         },
     }
     all_sessions = [s for split in ("train", "val", "test") for s in sessions[split]]

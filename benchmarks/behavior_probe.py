@@ -335,13 +335,9 @@ def main(argv: list[str] | None = None) -> dict:
             fr = {f"{f:g}/{d}": probe(feats, built, f, d, head) for f, d in plan}
             results[f"forest_all_{name}"] = {"runs": fr, "encoder": name}
             log.info("forest_all_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in fr.items()})
+    # the SimBA-style forest (tested on the other mouse too, --transfer-sim)
     rf_runs = {f"{f:g}/{d}": run_rf(sessions, "track", f, label_seed=d, mechanisms=mech)
                for f, d in plan}  # fmt: skip
-    if transfer:  # the same forests (same frames, same seed) tested on the other mouse
-        other = {"train": sessions["train"], "test": sessions["transfer"]}
-        for (f, d), r in zip(plan, rf_runs.values()):
-            t = run_rf(other, "track", f, label_seed=d, mechanisms=mech)
-            r |= {"transfer_macro_f1": t["macro_f1"], "transfer_f1": t["f1"]}
     results["rf"] = {"runs": rf_runs}
     table = {}
     for name, r in results.items():

@@ -391,8 +391,14 @@ def load_classifier(path: str | os.PathLike):
 @torch.no_grad()
 def predict_probs(model, bank: SessionBank, batch_size: int = 512) -> np.ndarray:
     """Class probabilities (N, C) for every frame of the bank, in order."""
+    return _features_probs(model, bank, batch_size)[1]
+
+
+@torch.no_grad()
+def _features_probs(model, bank: SessionBank, batch_size: int = 512) -> tuple[Tensor, np.ndarray]:
+    """Every bank frame's classifier features (N, D) and class probabilities (N, C)."""
     feats = context_features(model, bank, torch.arange(len(bank)), batch_size)
-    return torch.softmax(model.classify(feats), -1).numpy()
+    return feats, torch.softmax(model.classify(feats), -1).numpy()
 
 
 #: the training frames' range of each classifier feature that a recording's frames are compared
@@ -448,10 +454,7 @@ def predict_session(model, session: Session, smoothing: dict, rng: Mapping | Non
     """{"probs" (T, C), "raw" (T,), "labels" (T,) smoothed (= raw without smoothing),
     "unfamiliar" (T,) each frame's `unfamiliar_share` given the training range `rng`, else
     None}."""
-    bank = SessionBank([session], model.half_window)
-    with torch.no_grad():
-        feats = context_features(model, bank, torch.arange(len(bank)))
-        probs = torch.softmax(model.classify(feats), -1).numpy()
+    feats, probs = _features_probs(model, SessionBank([session], model.half_window))
     raw = probs.argmax(-1)
     lab = smooth(probs, int(smoothing.get("median") or 0), int(smoothing.get("min_bout") or 0))
     unfamiliar = None if rng is None else unfamiliar_share(feats, rng)
@@ -616,10 +619,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     val = _sessions(cfg, "val", body, classes)
     test = _sessions(cfg, "test", body, classes)
     hup = model.encoder.heights_up if meas else None
-    for s in (*train, *val, *test):  # a heading-frame encoder (or the heights): the tracks'
-        check_track_up(s.rigid, body.points, up, s.name)  # world has its up
-        if hup is not None and up is None:
-            check_track_up(s.rigid, body.points, hup, s.name)
+    for s in (*train, *val, *test):  # a heading-frame encoder or the heights: the tracks'
+        check_track_up(s.rigid, body.points, model.encoder.heights_up, s.name)  # world's up
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
@@ -892,12 +893,11 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         raise ValueError("mode=predict needs checkpoint=CLASSIFIER.pt and tracks=points3d.csv")
     model, meta = load_classifier(str(cfg.checkpoint))
     classes = list(meta["classes"])
+    unf = _unfamiliar_settings(cfg)
     _predict_mechanisms(cfg, model, meta)
     tr = read_tracks(str(cfg.tracks), meta["body"], interpolate=bool(cfg.data.get("interpolate")))
-    enc = model.encoder
-    check_track_up(tr["rigid"], meta["body"].points, enc.up, str(cfg.tracks))
-    if enc.measurements and enc.up is None and enc.heights_up is not None:
-        check_track_up(tr["rigid"], meta["body"].points, enc.heights_up, str(cfg.tracks))
+    # the world's up the encoder assumes (its heading frame's, else the heights'; or none)
+    check_track_up(tr["rigid"], meta["body"].points, model.encoder.heights_up, str(cfg.tracks))
     T = len(tr["fnum"])
     s = Session(str(cfg.tracks), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
                 np.full(T, -1))  # fmt: skip
@@ -915,7 +915,6 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         log.info("%s stores no training feature range (an older classifier): the recording is "
                  "not compared with the training data", cfg.checkpoint)  # fmt: skip
     else:
-        unf = _unfamiliar_settings(cfg)
         df["unfamiliar"] = pr["unfamiliar"]
         share = float(np.mean(pr["unfamiliar"] > unf["frame_share"]))
         if share > unf["warn_share"]:
