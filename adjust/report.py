@@ -349,6 +349,7 @@ def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
             "macro_f1_raw": raw["macro_f1"],
             "frames": smoothed["frames"],
             "unfamiliar_frames": summary.get("unfamiliar_frames"),
+            "body_scale": summary.get("body_scale"),
             "warning": summary.get("warning"),
             "per_class": smoothed["per_class"],
             "confusion": smoothed["confusion"],
@@ -727,6 +728,12 @@ def blocks(rep: Mapping) -> list[tuple]:
                     f" {_f(100 * s['unfamiliar_frames'], 1)}% of those frames are unlike its "
                     "training data (`deformnet-classify`'s check, `unfamiliar`)."
                     if s.get("unfamiliar_frames") is not None
+                    else ""
+                )
+                + (
+                    f" The mouse measured {_f(s['body_scale'], 3)} times the body model's size "
+                    "(`body_scale`, divided out)."
+                    if s.get("body_scale") is not None
                     else ""
                 ),
             )

@@ -284,23 +284,19 @@ def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
     per-class F1 over all their frames, raw and smoothed, and the share of their frames that
     the classifier finds unlike its training data ({"transfer_macro_f1", ...,
     "transfer_unfamiliar_frames"})."""
-    from deformnet.behavior_labels import Session, read_tracks
     from deformnet.behavior_report import evaluate
-    from deformnet.classify import load_classifier, predict_session
+    from deformnet.classify import load_classifier, predict_session, read_session
 
     model, meta = load_classifier(ckpt)
     truth, raw, smoothed, unfamiliar = [], [], [], []
     frame_share = float(compose("classify").unfamiliar.frame_share)
     for s in sessions:
-        tr = read_tracks(str(s[source]), meta["body"], interpolate=source == "dlt")
-        T = len(tr["fnum"])
-        sess = Session(str(s[source]), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
-                       np.full(T, -1))  # fmt: skip
+        sess = read_session(str(s[source]), model, meta, interpolate=source == "dlt")
         pr = predict_session(model, sess, dict(meta.get("smoothing") or {}),
                              meta.get("feature_range"))  # fmt: skip
         if pr["unfamiliar"] is not None:
             unfamiliar.append(pr["unfamiliar"] > frame_share)
-        truth.append(np.asarray(s["truth_labels"])[tr["fnum"]])
+        truth.append(np.asarray(s["truth_labels"])[sess.fnum])
         raw.append(pr["raw"])
         smoothed.append(pr["labels"])
     y = np.concatenate(truth)

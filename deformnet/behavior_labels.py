@@ -22,6 +22,8 @@ from deformnet.tables import read_csv, xyz_parts
 __all__ = [
     "POSE_COLUMNS",
     "Session",
+    "BODY_SCALE_RANGE",
+    "body_scale",
     "read_tracks",
     "read_labels",
     "bouts",
@@ -38,7 +40,9 @@ POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz"
 @dataclass
 class Session:
     """One recording: rigid, deformed (T, K, 3) global mm, observed (T, K) bool, fnum (T,)
-    frame numbers, labels (T,) int64 class index (-1: not labelled)."""
+    frame numbers, labels (T,) int64 class index (-1: not labelled); scale: the animal's size
+    relative to the rigid model (`body_scale`), which the classifier divides out, or None (the
+    points as they are)."""
 
     name: str
     rigid: np.ndarray
@@ -46,9 +50,57 @@ class Session:
     observed: np.ndarray
     fnum: np.ndarray
     labels: np.ndarray
+    scale: float | None = None
 
     def __len__(self) -> int:
         return len(self.fnum)
+
+
+#: a session whose `body_scale` falls outside this range is an error: its points are not in mm,
+#: or the body model is not this animal's
+BODY_SCALE_RANGE = (0.5, 2.0)
+
+
+def body_scale(
+    rigid: np.ndarray, deformed: np.ndarray, observed: np.ndarray, name: str = "the track"
+) -> float:
+    """The animal's size relative to the rigid body model, from a session's tracks: rigid,
+    deformed (T, K, 3) mm, observed (T, K) bool.
+
+    Per frame, the least-squares scale s_t of the observed parts about the rigid model's
+    centroid c_t (sum_k (p_tk - c_t) . (r_tk - c_t) / sum_k |r_tk - c_t|^2, the parts'
+    positions against the posed model's); the median over the frames with at least 3 observed
+    parts. 1 for an animal the model's size (its deformations average out), 1.2 for one 20%
+    larger. A session with no such frame, or a scale outside BODY_SCALE_RANGE, is a ValueError
+    naming `name`.
+    """
+    rigid, deformed = np.asarray(rigid, np.float64), np.asarray(deformed, np.float64)
+    observed = np.asarray(observed, bool)
+    if rigid.ndim != 3 or rigid.shape[-1] != 3 or deformed.shape != rigid.shape:
+        raise ValueError(
+            f"rigid / deformed must be (T, K, 3) alike, got {rigid.shape} / {deformed.shape}"
+        )
+    if observed.shape != rigid.shape[:2]:
+        raise ValueError(f"observed must be {rigid.shape[:2]}, got {observed.shape}")
+    ok = observed & np.isfinite(deformed).all(-1)
+    c = rigid.mean(1, keepdims=True)
+    r, p = rigid - c, np.where(ok[..., None], deformed - c, 0.0)
+    den = np.where(ok, (r * r).sum(-1), 0.0).sum(1)
+    use = (ok.sum(1) >= 3) & (den > 0)
+    if not use.any():
+        raise ValueError(
+            f"{name}: no frame with 3 or more observed parts to measure the animal's size from "
+            "(body_scale=none skips the size normalisation)"
+        )
+    s = float(np.median((p * r).sum((1, 2))[use] / den[use]))
+    lo, hi = BODY_SCALE_RANGE
+    if not lo <= s <= hi:
+        raise ValueError(
+            f"{name}: the tracked parts are {s:.3g} times the body model's size (median over "
+            f"{int(use.sum())} frames; allowed {lo:g}-{hi:g}): are the points in mm, and is the "
+            "body model this animal's? (body_scale=none skips the size normalisation)"
+        )
+    return s
 
 
 def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dict:

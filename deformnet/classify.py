@@ -46,6 +46,7 @@ from torch import Tensor, nn
 from deformnet.atomic import finite_or_none, write_text
 from deformnet.behavior_labels import (
     Session,
+    body_scale,
     bouts,
     read_labels,
     read_tracks,
@@ -76,6 +77,8 @@ __all__ = [
     "predict_session",
     "feature_range",
     "unfamiliar_share",
+    "set_body_scales",
+    "read_session",
     "run",
     "main",
 ]
@@ -92,8 +95,11 @@ class SessionBank:
 
     def __init__(self, sessions: Sequence[Session], half_window: int) -> None:
         n = self.n = int(half_window)
-        rig, dfm, obs, mids, lab = [], [], [], [], []
+        rig, dfm, obs, mids, lab, scl = [], [], [], [], [], []
         off = 0
+        scaled = {s.scale is not None for s in sessions}
+        if len(scaled) > 1:
+            raise ValueError("sessions with and without a body scale cannot share a bank")
         for s in sessions:
             T = len(s)
             pad = ((n, n), (0, 0), (0, 0))
@@ -102,24 +108,30 @@ class SessionBank:
             obs.append(np.pad(s.observed, ((n, n), (0, 0)), constant_values=False))
             mids.append(off + n + np.arange(T))
             lab.append(s.labels)
+            scl.append(np.full(T + 2 * n, 1.0 if s.scale is None else s.scale, np.float32))
             off += T + 2 * n
         self.rigid = torch.from_numpy(np.concatenate(rig).astype(np.float32))
         self.deformed = torch.from_numpy(np.concatenate(dfm).astype(np.float32))
         self.observed = torch.from_numpy(np.concatenate(obs))
         self.mids = torch.from_numpy(np.concatenate(mids).astype(np.int64))
         self.labels = torch.from_numpy(np.concatenate(lab).astype(np.int64))
+        #: each bank frame's session body scale (the classifier divides it out), or None
+        self.scale = torch.from_numpy(np.concatenate(scl)) if scaled == {True} else None
 
     def __len__(self) -> int:
         return len(self.mids)
 
     def batch(self, idx: Tensor) -> dict:
         frames = self.mids[idx][:, None] + torch.arange(-self.n, self.n + 1)
-        return {
+        out = {
             "rigid": self.rigid[frames],
             "deformed": self.deformed[frames],
             "observed": self.observed[frames],
             "label": self.labels[idx],
         }
+        if self.scale is not None:
+            out["scale"] = self.scale[self.mids[idx]]
+        return out
 
 
 class _Frames(torch.utils.data.Dataset):
@@ -162,7 +174,8 @@ def _context_features(model, bank: SessionBank, idx, batch_size: int) -> Tensor:
     feats = []
     for chunk in uniq.split(int(batch_size)):
         fr = chunk[:, None] + steps
-        feats.append(enc(bank.rigid[fr], bank.deformed[fr], bank.observed[fr]))
+        scale = None if bank.scale is None else bank.scale[chunk]
+        feats.append(enc(bank.rigid[fr], bank.deformed[fr], bank.observed[fr], scale))
     F = torch.cat(feats) if feats else torch.zeros(0, enc.out_dim)
     out = [
         model.pool(F[inv])
@@ -464,6 +477,22 @@ def predict_session(model, session: Session, smoothing: dict, rng: Mapping | Non
 # --------------------------------------------------------------------------------------------
 # the app
 # --------------------------------------------------------------------------------------------
+BODY_SCALE_MODES = ("session", "none")
+
+
+def set_body_scales(sessions: Sequence[Session], mode: str) -> None:
+    """``body_scale``: "session" sets each session's `scale` to its `body_scale` (the
+    classifier divides it out; a session it cannot be measured on is a ValueError naming it),
+    "none" to None (in place)."""
+    mode = str(mode)
+    if mode not in BODY_SCALE_MODES:
+        raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{mode}'")
+    for s in sessions:
+        s.scale = body_scale(s.rigid, s.deformed, s.observed, s.name) if mode == "session" else None
+        if s.scale is not None:
+            log.info("%s: body scale %.3f (the animal's size / the body model's)", s.name, s.scale)
+
+
 def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list[Session]:
     d = cfg.data
     interp = bool(d.get("interpolate", False))
@@ -606,6 +635,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         raise ValueError(
             "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
         )
+    if str(cfg.get("body_scale", "none")) not in BODY_SCALE_MODES:  # before any data is read
+        raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{cfg.body_scale}'")
     model, mech = classifier_from_config(cfg, net_cfg, body, hw, C, up)
     ff, meas = model.encoder.frame_features, model.encoder.measurements
     if mech is not None:
@@ -621,6 +652,8 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     hup = model.encoder.heights_up if meas else None
     for s in (*train, *val, *test):  # a heading-frame encoder or the heights: the tracks'
         check_track_up(s.rigid, body.points, model.encoder.heights_up, s.name)  # world's up
+    scale_mode = str(cfg.get("body_scale", "none"))
+    set_body_scales((*train, *val, *test), scale_mode)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
@@ -775,6 +808,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "freeze": bool(cfg.freeze),
         "label_fraction": frac,
         "feature_range": rng,
+        "body_scale": scale_mode,
     }
     ckpt = out / "classifier.pt"
     from deformnet.atomic import atomic_path
@@ -812,6 +846,9 @@ def _train(cfg: DictConfig, out: Path) -> dict:
             "smoothed": bout_stats(ys, classes, fps),
         },
         "labelled_training_frames": int(idx.size),
+        "body_scales": None
+        if scale_mode == "none"
+        else {s.name: round(float(s.scale), 4) for s in (*train, *val, *test)},
         "unfamiliar_frames": float(np.concatenate(unfamiliar).mean()),
         "training_steps": steps,
         "head_solver": solver,
@@ -886,6 +923,19 @@ def _unfamiliar_settings(cfg: DictConfig) -> dict:
     return out
 
 
+def read_session(path: str, model, meta: Mapping, interpolate: bool = False) -> Session:
+    """A track for a trained classifier (`load_classifier`'s model and meta) to label: read in
+    its body model's parts, checked against the world's up its encoder assumes (its heading
+    frame's, else the heights'; or none), unlabelled, with its body scale if the classifier
+    divides it out (``body_scale``, as it was trained)."""
+    tr = read_tracks(path, meta["body"], interpolate=interpolate)
+    check_track_up(tr["rigid"], meta["body"].points, model.encoder.heights_up, path)
+    T = len(tr["fnum"])
+    s = Session(path, tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], np.full(T, -1))
+    set_body_scales([s], meta.get("body_scale") or "none")
+    return s
+
+
 def _predict(cfg: DictConfig, out: Path) -> dict:
     from deformnet.atomic import atomic_path
 
@@ -895,16 +945,12 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     classes = list(meta["classes"])
     unf = _unfamiliar_settings(cfg)
     _predict_mechanisms(cfg, model, meta)
-    tr = read_tracks(str(cfg.tracks), meta["body"], interpolate=bool(cfg.data.get("interpolate")))
-    # the world's up the encoder assumes (its heading frame's, else the heights'; or none)
-    check_track_up(tr["rigid"], meta["body"].points, model.encoder.heights_up, str(cfg.tracks))
-    T = len(tr["fnum"])
-    s = Session(str(cfg.tracks), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"],
-                np.full(T, -1))  # fmt: skip
+    s = read_session(str(cfg.tracks), model, meta, bool(cfg.data.get("interpolate")))
+    T = len(s.fnum)
     smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
     rng = meta.get("feature_range")
     pr = predict_session(model, s, smoothing, rng)
-    fnum = tr["fnum"]
+    fnum = s.fnum
     names = np.asarray(classes, dtype=object)
     df = pd.DataFrame(
         {"fnum": fnum, "label": names[pr["labels"]], "label_raw": names[pr["raw"]]}
@@ -951,6 +997,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         "frames": T,
         "num_bouts": len(rows),
         "unfamiliar_frames": share,
+        "body_scale": s.scale,
         "warning": warning,
     }
     write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")

@@ -96,10 +96,12 @@ class ClassifyLit(L.LightningModule):
         p = float(self.hparams.token_dropout)
         if augment and p > 0:
             observed = observed & (torch.rand(observed.shape, device=observed.device) >= p)
-        return self.model(batch["rigid"], batch["deformed"], observed)
+        return self.model(batch["rigid"], batch["deformed"], observed, batch.get("scale"))
 
-    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        return self.model(rigid, deformed, observed)
+    def forward(
+        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
+        return self.model(rigid, deformed, observed, scale)
 
     def _loss(self, logits: Tensor, label: Tensor) -> Tensor:
         w = self.class_weights

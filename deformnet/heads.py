@@ -6,7 +6,8 @@ summarises the window around a frame. `WindowEncoder` runs that encoder on globa
 
     WindowEncoder(net, body_points, half_window)(rigid, deformed, observed) -> (B, D)
 
-    rigid, deformed (B, W, K, 3) global mm, observed (B, W, K) bool; W = 2 half_window + 1.
+    rigid, deformed (B, W, K, 3) global mm, observed (B, W, K) bool; W = 2 half_window + 1;
+    optional scale (B,): each window's animal size relative to the rigid model (`normalize_size`).
 
 It canonicalises the window (the mid frame's rigid-model coordinates, `deformnet.tokens`), runs
 the net's encoder (the LSTM's mid-frame output and embedding plus its time-average; the
@@ -16,6 +17,10 @@ matrix, translation / pos_scale: height, pitch and place in the arena) and the m
 deformation offsets (the net masks them when predicting them; here they are inputs). With a
 lock box's mechanism positions (`MechanismFeatures`) it also appends where the mouse is
 relative to each mechanism: the distance of chosen parts (snout, front paws) to each one.
+Given each window's body scale (the session's, `deformnet.behavior_labels.body_scale`), the
+points are shrunk to the model's size about the rigid model's centroid before the encoder, the
+offsets and the measurements see them (`normalize_size`: a larger or smaller animal looks like
+the one the classifier was trained on); the mechanism distances stay those of the real points.
 
 Heads map (B, D) -> (B, num_classes) logits: `LinearHead`, `MLPHead` (conf/head/*.yaml), an
 `EnsembleHead` of several (``head.ensemble``), or `ForestHead` (a random forest fitted by
@@ -40,6 +45,7 @@ from deformnet.tokens import canonicalize
 
 __all__ = [
     "MechanismFeatures",
+    "normalize_size",
     "pose_measurements",
     "WindowEncoder",
     "window_summary",
@@ -51,6 +57,23 @@ __all__ = [
     "build_head",
     "context_offsets",
 ]
+
+
+def normalize_size(rigid: Tensor, points: Tensor, scale: Tensor) -> Tensor:
+    """Points (..., K, 3) brought to the rigid model's size: c + (p - c) / scale, about the
+    posed rigid model's centroid c = rigid (..., K, 3).mean(-2), scale (...,) > 0 the animal's
+    size relative to the model (`deformnet.behavior_labels.body_scale`). Pose and place are
+    kept; the parts' positions relative to the body (offsets, part distances, heights above
+    the centroid) are divided by the scale."""
+    if rigid.shape != points.shape or rigid.dim() < 2 or rigid.shape[-1] != 3:
+        raise ValueError(
+            f"rigid / points must be (..., K, 3) alike, got {tuple(rigid.shape)} / "
+            f"{tuple(points.shape)}"
+        )
+    if tuple(scale.shape) != tuple(rigid.shape[:-2]):
+        raise ValueError(f"scale must be {tuple(rigid.shape[:-2])}, got {tuple(scale.shape)}")
+    c = rigid.mean(-2, keepdim=True)
+    return c + (points - c) / scale.to(points.dtype)[..., None, None]
 
 
 def window_summary(
@@ -231,17 +254,25 @@ class WindowEncoder(nn.Module):
         """The net's parameters this encoder uses (the unused per-part output layer excluded)."""
         return [p for n, p in self.net.named_parameters() if not n.startswith("head.")]
 
-    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+    def forward(
+        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         self._check(rigid, deformed, observed)
         observed = observed.bool()
+        raw = deformed  # the real points: the mechanism distances
+        if scale is not None:
+            if scale.shape != rigid.shape[:1]:
+                raise ValueError(f"scale must be ({rigid.shape[0]},), got {tuple(scale.shape)}")
+            deformed = normalize_size(rigid, deformed, scale[:, None].expand(rigid.shape[:2]))
         up = None if self.up is None else rigid.new_tensor(self.up)
         summary, (rigid_c, deformed_c, R, t) = window_summary(
             self.net, self.body_points, rigid, deformed, observed, up
         )
         mid, net, B = self.half_window, self.net, summary.shape[0]
 
-        def seen(i: int) -> Tensor:  # frame i's points: observed where seen, else rigid (B, K, 3)
-            return torch.where(observed[:, i, :, None], deformed[:, i], rigid[:, i])
+        def seen(i: int, pts: Tensor = deformed) -> Tensor:
+            """Frame i's points (B, K, 3): pts where observed, else the rigid model's."""
+            return torch.where(observed[:, i, :, None], pts[:, i], rigid[:, i])
 
         out = [summary]
         if self.frame_features:
@@ -259,7 +290,7 @@ class WindowEncoder(nn.Module):
                 obs_mid.to(off.dtype),
             ]
         if self.mechanisms is not None:
-            out.append(self.mechanisms(seen(mid)))
+            out.append(self.mechanisms(seen(mid, raw)))
         if self.measurements:
             hup = None if self.heights_up is None else rigid.new_tensor(self.heights_up)
             out.append(pose_measurements(seen(mid), seen(mid - 1), up=hup))
@@ -475,8 +506,9 @@ class BehaviorClassifier(nn.Module):
     measurements do (D (1 + 2 len(context_frames)) values). The head sees them standardised
     by `feature_mean` / `feature_std` (set from the training frames, `set_standardization`).
 
-    forward(rigid, deformed (B, W + 2 span, K, 3), observed (B, W + 2 span, K)) with W the
-    encoder's window and span = `span` (0 without context).
+    forward(rigid, deformed (B, W + 2 span, K, 3), observed (B, W + 2 span, K), scale (B,) or
+    None) with W the encoder's window and span = `span` (0 without context); scale: each
+    window's body scale (`WindowEncoder`).
     """
 
     def __init__(
@@ -526,7 +558,9 @@ class BehaviorClassifier(nn.Module):
             out += [sel.mean(1), sel.std(1, unbiased=False)]
         return torch.cat(out, -1)
 
-    def features(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+    def features(
+        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         """Context features (B, out_dim) of the batch's mid frames (not standardised)."""
         if rigid.dim() != 4 or rigid.shape[1] != self.window:
             raise ValueError(
@@ -534,14 +568,18 @@ class BehaviorClassifier(nn.Module):
                 f"+ 2 x context span {self.span}), got {tuple(rigid.shape)}"
             )
         if not self.span:
-            return self.encoder(rigid, deformed, observed)
+            return self.encoder(rigid, deformed, observed, scale)
         B, W = rigid.shape[0], self.encoder.window
         starts = [self.span + o for o in self.offsets]  # sub-window centred at mid + o
 
         def unfold(x: Tensor) -> Tensor:
             return torch.stack([x[:, s : s + W] for s in starts], 1).flatten(0, 1)
 
-        f = self.encoder(unfold(rigid), unfold(deformed), unfold(observed))
+        if scale is not None:  # every sub-window is the same session's
+            if scale.shape != rigid.shape[:1]:
+                raise ValueError(f"scale must be ({B},), got {tuple(scale.shape)}")
+            scale = scale[:, None].expand(B, len(starts)).flatten()
+        f = self.encoder(unfold(rigid), unfold(deformed), unfold(observed), scale)
         return self.pool(f.reshape(B, len(self.offsets), -1))
 
     @torch.no_grad()
@@ -558,5 +596,7 @@ class BehaviorClassifier(nn.Module):
         """Logits (B, C) from context features (B, out_dim)."""
         return self.head((features - self.feature_mean) / self.feature_std)
 
-    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        return self.classify(self.features(rigid, deformed, observed))
+    def forward(
+        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
+        return self.classify(self.features(rigid, deformed, observed, scale))

@@ -26,7 +26,8 @@ def _toy_session(
     """Alternating bouts: 'walk' (flat, moving) and 'rear' (standing, pitched up 45 deg).
     world: a rotation vector turning the whole scene (a world whose up is not z); still: the
     'walk' bouts do not move either (only the pitch, i.e. the parts' heights, tells them apart);
-    size: the mouse's size (its body points scaled about the model origin)."""
+    size: the mouse's size (its body points scaled about their centroid; the poses are the
+    model's)."""
     rng = np.random.default_rng(seed)
     body = default_mouse()
     lab = (np.arange(T) // bout + seed) % 2
@@ -39,7 +40,8 @@ def _toy_session(
     poses[:, 3] = 150 + np.cumsum(step * -np.sin(yaw)) % 100
     poses[:, 4] = 150 + np.cumsum(step * np.cos(yaw)) % 100
     poses[:, 5] = 10.0
-    model = torch.tensor(np.asarray(body.points)) * float(size)
+    model = torch.tensor(np.asarray(body.points))
+    model = model.mean(0) + (model - model.mean(0)) * float(size)
     pts = transform_points(torch.tensor(poses), model.expand(T, -1, -1)).numpy()
     pts = pts + rng.normal(0, 0.5, pts.shape)
     if world is not None:
@@ -248,11 +250,10 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
     body_frame, _ = load_classifier(res["checkpoint"])
     body_frame.encoder.up = None  # the same weights reading the body frame: other outputs
     test = _toy_session(tmp_path, "test", 9, T=60)
-    from deformnet.behavior_labels import Session, read_labels, read_tracks
+    from deformnet.classify import read_session
 
-    tr = read_tracks(str(test[0]), pre.body)
-    lab = read_labels(str(test[1]), tr["fnum"], CLASSES)
-    s = Session(str(test[0]), tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], lab)
+    s = read_session(str(test[0]), model, meta)  # as mode=predict reads it (body scale set)
+    assert meta["body_scale"] == "session" and s.scale is not None
     bank = SessionBank([s], model.half_window)
     p_head = predict_probs(model, bank)
     assert np.abs(p_head - predict_probs(body_frame, bank)).max() > 1e-4
@@ -610,8 +611,9 @@ def test_feature_range_and_unfamiliar_share():
 
 def test_predict_warns_on_a_recording_unlike_the_training_data(tmp_path, caplog):
     """classifier.pt stores the training frames' feature range; mode=predict on a recording like
-    them flags almost no frame, on a mouse 1.5x the size (another animal) most frames, and then
-    warns in the log and summary.json; the per-frame share is the predictions' `unfamiliar`."""
+    them flags almost no frame, on a mouse 1.5x the size (another animal; the classifier does
+    not divide the size out, body_scale=none) most frames, and then warns in the log and
+    summary.json; the per-frame share is the predictions' `unfamiliar`."""
     import json
     import logging
 
@@ -624,10 +626,10 @@ def test_predict_warns_on_a_recording_unlike_the_training_data(tmp_path, caplog)
         _compose(
             [*TINY, "freeze=true", f"labels.classes=[{','.join(CLASSES)}]",
              *_files("train", train), *_files("test", test), "logger=none",
-             f"output.dir={out}"]
+             f"output.dir={out}", "body_scale=none"]
         )
     )["report"]  # fmt: skip
-    assert rep["unfamiliar_frames"] <= 0.05
+    assert rep["unfamiliar_frames"] <= 0.05 and rep["body_scales"] is None
     _, meta = load_classifier(out / "classifier.pt")
     assert meta["feature_range"]["low"].shape == meta["feature_range"]["high"].shape
     same = _toy_session(tmp_path, "same", 9)
@@ -647,6 +649,44 @@ def test_predict_warns_on_a_recording_unlike_the_training_data(tmp_path, caplog)
     assert "big.csv" in res["big"]["warning"] and "unlike" in res["big"]["log"]
     df = pd.read_csv(res["big"]["predictions"])
     assert np.mean(df["unfamiliar"] > 0.05) == pytest.approx(res["big"]["unfamiliar_frames"])
+
+
+def test_body_scale_lets_a_classifier_label_a_larger_mouse(tmp_path):
+    """body_scale=session (the default): each session's size against the body model is
+    measured (the report, classifier.pt) and divided out, so a mouse 1.5x the size is labelled
+    like the model-size mouse (the same poses): the same labels, no unfamiliar frames, its
+    scale in summary.json. A bad body_scale and a track in metres are errors naming them."""
+    import json
+
+    from deformnet.classify import load_classifier, run
+
+    train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
+    test = [_toy_session(tmp_path, "test", 8)]
+    out = tmp_path / "cls"
+    ov = [*TINY, "freeze=true", f"labels.classes=[{','.join(CLASSES)}]",
+          *_files("train", train), "logger=none"]  # fmt: skip
+    rep = run(_compose([*ov, *_files("test", test), f"output.dir={out}"]))["report"]
+    assert rep["body_scales"] and all(abs(v - 1) < 0.01 for v in rep["body_scales"].values())
+    assert load_classifier(out / "classifier.pt")[1]["body_scale"] == "session"
+    res = {}
+    for name, size in (("same", 1.0), ("big", 1.5)):
+        tracks = _toy_session(tmp_path, name, 9, size=size)[0]
+        pred = ["mode=predict", f"checkpoint={out / 'classifier.pt'}", f"tracks={tracks}"]
+        res[name] = run(_compose([*pred, f"output.dir={tmp_path / name}"]))
+        summary = json.loads((tmp_path / name / "summary.json").read_text())
+        assert summary["body_scale"] == pytest.approx(size, abs=0.01)
+    assert res["big"]["warning"] is None and res["big"]["unfamiliar_frames"] <= 0.05
+    same, big = (pd.read_csv(res[n]["predictions"]) for n in ("same", "big"))
+    assert np.mean(same["label"] == big["label"]) >= 0.95
+    with pytest.raises(ValueError, match="body_scale must be one of"):
+        run(_compose([*ov, "body_scale=size", f"output.dir={tmp_path / 'bad'}"]))
+    metres = pd.read_csv(test[0][0])
+    xyz = [c for c in metres.columns if c[-2:] in ("_x", "_y", "_z") and not c.startswith("pose")]
+    metres[xyz] = metres[xyz] / 1000.0
+    metres.to_csv(tmp_path / "metres.csv", index=False)
+    with pytest.raises(ValueError, match=r"metres.csv: the tracked parts are .* in mm"):
+        pred = ["mode=predict", f"checkpoint={out / 'classifier.pt'}"]
+        run(_compose([*pred, f"tracks={tmp_path / 'metres.csv'}", f"output.dir={tmp_path / 'm'}"]))
 
 
 def test_measurements_alone_feed_a_forest_and_predict_round_trips(tmp_path):

@@ -119,6 +119,8 @@ def test_training_behavior_events_numbers_equal_the_run_files(demo):
     summ = json.loads((out / "classify" / "predict" / "summary.json").read_text())
     assert 0.0 <= summ["unfamiliar_frames"] <= 1.0
     assert beh["session"]["unfamiliar_frames"] == summ["unfamiliar_frames"]
+    assert beh["session"]["body_scale"] == summ["body_scale"]
+    assert 0.9 < summ["body_scale"] < 1.1  # the simulated mouse is the body model's size
     ev = json.loads((out / "events" / "summary.json").read_text())
     assert rep["events"]["order"] == ev["order"]
     assert rep["events"]["count"] == ev["events"] == len(rep["events"]["list"])
