@@ -45,6 +45,9 @@ overrides; seeds 95300..; same rig, lock box and frame rate; tracked the same wa
 `deformnet-classify` classifier through its `mode=predict` path (`load_classifier`,
 `predict_session`), ``rf`` refitted identically: the macro-F1 on a mouse that neither the labels
 nor the pretraining saw ("transfer").
+``--body-scale session|none``: every `deformnet-classify` classifier's `body_scale` (session, the
+default: each session's animal size against the body model divided out of its pose features;
+none: the points as they are, as every run before stop 29).
 Input comparison: ``pretrained`` and ``rf`` at 10% on DLT (gap-filled) vs adjust-track output.
 Test macro-F1 over the test sessions (scikit-learn), raw and with the smoothing (median 9 +
 min bout 5) reported separately.
@@ -63,7 +66,7 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
         [--pretrained runs/train/.../best.ckpt] [--pretrain-seconds 240] [--frame body]
         [--seconds 75]
         [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf] [--box]
-        [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30]
+        [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30] [--body-scale session|none]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
 and five L-BFGS fits on all 18000 training frames take about 20 min per method. A run with a
@@ -159,8 +162,8 @@ def make_session(work: Path, seed: int, frames: int, sim: tuple[str, ...] = ()) 
 
 
 def add_context_args(ap: argparse.ArgumentParser) -> None:
-    """The options shared with `benchmarks/behavior_probe.py`: --box, --measurements and
-    --transfer-sim (see the module docstrings)."""
+    """The options shared with `benchmarks/behavior_probe.py`: --box, --measurements,
+    --transfer-sim and --body-scale (see the module docstrings)."""
     ap.add_argument("--box", action="store_true",
                     help="lock-box context for every classifier (ROI features for rf)")  # fmt: skip
     ap.add_argument("--measurements", action="store_true",
@@ -171,6 +174,9 @@ def add_context_args(ap: argparse.ArgumentParser) -> None:
         help="also test every classifier on --test sessions of another simulated mouse "
         "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
     )
+    ap.add_argument("--body-scale", default="session", choices=("session", "none"),
+                    help="deformnet-classify body_scale for every classifier (none: the "
+                         "points as they are, before stop 29)")  # fmt: skip
 
 
 def add_transfer_sessions(sessions: dict, work: Path, args) -> tuple[str, ...]:
@@ -231,14 +237,16 @@ def run_classifier(
     box: str | None = None,
     measurements: bool = False,
     transfer: list[dict] | None = None,
+    body_scale: str = "session",
 ) -> dict:
     """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
     context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`;
-    transfer: sessions the trained classifier then labels (`transfer_score`)."""
+    transfer: sessions the trained classifier then labels (`transfer_score`); body_scale:
+    the classifier's."""
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
-    ov.append(f"labels.seed={label_seed}")
+    ov += [f"labels.seed={label_seed}", f"body_scale={body_scale}"]
     ov.append(f"trainer.max_time=00:00:{seconds // 60:02d}:{seconds % 60:02d}")
     for split in ("train", "val", "test"):
         ov.append(f"data.{split}_tracks={_list(s[source] for s in sessions[split])}")
@@ -282,16 +290,17 @@ def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
     """A trained classifier on other sessions (another mouse), as `deformnet-classify
     mode=predict` labels them (its own mechanism positions and smoothing): macro-F1 and
     per-class F1 over all their frames, raw and smoothed, and the share of their frames that
-    the classifier finds unlike its training data ({"transfer_macro_f1", ...,
-    "transfer_unfamiliar_frames"})."""
+    the classifier finds unlike its training data, and each session's body scale
+    ({"transfer_macro_f1", ..., "transfer_unfamiliar_frames", "transfer_body_scales"})."""
     from deformnet.behavior_report import evaluate
     from deformnet.classify import load_classifier, predict_session, read_session
 
     model, meta = load_classifier(ckpt)
-    truth, raw, smoothed, unfamiliar = [], [], [], []
+    truth, raw, smoothed, unfamiliar, scales = [], [], [], [], []
     frame_share = float(compose("classify").unfamiliar.frame_share)
     for s in sessions:
         sess = read_session(str(s[source]), model, meta, interpolate=source == "dlt")
+        scales.append(sess.scale)
         pr = predict_session(model, sess, dict(meta.get("smoothing") or {}),
                              meta.get("feature_range"))  # fmt: skip
         if pr["unfamiliar"] is not None:
@@ -309,6 +318,7 @@ def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
         "transfer_unfamiliar_frames": (
             float(np.concatenate(unfamiliar).mean()) if unfamiliar else None
         ),
+        "transfer_body_scales": scales,  # each session's (None: body_scale=none)
     }
 
 
@@ -628,6 +638,8 @@ def main(argv: list[str] | None = None) -> dict:
     extra["measurements"] = bool(args.measurements)
     extra["transfer_sim"] = list(transfer) or None
     tag = ("box_" if box else "") + ("meas_" if args.measurements else "")  # output folders
+    tag += "" if args.body_scale == "session" else f"scale{args.body_scale}_"
+    extra["body_scale"] = args.body_scale
 
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:
@@ -643,6 +655,7 @@ def main(argv: list[str] | None = None) -> dict:
                     else work / f"{tag}cls_track_{method}_{key}",
                     sessions, "track", frac, method, ckpt, args.seconds, label_seed=d, box=box,
                     measurements=args.measurements, transfer=sessions.get("transfer"),
+                    body_scale=args.body_scale,
                 )
                 for d in draws
             ]  # fmt: skip
@@ -656,7 +669,7 @@ def main(argv: list[str] | None = None) -> dict:
     if "pretrained" not in r10:
         r10["pretrained"] = run_classifier(
             work / f"{tag}cls_track_pretrained_0.1", sessions, "track", 0.1, "pretrained", ckpt,
-            args.seconds, box=box, measurements=args.measurements,
+            args.seconds, box=box, measurements=args.measurements, body_scale=args.body_scale,
         )  # fmt: skip
     if "rf" not in r10:
         r10["rf"] = run_rf(sessions, "track", 0.1, mechanisms=mech)
@@ -677,6 +690,7 @@ def main(argv: list[str] | None = None) -> dict:
                 args.seconds,
                 box=box,
                 measurements=args.measurements,
+                body_scale=args.body_scale,
             )["macro_f1"],  # fmt: skip
             "rf": run_rf(same_mouse, "dlt", 0.1, mechanisms=mech)["macro_f1"],
         },

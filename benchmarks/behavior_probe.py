@@ -44,11 +44,12 @@ distances, part speeds and part heights among the frame features,
 sessions as above) is also tested on `--test` sessions of another simulated mouse (these
 `adjust-simulate` overrides, seeds 95300..; same rig, lock box and frame rate, tracked the same
 way): the macro-F1 on a mouse the labels and the pretraining never saw ("transfer" columns).
+``--body-scale session|none``: every classifier's `body_scale` (as `benchmarks/behavior.py`).
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
         [--heading CKPT] [--forecast CKPT] [--pretrain-seconds 240] [--draws 3]
         [--encoders pretrained,contrast,random,heading,random_heading,forecast] [--pca 16]
-        [--box] [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30]
+        [--box] [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30] [--body-scale session]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_probe.json.
@@ -300,6 +301,8 @@ def main(argv: list[str] | None = None) -> dict:
     randoms = {"random": (), "random_heading": HEADING}
     ctx = [f"mechanisms.calibration={box}"] if box else []
     ctx += ["measurements=true"] if args.measurements else []
+    ctx += [f"body_scale={args.body_scale}"]
+    extra["body_scale"] = args.body_scale
     extra["measurements"] = bool(args.measurements)
     encoders = {k: (v, tuple(ctx)) for k, v in ckpts.items()}
     encoders |= {k: ("random", (*ov, *ctx)) for k, ov in randoms.items() if k in chosen}
