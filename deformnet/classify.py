@@ -969,8 +969,8 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
                 f"training data (more than {100 * unf['frame_share']:g}% of their features "
                 "outside the training range; column 'unfamiliar'): its labels there are not to "
                 "be trusted (another animal, rig or tracker?). Label some of this recording's "
-                "frames and train on them too; head=forest head.inputs=all on a pretrained "
-                "encoder transfers best"
+                "frames and train on them too; a forest head (head=forest freeze=true "
+                "measurements=true) with body_scale=session transfers best"
             )
             log.warning("%s", warning)
     pred_path, bouts_path = out / "predictions.csv", out / "bouts.csv"
