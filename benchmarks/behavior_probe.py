@@ -121,7 +121,7 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
             lab = read_labels(str(s["labels"]), tr["fnum"], classes)
             ss.append(Session(str(s["track"]), tr["rigid"], tr["deformed"], tr["observed"],
                               tr["fnum"], lab))  # fmt: skip
-        set_body_scales(ss, cfg.body_scale)  # as deformnet-classify does
+        set_body_scales(ss, cfg.body_scale, body)  # as deformnet-classify does
         bank = SessionBank(ss, model.half_window)
         out[split] = {
             "features": context_features(model, bank, torch.arange(len(bank))),

@@ -62,17 +62,17 @@ BODY_SCALE_RANGE = (0.5, 2.0)
 
 
 def body_scale(
-    rigid: np.ndarray, deformed: np.ndarray, observed: np.ndarray, name: str = "the track"
+    body, rigid: np.ndarray, deformed: np.ndarray, observed: np.ndarray, name: str = "the track"
 ) -> float:
-    """The animal's size relative to the rigid body model, from a session's tracks: rigid,
-    deformed (T, K, 3) mm, observed (T, K) bool.
+    """The animal's size relative to the rigid body model (a `deformnet.body.BodyModel`), from
+    a session's tracks: rigid (this model moved by each frame's pose), deformed (T, K, 3) mm,
+    observed (T, K) bool.
 
-    Per frame, the least-squares scale s_t of the observed parts about the rigid model's
-    centroid c_t (sum_k (p_tk - c_t) . (r_tk - c_t) / sum_k |r_tk - c_t|^2, the parts'
-    positions against the posed model's); the median over the frames with at least 3 observed
-    parts. 1 for an animal the model's size (its deformations average out), 1.2 for one 20%
-    larger. A session with no such frame, or a scale outside BODY_SCALE_RANGE, is a ValueError
-    naming `name`.
+    `BodyModel.estimate_scale` given the posed model: per frame the least-squares scale of the
+    observed parts about the posed model's centroid, over the frames with at least 3 observed
+    parts; the median. 1 for an animal the model's size (its deformations average out), 1.2
+    for one 20% larger. A session with no such frame, or a scale outside BODY_SCALE_RANGE, is
+    a ValueError naming `name`.
     """
     rigid, deformed = np.asarray(rigid, np.float64), np.asarray(deformed, np.float64)
     observed = np.asarray(observed, bool)
@@ -82,22 +82,18 @@ def body_scale(
         )
     if observed.shape != rigid.shape[:2]:
         raise ValueError(f"observed must be {rigid.shape[:2]}, got {observed.shape}")
-    ok = observed & np.isfinite(deformed).all(-1)
-    c = rigid.mean(1, keepdims=True)
-    r, p = rigid - c, np.where(ok[..., None], deformed - c, 0.0)
-    den = np.where(ok, (r * r).sum(-1), 0.0).sum(1)
-    use = (ok.sum(1) >= 3) & (den > 0)
-    if not use.any():
+    points = np.where(observed[..., None], deformed, np.nan)
+    s, n = body.estimate_scale(points, min_parts=3, rigid=rigid)
+    if n == 0:
         raise ValueError(
             f"{name}: no frame with 3 or more observed parts to measure the animal's size from "
             "(body_scale=none skips the size normalisation)"
         )
-    s = float(np.median((p * r).sum((1, 2))[use] / den[use]))
     lo, hi = BODY_SCALE_RANGE
     if not lo <= s <= hi:
         raise ValueError(
             f"{name}: the tracked parts are {s:.3g} times the body model's size (median over "
-            f"{int(use.sum())} frames; allowed {lo:g}-{hi:g}): are the points in mm, and is the "
+            f"{n} frames; allowed {lo:g}-{hi:g}): are the points in mm, and is the "
             "body model this animal's? (body_scale=none skips the size normalisation)"
         )
     return s

@@ -124,18 +124,35 @@ class BodyModel:
             raise ValueError(f"body model '{self.name}': scale must be > 0, got {scale}")
         return BodyModel(self.parts, self.points * float(scale), self.aliases, self.name)
 
-    def estimate_scale(self, points: np.ndarray, min_parts: int = 4) -> tuple[float, int]:
+    def estimate_scale(
+        self, points: np.ndarray, min_parts: int = 4, rigid: np.ndarray | None = None
+    ) -> tuple[float, int]:
         """The scale that fits this model to 3D observations of it.
 
         points: (T, K, 3) mm, NaN missing, in model part order. Per frame with >= `min_parts`
         parts, the ratio of the rms radius of the observed parts about their centroid to that
         of the same model parts (rotation-free, exact for a scaled rigid body); the median
-        over frames. Returns (scale, frames used); (nan, 0) without usable frames.
+        over frames. Given the posed model, rigid (T, K, 3) (this model moved by each frame's
+        pose, e.g. a track's), instead the least-squares scale of the observed parts about the
+        posed model's centroid c_t (sum (p - c_t).(r - c_t) / sum |r - c_t|^2 over them):
+        unbiased by zero-mean deformations, which inflate the rms radius. Returns (scale,
+        frames used); (nan, 0) without usable frames.
         """
         X = np.asarray(points, dtype=np.float64)
         if X.shape[1:] != (self.num_parts, 3):
             raise ValueError(f"points must be (T, {self.num_parts}, 3), got {X.shape}")
         seen = np.isfinite(X).all(-1)
+        if rigid is not None:
+            R = np.asarray(rigid, dtype=np.float64)
+            if R.shape != X.shape:
+                raise ValueError(f"rigid must be {X.shape} like points, got {R.shape}")
+            c = R.mean(1, keepdims=True)
+            r, p = R - c, np.where(seen[..., None], X - c, 0.0)
+            den = np.where(seen, (r * r).sum(-1), 0.0).sum(1)
+            use = (seen.sum(1) >= max(3, int(min_parts))) & (den > 1e-9)
+            if not use.any():
+                return float("nan"), 0
+            return float(np.median((p * r).sum((1, 2))[use] / den[use])), int(use.sum())
         use = seen.sum(1) >= max(3, int(min_parts))
         if not use.any():
             return float("nan"), 0

@@ -480,15 +480,16 @@ def predict_session(model, session: Session, smoothing: dict, rng: Mapping | Non
 BODY_SCALE_MODES = ("session", "none")
 
 
-def set_body_scales(sessions: Sequence[Session], mode: str) -> None:
-    """``body_scale``: "session" sets each session's `scale` to its `body_scale` (the
-    classifier divides it out; a session it cannot be measured on is a ValueError naming it),
-    "none" to None (in place)."""
+def set_body_scales(sessions: Sequence[Session], mode: str, body) -> None:
+    """``body_scale``: "session" sets each session's `scale` to its `body_scale` against the
+    classifier's body model (which it divides out; a session it cannot be measured on is a
+    ValueError naming it), "none" to None (in place)."""
     mode = str(mode)
     if mode not in BODY_SCALE_MODES:
         raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{mode}'")
     for s in sessions:
-        s.scale = body_scale(s.rigid, s.deformed, s.observed, s.name) if mode == "session" else None
+        on = mode == "session"
+        s.scale = body_scale(body, s.rigid, s.deformed, s.observed, s.name) if on else None
         if s.scale is not None:
             log.info("%s: body scale %.3f (the animal's size / the body model's)", s.name, s.scale)
 
@@ -653,7 +654,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     for s in (*train, *val, *test):  # a heading-frame encoder or the heights: the tracks'
         check_track_up(s.rigid, body.points, model.encoder.heights_up, s.name)  # world's up
     scale_mode = str(cfg.get("body_scale", "none"))
-    set_body_scales((*train, *val, *test), scale_mode)
+    set_body_scales((*train, *val, *test), scale_mode, body)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
@@ -932,7 +933,7 @@ def read_session(path: str, model, meta: Mapping, interpolate: bool = False) -> 
     check_track_up(tr["rigid"], meta["body"].points, model.encoder.heights_up, path)
     T = len(tr["fnum"])
     s = Session(path, tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], np.full(T, -1))
-    set_body_scales([s], meta.get("body_scale") or "none")
+    set_body_scales([s], meta.get("body_scale") or "none", meta["body"])
     return s
 
 

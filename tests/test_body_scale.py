@@ -39,40 +39,48 @@ def _grown(rigid: np.ndarray, s: float) -> np.ndarray:
 def test_body_scale_measures_the_animal_size():
     """A mouse 1.2x the model's size with 1 mm noise: 1.2 (per frame least squares about the
     centroid, the median over the frames: the noise moves it by about 1 mm / 100 mm); offsets
-    that average out: 1; unobserved parts do not count."""
+    that average out: 1, where the pose-free rms-radius estimate (the tracker's) is inflated
+    by them; unobserved parts do not count."""
+    body = default_mouse()
     rigid = _posed(60)
     g = np.random.default_rng(1)
     T, K = rigid.shape[:2]
     obs = np.ones((T, K), bool)
     big = _grown(rigid, 1.2) + g.normal(0, 1.0, rigid.shape)
-    assert body_scale(rigid, big, obs) == pytest.approx(1.2, abs=0.005)
+    assert body_scale(body, rigid, big, obs) == pytest.approx(1.2, abs=0.005)
     wobble = rigid + g.normal(0, 5.0, rigid.shape)  # 5 mm deformations, no size change
-    assert body_scale(rigid, wobble, obs) == pytest.approx(1.0, abs=0.01)
+    assert body_scale(body, rigid, wobble, obs) == pytest.approx(1.0, abs=0.01)
+    assert body.estimate_scale(wobble)[0] > 1.01  # rms radius: sqrt(1 + 3 * 25 / |r - c|^2)
     hidden = obs.copy()
     hidden[:, :3] = False  # three parts unseen, their values far off: not counted
     far = big.copy()
     far[:, :3] += 1000.0
-    assert body_scale(rigid, far, hidden) == pytest.approx(1.2, abs=0.01)
+    assert body_scale(body, rigid, far, hidden) == pytest.approx(1.2, abs=0.01)
     far[:, :3] = np.nan
-    assert body_scale(rigid, far, hidden) == pytest.approx(1.2, abs=0.01)
+    assert body_scale(body, rigid, far, hidden) == pytest.approx(1.2, abs=0.01)
+    s, n = body.estimate_scale(np.where(hidden[..., None], big, np.nan), 3, rigid)
+    assert n == T and s == body_scale(body, rigid, big, hidden)
+    with pytest.raises(ValueError, match="rigid must be"):
+        body.estimate_scale(big, rigid=rigid[:, :3])
 
 
 def test_body_scale_errors_name_the_track():
+    body = default_mouse()
     rigid = _posed(10)
     T, K = rigid.shape[:2]
     obs = np.ones((T, K), bool)
     few = np.zeros((T, K), bool)
     few[:, :2] = True
     with pytest.raises(ValueError, match="a.csv: no frame with 3 or more observed parts"):
-        body_scale(rigid, rigid, few, "a.csv")
+        body_scale(body, rigid, rigid, few, "a.csv")
     with pytest.raises(ValueError, match=r"m.csv: the tracked parts are 0.001 times .* in mm"):
-        body_scale(rigid, _grown(rigid, 1e-3), obs, "m.csv")
+        body_scale(body, rigid, _grown(rigid, 1e-3), obs, "m.csv")
     with pytest.raises(ValueError, match="3 times"):
-        body_scale(rigid, _grown(rigid, 3.0), obs)
+        body_scale(body, rigid, _grown(rigid, 3.0), obs)
     with pytest.raises(ValueError, match=r"\(T, K, 3\)"):
-        body_scale(rigid[0], rigid[0], obs[0])
+        body_scale(body, rigid[0], rigid[0], obs[0])
     with pytest.raises(ValueError, match="observed must be"):
-        body_scale(rigid, rigid, obs[:, :3])
+        body_scale(body, rigid, rigid, obs[:, :3])
 
 
 def test_normalize_size_shape_value_gradient():
