@@ -488,9 +488,9 @@ def set_body_scales(sessions: Sequence[Session], mode: str, body) -> None:
     if mode not in BODY_SCALE_MODES:
         raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{mode}'")
     for s in sessions:
-        on = mode == "session"
-        s.scale = body_scale(body, s.rigid, s.deformed, s.observed, s.name) if on else None
-        if s.scale is not None:
+        s.scale = None
+        if mode == "session":
+            s.scale = body_scale(body, s.rigid, s.deformed, s.observed, s.name)
             log.info("%s: body scale %.3f (the animal's size / the body model's)", s.name, s.scale)
 
 
@@ -636,8 +636,10 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         raise ValueError(
             "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
         )
-    if str(cfg.get("body_scale", "none")) not in BODY_SCALE_MODES:  # before any data is read
-        raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{cfg.body_scale}'")
+    scale_mode = str(cfg.get("body_scale", "none"))  # settings checked before any data is read
+    if scale_mode not in BODY_SCALE_MODES:
+        raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{scale_mode}'")
+    unf = _unfamiliar_settings(cfg)
     model, mech = classifier_from_config(cfg, net_cfg, body, hw, C, up)
     ff, meas = model.encoder.frame_features, model.encoder.measurements
     if mech is not None:
@@ -653,7 +655,6 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     hup = model.encoder.heights_up if meas else None
     for s in (*train, *val, *test):  # a heading-frame encoder or the heights: the tracks'
         check_track_up(s.rigid, body.points, model.encoder.heights_up, s.name)  # world's up
-    scale_mode = str(cfg.get("body_scale", "none"))
     set_body_scales((*train, *val, *test), scale_mode, body)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
@@ -789,7 +790,6 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     # what the training data look like to the trained classifier: each feature's range over
     # every training frame (labelled or not), for telling a recording unlike them (predict)
     rng = feature_range(context_features(model, bank, torch.arange(len(bank))))
-    unf = _unfamiliar_settings(cfg)
 
     smoothing = dict(to_plain(cfg.smoothing) or {})
     meta = {
