@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from adjust.io.errors import InputError
+from deformnet.behavior_labels import POSE_COLUMNS
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,6 @@ BOUTS_NAME = "behavior_bouts"
 EVENTS_NAME = "lockbox_events"
 BOUTS_COLUMNS = ("start", "stop", "label")
 EVENTS_COLUMNS = ("start", "stop", "part", "mechanism")
-POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
 
 
 def _require_nwb():

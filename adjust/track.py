@@ -54,12 +54,11 @@ from adjust.metrics import reprojection_errors
 from adjust.session import expand_session_globs, with_session
 from adjust.summary import result_summary
 from deformnet.atomic import write_text
+from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, output_dir
 
 log = logging.getLogger(__name__)
-
-POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
 
 
 # --------------------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ Tracks: the points3d CSV layout `adjust-track` writes (`{part}_x/_y/_z` columns,
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -19,8 +20,12 @@ import torch
 from deformnet.series import interpolate_gaps
 from deformnet.tables import read_csv, xyz_parts
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "POSE_COLUMNS",
+    "POSE_MISMATCH",
+    "pose_mismatch",
     "Session",
     "BODY_SCALE_RANGE",
     "body_scale",
@@ -33,6 +38,15 @@ __all__ = [
 
 POSE_COLUMNS = ("pose_rx", "pose_ry", "pose_rz", "pose_tx", "pose_ty", "pose_tz")
 
+#: a track's pose columns belong to another body model than the one reading them when, over the
+#: frames with at least 3 finite parts, the median angle between each pose's rotation and the
+#: rotation fitted to the parts (Kabsch) exceeds "angle_deg", or the median distance between
+#: the parts' centroid and the posed model's (same parts) exceeds "offset" times the model's rms
+#: radius. Measured on adjust-track output posed with its own model: 3 degrees, 1.1 mm (the demo's
+#: simulated mouse), 4.6 degrees, 2.3 mm (benchmarks/domain_gap.py's mouse with real-mouse
+#: deformations); the demo scene tracked with body=auto, read with the mouse model: 170 degrees
+POSE_MISMATCH = {"angle_deg": 30.0, "offset": 0.5}
+
 
 # --------------------------------------------------------------------------------------------
 # sessions: tracks and labels
@@ -42,7 +56,7 @@ class Session:
     """One recording: rigid, deformed (T, K, 3) global mm, observed (T, K) bool, fnum (T,)
     frame numbers, labels (T,) int64 class index (-1: not labelled); scale: the animal's size
     relative to the rigid model (`body_scale`), which the classifier divides out, or None (the
-    points as they are)."""
+    points as they are); pose: where the rigid points' poses came from (`read_tracks`)."""
 
     name: str
     rigid: np.ndarray
@@ -51,6 +65,7 @@ class Session:
     fnum: np.ndarray
     labels: np.ndarray
     scale: float | None = None
+    pose: str | None = None  # read_tracks' "pose": columns | fitted; None: not from a file
 
     def __len__(self) -> int:
         return len(self.fnum)
@@ -99,13 +114,49 @@ def body_scale(
     return s
 
 
-def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dict:
-    """A points3d CSV -> {"rigid", "deformed" (T, K, 3), "observed" (T, K), "fnum" (T,)} in the
-    body model's part order (parts found by name or alias).
+def pose_mismatch(body, poses: np.ndarray, points: np.ndarray, observed: np.ndarray) -> dict | None:
+    """Whether a track's poses (T, 6) (`POSE_COLUMNS`: Rodrigues rad, mm; model -> global)
+    belong to the body model `body` (a `deformnet.body.BodyModel`), given its parts' points
+    (T, K, 3) mm in the model's part order and observed (T, K) bool.
 
-    With pose columns the rigid points are the body model moved by each frame's pose; without,
-    the pose is fitted per frame by Kabsch (`deformnet.tokens.kabsch`) to the points, which then
-    must all be finite (set `interpolate` to fill gaps linearly in time first).
+    Over the frames with at least 3 observed parts: each pose's rotation against the one the
+    Kabsch fit of the model to the observed parts gives, and the observed parts' centroid
+    against the posed model's (same parts). Returns None when the poses fit (medians within
+    `POSE_MISMATCH`), else {"angle_deg", "offset_mm", "frames"} (the medians, the frames used);
+    None as well without such a frame (nothing to compare).
+    """
+    from deformnet.so3 import kabsch, rodrigues_to_matrix, transform_points
+
+    obs = np.asarray(observed, bool)
+    use = obs.sum(-1) >= 3
+    if not use.any():
+        return None
+    model = torch.tensor(np.array(body.points, dtype=np.float64))
+    P = torch.as_tensor(np.where(obs[use][..., None], points[use], 0.0), dtype=torch.float64)
+    w = torch.as_tensor(obs[use], dtype=torch.float64)
+    pz = torch.as_tensor(np.asarray(poses, np.float64)[use])
+    R, _ = kabsch(P, model, w)
+    Rp = rodrigues_to_matrix(pz[:, :3])
+    cos = ((Rp.transpose(-1, -2) @ R).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    angle = float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).median())
+    rigid = transform_points(pz, model.expand(len(pz), -1, -1))
+    n = w.sum(-1, keepdim=True)
+    offset = float((((P - rigid) * w[..., None]).sum(-2) / n).norm(dim=-1).median())
+    radius = float(((model - model.mean(0)) ** 2).sum(-1).mean().sqrt())
+    if angle <= POSE_MISMATCH["angle_deg"] and offset <= POSE_MISMATCH["offset"] * radius:
+        return None
+    return {"angle_deg": angle, "offset_mm": offset, "frames": int(use.sum())}
+
+
+def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dict:
+    """A points3d CSV -> {"rigid", "deformed" (T, K, 3), "observed" (T, K), "fnum" (T,), "pose"}
+    in the body model's part order (parts found by name or alias).
+
+    With pose columns that belong to this body model (`pose_mismatch`) the rigid points are the
+    model moved by each frame's pose ("pose": "columns"); without, or when they belong to
+    another model (a track made with `adjust-track body=auto`, say: logged as a warning), the
+    pose is fitted per frame by Kabsch (`deformnet.tokens.kabsch`) to the points ("fitted"),
+    which then must all be finite (set `interpolate` to fill gaps linearly in time first).
     """
     from deformnet.so3 import transform_points
     from deformnet.tokens import kabsch
@@ -147,6 +198,7 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
             raise ValueError(f"{path}: part(s) {never} have no finite value to interpolate from")
         observed = np.ones_like(observed)
     model = torch.tensor(np.array(body.points, dtype=np.float64))
+    pose_source = "fitted"  # the body model fitted to the parts per frame (Kabsch)
     if all(c in cols for c in POSE_COLUMNS):
         poses = np.stack([numeric(c) for c in POSE_COLUMNS], -1)
         bad = ~np.isfinite(poses).all(-1)
@@ -155,8 +207,26 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
                 f"{path}: non-finite pose in row {int(np.flatnonzero(bad)[0])} (pose columns "
                 "must be complete; adjust-track writes them so)"
             )
-        rigid = transform_points(torch.as_tensor(poses), model.expand(T, -1, -1)).numpy()
-    else:
+        bad = pose_mismatch(body, poses, pts, observed)
+        if bad is None:
+            rigid = transform_points(torch.as_tensor(poses), model.expand(T, -1, -1)).numpy()
+            pose_source = "columns"
+        else:
+            why = (
+                f"{path}: the pose columns do not belong to body model '{body.name}' (median "
+                f"{bad['angle_deg']:.0f} degrees from the rotation its parts give, centroids "
+                f"{bad['offset_mm']:.1f} mm apart, over {bad['frames']} frames): was it tracked "
+                "with another body model (e.g. adjust-track body=auto)?"
+            )
+            if not observed.all():
+                t, k = np.argwhere(~observed)[0]
+                raise ValueError(
+                    f"{why} The pose cannot be fitted to this model's parts instead: part "
+                    f"'{body.parts[k]}' is missing in row {t}. Track it with body={body.name} "
+                    "(or fill gaps first: data.interpolate=true)"
+                )
+            log.warning("%s Its pose is fitted to this model's parts per frame instead", why)
+    if pose_source != "columns":
         if not observed.all():
             t, k = np.argwhere(~observed)[0]
             raise ValueError(
@@ -175,6 +245,7 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
         "deformed": deformed.astype(np.float32),
         "observed": observed,
         "fnum": fnum,
+        "pose": pose_source,
     }
 
 

@@ -525,9 +525,8 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
     for tp, lp in zip(tracks, labels):
         tr = read_tracks(tp, body, interpolate=interp)
         lab = read_labels(lp, tr["fnum"], classes, tracks=tp)
-        out.append(
-            Session(tp, tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], lab)
-        )  # fmt: skip
+        parts = (tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"])
+        out.append(Session(tp, *parts, lab, pose=tr["pose"]))
     return out
 
 
@@ -932,7 +931,8 @@ def read_session(path: str, model, meta: Mapping, interpolate: bool = False) -> 
     tr = read_tracks(path, meta["body"], interpolate=interpolate)
     check_track_up(tr["rigid"], meta["body"].points, model.encoder.heights_up, path)
     T = len(tr["fnum"])
-    s = Session(path, tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"], np.full(T, -1))
+    parts = (tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"])
+    s = Session(path, *parts, np.full(T, -1), pose=tr["pose"])
     set_body_scales([s], meta.get("body_scale") or "none", meta["body"])
     return s
 
@@ -999,6 +999,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         "num_bouts": len(rows),
         "unfamiliar_frames": share,
         "body_scale": s.scale,
+        "pose": s.pose,
         "warning": warning,
     }
     write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")

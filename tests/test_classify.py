@@ -678,6 +678,24 @@ def test_body_scale_lets_a_classifier_label_a_larger_mouse(tmp_path):
     assert res["big"]["warning"] is None and res["big"]["unfamiliar_frames"] <= 0.05
     same, big = (pd.read_csv(res[n]["predictions"]) for n in ("same", "big"))
     assert np.mean(same["label"] == big["label"]) >= 0.95
+    # the same track posed with another body model (its own axes, as body=auto's): the pose is
+    # refitted to the classifier's model, so the labels stay the same
+    from deformnet.behavior_labels import POSE_COLUMNS
+
+    other = pd.read_csv(_toy_session(tmp_path, "same", 9)[0])
+    Q = np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]])
+    body = default_mouse()
+    other[list(POSE_COLUMNS)] = _other_model_poses(
+        other[list(POSE_COLUMNS)].to_numpy(), body, Q, np.zeros(3)
+    )
+    other.to_csv(tmp_path / "other.csv", index=False)
+    pred = ["mode=predict", f"checkpoint={out / 'classifier.pt'}"]
+    pred += [f"tracks={tmp_path / 'other.csv'}", f"output.dir={tmp_path / 'other'}"]
+    got = run(_compose(pred))
+    assert json.loads((tmp_path / "other" / "summary.json").read_text())["pose"] == "fitted"
+    assert json.loads((tmp_path / "same" / "summary.json").read_text())["pose"] == "columns"
+    assert np.mean(pd.read_csv(got["predictions"])["label"] == same["label"]) >= 0.95
+    assert got["warning"] is None
     with pytest.raises(ValueError, match="body_scale must be one of"):
         run(_compose([*ov, "body_scale=size", f"output.dir={tmp_path / 'bad'}"]))
     metres = pd.read_csv(test[0][0])
@@ -715,3 +733,82 @@ def test_measurements_alone_feed_a_forest_and_predict_round_trips(tmp_path):
                       f"tracks={test[0][0]}", f"output.dir={tmp_path / 'pred'}"]))  # fmt: skip
     df = pd.read_csv(p["predictions"])
     assert np.mean(df["label_raw"].to_numpy() == np.asarray(CLASSES)[test[0][2]]) >= 0.9
+
+
+def _other_model_poses(poses: np.ndarray, body, Q: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """The poses (T, 6) of `body` re-expressed for another model of the same animal, m' =
+    Q (m - c) with c the model's centroid + shift (as `adjust-track body=auto`'s model: its own
+    origin and axes): R' = R Q^T, t' = t + R (c + shift)... with the points unchanged."""
+    from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
+
+    R = rodrigues_to_matrix(torch.tensor(poses[:, :3]))
+    c = torch.tensor(np.asarray(body.points).mean(0) + shift)
+    Qt = torch.tensor(Q)
+    R2 = R @ Qt.T
+    t2 = torch.tensor(poses[:, 3:]) + (R @ c[:, None])[..., 0]
+    return np.concatenate((matrix_to_rodrigues(R2).numpy(), t2.numpy()), 1)
+
+
+@pytest.mark.parametrize("what", ["axes", "origin"])
+def test_read_tracks_pose_columns_of_another_body_model(tmp_path, caplog, what):
+    """A track whose pose columns belong to another body model (e.g. adjust-track body=auto's:
+    its own axes, or the same axes about another origin) is not read with this model's poses
+    (silently wrong rigid points): a warning, and the pose fitted to the parts instead."""
+    from deformnet.behavior_labels import POSE_COLUMNS, pose_mismatch
+
+    tracks, _, _ = _toy_session(tmp_path, "s", 0, T=60)
+    body = default_mouse()
+    own = read_tracks(tracks, body)
+    assert own["pose"] == "columns"
+    df = pd.read_csv(tracks)
+    poses = df[list(POSE_COLUMNS)].to_numpy()
+    if what == "axes":  # the principal axes of body=auto: y along the body, here rolled 90 deg
+        Q, shift = np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]), np.zeros(3)
+    else:  # same axes, origin 15 mm away (the model's rms radius is 24 mm)
+        Q, shift = np.eye(3), np.array([0.0, 15.0, 0.0])
+    df[list(POSE_COLUMNS)] = _other_model_poses(poses, body, Q, shift)
+    p = tmp_path / "other.csv"
+    df.to_csv(p, index=False)
+    pts = own["deformed"].astype(np.float64)
+    bad = pose_mismatch(body, df[list(POSE_COLUMNS)].to_numpy(), pts, own["observed"])
+    assert bad is not None and bad["frames"] == 60
+    assert pose_mismatch(body, poses, pts, own["observed"]) is None
+    with caplog.at_level("WARNING", logger="deformnet.behavior_labels"):
+        got = read_tracks(p, body)
+    assert "other.csv: the pose columns do not belong to body model 'mouse'" in caplog.text
+    assert got["pose"] == "fitted"
+    # the pose fitted to the parts (0.5 mm noise per coordinate) gives the true rigid points:
+    # about 0.2 mm per coordinate from the centroid's error (0.5 / sqrt(8)) and the rotation's
+    d = got["rigid"] - own["rigid"]
+    assert np.sqrt(np.mean(d**2)) < 0.4 and np.abs(d).max() < 1.5
+    # with the other model's poses taken as this model's they would be far off
+    wrong = transform_points(
+        torch.tensor(df[list(POSE_COLUMNS)].to_numpy()),
+        torch.tensor(np.asarray(body.points)).expand(60, -1, -1),
+    ).numpy()
+    assert np.abs(wrong - own["rigid"]).max() > 10.0
+    # a part missing somewhere: no fit possible, an error naming the file, part and row
+    df.loc[7, "left_ear_x"] = np.nan
+    df.to_csv(p, index=False)
+    with pytest.raises(ValueError, match=r"other.csv: the pose columns do not belong .*"
+                       r"part 'left_ear' is missing in row 7"):  # fmt: skip
+        read_tracks(p, body)
+
+
+def test_pose_mismatch_keeps_deformed_tracks():
+    """A track posed with its own model is not flagged though its parts deform (6 mm rms, more
+    than the demo's simulated mouse) and some are unobserved."""
+    from deformnet.behavior_labels import pose_mismatch
+
+    rng = np.random.default_rng(3)
+    body = default_mouse()
+    T = 200
+    poses = np.concatenate((rng.normal(0, 1.0, (T, 3)), rng.normal(0, 100, (T, 3))), 1)
+    m = torch.tensor(np.asarray(body.points)).expand(T, -1, -1)
+    pts = transform_points(torch.tensor(poses), m).numpy() + rng.normal(0, 6 / 3**0.5, (T, 8, 3))
+    obs = rng.random((T, 8)) > 0.3
+    assert pose_mismatch(body, poses, pts, obs) is None
+    # the same with the model turned by 90 degrees about its long axis in the poses: flagged
+    Q = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    bad = pose_mismatch(body, _other_model_poses(poses, body, Q, np.zeros(3)), pts, obs)
+    assert bad is not None and 80 < bad["angle_deg"] < 100
