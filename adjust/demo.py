@@ -174,6 +174,7 @@ def run(cfg: DictConfig) -> dict:
 def _run(cfg: DictConfig) -> dict:
     from adjust import events_cli, scene_cli, track, triangulate_cli
     from adjust.report import write_report
+    from adjust.scene import scene_fps
 
     name = str(cfg.preset)
     if name not in cfg.presets:
@@ -258,11 +259,16 @@ def _run(cfg: DictConfig) -> dict:
         )
         fill = ["data.interpolate=true"] if primary == "dlt" else []  # DLT's gaps, filled
         data = [f"data.{k}={v}" for k, v in sessions.items()] + fill
+        first = session_seeds(p, int(cfg.seed))["train"][0]
+        fps_train = scene_fps(out / "classify" / "sessions" / str(first) / "scene")
+        fps_here = scene_fps(scene)  # the frame rates: stored in classifier.pt, the track's
+        rate_train = [] if fps_train is None else [f"fps={fps_train:g}"]
+        rate_here = [] if fps_here is None else [f"fps={fps_here:g}"]
         box_train, box_here = [], []
-        if bool(cfg.get("behavior_box", True)):  # the lock-box context: where the mouse is
-            first = session_seeds(p, int(cfg.seed))["train"][0]  # relative to each mechanism
+        if bool(cfg.get("behavior_box", True)):  # the lock-box context
             rig = out / "classify" / "sessions" / str(first) / "scene" / "calibration.toml"
-            box_train = [f"mechanisms.calibration={rig}"]  # the labelled sessions' lock box
+            box_train = [f"mechanisms.calibration={rig}"]  # the labelled sessions' lock box:
+            # where the mouse is relative to each mechanism
             box_here = [f"mechanisms.calibration={scene / 'calibration.toml'}"]  # the scene's
         ccfg = compose(
             "classify",
@@ -270,6 +276,7 @@ def _run(cfg: DictConfig) -> dict:
                 f"pretrained={ckpt}",
                 *data,
                 *box_train,
+                *rate_train,
                 f"data.steps_per_epoch={int(p.classify_steps_per_epoch)}",
                 f"trainer.max_time={max_time(p.classify_minutes)}",
                 f"trainer.max_epochs={int(p.classify_max_epochs)}",
@@ -291,6 +298,7 @@ def _run(cfg: DictConfig) -> dict:
                 f"tracks={tracks}",
                 *fill,  # DLT: the gaps filled as in training
                 *box_here,
+                *rate_here,
                 f"output.dir={out / 'classify' / 'predict'}",
             ],
         )

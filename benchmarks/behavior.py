@@ -41,10 +41,12 @@ pairwise part distances, part speeds and part heights among the frame features, 
 ``rf`` has; `deformnet.heads.pose_measurements`).
 ``--transfer-sim sim=mouse_b,sim.fps=30``: every classifier (trained on the default mouse's
 sessions) also labels `--test` sessions of another simulated mouse (these `adjust-simulate`
-overrides; seeds 95300..; same rig, lock box and frame rate; tracked the same way), each
+overrides; seeds 95300..; same rig and lock box; tracked the same way), each
 `deformnet-classify` classifier through its `mode=predict` path (`load_classifier`,
-`predict_session`), ``rf`` refitted identically: the macro-F1 on a mouse that neither the labels
-nor the pretraining saw ("transfer").
+`frame_rates`, `predict_session`: a mouse at another frame rate, e.g. `sim=mouse_b` at its
+100 fps, is labelled resampled to the training rate), ``rf`` with its features in time (speeds
+in mm/s, windows scaled to the frame rate, as SimBA's): the macro-F1 on a mouse that neither the
+labels nor the pretraining saw ("transfer").
 ``--body-scale session|none``: every `deformnet-classify` classifier's `body_scale` (session, the
 default: each session's animal size against the body model divided out of its pose features;
 none: the points as they are, as every run before stop 29).
@@ -158,6 +160,7 @@ def make_session(work: Path, seed: int, frames: int, sim: tuple[str, ...] = ()) 
         "truth_points": truth["points"],
         "parts": [str(p) for p in truth["parts"]],
         "behaviors": behaviors,
+        "fps": float(truth["fps"]),
     }
 
 
@@ -253,6 +256,9 @@ def run_classifier(
         ov.append(f"data.{split}_labels={_list(s['labels'] for s in sessions[split])}")
     if source == "dlt":
         ov.append("data.interpolate=true")
+    rates = {s["fps"] for split in ("train", "val", "test") for s in sessions[split]}
+    if len(rates) == 1:  # the training rate, stored in classifier.pt (transfer_score resamples
+        ov.append(f"fps={rates.pop():g}")  # another mouse's sessions of another rate to it)
     if box:
         ov.append(f"mechanisms.calibration={box}")
     if measurements:
@@ -293,16 +299,17 @@ def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
     the classifier finds unlike its training data, and each session's body scale
     ({"transfer_macro_f1", ..., "transfer_unfamiliar_frames", "transfer_body_scales"})."""
     from deformnet.behavior_report import evaluate
-    from deformnet.classify import load_classifier, predict_session, read_session
+    from deformnet.classify import frame_rates, load_classifier, predict_session, read_session
 
     model, meta = load_classifier(ckpt)
     truth, raw, smoothed, unfamiliar, scales = [], [], [], [], []
     frame_share = float(compose("classify").unfamiliar.frame_share)
     for s in sessions:
+        rates = frame_rates(s.get("fps"), meta, str(s[source]))
         sess = read_session(str(s[source]), model, meta, interpolate=source == "dlt")
         scales.append(sess.scale)
         pr = predict_session(model, sess, dict(meta.get("smoothing") or {}),
-                             meta.get("feature_range"))  # fmt: skip
+                             meta.get("feature_range"), rates)  # fmt: skip
         if pr["unfamiliar"] is not None:
             unfamiliar.append(pr["unfamiliar"] > frame_share)
         truth.append(np.asarray(s["truth_labels"])[sess.fnum])
@@ -343,11 +350,17 @@ def rig_mechanisms(sessions: dict) -> tuple[str, np.ndarray]:
 
 
 def window_features(
-    path: Path, parts: list[str], interpolate: bool, mechanisms: np.ndarray | None = None
+    path: Path,
+    parts: list[str],
+    interpolate: bool,
+    mechanisms: np.ndarray | None = None,
+    fps: float = 30.0,
+    ref_fps: float = 30.0,
 ) -> np.ndarray:
     """SimBA-style per-frame features (T, F) from a points3d CSV (see the module docstring);
     mechanisms (M, 3): with SimBA's ROI features (the distances of `ROI_PARTS` to each, and
-    the nearest of them per mechanism, mm)."""
+    the nearest of them per mechanism, mm). As SimBA, in time: speeds in mm/s for a track at
+    `fps`, the rolling windows' lengths (frames at `ref_fps`, the training rate) scaled to it."""
     df = pd.read_csv(path)
     P = np.stack([df[[f"{p}_{a}" for a in "xyz"]].to_numpy(np.float64) for p in parts], 1)
     if interpolate:
@@ -363,7 +376,7 @@ def window_features(
     centroid = P.mean(1)
     iu = np.triu_indices(K, 1)
     dist = np.linalg.norm(P[:, :, None] - P[:, None, :], axis=-1)[:, iu[0], iu[1]]
-    speed = np.linalg.norm(np.diff(P, axis=0, prepend=P[:1]), axis=-1)
+    speed = np.linalg.norm(np.diff(P, axis=0, prepend=P[:1]), axis=-1) * fps
     base = np.concatenate(
         [
             centroid,
@@ -384,7 +397,7 @@ def window_features(
     frame = pd.DataFrame(base)
     feats = [base]
     for w in (5, 15, 33):
-        roll = frame.rolling(w, center=True, min_periods=1)
+        roll = frame.rolling(max(1, round(w * fps / ref_fps)), center=True, min_periods=1)
         feats += [roll.mean().to_numpy(), roll.std().fillna(0.0).to_numpy()]
     return np.nan_to_num(np.concatenate(feats, 1), nan=0.0)
 
@@ -409,8 +422,10 @@ def run_rf(
     parts = sessions["train"][0]["parts"]
     t0 = time.perf_counter()
 
+    rate = sessions["train"][0]["fps"]
+
     def load(split):
-        X = [window_features(s[source], parts, source == "dlt", mechanisms)
+        X = [window_features(s[source], parts, source == "dlt", mechanisms, s["fps"], rate)
              for s in sessions[split]]  # fmt: skip
         y = [np.asarray(s["truth_labels"], np.int64) for s in sessions[split]]
         return X, y

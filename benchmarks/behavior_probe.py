@@ -42,8 +42,10 @@ distances, part speeds and part heights among the frame features,
 `deformnet.heads.pose_measurements`; the body-frame encoders with `heights_up=[0,0,1]`).
 ``--transfer-sim sim=mouse_b,sim.fps=30``: every classifier (fitted on the default mouse's
 sessions as above) is also tested on `--test` sessions of another simulated mouse (these
-`adjust-simulate` overrides, seeds 95300..; same rig, lock box and frame rate, tracked the same
-way): the macro-F1 on a mouse the labels and the pretraining never saw ("transfer" columns).
+`adjust-simulate` overrides, seeds 95300..; same rig and lock box, tracked the same way; at
+another frame rate, e.g. `sim=mouse_b`'s 100 fps, read resampled to the training rate,
+`resample_session`): the macro-F1 on a mouse the labels and the pretraining never saw
+("transfer" columns).
 ``--body-scale session|none``: every classifier's `body_scale` (as `benchmarks/behavior.py`).
 
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
@@ -96,7 +98,7 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
     """Classifier features of every train / test frame for one encoder ("random" or a
     deformnet-train checkpoint; overrides: deformnet-classify's), with the classifier (its
     default head, untrained)."""
-    from deformnet.behavior_labels import Session, read_labels, read_tracks
+    from deformnet.behavior_labels import Session, read_labels, read_tracks, resample_session
     from deformnet.classify import (
         SessionBank,
         _encoder_config,
@@ -114,6 +116,7 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
         model.encoder.net.load_state_dict(state)
     model.eval()
     out = {}
+    rate = sessions["train"][0]["fps"]
     for split in [k for k in ("train", "test", "transfer") if k in sessions]:
         ss = []
         for s in sessions[split]:
@@ -121,6 +124,8 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
             lab = read_labels(str(s["labels"]), tr["fnum"], classes)
             ss.append(Session(str(s["track"]), tr["rigid"], tr["deformed"], tr["observed"],
                               tr["fnum"], lab))  # fmt: skip
+            if s["fps"] != rate:  # another frame rate (--transfer-sim sim=mouse_b): read at
+                ss[-1] = resample_session(ss[-1], s["fps"], rate)  # the training rate
         set_body_scales(ss, cfg.body_scale, body)  # as deformnet-classify does
         bank = SessionBank(ss, model.half_window)
         out[split] = {

@@ -33,6 +33,9 @@ __all__ = [
     "read_labels",
     "bouts",
     "smooth",
+    "check_fps",
+    "resample_session",
+    "to_track_frames",
     "subsample_labels",
 ]
 
@@ -247,6 +250,95 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
         "fnum": fnum,
         "pose": pose_source,
     }
+
+
+def check_fps(fps, what: str) -> float | None:
+    """A frame rate from a config (Hz): None stays None; anything not a finite number > 0 is a
+    ValueError naming `what`."""
+    if fps is None:
+        return None
+    try:
+        f = float(fps)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a frame rate in Hz (a number > 0), got {fps!r}") from None
+    if not (np.isfinite(f) and f > 0):
+        raise ValueError(f"{what} must be a frame rate in Hz (a number > 0), got {fps!r}")
+    return f
+
+
+def _rate_times(fnum: np.ndarray, fps: float, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """A track's frame times (T,) (s, from its first frame: fnum / fps, gaps in the frame
+    numbers kept) and those of the same span at `rate` (T',)."""
+    t = (np.asarray(fnum, np.float64) - float(fnum[0])) / fps
+    n = int(np.floor(t[-1] * rate + 1e-9)) + 1
+    return t, np.arange(n) / rate
+
+
+def resample_session(session: Session, fps: float, rate: float) -> Session:
+    """The session recorded at `fps` (frame times fnum / fps) as it would be at `rate` (Hz):
+    rigid and deformed points linearly interpolated in time at every 1 / rate s of its span, a
+    part observed where both frames around it are (its deformed point the rigid one
+    elsewhere), labels and frame numbers (0, 1, ...) at the new rate, the nearest frame's
+    label. The classifier of another frame rate labels the session so
+    (`deformnet.classify.predict_session`), its results taken back by `to_track_frames`."""
+    fps, rate = check_fps(fps, "fps"), check_fps(rate, "rate")
+    if fps is None or rate is None:
+        raise ValueError("resample_session needs both frame rates")
+    fnum = np.asarray(session.fnum)
+    if len(fnum) == 0 or np.any(np.diff(fnum) <= 0):
+        raise ValueError(f"{session.name}: frame numbers must increase to be resampled in time")
+    t, tn = _rate_times(fnum, fps, rate)
+    T = len(t)
+    if T == 1:
+        i0, i1, w = np.zeros(1, int), np.zeros(1, int), np.zeros(1)
+    else:
+        i0 = np.clip(np.searchsorted(t, tn, side="right") - 1, 0, T - 2)
+        i1 = i0 + 1
+        w = np.clip((tn - t[i0]) / (t[i1] - t[i0]), 0.0, 1.0)
+    wv = w[:, None, None]
+
+    def lerp(x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, np.float64)
+        return ((1 - wv) * x[i0] + wv * x[i1]).astype(np.float32)
+
+    obs = np.asarray(session.observed, bool)
+    observed = np.where(
+        w[:, None] == 0, obs[i0], np.where(w[:, None] == 1, obs[i1], obs[i0] & obs[i1])
+    )
+    rigid = lerp(session.rigid)
+    deformed = np.where(observed[..., None], lerp(session.deformed), rigid)
+    nearest = np.where(w > 0.5, i1, i0)
+    return Session(
+        session.name,
+        rigid,
+        deformed,
+        observed,
+        np.arange(len(tn), dtype=np.int64),
+        np.asarray(session.labels)[nearest],
+        scale=session.scale,
+        pose=session.pose,
+    )
+
+
+def to_track_frames(
+    values: np.ndarray, fnum: np.ndarray, fps: float, rate: float, kind: str = "nearest"
+) -> np.ndarray:
+    """Per-frame results (T', ...) of a session resampled to `rate` (`resample_session`) back
+    at the track's own frames fnum (T,) recorded at `fps`: "nearest" (labels, flags: the
+    nearest resampled frame's) or "linear" (probabilities: interpolated in time)."""
+    t, tn = _rate_times(np.asarray(fnum), fps, rate)
+    values = np.asarray(values)
+    if len(values) != len(tn):
+        raise ValueError(
+            f"values must have the resampled session's {len(tn)} frames, got {len(values)}"
+        )
+    if kind == "nearest":
+        return values[np.clip(np.rint(t * rate).astype(np.int64), 0, len(tn) - 1)]
+    if kind != "linear":
+        raise ValueError(f"kind must be 'nearest' or 'linear', got {kind!r}")
+    flat = values.reshape(len(tn), -1).astype(np.float64)
+    out = np.stack([np.interp(t, tn, flat[:, j]) for j in range(flat.shape[1])], -1)
+    return out.reshape((len(t),) + values.shape[1:])
 
 
 def read_labels(

@@ -28,6 +28,7 @@ classifier, and the app. Tracks and labels: `deformnet.behavior_labels`; metrics
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -48,10 +49,13 @@ from deformnet.behavior_labels import (
     Session,
     body_scale,
     bouts,
+    check_fps,
     read_labels,
     read_tracks,
+    resample_session,
     smooth,
     subsample_labels,
+    to_track_frames,
 )
 from deformnet.behavior_report import (
     bout_stats,
@@ -463,15 +467,65 @@ def unfamiliar_share(features: Tensor, rng: Mapping) -> np.ndarray:
     return ((f < low) | (f > high)).double().mean(-1).numpy()
 
 
-def predict_session(model, session: Session, smoothing: dict, rng: Mapping | None = None) -> dict:
+def predict_session(
+    model,
+    session: Session,
+    smoothing: dict,
+    rng: Mapping | None = None,
+    rates: tuple[float, float] | None = None,
+) -> dict:
     """{"probs" (T, C), "raw" (T,), "labels" (T,) smoothed (= raw without smoothing),
     "unfamiliar" (T,) each frame's `unfamiliar_share` given the training range `rng`, else
-    None}."""
+    None}. rates: (the session's frame rate, the classifier's) in Hz, when they differ: the
+    session is labelled resampled to the classifier's rate (`resample_session`: its windows,
+    speeds and smoothing in the time the classifier learnt them), the results taken back to
+    the session's own frames (`to_track_frames`: probabilities interpolated, the smoothed
+    labels and unfamiliar shares of the nearest resampled frame)."""
+    if rates is not None:
+        fps, rate = rates
+        res = predict_session(model, resample_session(session, fps, rate), smoothing, rng)
+        back = functools.partial(to_track_frames, fnum=session.fnum, fps=fps, rate=rate)
+        probs = back(res["probs"], kind="linear")
+        return {
+            "probs": probs,
+            "raw": probs.argmax(-1),
+            "labels": back(res["labels"]),
+            "unfamiliar": None if res["unfamiliar"] is None else back(res["unfamiliar"]),
+        }
     feats, probs = _features_probs(model, SessionBank([session], model.half_window))
     raw = probs.argmax(-1)
     lab = smooth(probs, int(smoothing.get("median") or 0), int(smoothing.get("min_bout") or 0))
     unfamiliar = None if rng is None else unfamiliar_share(feats, rng)
     return {"probs": probs, "raw": raw, "labels": lab, "unfamiliar": unfamiliar}
+
+
+def frame_rates(fps, meta: Mapping, name: str) -> tuple[float, float] | None:
+    """The rates `predict_session` resamples a track `name` recorded at `fps` (Hz, or None:
+    unknown) between, for a classifier whose meta stores its training rate ("fps", None
+    where unknown): (fps, the classifier's) where both are known and differ, else None
+    (logged: the track taken to be at the classifier's rate, or not resampled)."""
+    fps = check_fps(fps, "fps")
+    rate = check_fps(meta.get("fps"), "the classifier's fps")
+    if fps is None:
+        log.info(
+            "%s: no fps= given: the track is taken to be at the classifier's frame rate (%s)",
+            name,
+            "unknown" if rate is None else f"{rate:g} Hz",
+        )
+        return None
+    if rate is None:
+        log.warning(
+            "%s: the classifier does not know the frame rate it was trained at (trained "
+            "without fps=): the track (%g Hz) is labelled frame by frame as it is; if the rates "
+            "differ its windows and speeds mean other times than the classifier learnt",
+            name,
+            fps,
+        )
+        return None
+    if abs(fps - rate) <= 1e-6 * rate:
+        return None
+    log.info("%s: %g Hz, labelled resampled to the classifier's %g Hz", name, fps, rate)
+    return fps, rate
 
 
 # --------------------------------------------------------------------------------------------
@@ -620,6 +674,18 @@ def _encoder_config(cfg: DictConfig, classes):
     return ncfg, body, int(cfg.half_window), None, frame_up(to_plain(cfg.get("up")))
 
 
+def _training_fps(cfg: DictConfig) -> float | None:
+    """The training sessions' frame rate: ``fps`` (Hz; None: unknown), the simulator's
+    (``sim.fps``) with data.source=sim (a different ``fps`` is an error)."""
+    fps = check_fps(cfg.get("fps"), "fps")
+    if str(cfg.data.get("source")) == "sim":
+        sim_fps = check_fps((cfg.get("sim") or {}).get("fps", 30.0), "sim.fps")
+        if fps is not None and abs(fps - sim_fps) > 1e-6 * sim_fps:
+            raise ValueError(f"fps={fps:g} but the simulated sessions are at sim.fps={sim_fps:g}")
+        fps = sim_fps
+    return fps
+
+
 def _train(cfg: DictConfig, out: Path) -> dict:
     import lightning as L
 
@@ -639,6 +705,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     if scale_mode not in BODY_SCALE_MODES:
         raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{scale_mode}'")
     unf = _unfamiliar_settings(cfg)
+    fps = _training_fps(cfg)
     model, mech = classifier_from_config(cfg, net_cfg, body, hw, C, up)
     ff, meas = model.encoder.frame_features, model.encoder.measurements
     if mech is not None:
@@ -809,6 +876,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "label_fraction": frac,
         "feature_range": rng,
         "body_scale": scale_mode,
+        "fps": fps,
     }
     ckpt = out / "classifier.pt"
     from deformnet.atomic import atomic_path
@@ -820,7 +888,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     eval_name, eval_sessions = (
         ("test", test) if test else (("val", val) if val else ("train", train))
     )  # noqa: E501
-    fps = float(cfg.get("fps", 30.0))
+    bout_fps = fps or 30.0  # bout durations (frame rate unknown: 30 fps assumed)
     yt, yr, ys, unfamiliar = [], [], [], []
     first = None
     for s in eval_sessions:
@@ -841,10 +909,11 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "smoothed": smoothed,
         "smoothing": smoothing,
         "bouts": {
-            "true": bout_stats(yt, classes, fps),
-            "predicted": bout_stats(yr, classes, fps),
-            "smoothed": bout_stats(ys, classes, fps),
+            "true": bout_stats(yt, classes, bout_fps),
+            "predicted": bout_stats(yr, classes, bout_fps),
+            "smoothed": bout_stats(ys, classes, bout_fps),
         },
+        "fps": fps,
         "labelled_training_frames": int(idx.size),
         "body_scales": None
         if scale_mode == "none"
@@ -860,7 +929,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     cm_fig = confusion_figure(
         raw["confusion"], classes, f"{eval_name}: macro-F1 {raw['macro_f1']:.3f}"
     )  # noqa: E501
-    eth_fig = ethogram_figure(first, classes, fps)
+    eth_fig = ethogram_figure(first, classes, bout_fps)
     if logger and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_figure"):
         logger.experiment.add_figure(f"{eval_name}/confusion", cm_fig, global_step=steps)
         logger.experiment.add_figure(f"{eval_name}/ethogram", eth_fig, global_step=steps)
@@ -946,11 +1015,12 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     classes = list(meta["classes"])
     unf = _unfamiliar_settings(cfg)
     _predict_mechanisms(cfg, model, meta)
+    rates = frame_rates(cfg.get("fps"), meta, str(cfg.tracks))  # before the track is read
     s = read_session(str(cfg.tracks), model, meta, bool(cfg.data.get("interpolate")))
     T = len(s.fnum)
     smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
     rng = meta.get("feature_range")
-    pr = predict_session(model, s, smoothing, rng)
+    pr = predict_session(model, s, smoothing, rng, rates)
     fnum = s.fnum
     names = np.asarray(classes, dtype=object)
     df = pd.DataFrame(
@@ -1000,6 +1070,9 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         "unfamiliar_frames": share,
         "body_scale": s.scale,
         "pose": s.pose,
+        "fps": check_fps(cfg.get("fps"), "fps"),
+        "classifier_fps": meta.get("fps"),
+        "resampled": rates is not None,
         "warning": warning,
     }
     write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")

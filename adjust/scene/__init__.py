@@ -29,7 +29,7 @@ from adjust.scene.detector import (
     detector_config,
     simulate_scene,
 )
-from adjust.scene.folder import write_scene, write_truth_labels
+from adjust.scene.folder import scene_fps, write_scene, write_truth_labels
 from adjust.scene.occlusion import (
     Ellipsoid,
     ellipsoids_from_config,
@@ -53,6 +53,7 @@ __all__ = [
     "occluded_by_boxes",
     "occluded_by_ellipsoids",
     "rig_from_config",
+    "scene_fps",
     "simulate_scene",
     "write_scene",
     "write_truth_labels",

@@ -91,6 +91,15 @@ def write_scene(
     return {"dir": out, "calibration": calib, "detections": paths, "truth": truth_path}
 
 
+def scene_fps(scene_dir: Any) -> float | None:
+    """A scene folder's frame rate (Hz) from its ``truth.npz``; None where it has none."""
+    from pathlib import Path
+
+    with np.load(Path(scene_dir) / "truth.npz", allow_pickle=False) as z:
+        fps = float(z["fps"]) if "fps" in z.files else float("nan")
+    return fps if np.isfinite(fps) and fps > 0 else None
+
+
 def write_truth_labels(scene_dir: Any, path: Any) -> Any:
     """The scene's true behavior labels (``truth.npz``: ``labels``, ``behaviors``) as the
     per-frame ``fnum,label`` CSV that `deformnet-classify` reads, written atomically at ``path``.
