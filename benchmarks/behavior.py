@@ -47,6 +47,9 @@ overrides; seeds 95300..; same rig and lock box; tracked the same way), each
 100 fps, is labelled resampled to the training rate), ``rf`` with its features in time (speeds
 in mm/s, windows scaled to the frame rate, as SimBA's): the macro-F1 on a mouse that neither the
 labels nor the pretraining saw ("transfer").
+``--no-resample``: the other mouse's sessions at another frame rate are labelled frame by frame
+as they are (``rf``'s features in training-rate frames), not resampled: what a classifier
+without `fps=` does.
 ``--body-scale session|none``: every `deformnet-classify` classifier's `body_scale` (session, the
 default: each session's animal size against the body model divided out of its pose features;
 none: the points as they are, as every run before stop 29).
@@ -177,6 +180,10 @@ def add_context_args(ap: argparse.ArgumentParser) -> None:
         help="also test every classifier on --test sessions of another simulated mouse "
         "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
     )
+    ap.add_argument("--no-resample", action="store_true",
+                    help="--transfer-sim at another frame rate: label its sessions frame by "
+                         "frame as they are (as deformnet-classify without fps=), not "
+                         "resampled to the training rate")  # fmt: skip
     ap.add_argument("--body-scale", default="session", choices=("session", "none"),
                     help="deformnet-classify body_scale for every classifier (none: the "
                          "points as they are, before stop 29)")  # fmt: skip
@@ -241,6 +248,7 @@ def run_classifier(
     measurements: bool = False,
     transfer: list[dict] | None = None,
     body_scale: str = "session",
+    resample: bool = True,
 ) -> dict:
     """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
     context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`;
@@ -288,11 +296,11 @@ def run_classifier(
         "seconds": round(time.perf_counter() - t0, 1),
     }
     if transfer:
-        out_ |= transfer_score(out / "classifier.pt", transfer, source)
+        out_ |= transfer_score(out / "classifier.pt", transfer, source, resample)
     return out_
 
 
-def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
+def transfer_score(ckpt: Path, sessions: list[dict], source: str, resample: bool = True) -> dict:
     """A trained classifier on other sessions (another mouse), as `deformnet-classify
     mode=predict` labels them (its own mechanism positions and smoothing): macro-F1 and
     per-class F1 over all their frames, raw and smoothed, and the share of their frames that
@@ -305,7 +313,7 @@ def transfer_score(ckpt: Path, sessions: list[dict], source: str) -> dict:
     truth, raw, smoothed, unfamiliar, scales = [], [], [], [], []
     frame_share = float(compose("classify").unfamiliar.frame_share)
     for s in sessions:
-        rates = frame_rates(s.get("fps"), meta, str(s[source]))
+        rates = frame_rates(s.get("fps"), meta, str(s[source])) if resample else None
         sess = read_session(str(s[source]), model, meta, interpolate=source == "dlt")
         scales.append(sess.scale)
         pr = predict_session(model, sess, dict(meta.get("smoothing") or {}),
@@ -409,6 +417,7 @@ def run_rf(
     seed: int = 0,
     label_seed: int = 0,
     mechanisms: np.ndarray | None = None,
+    resample: bool = True,
 ) -> dict:
     """The SimBA-style random forest trained on the labelled frames of sessions["train"],
     scored on sessions["test"] and, when there (--transfer-sim), the same forest on
@@ -425,7 +434,8 @@ def run_rf(
     rate = sessions["train"][0]["fps"]
 
     def load(split):
-        X = [window_features(s[source], parts, source == "dlt", mechanisms, s["fps"], rate)
+        X = [window_features(s[source], parts, source == "dlt", mechanisms,
+                             s["fps"] if resample else rate, rate)
              for s in sessions[split]]  # fmt: skip
         y = [np.asarray(s["truth_labels"], np.int64) for s in sessions[split]]
         return X, y
@@ -655,6 +665,8 @@ def main(argv: list[str] | None = None) -> dict:
     tag = ("box_" if box else "") + ("meas_" if args.measurements else "")  # output folders
     tag += "" if args.body_scale == "session" else f"scale{args.body_scale}_"
     extra["body_scale"] = args.body_scale
+    extra["transfer_resampled"] = bool(transfer) and not args.no_resample
+    extra["transfer_fps"] = sorted({s["fps"] for s in sessions.get("transfer", [])}) or None
 
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:
@@ -670,14 +682,15 @@ def main(argv: list[str] | None = None) -> dict:
                     else work / f"{tag}cls_track_{method}_{key}",
                     sessions, "track", frac, method, ckpt, args.seconds, label_seed=d, box=box,
                     measurements=args.measurements, transfer=sessions.get("transfer"),
-                    body_scale=args.body_scale,
+                    body_scale=args.body_scale, resample=not args.no_resample,
                 )
                 for d in draws
             ]  # fmt: skip
             results[key][method] = averaged(runs)
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
         if "rf" in methods:
-            runs = [run_rf(sessions, "track", frac, label_seed=d, mechanisms=mech) for d in draws]
+            runs = [run_rf(sessions, "track", frac, label_seed=d, mechanisms=mech,
+                           resample=not args.no_resample) for d in draws]  # fmt: skip
             results[key]["rf"] = averaged(runs)  # (and on the other mouse, --transfer-sim)
             log.info("labels %s rf: macro-F1 %.3f", key, results[key]["rf"]["macro_f1"])
     r10 = dict(results.get("0.1") or {})  # what a partial run did not measure, run here

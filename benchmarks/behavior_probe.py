@@ -94,10 +94,13 @@ BODY_FRAME = ("pretrained", "contrast", "random")  # the encoders reading the bo
 HEIGHTS = ["heights_up=[0,0,1]"]  # --measurements: their part heights (the simulator's up)
 
 
-def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, object]:
+def encoder_features(
+    spec: str, sessions: dict, overrides=(), no_resample: bool = False
+) -> tuple[dict, object]:
     """Classifier features of every train / test frame for one encoder ("random" or a
     deformnet-train checkpoint; overrides: deformnet-classify's), with the classifier (its
-    default head, untrained)."""
+    default head, untrained); sessions at another frame rate than the training ones read
+    resampled to it (no_resample: as they are)."""
     from deformnet.behavior_labels import Session, read_labels, read_tracks, resample_session
     from deformnet.classify import (
         SessionBank,
@@ -124,8 +127,8 @@ def encoder_features(spec: str, sessions: dict, overrides=()) -> tuple[dict, obj
             lab = read_labels(str(s["labels"]), tr["fnum"], classes)
             ss.append(Session(str(s["track"]), tr["rigid"], tr["deformed"], tr["observed"],
                               tr["fnum"], lab))  # fmt: skip
-            if s["fps"] != rate:  # another frame rate (--transfer-sim sim=mouse_b): read at
-                ss[-1] = resample_session(ss[-1], s["fps"], rate)  # the training rate
+            if s["fps"] != rate and not no_resample:  # another frame rate (--transfer-sim
+                ss[-1] = resample_session(ss[-1], s["fps"], rate)  # sim=mouse_b): the training's
         set_body_scales(ss, cfg.body_scale, body)  # as deformnet-classify does
         bank = SessionBank(ss, model.half_window)
         out[split] = {
@@ -321,7 +324,7 @@ def main(argv: list[str] | None = None) -> dict:
     forest = dict(to_plain(compose("classify", ["head=forest"]).head))
     for name, (spec, overrides) in encoders.items():
         t0 = time.perf_counter()
-        feats, built = encoder_features(spec, sessions, overrides)
+        feats, built = encoder_features(spec, sessions, overrides, args.no_resample)
         runs = {f"{f:g}/{d}": probe(feats, built, f, d) for f, d in plan}
         results[name] = {"runs": runs, "features_seconds": round(time.perf_counter() - t0, 1)}
         log.info("%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in runs.items()})
@@ -346,7 +349,8 @@ def main(argv: list[str] | None = None) -> dict:
             results[f"forest_all_{name}"] = {"runs": fr, "encoder": name}
             log.info("forest_all_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in fr.items()})
     # the SimBA-style forest (tested on the other mouse too, --transfer-sim)
-    rf_runs = {f"{f:g}/{d}": run_rf(sessions, "track", f, label_seed=d, mechanisms=mech)
+    rf_runs = {f"{f:g}/{d}": run_rf(sessions, "track", f, label_seed=d, mechanisms=mech,
+                                    resample=not args.no_resample)
                for f, d in plan}  # fmt: skip
     results["rf"] = {"runs": rf_runs}
     table = {}

@@ -191,3 +191,15 @@ def test_a_classifier_labels_a_recording_at_another_frame_rate(tmp_path, caplog)
     assert "no fps= given" in caplog.text
     with pytest.raises(ValueError, match="fps must be a frame rate in Hz"):
         run(_compose([*pred, "fps=0", f"output.dir={tmp_path / 'bad'}"]))
+
+
+def test_simulated_sessions_have_the_simulators_rate():
+    """data.source=sim: the classifier's rate is sim.fps; another fps= is an error (before any
+    session is simulated)."""
+    from deformnet.classify import _training_fps
+
+    assert _training_fps(_compose(["data.source=sim"])) == 30.0
+    assert _training_fps(_compose(["data.source=sim", "sim.fps=100", "fps=100"])) == 100.0
+    assert _training_fps(_compose([])) is None
+    with pytest.raises(ValueError, match="fps=100 but the simulated sessions are at sim.fps=30"):
+        _training_fps(_compose(["data.source=sim", "fps=100"]))
