@@ -8,7 +8,10 @@ Mechanism positions (global mm) come from `mechanisms=` or from the calibration'
 ``events.csv`` (start, stop as frame numbers ``fnum``, inclusive; part, mechanism,
 min_distance_mm, frames, seen_fraction, inferred), ``operations.csv`` (per mechanism, the events
 of any part merged: mechanism, start, stop, parts) and ``summary.json`` (counts, the order in
-which the mechanisms were first operated, settings).
+which the mechanisms were first operated, settings). With the frame rate (``fps=``, or the
+calibration's ``[metadata] fps``) both tables also give ``start_s`` / ``stop_s`` (fnum / fps)
+and the contact durations may be set in seconds (``contact.min_seconds``,
+``contact.merge_gap_seconds``), the same for a 30 and a 100 fps recording.
 
 `run(cfg) -> dict` is the plain function behind the Hydra app.
 """
@@ -60,11 +63,53 @@ def mechanism_positions(cfg: DictConfig) -> dict[str, list[float]]:
     return mechanism_table(mech, source)
 
 
+def contact_frames(cfg: DictConfig, fps: float | None) -> tuple[int, int]:
+    """(min_frames, merge_gap) from ``contact``: the seconds (``min_seconds``,
+    ``merge_gap_seconds``) times the frame rate where set (they need it), else the frames."""
+    c = cfg.contact
+    out = []
+    keys = (("min_frames", "min_seconds", 1), ("merge_gap", "merge_gap_seconds", 0))
+    for key, name, least in keys:
+        sec = c.get(name)
+        if sec is None:
+            n = int(c[key])
+        else:
+            if fps is None:
+                raise ValueError(
+                    f"contact.{name}={sec} needs the frame rate: set fps= (Hz) or give a "
+                    "calibration whose [metadata] has fps (or use contact."
+                    f"{key}, frames)"
+                )
+            if not float(sec) >= 0:
+                raise ValueError(f"contact.{name} must be >= 0 s, got {sec}")
+            n = max(least, int(round(float(sec) * fps)))
+        if n < 0:
+            raise ValueError(f"contact.{key} must be >= 0, got {n}")
+        out.append(n)
+    return out[0], out[1]
+
+
+def track_fps(cfg: DictConfig) -> float | None:
+    """The recording's frame rate: ``fps=``, else the calibration's ``[metadata] fps``, else
+    None."""
+    from deformnet.behavior_labels import check_fps
+
+    if cfg.get("fps") is not None:
+        return check_fps(cfg.fps, "fps")
+    if cfg.get("calibration"):
+        value = load_calibration_metadata(str(cfg.calibration)).get("fps")
+        if value is not None:
+            return check_fps(value, f"{cfg.calibration}: [metadata] fps")
+    return None
+
+
 def run(cfg: DictConfig) -> dict:
     """Detect events, write events.csv, operations.csv and summary.json; returns the summary
     plus the events and operations (frame numbers)."""
     tracks = required(cfg, "tracks", "events")
     mechs = mechanism_positions(cfg)
+    fps = track_fps(cfg)
+    min_frames, merge_gap = contact_frames(cfg, fps)
     tr = read_points3d(tracks)
     parts = list(tr["parts"])
     use = [str(p) for p in (cfg.get("parts") or parts)]
@@ -85,8 +130,8 @@ def run(cfg: DictConfig) -> dict:
         use_parts=use,
         on_mm=float(c.on_mm),
         off_mm=float(c.off_mm),
-        min_frames=int(c.min_frames),
-        merge_gap=int(c.merge_gap),
+        min_frames=min_frames,
+        merge_gap=merge_gap,
         ncams=tr["ncams"] if np.isfinite(tr["ncams"]).any() else None,
         sigma=sigma,
         max_sigma_mm=None if inf.get("max_sigma_mm") is None else float(inf.max_sigma_mm),
@@ -96,14 +141,23 @@ def run(cfg: DictConfig) -> dict:
     fnum = np.asarray(tr["fnum"]).astype(np.int64)
     for e in events:
         e["start"], e["stop"] = int(fnum[e["start"]]), int(fnum[e["stop"]])
-    ops = operations(events, int(c.merge_gap))
+    ops = operations(events, merge_gap)
     order = first_operated(events)
     out = output_dir(cfg)
+    times = [] if fps is None else ["start_s", "stop_s"]  # fnum / fps
+
+    def timed(rows: list[dict]) -> list[dict]:
+        if fps is None:
+            return rows
+        return [r | {"start_s": r["start"] / fps, "stop_s": r["stop"] / fps} for r in rows]
+
     with atomic_path(out / "events.csv") as tmp:
-        pd.DataFrame(events, columns=list(EVENT_COLUMNS)).to_csv(tmp, index=False)
+        cols = [*EVENT_COLUMNS[:2], *times, *EVENT_COLUMNS[2:]]
+        pd.DataFrame(timed(events), columns=cols).to_csv(tmp, index=False)
     with atomic_path(out / "operations.csv") as tmp:
         rows = [{**o, "parts": ";".join(o["parts"])} for o in ops]
-        pd.DataFrame(rows, columns=["mechanism", "start", "stop", "parts"]).to_csv(tmp, index=False)
+        cols = ["mechanism", "start", "stop", *times, "parts"]
+        pd.DataFrame(timed(rows), columns=cols).to_csv(tmp, index=False)
     summary = {
         "tracks": str(tracks),
         "frames": int(len(fnum)),
@@ -116,7 +170,8 @@ def run(cfg: DictConfig) -> dict:
         "first_operated": {
             m: min(o["start"] for o in ops if o["mechanism"] == m) for m in order
         },  # fmt: skip
-        "contact": dict(to_plain(c)),
+        "fps": fps,
+        "contact": dict(to_plain(c)) | {"min_frames": min_frames, "merge_gap": merge_gap},
         "inferred": dict(to_plain(inf)),
     }
     write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")

@@ -47,6 +47,8 @@ overrides; seeds 95300..; same rig and lock box; tracked the same way), each
 100 fps, is labelled resampled to the training rate), ``rf`` with its features in time (speeds
 in mm/s, windows scaled to the frame rate, as SimBA's): the macro-F1 on a mouse that neither the
 labels nor the pretraining saw ("transfer").
+``--transfer-frames N``: the other mouse's sessions have N frames (default ``--frames``; e.g.
+900 at 30 fps for the 30 s of 3000 frames at `sim=mouse_b`'s 100 fps).
 ``--no-resample``: the other mouse's sessions at another frame rate are labelled frame by frame
 as they are (``rf``'s features in training-rate frames), not resampled: what a classifier
 without `fps=` does.
@@ -180,6 +182,9 @@ def add_context_args(ap: argparse.ArgumentParser) -> None:
         help="also test every classifier on --test sessions of another simulated mouse "
         "(adjust-simulate overrides: sim=mouse_b,sim.fps=30)",
     )
+    ap.add_argument("--transfer-frames", type=int, default=None,
+                    help="--transfer-sim: frames per session of the other mouse (default "
+                         "--frames)")  # fmt: skip
     ap.add_argument("--no-resample", action="store_true",
                     help="--transfer-sim at another frame rate: label its sessions frame by "
                          "frame as they are (as deformnet-classify without fps=), not "
@@ -195,7 +200,8 @@ def add_transfer_sessions(sessions: dict, work: Path, args) -> tuple[str, ...]:
     the overrides (empty: none)."""
     transfer = tuple(o.strip() for o in (args.transfer_sim or "").split(",") if o.strip())
     if transfer:
-        sessions["transfer"] = [make_session(work, TRANSFER_SEED + i, args.frames, transfer)
+        frames = args.transfer_frames or args.frames
+        sessions["transfer"] = [make_session(work, TRANSFER_SEED + i, frames, transfer)
                                 for i in range(args.test)]  # fmt: skip
         behaviors = sessions["train"][0]["behaviors"]
         for s in sessions["transfer"]:

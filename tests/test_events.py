@@ -150,3 +150,41 @@ def test_mechanisms_from_simulated_scene_calibration(tmp_path):
 
     data = sim(None, num_frames=5, seed=0)
     np.testing.assert_allclose(np.array(list(mech.values())), data.mechanism_positions)
+
+
+def test_adjust_events_durations_in_seconds_at_any_frame_rate(tmp_path):
+    """With fps= the contact durations can be set in seconds (contact.min_seconds,
+    contact.merge_gap_seconds) and the tables get start_s / stop_s: the same track recorded at
+    30 and at 90 fps (each frame three times) gives the same events in seconds, to a frame at
+    30 fps. Seconds without a frame rate are an error."""
+    from adjust.events_cli import run
+
+    parts, P, ncams, sigma = _track()
+    mech = "{lever: [100.0, 200.0, 20.0], ball: [160.0, 200.0, 10.0]}"
+    res = {}
+    for fps, rep in ((30, 1), (90, 3)):
+        T = len(P) * rep
+        sig = {"{part}_sigma": np.repeat(sigma, rep, 0)}
+        tracks = write_points3d(
+            tmp_path / f"p{fps}.csv", parts, np.repeat(P, rep, 0), np.zeros((T, 3)),
+            np.repeat(ncams, rep, 0), np.ones((T, 3)), extra=sig,
+        )  # fmt: skip
+        ov = [f"tracks={tracks}", f"mechanisms={mech}", "parts=[nose_tip,left_front_paw]",
+              "contact.on_mm=8", "contact.off_mm=12", f"fps={fps}", "contact.min_seconds=0.5",
+              "contact.merge_gap_seconds=0.2", f"output.dir={tmp_path / str(fps)}"]  # fmt: skip
+        res[fps] = run(_cfg(ov))
+        assert res[fps]["fps"] == fps
+        assert res[fps]["contact"]["min_frames"] == 15 * rep
+        assert res[fps]["contact"]["merge_gap"] == 6 * rep
+    a, b = (pd.read_csv(tmp_path / str(f) / "events.csv") for f in (30, 90))
+    assert len(a) == len(b) == 3 and (a["mechanism"] == b["mechanism"]).all()
+    assert (
+        np.abs(a[["start_s", "stop_s"]].to_numpy() - b[["start_s", "stop_s"]].to_numpy()).max()
+        <= 1 / 30 + 1e-9
+    )
+    np.testing.assert_allclose(a["start_s"], a["start"] / 30)
+    ops = pd.read_csv(tmp_path / "90" / "operations.csv")
+    assert list(ops.columns) == ["mechanism", "start", "stop", "start_s", "stop_s", "parts"]
+    with pytest.raises(ValueError, match=r"contact.min_seconds=0.5 needs the frame rate: set fps="):
+        run(_cfg([f"tracks={tmp_path / 'p30.csv'}", f"mechanisms={mech}",
+                  "contact.min_seconds=0.5", f"output.dir={tmp_path / 'bad'}"]))  # fmt: skip
