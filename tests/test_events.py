@@ -188,3 +188,15 @@ def test_adjust_events_durations_in_seconds_at_any_frame_rate(tmp_path):
     with pytest.raises(ValueError, match=r"contact.min_seconds=0.5 needs the frame rate: set fps="):
         run(_cfg([f"tracks={tmp_path / 'p30.csv'}", f"mechanisms={mech}",
                   "contact.min_seconds=0.5", f"output.dir={tmp_path / 'bad'}"]))  # fmt: skip
+    # the frame rate from the calibration's [metadata] fps, as adjust-export reads it
+    calib = tmp_path / "calibration.toml"
+    calib.write_text(
+        "[metadata]\nfps = 90.0\n\n[metadata.mechanisms]\n"
+        "lever = [100.0, 200.0, 20.0]\nball = [160.0, 200.0, 10.0]\n"
+    )
+    got = run(_cfg([f"tracks={tmp_path / 'p90.csv'}", f"calibration={calib}",
+                    "parts=[nose_tip,left_front_paw]", "contact.on_mm=8", "contact.off_mm=12",
+                    "contact.min_seconds=0.5", "contact.merge_gap_seconds=0.2",
+                    f"output.dir={tmp_path / 'meta'}"]))  # fmt: skip
+    assert got["fps"] == 90.0 and got["contact"]["min_frames"] == 45
+    assert pd.read_csv(tmp_path / "meta" / "events.csv").equals(b)
