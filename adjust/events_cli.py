@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 
 from adjust.app import finite_or_none, hydra_app, required
 from adjust.events import detect_events, first_operated, operations
-from adjust.io import InputError, load_calibration_metadata, read_points3d
+from adjust.io import InputError, load_calibration_metadata, read_points3d, recording_fps
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
 from deformnet.lockbox import mechanism_table
@@ -91,16 +91,11 @@ def contact_frames(cfg: DictConfig, fps: float | None) -> tuple[int, int]:
 
 def track_fps(cfg: DictConfig) -> float | None:
     """The recording's frame rate: ``fps=``, else the calibration's ``[metadata] fps``, else
-    None."""
-    from deformnet.behavior_labels import check_fps
-
-    if cfg.get("fps") is not None:
-        return check_fps(cfg.fps, "fps")
-    if cfg.get("calibration"):
-        value = load_calibration_metadata(str(cfg.calibration)).get("fps")
-        if value is not None:
-            return check_fps(value, f"{cfg.calibration}: [metadata] fps")
-    return None
+    None (`adjust.io.recording_fps`, as adjust-export)."""
+    calib = cfg.get("calibration")
+    if cfg.get("fps") is not None or not calib:
+        return recording_fps(cfg.get("fps"), {})
+    return recording_fps(None, load_calibration_metadata(str(calib)), str(calib))
 
 
 def run(cfg: DictConfig) -> dict:

@@ -169,18 +169,14 @@ def _intervals(name: str, description: str, start, stop, extra: dict, docs: dict
 
 
 def _fps(fps, calibration_meta: dict) -> float:
-    value = fps if fps is not None else calibration_meta.get("fps")
+    from adjust.io import recording_fps
+
+    value = recording_fps(fps, calibration_meta)
     if value is None:
         raise InputError(
             "NWB needs times in seconds: set fps=... (the recording's frame rate, Hz), or give a "
             "calibration whose [metadata] has fps"
         )
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"fps must be a number, got {value!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise InputError(f"fps must be > 0, got {value}")
     return value
 
 

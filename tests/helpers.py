@@ -43,3 +43,17 @@ def quiet_trainer(max_steps: int, **kwargs):
         accelerator="cpu",
         **kwargs,
     )
+
+
+def write_bout_labels(path, labels, classes, first: int = 0):
+    """A per-frame label array (T,) (class indices) as the `start,stop,label` bouts CSV
+    `deformnet-classify` reads, frame numbers from `first`; returns the path."""
+    import pandas as pd
+
+    from deformnet.behavior_labels import bouts
+
+    rows = [
+        {"start": a + first, "stop": b + first, "label": classes[c]} for a, b, c in bouts(labels)
+    ]
+    pd.DataFrame(rows, columns=["start", "stop", "label"]).to_csv(path, index=False)
+    return path

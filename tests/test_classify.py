@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from helpers import tiny_deformation_model
+from helpers import tiny_deformation_model, write_bout_labels
 
 from adjust.io import write_points3d
 from deformnet.behavior_labels import bouts, read_labels, read_tracks, smooth
@@ -64,11 +64,7 @@ def _toy_session(
         extra=extra,
         fnum=np.arange(T) + 5,
     )
-    rows = [
-        {"start": a + 5, "stop": b + 5, "label": CLASSES[c]} for a, b, c in bouts(lab)
-    ]  # fmt: skip
-    labels = tmp_path / f"{name}_labels.csv"
-    pd.DataFrame(rows).to_csv(labels, index=False)
+    labels = write_bout_labels(tmp_path / f"{name}_labels.csv", lab, CLASSES, first=5)
     return tracks, labels, lab
 
 

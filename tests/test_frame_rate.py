@@ -6,22 +6,16 @@ from __future__ import annotations
 
 import json
 
-import hydra
 import numpy as np
 import pandas as pd
 import pytest
 import torch
+from helpers import write_bout_labels
 
 from adjust.io import write_points3d
-from deformnet.behavior_labels import (
-    Session,
-    bouts,
-    check_fps,
-    resample_session,
-    to_track_frames,
-)
+from deformnet.behavior_labels import Session, check_fps, resample_session, to_track_frames
 from deformnet.body import default_mouse
-from deformnet.paths import CONF_DIR
+from deformnet.confutil import compose
 from deformnet.so3 import transform_points
 
 CLASSES = ["walk", "scan"]
@@ -140,15 +134,12 @@ def _speed_track(tmp_path, name: str, seed: int, fps: float, seconds: float = 16
         tmp_path / f"{name}.csv", body.parts, pts, np.zeros((T, K)), np.full((T, K), 2),
         np.ones((T, K)), extra={c: poses[:, i] for i, c in enumerate(names)},
     )  # fmt: skip
-    rows = [{"start": a, "stop": b, "label": CLASSES[c]} for a, b, c in bouts(lab)]
-    labels = tmp_path / f"{name}_labels.csv"
-    pd.DataFrame(rows).to_csv(labels, index=False)
+    labels = write_bout_labels(tmp_path / f"{name}_labels.csv", lab, CLASSES)
     return tracks, labels, lab
 
 
 def _compose(overrides):
-    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return hydra.compose("classify", overrides=overrides)
+    return compose("classify", overrides)
 
 
 def test_a_classifier_labels_a_recording_at_another_frame_rate(tmp_path, caplog):

@@ -10,7 +10,12 @@ Every error about an input is an `InputError` (a `ValueError`) naming the file a
 part, frame or cell at fault. Every output is written atomically.
 """
 
-from adjust.io.calibration import load_calibration, load_calibration_metadata, save_calibration
+from adjust.io.calibration import (
+    load_calibration,
+    load_calibration_metadata,
+    recording_fps,
+    save_calibration,
+)
 from adjust.io.dlc import DLCTable, read_dlc, write_dlc_csv
 from adjust.io.errors import InputError
 from adjust.io.points3d import read_points3d, write_points3d
@@ -22,6 +27,7 @@ __all__ = [
     "InputError",
     "load_calibration",
     "load_calibration_metadata",
+    "recording_fps",
     "load_detections",
     "load_scene",
     "match_files",

@@ -242,6 +242,22 @@ def load_calibration_metadata(path: str | os.PathLike) -> dict:
     return meta
 
 
+def recording_fps(fps, metadata: dict, where: str = "the calibration") -> float | None:
+    """A recording's frame rate (Hz): `fps` (a config's) where given, else the calibration's
+    ``[metadata] fps`` (`metadata`: `load_calibration_metadata`'s table of `where`), else None.
+    One that is not a number > 0 is an InputError naming where it came from."""
+    from deformnet.behavior_labels import check_fps
+
+    if fps is not None:
+        key, value = "fps", fps
+    else:
+        key, value = f"{where}: [metadata] fps", metadata.get("fps")
+    try:
+        return check_fps(value, key)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
 # --- writing ------------------------------------------------------------------------------
 
 
