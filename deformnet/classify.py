@@ -575,12 +575,30 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
         raise ValueError(
             f"data.{split}_tracks has {len(tracks)} files but data.{split}_labels {len(labels)}"
         )
+    rates = to_plain(d.get(f"{split}_fps"))
+    fps = check_fps(cfg.get("fps"), "fps")
+    if rates is not None:
+        if not isinstance(rates, list) or len(rates) != len(tracks):
+            raise ValueError(
+                f"data.{split}_fps must list one frame rate per session of data.{split}_tracks "
+                f"({len(tracks)}), got {rates!r}"
+            )
+        if fps is None:
+            raise ValueError(
+                f"data.{split}_fps gives each session's frame rate: set fps= too, the rate the "
+                "classifier reads them at"
+            )
+        rates = [check_fps(r, f"data.{split}_fps[{i}]") for i, r in enumerate(rates)]
     out = []
-    for tp, lp in zip(tracks, labels):
+    for i, (tp, lp) in enumerate(zip(tracks, labels)):
         tr = read_tracks(tp, body, interpolate=interp)
         lab = read_labels(lp, tr["fnum"], classes, tracks=tp)
         parts = (tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"])
-        out.append(Session(tp, *parts, lab, pose=tr["pose"]))
+        s = Session(tp, *parts, lab, pose=tr["pose"])
+        if rates is not None and abs(rates[i] - fps) > 1e-6 * fps:
+            log.info("%s: %g Hz, read resampled to %g Hz (fps)", tp, rates[i], fps)
+            s = resample_session(s, rates[i], fps)
+        out.append(s)
     return out
 
 

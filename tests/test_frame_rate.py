@@ -194,3 +194,28 @@ def test_simulated_sessions_have_the_simulators_rate():
     assert _training_fps(_compose([])) is None
     with pytest.raises(ValueError, match="fps=100 but the simulated sessions are at sim.fps=30"):
         _training_fps(_compose(["data.source=sim", "fps=100"]))
+
+
+def test_training_sessions_at_several_frame_rates(tmp_path):
+    """data.train_fps: labelled sessions recorded at 30 and at 90 fps, each read resampled to
+    fps=30, train one classifier that labels a 30 fps test session right. A list of the wrong
+    length, or per-session rates without fps=, are errors naming the setting."""
+    from deformnet.classify import run
+
+    tiny = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
+    train = [_speed_track(tmp_path, "a30", 0, 30.0), _speed_track(tmp_path, "b90", 1, 90.0)]
+    test = _speed_track(tmp_path, "test30", 7, 30.0)
+    t = ",".join(str(s[0]) for s in train)
+    lab = ",".join(str(s[1]) for s in train)
+    ov = [*tiny, "freeze=true", "head=forest", "measurements=true",
+          f"labels.classes=[{','.join(CLASSES)}]", f"data.train_tracks=[{t}]",
+          f"data.train_labels=[{lab}]", f"data.test_tracks=[{test[0]}]",
+          f"data.test_labels=[{test[1]}]", "logger=none"]  # fmt: skip
+    rep = run(_compose([*ov, "fps=30", "data.train_fps=[30,90]", f"output.dir={tmp_path / 'ok'}"]))
+    # both sessions' 16 s at 30 fps: 480 + 480 frames, all labelled
+    assert rep["report"]["labelled_training_frames"] == 960
+    assert rep["report"]["raw"]["macro_f1"] > 0.95
+    with pytest.raises(ValueError, match=r"data.train_fps must list one frame rate per session"):
+        run(_compose([*ov, "fps=30", "data.train_fps=[30]", f"output.dir={tmp_path / 'b1'}"]))
+    with pytest.raises(ValueError, match=r"data.train_fps gives each session's frame rate: set"):
+        run(_compose([*ov, "data.train_fps=[30,90]", f"output.dir={tmp_path / 'b2'}"]))
