@@ -507,11 +507,16 @@ def frame_rates(fps, meta: Mapping, name: str) -> tuple[float, float] | None:
     fps = check_fps(fps, "fps")
     rate = check_fps(meta.get("fps"), "the classifier's fps")
     if fps is None:
-        log.info(
-            "%s: no fps= given: the track is taken to be at the classifier's frame rate (%s)",
-            name,
-            "unknown" if rate is None else f"{rate:g} Hz",
-        )
+        if rate is None:
+            log.info("%s: no fps= given, and the classifier knows no frame rate", name)
+        else:  # the data cannot tell: another animal moves 0.7-1.8x the mm per frame
+            log.warning(
+                "%s: no fps= given: the track is taken to be at the classifier's frame rate, "
+                "%g Hz; at another rate its windows and speeds mean other times than the "
+                "classifier learnt (give fps=, the track's rate, to have it resampled)",
+                name,
+                rate,
+            )
         return None
     if rate is None:
         log.warning(
