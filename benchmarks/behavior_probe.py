@@ -101,7 +101,13 @@ def encoder_features(
     deformnet-train checkpoint; overrides: deformnet-classify's), with the classifier (its
     default head, untrained); sessions at another frame rate than the training ones read
     resampled to it (no_resample: as they are)."""
-    from deformnet.behavior_labels import Session, read_labels, read_tracks, resample_session
+    from deformnet.behavior_labels import (
+        Session,
+        read_labels,
+        read_tracks,
+        resample_session,
+        same_fps,
+    )
     from deformnet.classify import (
         SessionBank,
         _encoder_config,
@@ -127,7 +133,7 @@ def encoder_features(
             lab = read_labels(str(s["labels"]), tr["fnum"], classes)
             ss.append(Session(str(s["track"]), tr["rigid"], tr["deformed"], tr["observed"],
                               tr["fnum"], lab))  # fmt: skip
-            if s["fps"] != rate and not no_resample:  # another frame rate (--transfer-sim
+            if not (no_resample or same_fps(s["fps"], rate)):  # another frame rate (e.g.
                 ss[-1] = resample_session(ss[-1], s["fps"], rate)  # sim=mouse_b): the training's
         set_body_scales(ss, cfg.body_scale, body)  # as deformnet-classify does
         bank = SessionBank(ss, model.half_window)

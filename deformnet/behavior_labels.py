@@ -34,6 +34,7 @@ __all__ = [
     "bouts",
     "smooth",
     "check_fps",
+    "same_fps",
     "resample_session",
     "to_track_frames",
     "subsample_labels",
@@ -264,6 +265,11 @@ def check_fps(fps, what: str) -> float | None:
     if not (np.isfinite(f) and f > 0):
         raise ValueError(f"{what} must be a frame rate in Hz (a number > 0), got {fps!r}")
     return f
+
+
+def same_fps(a: float, b: float) -> bool:
+    """Whether two frame rates (Hz, > 0) are the same one (to 1e-6 relative): no resampling."""
+    return abs(float(a) - float(b)) <= 1e-6 * max(float(a), float(b))
 
 
 def _rate_times(fnum: np.ndarray, fps: float, rate: float) -> tuple[np.ndarray, np.ndarray]:

@@ -53,6 +53,7 @@ from deformnet.behavior_labels import (
     read_labels,
     read_tracks,
     resample_session,
+    same_fps,
     smooth,
     subsample_labels,
     to_track_frames,
@@ -527,7 +528,7 @@ def frame_rates(fps, meta: Mapping, name: str) -> tuple[float, float] | None:
             fps,
         )
         return None
-    if abs(fps - rate) <= 1e-6 * rate:
+    if same_fps(fps, rate):
         return None
     log.info("%s: %g Hz, labelled resampled to the classifier's %g Hz", name, fps, rate)
     return fps, rate
@@ -600,7 +601,7 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
         lab = read_labels(lp, tr["fnum"], classes, tracks=tp)
         parts = (tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"])
         s = Session(tp, *parts, lab, pose=tr["pose"])
-        if rates is not None and abs(rates[i] - fps) > 1e-6 * fps:
+        if rates is not None and not same_fps(rates[i], fps):
             log.info("%s: %g Hz, read resampled to %g Hz (fps)", tp, rates[i], fps)
             s = resample_session(s, rates[i], fps)
         out.append(s)
@@ -703,7 +704,7 @@ def _training_fps(cfg: DictConfig) -> float | None:
     fps = check_fps(cfg.get("fps"), "fps")
     if str(cfg.data.get("source")) == "sim":
         sim_fps = check_fps((cfg.get("sim") or {}).get("fps", 30.0), "sim.fps")
-        if fps is not None and abs(fps - sim_fps) > 1e-6 * sim_fps:
+        if fps is not None and not same_fps(fps, sim_fps):
             raise ValueError(f"fps={fps:g} but the simulated sessions are at sim.fps={sim_fps:g}")
         fps = sim_fps
     return fps
