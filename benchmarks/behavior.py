@@ -49,6 +49,9 @@ in mm/s, windows scaled to the frame rate, as SimBA's): the macro-F1 on a mouse 
 labels nor the pretraining saw ("transfer").
 ``--transfer-frames N``: the other mouse's sessions have N frames (default ``--frames``; e.g.
 900 at 30 fps for the 30 s of 3000 frames at `sim=mouse_b`'s 100 fps).
+Resampled to a lower rate, the sessions are low-passed first (`deformnet-classify
+antialias=true`, the default); each deformnet-classify method is then also scored resampled
+without it (``transfer_no_antialias``), side by side in the same run.
 ``--no-resample``: the other mouse's sessions at another frame rate are labelled frame by frame
 as they are (``rf``'s features in training-rate frames), not resampled: what a classifier
 without `fps=` does.
@@ -303,12 +306,21 @@ def run_classifier(
     }
     if transfer:
         out_ |= transfer_score(out / "classifier.pt", transfer, source, resample)
+        train_rate = sessions["train"][0]["fps"]
+        if resample and any(s["fps"] > train_rate * (1 + 1e-6) for s in transfer):
+            plain = transfer_score(out / "classifier.pt", transfer, source, True, False)
+            out_["transfer_no_antialias"] = {  # the same, resampled without the low-pass
+                k: plain[f"transfer_{k}"] for k in ("macro_f1", "macro_f1_smoothed", "f1")
+            }
     return out_
 
 
-def transfer_score(ckpt: Path, sessions: list[dict], source: str, resample: bool = True) -> dict:
+def transfer_score(
+    ckpt: Path, sessions: list[dict], source: str, resample: bool = True, antialias: bool = True
+) -> dict:
     """A trained classifier on other sessions (another mouse), as `deformnet-classify
-    mode=predict` labels them (its own mechanism positions and smoothing): macro-F1 and
+    mode=predict` labels them (its own mechanism positions and smoothing; resampled to its
+    rate, low-passed first when that is lower unless `antialias` is false): macro-F1 and
     per-class F1 over all their frames, raw and smoothed, and the share of their frames that
     the classifier finds unlike its training data, and each session's body scale
     ({"transfer_macro_f1", ..., "transfer_unfamiliar_frames", "transfer_body_scales"})."""
@@ -323,7 +335,7 @@ def transfer_score(ckpt: Path, sessions: list[dict], source: str, resample: bool
         sess = read_session(str(s[source]), model, meta, interpolate=source == "dlt")
         scales.append(sess.scale)
         pr = predict_session(model, sess, dict(meta.get("smoothing") or {}),
-                             meta.get("feature_range"), rates)  # fmt: skip
+                             meta.get("feature_range"), rates, antialias)  # fmt: skip
         if pr["unfamiliar"] is not None:
             unfamiliar.append(pr["unfamiliar"] > frame_share)
         truth.append(np.asarray(s["truth_labels"])[sess.fnum])
@@ -750,6 +762,12 @@ def main(argv: list[str] | None = None) -> dict:
         for key, r in results.items():
             print(f"{key:<8}" + "".join(f"{_fmt(r[m].get('transfer_macro_f1')):>22}"
                                         for m in methods))  # fmt: skip
+        if any("transfer_no_antialias" in r[m] for r in results.values() for m in methods):
+            print("the same, resampled to the training rate without the low-pass (antialias=false)")
+            for key, r in results.items():
+                print(f"{key:<8}" + "".join(
+                    f"{_fmt(r[m].get('transfer_no_antialias', {}).get('macro_f1')):>22}"
+                    for m in methods))  # fmt: skip
         print("unfamiliar frames (deformnet-classify's check), test sessions / the other mouse")
         for key, r in results.items():
             cells = [f"{_fmt(r[m].get('unfamiliar_frames'))} / "

@@ -34,6 +34,10 @@ features plus the first K principal components of that encoder's outputs (PCA fi
 training frame, labelled or not), so the encoder can add to the frame features without
 outnumbering them; against forest_frame it says whether the encoder adds anything, against the
 random encoder's whether pretraining does. Per-class F1 at 1% labels is printed too.
+``knn_<encoder>`` (``--knn K``, default 32; 0 skips): a 1-nearest-neighbour classifier on the
+first K principal components of that encoder's outputs alone (``knn_frame``: of the frame
+features alone): nothing fitted to the labels, so it says whether the encoder's pretraining put
+frames of one behavior near each other, pretrained against random.
 ``--box``: every classifier with the lock-box context (`mechanisms.calibration`: the distance
 of the snout and front paws to each mechanism among the frame features) and the random forest
 with the same distances as SimBA's ROI features (`benchmarks/behavior.py --box`).
@@ -51,6 +55,7 @@ another frame rate, e.g. `sim=mouse_b`'s 100 fps, read resampled to the training
     .venv/bin/python benchmarks/behavior_probe.py [--pretrained CKPT] [--contrast CKPT]
         [--heading CKPT] [--forecast CKPT] [--pretrain-seconds 240] [--draws 3]
         [--encoders pretrained,contrast,random,heading,random_heading,forecast] [--pca 16]
+        [--knn 32]
         [--box] [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30] [--body-scale session]
 
 Prints a table; the last line is JSON, also written atomically to
@@ -197,6 +202,36 @@ def probe_pca(feats: dict, built, fraction: float, draw: int, forest: dict, k: i
     return out
 
 
+def probe_knn(feats: dict, built, fraction: float, draw: int, k: int, columns: str) -> dict:
+    """A nearest-neighbour classifier (1-NN, scikit-learn) on the first `k` principal
+    components of the standardised encoder outputs alone (columns="encoder") or of the frame
+    features alone ("frame"), PCA fitted on every training frame, labelled or not; test
+    macro-F1. No parameters are fitted to the labels, so it measures the geometry of the
+    features: whether frames of one behavior lie near each other (what the encoder's
+    pretraining would have to give for a few labels to go far)."""
+    from sklearn.decomposition import PCA
+    from sklearn.neighbors import KNeighborsClassifier
+
+    model, _, classes = built
+    idx, y, _ = labelled(feats, built, fraction, draw)
+    xtr = feats["train"]["features"].double()
+    mu, sd = xtr.mean(0), xtr.std(0)
+    sd = torch.where(sd > 1e-3, sd, torch.ones_like(sd))
+    fcols = model.frame_columns().numpy()
+    cols = fcols if columns == "frame" else np.setdiff1d(np.arange(xtr.shape[1]), fcols)
+    pca = PCA(int(k), random_state=0).fit(((xtr - mu) / sd).numpy()[:, cols])
+
+    def embed(x: torch.Tensor) -> np.ndarray:
+        return pca.transform(((x.double() - mu) / sd).numpy()[:, cols])
+
+    nn = KNeighborsClassifier(1).fit(embed(feats["train"]["features"][idx]), y.numpy())
+    out = {"labelled_frames": int(len(y)), "components": int(k)}
+    for split in [s for s in ("test", "transfer") if s in feats]:
+        pred = nn.predict(embed(feats[split]["features"]))
+        out |= scores(feats[split]["labels"].numpy(), pred, classes, split)
+    return out
+
+
 def scores(truth: np.ndarray, pred: np.ndarray, classes, split: str) -> dict:
     """macro-F1 and per-class F1 (scikit-learn, `deformnet.behavior_report.evaluate`) of one
     test split: {"macro_f1", "f1"} for "test", {"transfer_macro_f1", "transfer_f1"} for the
@@ -285,6 +320,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--pca", type=int, default=16,
                     help="forest_pca_<encoder>: frame features + this many principal "
                          "components of the encoder's outputs (0: skip)")  # fmt: skip
+    ap.add_argument("--knn", type=int, default=32,
+                    help="knn_<encoder> / knn_frame: 1-NN on this many principal components of "
+                         "the encoder's outputs / the frame features (0: skip)")  # fmt: skip
     add_context_args(ap)
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
@@ -338,7 +376,16 @@ def main(argv: list[str] | None = None) -> dict:
             fp = {f"{f:g}/{d}": probe_pca(feats, built, f, d, forest, args.pca) for f, d in plan}
             results[f"forest_pca_{name}"] = {"runs": fp, "encoder": name, "components": args.pca}
             log.info("forest_pca_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in fp.items()})
+        if args.knn > 0:
+            kn = {f"{f:g}/{d}": probe_knn(feats, built, f, d, args.knn, "encoder") for f, d in plan}
+            results[f"knn_{name}"] = {"runs": kn, "encoder": name, "components": args.knn}
+            log.info("knn_%s: %s", name, {k: round(v["macro_f1"], 3) for k, v in kn.items()})
         if name == next(iter(encoders)):  # the encoder-free heads, on the first one's features
+            if args.knn > 0:
+                kn = {f"{f:g}/{d}": probe_knn(feats, built, f, d, args.knn, "frame")
+                      for f, d in plan}  # fmt: skip
+                results["knn_frame"] = {"runs": kn, "encoder": name, "components": args.knn}
+                log.info("knn_frame: %s", {k: round(v["macro_f1"], 3) for k, v in kn.items()})
             fr = {f"{f:g}/{d}": probe(feats, built, f, d, frame=True) for f, d in plan}
             results["mlp_frame"] = {"runs": fr, "encoder": name}
             log.info("mlp_frame: %s", {k: round(v["macro_f1"], 3) for k, v in fr.items()})
@@ -399,6 +446,10 @@ def main(argv: list[str] | None = None) -> dict:
     first = next(iter(encoders))  # forest_all is the first encoder's
     pairs += [("forest_all", f"forest_all_{n}") for n in encoders if n != first]
     pairs += [("forest_all", "rf"), ("forest_all", "forest_frame")]
+    pairs += [(f"knn_{n}", f"knn_{r}") for n, r in
+              (("pretrained", "random"), ("heading", "random_heading"),
+               ("forecast", "random_heading"), ("contrast", "random"))]  # fmt: skip
+    pairs += [(f"knn_{n}", "knn_frame") for n in encoders]
     pairs += [(f"forest_pca_{n}", f"forest_pca_{r}") for n, r in
               (("pretrained", "random"), ("heading", "random_heading"),
                ("forecast", "random_heading"))]  # fmt: skip

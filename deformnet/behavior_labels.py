@@ -169,15 +169,27 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
     df = read_csv(path, "tracks file")
     cols = set(df.columns)
     found: dict[str, str] = {}
-    for part in xyz_parts(df.columns):
+    in_file = xyz_parts(df.columns)
+    for part in in_file:
         name = body.resolve(part)
-        if name is not None:
-            found[name] = part
+        if name is None:
+            continue
+        if name in found:
+            raise ValueError(
+                f"{path}: parts '{found[name]}' and '{part}' both map to body part '{name}' of "
+                f"model '{body.name}' (keep one, or rename the other)"
+            )
+        found[name] = part
     missing = [p for p in body.parts if p not in found]
     if missing:
+        unused = [p for p in in_file if body.resolve(p) is None]
         raise ValueError(
-            f"{path}: no {{part}}_x/_y/_z columns for body part(s) {missing} "
-            f"(found {sorted(found.values())})"
+            f"{path}: no {{part}}_x/_y/_z columns for body part(s) {missing} of model "
+            f"'{body.name}' (matched: {found or 'none'}; the file's other parts: "
+            f"{unused or 'none'})"
+            ". Map the file's names to the model's parts with deformnet-classify "
+            f"'aliases={{<name in the file>: {missing[0]}, ...}}'; a part the file lacks cannot "
+            "be mapped (the classifier needs every part of its body model)"
         )
     T = len(df)
     if T == 0:
@@ -280,19 +292,69 @@ def _rate_times(fnum: np.ndarray, fps: float, rate: float) -> tuple[np.ndarray, 
     return t, np.arange(n) / rate
 
 
-def resample_session(session: Session, fps: float, rate: float) -> Session:
+#: resampling to a lower rate low-passes first: a Gaussian of this many output frame periods (sd)
+ANTIALIAS_SIGMA = 0.5
+
+
+def lowpass_in_time(
+    points: np.ndarray, observed: np.ndarray, fnum: np.ndarray, sigma: float
+) -> np.ndarray:
+    """Points (T, K, 3) smoothed in time with Gaussian weights of sd `sigma` frames (of the
+    frame numbers fnum (T,), gaps in them kept as gaps in time), each part over its observed
+    (T, K) frames only: a local linear fit (weighted least squares of a line in time about each
+    frame, within 3 sd), which in the middle of the data is the Gaussian filter and at the ends
+    of the data and of its gaps does not pull a moving part back (a one-sided mean would, by
+    the slope times about 0.8 sd). Unobserved part-frames are returned as they are."""
+    from scipy.ndimage import correlate1d
+
+    P = np.asarray(points, np.float64)
+    obs = np.asarray(observed, bool)
+    g = np.asarray(fnum, np.int64) - int(fnum[0])
+    n = int(g[-1]) + 1
+    w = np.zeros((n, P.shape[1]))
+    w[g] = obs
+    x = np.zeros((n, *P.shape[1:]))
+    x[g] = np.where(obs[..., None], P, 0.0)
+    r = max(1, int(np.ceil(3.0 * sigma)))
+    u = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (u / sigma) ** 2)
+
+    def corr(a: np.ndarray, m: int) -> np.ndarray:  # sum_j a_j k(j - i) (j - i)^m
+        return correlate1d(a, k * u**m, axis=0, mode="constant")[g]
+
+    s0, s1, s2 = (corr(w, m) for m in range(3))
+    t0, t1 = corr(x, 0), corr(x * 1.0, 1)
+    det = s0 * s2 - s1**2
+    lin = det > 1e-6 * np.maximum(s0 * s2, 1e-300)  # a line is determined (>= 2 frames)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        line = (s2[..., None] * t0 - s1[..., None] * t1) / np.where(lin, det, 1.0)[..., None]
+        mean = t0 / np.where(s0 > 0, s0, 1.0)[..., None]
+    est = np.where(lin[..., None], line, mean)
+    return np.where((obs & (s0 > 0))[..., None], est, P)
+
+
+def resample_session(session: Session, fps: float, rate: float, antialias: bool = True) -> Session:
     """The session recorded at `fps` (frame times fnum / fps) as it would be at `rate` (Hz):
     rigid and deformed points linearly interpolated in time at every 1 / rate s of its span, a
     part observed where both frames around it are (its deformed point the rigid one
     elsewhere), labels and frame numbers (0, 1, ...) at the new rate, the nearest frame's
-    label. The classifier of another frame rate labels the session so
-    (`deformnet.classify.predict_session`), its results taken back by `to_track_frames`."""
+    label. To a lower rate with `antialias`, the points are low-passed first
+    (`lowpass_in_time`, sd `ANTIALIAS_SIGMA` / rate s: motion the new rate cannot carry, such
+    as tracking jitter, is not folded into slower motion). The classifier of another frame
+    rate labels the session so (`deformnet.classify.predict_session`), its results taken back
+    by `to_track_frames`."""
     fps, rate = check_fps(fps, "fps"), check_fps(rate, "rate")
     if fps is None or rate is None:
         raise ValueError("resample_session needs both frame rates")
     fnum = np.asarray(session.fnum)
     if len(fnum) == 0 or np.any(np.diff(fnum) <= 0):
         raise ValueError(f"{session.name}: frame numbers must increase to be resampled in time")
+    rigid, deformed = session.rigid, session.deformed
+    obs = np.asarray(session.observed, bool)
+    if antialias and rate < fps and len(fnum) > 1:
+        sigma = ANTIALIAS_SIGMA * fps / rate  # source frames
+        rigid = lowpass_in_time(rigid, np.ones_like(obs), fnum, sigma)
+        deformed = lowpass_in_time(deformed, obs, fnum, sigma)
     t, tn = _rate_times(fnum, fps, rate)
     T = len(t)
     if T == 1:
@@ -307,12 +369,11 @@ def resample_session(session: Session, fps: float, rate: float) -> Session:
         x = np.asarray(x, np.float64)
         return ((1 - wv) * x[i0] + wv * x[i1]).astype(np.float32)
 
-    obs = np.asarray(session.observed, bool)
     observed = np.where(
         w[:, None] == 0, obs[i0], np.where(w[:, None] == 1, obs[i1], obs[i0] & obs[i1])
     )
-    rigid = lerp(session.rigid)
-    deformed = np.where(observed[..., None], lerp(session.deformed), rigid)
+    rigid = lerp(rigid)
+    deformed = np.where(observed[..., None], lerp(deformed), rigid)
     nearest = np.where(w > 0.5, i1, i0)
     return Session(
         session.name,

@@ -8,6 +8,7 @@ model points to global ones, X_g = R(r) X_m + tau (see `deformnet.so3`).
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -17,6 +18,12 @@ import torch
 from deformnet.so3 import kabsch
 
 log = logging.getLogger(__name__)
+
+
+def part_key(name: str) -> str:
+    """A part name as `BodyModel.resolve` compares it loosely: lower case, without ``_``, ``-``,
+    ``.`` and spaces (``Left_Front-Paw`` -> ``leftfrontpaw``)."""
+    return re.sub(r"[\s_.\-]+", "", str(name)).lower()
 
 
 @dataclass(frozen=True)
@@ -62,8 +69,9 @@ class BodyModel:
         return len(self.parts)
 
     def index(self, name: str) -> int:
-        """Index of a part by its name or one of its aliases (raises KeyError naming the part)."""
-        key = self.aliases.get(name, name)
+        """Index of a part by its name or one of its aliases, matched as `resolve` does (raises
+        KeyError naming the part)."""
+        key = self.resolve(name)
         try:
             return self.parts.index(key)
         except ValueError:
@@ -73,9 +81,37 @@ class BodyModel:
             ) from None
 
     def resolve(self, name: str) -> str | None:
-        """The model's part name for `name` (a part name or alias), or None if unknown."""
+        """The model's part name for `name` (a part name or alias), or None if unknown.
+
+        An exact part name or alias first; else the same ignoring case and the separators ``_``,
+        ``-``, ``.`` and spaces (`part_key`: ``Nose``, ``Left_Ear``, ``tail-base`` and
+        ``TailBase`` all match), when that names a single part."""
         key = self.aliases.get(name, name)
-        return key if key in self.parts else None
+        if key in self.parts:
+            return key
+        hits = {p for n, p in self._loose_names() if n == part_key(name)}
+        return hits.pop() if len(hits) == 1 else None
+
+    def _loose_names(self) -> list[tuple[str, str]]:
+        """(part_key of a part name or alias, the part) for every part and alias."""
+        return [(part_key(p), p) for p in self.parts] + [
+            (part_key(a), p) for a, p in self.aliases.items()
+        ]
+
+    def with_aliases(self, aliases: Mapping[str, str] | None, where: str = "aliases") -> BodyModel:
+        """This model with more aliases (a user's part names -> this model's parts, e.g.
+        ``{Snout: nose_tip}``); a target that is not a part is a ValueError naming `where`."""
+        if not aliases:
+            return self
+        extra = {str(k): str(v) for k, v in dict(aliases).items()}
+        bad = {k: v for k, v in extra.items() if self.resolve(v) is None}
+        if bad:
+            raise ValueError(
+                f"{where}: {bad} name(s) no part of body model '{self.name}' (parts: "
+                f"{list(self.parts)})"
+            )
+        extra = {k: self.resolve(v) for k, v in extra.items()}
+        return BodyModel(self.parts, self.points, {**self.aliases, **extra}, self.name)
 
     @property
     def centroid(self) -> np.ndarray:

@@ -474,6 +474,7 @@ def predict_session(
     smoothing: dict,
     rng: Mapping | None = None,
     rates: tuple[float, float] | None = None,
+    antialias: bool = True,
 ) -> dict:
     """{"probs" (T, C), "raw" (T,), "labels" (T,) smoothed (= raw without smoothing),
     "unfamiliar" (T,) each frame's `unfamiliar_share` given the training range `rng`, else
@@ -481,10 +482,12 @@ def predict_session(
     session is labelled resampled to the classifier's rate (`resample_session`: its windows,
     speeds and smoothing in the time the classifier learnt them), the results taken back to
     the session's own frames (`to_track_frames`: probabilities interpolated, the smoothed
-    labels and unfamiliar shares of the nearest resampled frame)."""
+    labels and unfamiliar shares of the nearest resampled frame); to a lower rate low-passed
+    first unless `antialias` is false."""
     if rates is not None:
         fps, rate = rates
-        res = predict_session(model, resample_session(session, fps, rate), smoothing, rng)
+        low = resample_session(session, fps, rate, antialias)
+        res = predict_session(model, low, smoothing, rng)
         back = functools.partial(to_track_frames, fnum=session.fnum, fps=fps, rate=rate)
         probs = back(res["probs"], kind="linear")
         return {
@@ -603,7 +606,7 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
         s = Session(tp, *parts, lab, pose=tr["pose"])
         if rates is not None and not same_fps(rates[i], fps):
             log.info("%s: %g Hz, read resampled to %g Hz (fps)", tp, rates[i], fps)
-            s = resample_session(s, rates[i], fps)
+            s = resample_session(s, rates[i], fps, bool(cfg.get("antialias", True)))
         out.append(s)
     return out
 
@@ -719,6 +722,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     classes = [str(c) for c in cfg.labels.classes]
     C = len(classes)
     net_cfg, body, hw, state, up = _encoder_config(cfg, classes)
+    body = body.with_aliases(to_plain(cfg.get("aliases")))  # kept in classifier.pt
     head_cfg = dict(to_plain(cfg.head))
     forest = head_cfg.get("name") == "forest"
     if forest and not bool(cfg.freeze):  # before any data is read
@@ -1016,12 +1020,15 @@ def _unfamiliar_settings(cfg: DictConfig) -> dict:
     return out
 
 
-def read_session(path: str, model, meta: Mapping, interpolate: bool = False) -> Session:
+def read_session(
+    path: str, model, meta: Mapping, interpolate: bool = False, aliases: Mapping | None = None
+) -> Session:
     """A track for a trained classifier (`load_classifier`'s model and meta) to label: read in
-    its body model's parts, checked against the world's up its encoder assumes (its heading
-    frame's, else the heights'; or none), unlabelled, with its body scale if the classifier
-    divides it out (``body_scale``, as it was trained)."""
-    tr = read_tracks(path, meta["body"], interpolate=interpolate)
+    its body model's parts (its file's names through the model's aliases and `aliases`),
+    checked against the world's up its encoder assumes (its heading frame's, else the
+    heights'; or none), unlabelled, with its body scale if the classifier divides it out
+    (``body_scale``, as it was trained)."""
+    tr = read_tracks(path, meta["body"].with_aliases(aliases), interpolate=interpolate)
     check_track_up(tr["rigid"], meta["body"].points, model.encoder.heights_up, path)
     T = len(tr["fnum"])
     parts = (tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"])
@@ -1040,11 +1047,14 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     unf = _unfamiliar_settings(cfg)
     _predict_mechanisms(cfg, model, meta)
     rates = frame_rates(cfg.get("fps"), meta, str(cfg.tracks))  # before the track is read
-    s = read_session(str(cfg.tracks), model, meta, bool(cfg.data.get("interpolate")))
+    s = read_session(
+        str(cfg.tracks), model, meta, bool(cfg.data.get("interpolate")),
+        to_plain(cfg.get("aliases")),
+    )  # fmt: skip
     T = len(s.fnum)
     smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
     rng = meta.get("feature_range")
-    pr = predict_session(model, s, smoothing, rng, rates)
+    pr = predict_session(model, s, smoothing, rng, rates, bool(cfg.get("antialias", True)))
     fnum = s.fnum
     names = np.asarray(classes, dtype=object)
     df = pd.DataFrame(
@@ -1097,6 +1107,9 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         "fps": check_fps(cfg.get("fps"), "fps"),
         "classifier_fps": meta.get("fps"),
         "resampled": rates is not None,
+        "antialiased": rates is not None
+        and rates[1] < rates[0]
+        and bool(cfg.get("antialias", True)),
         "warning": warning,
     }
     write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")

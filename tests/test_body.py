@@ -82,6 +82,26 @@ def test_alias_lookup():
         BodyModel(("a", "b", "c"), np.zeros((3, 3)), {"x": "d"})
 
 
+def test_loose_part_names_and_added_aliases():
+    body = default_mouse()
+    # case and the separators _ - . and spaces ignored, for part names and aliases alike
+    for name, part in [("Nose", "nose_tip"), ("Left_Ear", "left_ear"), ("Ear_R", "right_ear"),
+                       ("TailBase", "tail_root"), ("right-front paw", "right_front_paw"),
+                       ("LEFT.HIND.PAW", "left_hind_paw")]:  # fmt: skip
+        assert body.resolve(name) == part, name
+        assert body.index(name) == body.parts.index(part)
+    assert body.resolve("Trunk") is None and body.resolve("Ear") is None
+    # a loose name that would match two parts matches none
+    two = BodyModel(("ab", "a_b"), np.eye(2, 3), name="two")
+    assert two.resolve("a_b") == "a_b" and two.resolve("A-B") is None
+    mine = body.with_aliases({"LFP": "left_front_paw", "TTI": "TailBase"})
+    assert mine.resolve("LFP") == "left_front_paw" and mine.resolve("tti") == "tail_root"
+    assert body.resolve("LFP") is None  # the original is unchanged
+    assert body.with_aliases(None) is body
+    with pytest.raises(ValueError, match=r"aliases: \{'Trunk': 'torso'\} name\(s\) no part"):
+        body.with_aliases({"Trunk": "torso"})
+
+
 def test_default_mouse_left_is_minus_x_and_round_trip():
     body = default_mouse()
     for part in ("ear", "front_paw", "hind_paw"):

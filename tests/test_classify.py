@@ -194,6 +194,28 @@ def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
     assert list(bdf.columns) == ["start", "stop", "label", "mean_probability"]
     assert ((bdf["mean_probability"] > 0.5) & (bdf["mean_probability"] <= 1.0)).all()
 
+    # the same track with a user's own part names: loose matches (case, separators) and the
+    # model's aliases need nothing; the others are an error naming them, until aliases= maps them
+    names = {"nose_tip": "Snout", "left_ear": "Ear_L", "right_ear": "RightEar",
+             "left_front_paw": "LFP", "right_front_paw": "Right-Front-Paw",
+             "left_hind_paw": "hl", "tail_root": "TailBase"}  # fmt: skip
+    df0 = pd.read_csv(test[0][0])
+    mine = df0.rename(columns={c: names[p] + c[len(p):] for c in df0.columns for p in names
+                               if c.startswith(p + "_")})  # fmt: skip
+    renamed = tmp_path / "renamed.csv"
+    mine.to_csv(renamed, index=False)
+    base = ["mode=predict", f"checkpoint={out / 'classifier.pt'}", f"tracks={renamed}"]
+    with pytest.raises(ValueError, match=r"renamed.csv: no .* part\(s\) \['left_front_paw', "
+                       r"'left_hind_paw'\] .*other parts: \['LFP', 'hl'\]"):  # fmt: skip
+        run(_compose([*base, f"output.dir={tmp_path / 'bad'}"]))
+    q = run(_compose([*base, "aliases={LFP: left_front_paw, hl: left_hind_paw}",
+                      f"output.dir={tmp_path / 'mine'}"]))  # fmt: skip
+    pd.testing.assert_frame_equal(pd.read_csv(q["predictions"]), df)
+    both = pd.concat([df0, mine[[c for c in mine.columns if c.startswith("Snout_")]]], axis=1)
+    both.to_csv(renamed, index=False)
+    with pytest.raises(ValueError, match=r"parts 'nose_tip' and 'Snout' both map to body part"):
+        run(_compose([*base, f"output.dir={tmp_path / 'bad2'}"]))
+
 
 def _fit_from_pretrained(tmp_path, overrides: list[str], up=None):
     """Fine-tune from a saved tiny deformation net (seed 3; up: its heading frame) on one toy

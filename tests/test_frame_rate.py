@@ -45,13 +45,21 @@ def test_check_fps():
 
 
 def test_resample_session_value_shape_and_gaps():
-    """90 -> 30 Hz: every third frame exactly (the same times); 30 -> 90 Hz: the motion within
-    linear interpolation's error (h^2 / 8 max |x''|: 20 mm, up to 1.1 Hz, h = 1/30 s: 0.13 mm);
-    labels the nearest frame's; the scale and pose carried; frame numbers 0, 1, ..."""
+    """90 -> 30 Hz: without antialiasing every third frame exactly (the same times), with it
+    the motion within the low-pass's attenuation (a Gaussian of sd 1/60 s passes 1.1 Hz at
+    exp(-2 pi^2 sd^2 f^2) = 0.9934: 20 mm x 0.0066 = 0.13 mm, and the edges' truncation);
+    30 -> 90 Hz: the motion within linear interpolation's error (h^2 / 8 max |x''|: 20 mm, up
+    to 1.1 Hz, h = 1/30 s: 0.13 mm); labels the nearest frame's; the scale and pose carried;
+    frame numbers 0, 1, ..."""
     fast, slow = _session(90.0), _session(30.0)
+    plain = resample_session(fast, 90.0, 30.0, antialias=False)
+    np.testing.assert_allclose(plain.deformed, slow.deformed, atol=1e-4)
     down = resample_session(fast, 90.0, 30.0)
     assert down.rigid.shape == slow.rigid.shape and down.observed.shape == slow.observed.shape
-    np.testing.assert_allclose(down.deformed, slow.deformed, atol=1e-4)
+    inner = slice(3, -3)  # the Gaussian's edges: normalised over the frames there are
+    err = np.abs(down.deformed[inner] - slow.deformed[inner]).max()
+    assert 0.02 < err <= 20 * (1 - np.exp(-2 * np.pi**2 * (1 / 60) ** 2 * 1.1**2)) * 1.05
+    assert np.abs(down.deformed - slow.deformed).max() < 0.3  # the ends: a local line
     np.testing.assert_array_equal(down.labels, slow.labels)
     np.testing.assert_array_equal(down.fnum, np.arange(len(slow.fnum)))
     assert down.scale == 1.1 and down.pose == "columns"
@@ -74,6 +82,42 @@ def test_resample_session_value_shape_and_gaps():
     w = (2.5 - 59 / 30) / (3.0 - 59 / 30)
     want = (1 - w) * _motion(np.array([59 / 30])) + w * _motion(np.array([3.0]))
     np.testing.assert_allclose(g.deformed[mid], want[0], atol=1e-3)
+
+
+def test_antialiasing_removes_what_the_lower_rate_cannot_carry():
+    """Jitter at 40 Hz on a 90 Hz track, resampled to 30 Hz: plain sampling (every third
+    frame) folds it into a 10 Hz wobble of 0.87 its amplitude; low-passed first it is all but
+    gone (the Gaussian of sd 1/60 s passes 40 Hz at exp(-2 pi^2 (40/60)^2) = 1.6e-4), the slow
+    motion kept (0.993 at 1.1 Hz). Unobserved part-frames do not leak into the observed ones;
+    near a gap or an end the fit is a local line (not pulled back); gaps stay gaps."""
+    s = _session(90.0)
+    t = s.fnum / 90.0
+    jitter = (3.0 * np.sin(2 * np.pi * 40 * t))[:, None, None].astype(np.float32)
+    noisy = Session("n", s.rigid, s.deformed + jitter, s.observed.copy(), s.fnum, s.labels)
+    slow = _motion(np.arange(121) / 30.0)
+    plain = resample_session(noisy, 90.0, 30.0, antialias=False)
+    down = resample_session(noisy, 90.0, 30.0)
+    inner = slice(5, -5)
+    assert np.abs(plain.deformed[inner] - slow[inner]).max() > 2.5
+    assert np.abs(down.deformed[inner] - slow[inner]).max() < 0.2
+    # a part unobserved (its deformed point a far-off value) for a stretch: its observed
+    # neighbours are smoothed over observed frames only
+    noisy.observed[100:150, 4] = False
+    noisy.deformed[100:150, 4] = 1e4
+    d2 = resample_session(noisy, 90.0, 30.0)
+    err = np.abs(d2.deformed - slow).max(-1)[:, 4]
+    assert err[d2.observed[:, 4]].max() < 2.0  # nothing of the far-off unobserved values
+    away = np.r_[5:32, 52:116]  # two or more 30 Hz frames from the gap (34..49) and the ends
+    assert err[away].max() < 0.2
+    assert not d2.observed[34:50, 4].any() and d2.observed[:34, 4].all()
+    from deformnet.behavior_labels import lowpass_in_time
+
+    P = lowpass_in_time(np.ones((5, 1, 3)), np.ones((5, 1), bool), np.array([0, 1, 2, 40, 41]), 3)
+    np.testing.assert_allclose(P, 1.0)  # a constant stays constant, across the gap too
+    line = np.arange(10.0)[:, None, None] * np.ones((1, 2, 3))
+    obs = np.ones((10, 2), bool)
+    obs[4:7, 1] = False
+    np.testing.assert_allclose(lowpass_in_time(line, obs, np.arange(10), 2.0), line, atol=1e-9)
 
 
 def test_resample_session_observed_and_errors():
