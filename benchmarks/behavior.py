@@ -499,6 +499,11 @@ def averaged(runs: list[dict]) -> dict:
                                  for r in runs]))
             for c in runs[0][f"{pre}f1"]
         }  # fmt: skip
+    if all("transfer_no_antialias" in r for r in runs):  # the other mouse without the low-pass
+        out["transfer_no_antialias"] = averaged(
+            [{**r["transfer_no_antialias"], "seconds": 0.0} for r in runs]
+        )
+        out["transfer_no_antialias"].pop("seconds")
     for k in ("unfamiliar_frames", "transfer_unfamiliar_frames"):
         if all(r.get(k) is not None for r in runs):
             out[k] = float(np.mean([r[k] for r in runs]))
