@@ -103,6 +103,7 @@ from common import subset
 
 from adjust.app import finite_or_none
 from deformnet.atomic import write_text
+from deformnet.behavior_labels import same_fps
 from deformnet.confutil import compose
 from deformnet.paths import CONF_DIR
 
@@ -307,7 +308,8 @@ def run_classifier(
     if transfer:
         out_ |= transfer_score(out / "classifier.pt", transfer, source, resample)
         train_rate = sessions["train"][0]["fps"]
-        if resample and any(s["fps"] > train_rate * (1 + 1e-6) for s in transfer):
+        if resample and any(s["fps"] > train_rate and not same_fps(s["fps"], train_rate)
+                            for s in transfer):  # fmt: skip
             plain = transfer_score(out / "classifier.pt", transfer, source, True, False)
             out_["transfer_no_antialias"] = {  # the same, resampled without the low-pass
                 k: plain[f"transfer_{k}"] for k in ("macro_f1", "macro_f1_smoothed", "f1")
@@ -500,14 +502,12 @@ def averaged(runs: list[dict]) -> dict:
             for c in runs[0][f"{pre}f1"]
         }  # fmt: skip
     if all("transfer_no_antialias" in r for r in runs):  # the other mouse without the low-pass
-        out["transfer_no_antialias"] = averaged(
-            [{**r["transfer_no_antialias"], "seconds": 0.0} for r in runs]
-        )
-        out["transfer_no_antialias"].pop("seconds")
+        out["transfer_no_antialias"] = averaged([r["transfer_no_antialias"] for r in runs])
     for k in ("unfamiliar_frames", "transfer_unfamiliar_frames"):
         if all(r.get(k) is not None for r in runs):
             out[k] = float(np.mean([r[k] for r in runs]))
-    out["seconds"] = round(sum(r["seconds"] for r in runs), 1)
+    if all("seconds" in r for r in runs):
+        out["seconds"] = round(sum(r["seconds"] for r in runs), 1)
     return out
 
 

@@ -169,10 +169,11 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
     df = read_csv(path, "tracks file")
     cols = set(df.columns)
     found: dict[str, str] = {}
-    in_file = xyz_parts(df.columns)
-    for part in in_file:
+    unused: list[str] = []  # the file's parts that name none of the model's
+    for part in xyz_parts(df.columns):
         name = body.resolve(part)
         if name is None:
+            unused.append(part)
             continue
         if name in found:
             raise ValueError(
@@ -182,7 +183,6 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
         found[name] = part
     missing = [p for p in body.parts if p not in found]
     if missing:
-        unused = [p for p in in_file if body.resolve(p) is None]
         raise ValueError(
             f"{path}: no {{part}}_x/_y/_z columns for body part(s) {missing} of model "
             f"'{body.name}' (matched: {found or 'none'}; the file's other parts: "
@@ -323,7 +323,7 @@ def lowpass_in_time(
         return correlate1d(a, k * u**m, axis=0, mode="constant")[g]
 
     s0, s1, s2 = (corr(w, m) for m in range(3))
-    t0, t1 = corr(x, 0), corr(x * 1.0, 1)
+    t0, t1 = corr(x, 0), corr(x, 1)
     det = s0 * s2 - s1**2
     lin = det > 1e-6 * np.maximum(s0 * s2, 1e-300)  # a line is determined (>= 2 frames)
     with np.errstate(invalid="ignore", divide="ignore"):

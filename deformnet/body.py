@@ -89,7 +89,8 @@ class BodyModel:
         key = self.aliases.get(name, name)
         if key in self.parts:
             return key
-        hits = {p for n, p in self._loose_names() if n == part_key(name)}
+        want = part_key(name)
+        hits = {p for n, p in self._loose_names() if n == want}
         return hits.pop() if len(hits) == 1 else None
 
     def _loose_names(self) -> list[tuple[str, str]]:

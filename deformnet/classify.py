@@ -1047,6 +1047,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     unf = _unfamiliar_settings(cfg)
     _predict_mechanisms(cfg, model, meta)
     rates = frame_rates(cfg.get("fps"), meta, str(cfg.tracks))  # before the track is read
+    antialias = bool(cfg.get("antialias", True))
     s = read_session(
         str(cfg.tracks), model, meta, bool(cfg.data.get("interpolate")),
         to_plain(cfg.get("aliases")),
@@ -1054,7 +1055,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
     T = len(s.fnum)
     smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
     rng = meta.get("feature_range")
-    pr = predict_session(model, s, smoothing, rng, rates, bool(cfg.get("antialias", True)))
+    pr = predict_session(model, s, smoothing, rng, rates, antialias)
     fnum = s.fnum
     names = np.asarray(classes, dtype=object)
     df = pd.DataFrame(
@@ -1107,9 +1108,7 @@ def _predict(cfg: DictConfig, out: Path) -> dict:
         "fps": check_fps(cfg.get("fps"), "fps"),
         "classifier_fps": meta.get("fps"),
         "resampled": rates is not None,
-        "antialiased": rates is not None
-        and rates[1] < rates[0]
-        and bool(cfg.get("antialias", True)),
+        "antialiased": antialias and rates is not None and rates[1] < rates[0],
         "warning": warning,
     }
     write_text(out / "summary.json", json.dumps(finite_or_none(summary), indent=2) + "\n")
