@@ -36,8 +36,13 @@ format: $(STAMP)
 	$(VENV)/bin/ruff format . && $(VENV)/bin/ruff check --fix .
 
 # The peers the benchmarks run side by side (aniposelib pulls jax, numba and opencv-contrib-python,
-# whose cv2 would replace opencv-python-headless's): their own environment, .venv-bench.
-bench-env: .venv-bench/.installed
+# whose cv2 would replace opencv-python-headless's): their own environment, .venv-bench; the
+# Kalman smoother (pykalman) goes into .venv as the `bench` extra.
+bench-env: .venv-bench/.installed $(VENV)/.bench
+
+$(VENV)/.bench: $(STAMP)
+	$(PY) -m pip install -q -e '.[bench]'
+	touch $(VENV)/.bench
 
 .venv-bench/.installed:
 	$(PYTHON) -m venv .venv-bench

@@ -9,6 +9,10 @@ seen by >= 2 cameras / occluded (< 2) / fraction within 5 mm (missing = miss), a
 - ``robust_tri``: robust triangulation (`adjust.triangulate.triangulate(robust=True)`);
 - ``aniposelib``: aniposelib's `triangulate_optim` with anipose's settings and length
   constraints (head triangle strong, trunk weak), run in its own environment (`make bench-env`);
+- ``dlt_kalman``, ``aniposelib_kalman``: the Kalman-smoother peer (`peers/kalman.py`, pykalman,
+  the `bench` extra): each part of the DLT / aniposelib points smoothed and its gaps filled by a
+  constant-velocity Kalman filter + RTS smoother, noise covariances fitted by EM
+  (``--no-kalman`` skips them);
 - ``rigid``: `adjust-track deformation=rigid` (Table 1 scaled to the data, stochastic model
   estimated from the data);
 - ``interp``: `adjust-track` (its default, `deformation=interp`);
@@ -34,7 +38,7 @@ aniposelib's and below interp's. ``self``'s fine-tuning time is reported apart (
 
     .venv/bin/python benchmarks/domain_gap.py [--frames 1500] [--seed 92000] [--checkpoint CKPT]
         [--train-minutes 3] [--adapt-minutes 3] [--no-net] [--no-self] [--no-anipose]
-        [--no-sessions] [--self-forecast W]
+        [--no-kalman] [--no-sessions] [--self-forecast W]
 
 Last line JSON, also written to runs/benchmarks/domain_gap.json.
 """
@@ -62,6 +66,8 @@ from peers.anipose import (  # noqa: E402
     constraint_indices,
     run_anipose,
 )
+from peers.kalman import available as kalman_available  # noqa: E402
+from peers.kalman import kalman_smooth  # noqa: E402
 from tracking import (  # noqa: E402
     compose,
     emit,
@@ -181,6 +187,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--train-minutes", type=float, default=3.0)
     ap.add_argument("--no-net", action="store_true")
     ap.add_argument("--no-anipose", action="store_true")
+    ap.add_argument("--no-kalman", action="store_true", help="skip the Kalman-smoother peer")
     ap.add_argument("--no-self", action="store_true")
     ap.add_argument("--adapt-minutes", type=float, default=3.0)
     ap.add_argument("--no-sessions", action="store_true", help="skip the sessions variant")
@@ -203,6 +210,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     est, secs = run_dlt(scene, work / "dlt")
     results["dlt"] = {**evaluate(est, truth, nviews), "seconds": round(secs, 2)}
+    smooth_on = {"dlt": (est, secs)}  # the Kalman smoother's inputs (and their seconds)
 
     from adjust.camera import CameraTensors
     from adjust.io import load_scene
@@ -233,6 +241,17 @@ def main(argv: list[str] | None = None) -> dict:
                 constraint_indices(parts, MOUSE_CONSTRAINTS_WEAK),
             )
             results["aniposelib"] = {**evaluate(pts, truth, nviews), "seconds": round(secs, 2)}
+            smooth_on["aniposelib"] = (pts, secs)
+    if not args.no_kalman:
+        if not kalman_available():
+            log.warning("pykalman not installed (pip install -e '.[bench]'): Kalman rows skipped")
+        else:
+            for base, (pts, secs) in smooth_on.items():
+                sm, ksecs = kalman_smooth(pts)
+                results[f"{base}_kalman"] = {
+                    **evaluate(sm, truth, nviews),
+                    "seconds": round(secs + ksecs, 2),
+                }
 
     variants = {"rigid": ["deformation=rigid"], "interp": []}
     if not args.no_net:
@@ -300,6 +319,12 @@ def main(argv: list[str] | None = None) -> dict:
         a, b = results["interp"], results["aniposelib"]
         checks["interp_beats_aniposelib_every_column"] = beats_every_column(a, b)
         checks["interp_over_aniposelib_all"] = round(a["rmse_all"] / b["rmse_all"], 3)
+    for k in ("dlt_kalman", "aniposelib_kalman"):
+        if k in results:
+            a, b = results["interp"], results[k]
+            checks[f"interp_beats_{k}_every_column"] = beats_every_column(a, b)
+            checks[f"interp_over_{k}_all"] = round(a["rmse_all"] / b["rmse_all"], 3)
+            checks[f"interp_over_{k}_occluded"] = round(a["rmse_occluded"] / b["rmse_occluded"], 3)
     for v in variants:
         checks[f"{v}_seen2_le_robust_tri"] = bool(
             results[v]["rmse_seen2"] <= results["robust_tri"]["rmse_seen2"]

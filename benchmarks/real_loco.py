@@ -8,6 +8,9 @@ project the 3D points into the left-out camera and measure the pixel distance to
 detections (likelihood >= 0.9). Methods, side by side on the same subsets:
 
 - ``dlt``: `adjust-triangulate` (linear, >= 2 views);
+- ``dlt_kalman``: the Kalman-smoother peer on those points (`peers/kalman.py`, pykalman, the
+  `bench` extra: constant-velocity Kalman filter + RTS smoother per part, noise fitted by EM;
+  gaps filled; ``--no-kalman`` skips it);
 - ``aniposelib``: aniposelib's `triangulate_optim` (anipose's settings; no skeleton constraints:
   these keypoint sets have none we could state), in its own environment (`make bench-env`);
 - ``rigid``: `adjust-track body=auto deformation=rigid`;
@@ -34,6 +37,7 @@ leave-outs of each method's common-subset median relative to rigid's and to inte
 lower error on average); ``self`` is also counted per leave-out (below rigid, below interp).
 
     .venv/bin/python benchmarks/real_loco.py [--sessions hand,fly,mouse_sleap] [--no-anipose]
+        [--no-kalman]
 
 Last line JSON, also written to runs/benchmarks/real_loco.json.
 """
@@ -55,6 +59,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from peers.anipose import bench_python, run_anipose  # noqa: E402
+from peers.kalman import available as kalman_available  # noqa: E402
+from peers.kalman import kalman_smooth  # noqa: E402
 from tracking import compose, emit  # noqa: E402
 
 from adjust.camera import CameraTensors, project_cameras  # noqa: E402
@@ -65,7 +71,7 @@ from deformnet.paths import CONF_DIR, shared_dir  # noqa: E402
 log = logging.getLogger("benchmarks.real_loco")
 ROOT = CONF_DIR.parent
 CONFIDENT = 0.9
-METHODS = ("dlt", "aniposelib", "rigid", "interp", "self")
+METHODS = ("dlt", "dlt_kalman", "aniposelib", "rigid", "interp", "self")
 
 
 def sessions() -> dict[str, dict]:
@@ -124,8 +130,17 @@ def _run(app: str, session: Path, out: Path, overrides: list[str]):
     return d["parts"], d["points"], time.perf_counter() - t0
 
 
-def loco(name: str, spec: dict, work: Path, anipose: bool, frames: int, adapt: str | None) -> dict:
-    """All leave-outs of one session; ``adapt``: deformation=self's max_time (None: skip)."""
+def loco(
+    name: str,
+    spec: dict,
+    work: Path,
+    anipose: bool,
+    frames: int,
+    adapt: str | None,
+    kalman: bool = False,
+) -> dict:
+    """All leave-outs of one session; ``adapt``: deformation=self's max_time (None: skip);
+    ``kalman``: the Kalman-smoother peer on the DLT points too."""
     base = spec["dir"]
     cal = base / "calibration.toml"
     cameras, det = load_scene(cal, base / spec["detections"], None, pattern=spec.get("pattern"))
@@ -146,6 +161,13 @@ def loco(name: str, spec: dict, work: Path, anipose: bool, frames: int, adapt: s
             try:
                 if m == "dlt":
                     p, X, s = _run("triangulate", sess, mo, [])
+                    dlt = (p, X, s)
+                elif m == "dlt_kalman":
+                    if not kalman or "dlt" not in preds:
+                        continue
+                    p, X0, s0 = dlt
+                    X, ks = kalman_smooth(X0)
+                    s = s0 + ks
                 elif m == "aniposelib":
                     if not anipose:
                         continue
@@ -213,6 +235,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", default="hand,fly,mouse_sleap")
     ap.add_argument("--no-anipose", action="store_true")
+    ap.add_argument("--no-kalman", action="store_true", help="skip the Kalman-smoother peer")
     ap.add_argument("--frames", type=int, default=200, help="first N frames of each session")
     ap.add_argument("--adapt-seconds", type=int, default=30, help="deformation=self budget")
     ap.add_argument("--no-self", action="store_true")
@@ -224,6 +247,9 @@ def main(argv: list[str] | None = None) -> dict:
     anipose = not args.no_anipose and bench_python() is not None
     if not args.no_anipose and not anipose:
         log.warning("aniposelib not installed (make bench-env): its rows are skipped")
+    kalman = not args.no_kalman and kalman_available()
+    if not args.no_kalman and not kalman:
+        log.warning("pykalman not installed (pip install -e '.[bench]'): dlt_kalman is skipped")
     work = Path(args.work)
     results = {}
     all_specs = sessions()
@@ -233,7 +259,7 @@ def main(argv: list[str] | None = None) -> dict:
             if args.no_self
             else f"00:00:{args.adapt_seconds // 60:02d}:" + (f"{args.adapt_seconds % 60:02d}")
         )
-        results[name] = loco(name, all_specs[name], work, anipose, args.frames, adapt)
+        results[name] = loco(name, all_specs[name], work, anipose, args.frames, adapt, kalman)
     cols = ["coverage", "median_px", "p90_px", "common_median_px", "common_p90_px", "seconds"]
     failures = 0
     for name, r in results.items():
