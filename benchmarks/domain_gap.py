@@ -13,6 +13,13 @@ seen by >= 2 cameras / occluded (< 2) / fraction within 5 mm (missing = miss), a
   the `bench` extra): each part of the DLT / aniposelib points smoothed and its gaps filled by a
   constant-velocity Kalman filter + RTS smoother, noise covariances fitted by EM
   (``--no-kalman`` skips them);
+- ``dlt_disk``, ``dlt_disk_sim``: the DISK-style imputation peer (`peers/disk.py`: a
+  transformer that fills the gaps of the DLT points from the other keypoints and frames, no
+  body model, no cameras), trained for ``--disk-seconds`` on this scene's own DLT points
+  (``dlt_disk``: self-supervised, hidden present points as targets, as ``self`` learns from
+  the scene) or, DISK's own protocol, on complete data: 4 x 3000 frames of the default
+  simulator's mouse at the scene's frame rate (``dlt_disk_sim``, as ``default``'s net was
+  trained) (``--no-disk`` skips them);
 - ``rigid``: `adjust-track deformation=rigid` (Table 1 scaled to the data, stochastic model
   estimated from the data);
 - ``interp``: `adjust-track` (its default, `deformation=interp`);
@@ -38,7 +45,7 @@ aniposelib's and below interp's. ``self``'s fine-tuning time is reported apart (
 
     .venv/bin/python benchmarks/domain_gap.py [--frames 1500] [--seed 92000] [--checkpoint CKPT]
         [--train-minutes 3] [--adapt-minutes 3] [--no-net] [--no-self] [--no-anipose]
-        [--no-kalman] [--no-sessions] [--self-forecast W]
+        [--no-kalman] [--no-disk] [--disk-seconds 180] [--no-sessions] [--self-forecast W]
 
 Last line JSON, also written to runs/benchmarks/domain_gap.json.
 """
@@ -66,6 +73,7 @@ from peers.anipose import (  # noqa: E402
     constraint_indices,
     run_anipose,
 )
+from peers.disk import fit_disk, impute  # noqa: E402
 from peers.kalman import available as kalman_available  # noqa: E402
 from peers.kalman import kalman_smooth  # noqa: E402
 from tracking import (  # noqa: E402
@@ -188,6 +196,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-net", action="store_true")
     ap.add_argument("--no-anipose", action="store_true")
     ap.add_argument("--no-kalman", action="store_true", help="skip the Kalman-smoother peer")
+    ap.add_argument("--no-disk", action="store_true", help="skip the DISK-style imputation peer")
+    ap.add_argument("--disk-seconds", type=float, default=180.0, help="its training, per variant")
     ap.add_argument("--no-self", action="store_true")
     ap.add_argument("--adapt-minutes", type=float, default=3.0)
     ap.add_argument("--no-sessions", action="store_true", help="skip the sessions variant")
@@ -252,6 +262,26 @@ def main(argv: list[str] | None = None) -> dict:
                     **evaluate(sm, truth, nviews),
                     "seconds": round(secs + ksecs, 2),
                 }
+
+    if not args.no_disk:
+        from deformnet.confutil import compose as compose_app
+        from deformnet.sim import simulate
+
+        dlt_pts = smooth_on["dlt"][0]
+        fps = float(tr["fps"])
+        sim_cfg = compose_app("simulate", [f"sim.fps={fps:g}"])
+        complete = np.stack([simulate(sim_cfg, num_frames=3000, seed=91_000 + i).deformed
+                             for i in range(4)])  # fmt: skip
+        for name, data in (("dlt_disk", dlt_pts[None]), ("dlt_disk_sim", complete)):
+            model, facts = fit_disk(data, seconds=args.disk_seconds)
+            t0 = time.perf_counter()
+            filled = impute(model, dlt_pts)
+            results[name] = {
+                **evaluate(filled, truth, nviews),
+                "seconds": round(time.perf_counter() - t0 + smooth_on["dlt"][1], 2),
+                "adapt_s": facts["seconds"],
+            }
+            extra[f"{name}_training"] = facts
 
     variants = {"rigid": ["deformation=rigid"], "interp": []}
     if not args.no_net:
@@ -319,7 +349,7 @@ def main(argv: list[str] | None = None) -> dict:
         a, b = results["interp"], results["aniposelib"]
         checks["interp_beats_aniposelib_every_column"] = beats_every_column(a, b)
         checks["interp_over_aniposelib_all"] = round(a["rmse_all"] / b["rmse_all"], 3)
-    for k in ("dlt_kalman", "aniposelib_kalman"):
+    for k in ("dlt_kalman", "aniposelib_kalman", "dlt_disk", "dlt_disk_sim"):
         if k in results:
             a, b = results["interp"], results[k]
             checks[f"interp_beats_{k}_every_column"] = beats_every_column(a, b)
