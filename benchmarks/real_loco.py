@@ -11,6 +11,9 @@ detections (likelihood >= 0.9). Methods, side by side on the same subsets:
 - ``dlt_kalman``: the Kalman-smoother peer on those points (`peers/kalman.py`, pykalman, the
   `bench` extra: constant-velocity Kalman filter + RTS smoother per part, noise fitted by EM;
   gaps filled; ``--no-kalman`` skips it);
+- ``dlt_disk``: the DISK-style imputation peer on those points (`peers/disk.py`: a transformer
+  trained for ``--adapt-seconds`` on the leave-out's own DLT points, hidden present points as
+  targets, then filling the gaps; no body model; ``--no-disk`` skips it);
 - ``aniposelib``: aniposelib's `triangulate_optim` (anipose's settings; no skeleton constraints:
   these keypoint sets have none we could state), in its own environment (`make bench-env`);
 - ``rigid``: `adjust-track body=auto deformation=rigid`;
@@ -37,7 +40,7 @@ leave-outs of each method's common-subset median relative to rigid's and to inte
 lower error on average); ``self`` is also counted per leave-out (below rigid, below interp).
 
     .venv/bin/python benchmarks/real_loco.py [--sessions hand,fly,mouse_sleap] [--no-anipose]
-        [--no-kalman]
+        [--no-kalman] [--no-disk]
 
 Last line JSON, also written to runs/benchmarks/real_loco.json.
 """
@@ -59,6 +62,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from peers.anipose import bench_python, run_anipose  # noqa: E402
+from peers.disk import fit_disk, impute  # noqa: E402
 from peers.kalman import available as kalman_available  # noqa: E402
 from peers.kalman import kalman_smooth  # noqa: E402
 from tracking import compose, emit  # noqa: E402
@@ -71,7 +75,7 @@ from deformnet.paths import CONF_DIR, shared_dir  # noqa: E402
 log = logging.getLogger("benchmarks.real_loco")
 ROOT = CONF_DIR.parent
 CONFIDENT = 0.9
-METHODS = ("dlt", "dlt_kalman", "aniposelib", "rigid", "interp", "self")
+METHODS = ("dlt", "dlt_kalman", "dlt_disk", "aniposelib", "rigid", "interp", "self")
 
 
 def sessions() -> dict[str, dict]:
@@ -138,9 +142,11 @@ def loco(
     frames: int,
     adapt: str | None,
     kalman: bool = False,
+    disk: float | None = None,
 ) -> dict:
     """All leave-outs of one session; ``adapt``: deformation=self's max_time (None: skip);
-    ``kalman``: the Kalman-smoother peer on the DLT points too."""
+    ``kalman``: the Kalman-smoother peer on the DLT points too; ``disk``: the DISK-style peer's
+    training seconds (None: skip)."""
     base = spec["dir"]
     cal = base / "calibration.toml"
     cameras, det = load_scene(cal, base / spec["detections"], None, pattern=spec.get("pattern"))
@@ -168,6 +174,15 @@ def loco(
                     p, X0, s0 = dlt
                     X, ks = kalman_smooth(X0)
                     s = s0 + ks
+                elif m == "dlt_disk":
+                    if disk is None or "dlt" not in preds:
+                        continue
+                    p, X0, s0 = dlt
+                    t0 = time.perf_counter()
+                    model, _ = fit_disk(np.asarray(X0)[None], seconds=disk,
+                                        window=min(60, len(X0)))  # fmt: skip
+                    X = impute(model, np.asarray(X0))
+                    s = s0 + time.perf_counter() - t0
                 elif m == "aniposelib":
                     if not anipose:
                         continue
@@ -236,6 +251,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sessions", default="hand,fly,mouse_sleap")
     ap.add_argument("--no-anipose", action="store_true")
     ap.add_argument("--no-kalman", action="store_true", help="skip the Kalman-smoother peer")
+    ap.add_argument("--no-disk", action="store_true", help="skip the DISK-style peer")
     ap.add_argument("--frames", type=int, default=200, help="first N frames of each session")
     ap.add_argument("--adapt-seconds", type=int, default=30, help="deformation=self budget")
     ap.add_argument("--no-self", action="store_true")
@@ -259,7 +275,8 @@ def main(argv: list[str] | None = None) -> dict:
             if args.no_self
             else f"00:00:{args.adapt_seconds // 60:02d}:" + (f"{args.adapt_seconds % 60:02d}")
         )
-        results[name] = loco(name, all_specs[name], work, anipose, args.frames, adapt, kalman)
+        disk = None if args.no_disk else float(args.adapt_seconds)
+        results[name] = loco(name, all_specs[name], work, anipose, args.frames, adapt, kalman, disk)
     cols = ["coverage", "median_px", "p90_px", "common_median_px", "common_p90_px", "seconds"]
     failures = 0
     for name, r in results.items():
