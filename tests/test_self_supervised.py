@@ -219,6 +219,11 @@ def test_train_on_sessions_splits_by_session(tracked, tmp_path):
     assert res["best_checkpoint"] and Path(res["best_checkpoint"]).is_file()
     meta = json.loads((tmp_path / "train" / "metrics.json").read_text())
     assert meta["pretrained"] == "default"
+    # a lab's tokens are augmented by default (as deformation=self's): windows at token steps
+    # 1, 2 and 3, which the checkpoint keeps for the tracker's wider passes
+    from deformnet.deformation import DeformationModel
+
+    assert DeformationModel.from_checkpoint(res["best_checkpoint"]).steps == (1, 2, 3)
 
 
 def test_heading_frame_training_on_sessions_checks_their_worlds_up(tracked, tmp_path):
