@@ -32,11 +32,20 @@ from torch import nn
 
 
 class DiskImputer(nn.Module):
-    """(B, W, K, 3) normalised points, (B, W, K) presence -> (B, W, K, 3)."""
+    """(B, W, K, 3) points normalised (centred on the window's present points, divided by
+    `scale` mm), (B, W, K) presence -> (B, W, K, 3)."""
 
-    def __init__(self, parts: int, window: int, dim: int = 128, layers: int = 4, heads: int = 4):
+    def __init__(
+        self,
+        parts: int,
+        window: int,
+        scale: float = 50.0,
+        dim: int = 128,
+        layers: int = 4,
+        heads: int = 4,
+    ):
         super().__init__()
-        self.parts, self.window = int(parts), int(window)
+        self.parts, self.window, self.scale = int(parts), int(window), float(scale)
         self.embed = nn.Linear(4 * self.parts, dim)
         pos = torch.arange(self.window, dtype=torch.float32)[:, None]
         freq = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32) * (-math.log(1e4) / dim))
@@ -79,7 +88,7 @@ def fit_disk(
     N, T, K, _ = train.shape
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
-    model = DiskImputer(K, window)
+    model = DiskImputer(K, window, scale)
     opt = torch.optim.Adam(model.parameters(), lr=3e-4)
     t0, steps, losses = time.perf_counter(), 0, []
     while time.perf_counter() - t0 < seconds:
@@ -115,9 +124,10 @@ def fit_disk(
 
 
 @torch.no_grad()
-def impute(model: DiskImputer, points: np.ndarray, scale: float = 50.0) -> np.ndarray:
+def impute(model: DiskImputer, points: np.ndarray) -> np.ndarray:
     """points (T, K, 3) mm, NaN = missing -> (T, K, 3): present points kept, missing filled."""
     points = np.asarray(points, dtype=np.float64)
+    scale = model.scale
     T, K, _ = points.shape
     W = model.window
     if T < W:
