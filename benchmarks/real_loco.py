@@ -61,7 +61,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from peers.anipose import bench_python, run_anipose  # noqa: E402
+from peers.anipose import run_anipose  # noqa: E402
+from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from peers.disk import fit_disk, impute  # noqa: E402
 from peers.kalman import available as kalman_available  # noqa: E402
 from peers.kalman import kalman_smooth  # noqa: E402
@@ -260,9 +261,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
-    anipose = not args.no_anipose and bench_python() is not None
-    if not args.no_anipose and not anipose:
-        log.warning("aniposelib not installed (make bench-env): its rows are skipped")
+    anipose = anipose_wanted(args.no_anipose)
     kalman = not args.no_kalman and kalman_available()
     if not args.no_kalman and not kalman:
         log.warning("pykalman not installed (pip install -e '.[bench]'): dlt_kalman is skipped")

@@ -44,7 +44,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit  # noqa: E402
-from peers.anipose import bench_python, run_anipose  # noqa: E402
+from peers.anipose import run_anipose  # noqa: E402
+from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from real_loco import subset_session  # noqa: E402
 
 from adjust.camera import CameraTensors, project_cameras  # noqa: E402
@@ -109,9 +110,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
-    anipose = not args.no_anipose and bench_python() is not None
-    if not args.no_anipose and not anipose:
-        log.warning("aniposelib not installed (make bench-env): its rows are skipped")
+    anipose = anipose_wanted(args.no_anipose)
     work = Path(args.work)
     base = shared_dir() / "data" / "real-mouse-sleap-4cam"
     cal = base / "calibration.toml"

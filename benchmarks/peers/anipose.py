@@ -8,6 +8,7 @@ named by $MOUSETRACK_BENCH_PYTHON; `run_anipose` writes the arrays to a temporar
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import tempfile
@@ -43,6 +44,19 @@ def bench_python() -> Path | None:
     env = os.environ.get("MOUSETRACK_BENCH_PYTHON")
     p = Path(env) if env else ROOT / ".venv-bench" / "bin" / "python"
     return p if p.is_file() else None
+
+
+def wanted(skip: bool) -> bool:
+    """Whether a benchmark runs aniposelib: not skipped (``--no-anipose``) and installed; a
+    warning when it is wanted but missing."""
+    if skip:
+        return False
+    if bench_python() is None:
+        logging.getLogger("benchmarks").warning(
+            "aniposelib not installed (make bench-env): its rows are skipped"
+        )
+        return False
+    return True
 
 
 def constraint_indices(parts, pairs) -> np.ndarray:

@@ -47,10 +47,9 @@ class DiskImputer(nn.Module):
         super().__init__()
         self.parts, self.window, self.scale = int(parts), int(window), float(scale)
         self.embed = nn.Linear(4 * self.parts, dim)
-        pos = torch.arange(self.window, dtype=torch.float32)[:, None]
-        freq = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32) * (-math.log(1e4) / dim))
-        pe = torch.zeros(self.window, dim)
-        pe[:, 0::2], pe[:, 1::2] = torch.sin(pos * freq), torch.cos(pos * freq)
+        from deformnet.nets import sinusoidal_encoding
+
+        pe = sinusoidal_encoding(self.window, dim)
         self.register_buffer("pos", pe)
         layer = nn.TransformerEncoderLayer(dim, heads, 4 * dim, dropout=0.0, batch_first=True)
         self.encoder = nn.TransformerEncoder(layer, layers)
