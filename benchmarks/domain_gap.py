@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     est, secs = run_dlt(scene, work / "dlt")
     results["dlt"] = {**evaluate(est, truth, nviews), "seconds": round(secs, 2)}
-    smooth_on = {"dlt": (est, secs)}  # the Kalman smoother's inputs (and their seconds)
+    smooth_on = {"dlt": (est, secs)}  # the gap-filling peers' inputs (and their seconds)
 
     from adjust.camera import CameraTensors
     from adjust.io import load_scene
@@ -264,12 +264,11 @@ def main(argv: list[str] | None = None) -> dict:
                 }
 
     if not args.no_disk:
-        from deformnet.confutil import compose as compose_app
         from deformnet.sim import simulate
 
         dlt_pts = smooth_on["dlt"][0]
         fps = float(tr["fps"])
-        sim_cfg = compose_app("simulate", [f"sim.fps={fps:g}"])
+        sim_cfg = compose("simulate", [f"sim.fps={fps:g}"])
         complete = np.stack([simulate(sim_cfg, num_frames=3000, seed=91_000 + i).deformed
                              for i in range(4)])  # fmt: skip
         for name, data in (("dlt_disk", dlt_pts[None]), ("dlt_disk_sim", complete)):
