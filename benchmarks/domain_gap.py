@@ -74,8 +74,8 @@ from peers.anipose import (  # noqa: E402
     run_anipose,
 )
 from peers.disk import fit_disk, impute  # noqa: E402
-from peers.kalman import available as kalman_available  # noqa: E402
 from peers.kalman import kalman_smooth  # noqa: E402
+from peers.kalman import wanted as kalman_wanted  # noqa: E402
 from tracking import (  # noqa: E402
     compose,
     emit,
@@ -252,16 +252,13 @@ def main(argv: list[str] | None = None) -> dict:
             )
             results["aniposelib"] = {**evaluate(pts, truth, nviews), "seconds": round(secs, 2)}
             smooth_on["aniposelib"] = (pts, secs)
-    if not args.no_kalman:
-        if not kalman_available():
-            log.warning("pykalman not installed (pip install -e '.[bench]'): Kalman rows skipped")
-        else:
-            for base, (pts, secs) in smooth_on.items():
-                sm, ksecs = kalman_smooth(pts)
-                results[f"{base}_kalman"] = {
-                    **evaluate(sm, truth, nviews),
-                    "seconds": round(secs + ksecs, 2),
-                }
+    if kalman_wanted(args.no_kalman):
+        for base, (pts, secs) in smooth_on.items():
+            sm, ksecs = kalman_smooth(pts)
+            results[f"{base}_kalman"] = {
+                **evaluate(sm, truth, nviews),
+                "seconds": round(secs + ksecs, 2),
+            }
 
     if not args.no_disk:
         from deformnet.sim import simulate

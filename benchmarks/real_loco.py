@@ -64,8 +64,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from peers.anipose import run_anipose  # noqa: E402
 from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from peers.disk import fit_disk, impute  # noqa: E402
-from peers.kalman import available as kalman_available  # noqa: E402
 from peers.kalman import kalman_smooth  # noqa: E402
+from peers.kalman import wanted as kalman_wanted  # noqa: E402
 from tracking import compose, emit  # noqa: E402
 
 from adjust.camera import CameraTensors, project_cameras  # noqa: E402
@@ -262,9 +262,7 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
     anipose = anipose_wanted(args.no_anipose)
-    kalman = not args.no_kalman and kalman_available()
-    if not args.no_kalman and not kalman:
-        log.warning("pykalman not installed (pip install -e '.[bench]'): dlt_kalman is skipped")
+    kalman = kalman_wanted(args.no_kalman)
     work = Path(args.work)
     results = {}
     all_specs = sessions()

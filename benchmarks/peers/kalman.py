@@ -11,6 +11,7 @@ then smoothed. A part never triangulated stays missing (nothing to fill it from)
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -21,6 +22,19 @@ def available() -> bool:
     try:
         import pykalman  # noqa: F401
     except ImportError:
+        return False
+    return True
+
+
+def wanted(skip: bool) -> bool:
+    """Whether a benchmark runs the Kalman smoother: not skipped (``--no-kalman``) and
+    installed; a warning when it is wanted but missing."""
+    if skip:
+        return False
+    if not available():
+        logging.getLogger("benchmarks").warning(
+            "pykalman not installed (pip install -e '.[bench]'): the Kalman rows are skipped"
+        )
         return False
     return True
 
