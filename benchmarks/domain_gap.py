@@ -69,10 +69,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from peers.anipose import (  # noqa: E402
     MOUSE_CONSTRAINTS,
     MOUSE_CONSTRAINTS_WEAK,
-    bench_python,
     constraint_indices,
     run_anipose,
 )
+from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from peers.disk import fit_disk, impute  # noqa: E402
 from peers.kalman import kalman_smooth  # noqa: E402
 from peers.kalman import wanted as kalman_wanted  # noqa: E402
@@ -238,20 +238,17 @@ def main(argv: list[str] | None = None) -> dict:
         "seconds": round(secs, 2),
     }
 
-    if not args.no_anipose:
-        if bench_python() is None:
-            log.warning("aniposelib not installed (make bench-env): its row is skipped")
-        else:
-            pts, secs = run_anipose(
-                scene / "calibration.toml",
-                det.cameras,
-                det.xy,
-                det.likelihood,
-                constraint_indices(parts, MOUSE_CONSTRAINTS),
-                constraint_indices(parts, MOUSE_CONSTRAINTS_WEAK),
-            )
-            results["aniposelib"] = {**evaluate(pts, truth, nviews), "seconds": round(secs, 2)}
-            smooth_on["aniposelib"] = (pts, secs)
+    if anipose_wanted(args.no_anipose):
+        pts, secs = run_anipose(
+            scene / "calibration.toml",
+            det.cameras,
+            det.xy,
+            det.likelihood,
+            constraint_indices(parts, MOUSE_CONSTRAINTS),
+            constraint_indices(parts, MOUSE_CONSTRAINTS_WEAK),
+        )
+        results["aniposelib"] = {**evaluate(pts, truth, nviews), "seconds": round(secs, 2)}
+        smooth_on["aniposelib"] = (pts, secs)
     if kalman_wanted(args.no_kalman):
         for base, (pts, secs) in smooth_on.items():
             sm, ksecs = kalman_smooth(pts)
