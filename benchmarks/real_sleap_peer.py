@@ -43,7 +43,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import emit  # noqa: E402
+from common import emit, start  # noqa: E402
 from peers.anipose import run_anipose  # noqa: E402
 from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from real_loco import subset_session  # noqa: E402
@@ -107,9 +107,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-anipose", action="store_true")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_sleap_peer"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "real_sleap_peer.json"))
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch's default)")
+    args = start(ap, argv)
     anipose = anipose_wanted(args.no_anipose)
     work = Path(args.work)
     base = shared_dir() / "data" / "real-mouse-sleap-4cam"
