@@ -1,0 +1,313 @@
+"""Behavior-scale masked pretraining: does a self-supervised encoder over seconds of a session
+give few-label behavior heads more than a random one, and more than the hand-made features?
+
+Every pretraining objective the deformation net was given (masked frame, temporal contrast,
+forecasting; `benchmarks/behavior_probe.py`) leaves its encoder's features worth no more than a
+random net's to a head with about 180 labels: its windows (33 frames, in the body frame)
+are too short and too local to need the behavior. This benchmark pretrains at the behavior's
+own scale instead. Each frame of a session is the classifier's per-frame feature vector
+(`deformnet-classify`'s, without temporal context: the frozen deformation encoder's output, the
+mid pose, the per-part offsets, the lock-box mechanism distances and the SimBA-style
+measurements; `context.frames=[]`, `mechanisms.calibration`, `measurements=true`). A temporal
+convolutional net (`SequenceEncoder`: five residual dilated convolutions, 63 frames of
+receptive field, 128 channels) reads a session's sequence of them with spans of frames hidden
+(half of the frames, spans of 4-23) and is trained to reconstruct the hidden frames' features
+(MSE on the standardised features), on the training sessions and `--unlabelled` more
+sessions of the same simulated mouse, no labels (seeds 95500.., which no other benchmark
+uses). Its per-frame outputs, with their mean and standard deviation over centred spans of 15
+and 33 frames (as `deformnet-classify`'s context), are a frame's embedding.
+
+Then, on the behavior benchmark's sessions (`benchmarks/behavior.py`: 6 training and 4 test
+sessions of 3000 frames, tracked by adjust-track) at 1% labels (three draws, the same as
+`behavior_probe.py`'s) and 10%, test macro-F1 (scikit-learn) of:
+``lr_pretrained`` / ``forest_pretrained``: a class-weighted logistic regression (C=1) / the
+forest head's random forest (conf/head/forest.yaml) on the pretrained embedding;
+``lr_random`` / ``forest_random``: the same on the same net with random weights (seed 0);
+``lr_frame`` / ``forest_frame``: the same on the classifier's frame features with their context
+(no encoder: `behavior_probe.py`'s forest_frame); ``lr_frame_pretrained`` /
+``forest_frame_pretrained``: the same on both; ``rf``: the SimBA-style random forest with ROI
+features (`behavior.py --box`).
+
+    .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--seconds 300]
+        [--unlabelled 8] [--draws 3] [--mask-ratio 0.5] [--longest-span 23]
+        [--dilations 1,2,4,8,16]
+
+Prints a table; the last line is JSON, also written atomically to
+runs/benchmarks/behavior_mae.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from behavior import ROOT, SEEDS, _round, make_session, pretrain, rig_mechanisms, run_rf
+from behavior_probe import encoder_features, labelled, scores
+from common import emit, start
+from torch import nn
+
+from deformnet.confutil import compose, to_plain
+
+log = logging.getLogger("benchmarks.behavior_mae")
+
+UNLABELLED_SEED = 95_500  # the pretraining-only sessions (no other benchmark uses them)
+CONTEXT = (15, 33)  # the embedding's context spans (deformnet-classify's context.frames)
+
+
+class _Block(nn.Module):
+    def __init__(self, channels: int, dilation: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv1d(channels, channels, 3, padding=dilation, dilation=dilation)
+        self.norm = nn.GroupNorm(1, channels)
+        self.mix = nn.Conv1d(channels, channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.mix(nn.functional.gelu(self.norm(self.conv(x))))
+
+
+class SequenceEncoder(nn.Module):
+    """A session's per-frame features (B, T, D) with hidden frames (mask (B, T), 1 = hidden:
+    their features are zeroed and flagged) -> per-frame embeddings (B, T, channels)
+    (`embed`) and reconstructed features (B, T, D) (`forward`)."""
+
+    def __init__(self, dim: int, channels: int = 128, dilations=(1, 2, 4, 8, 16)) -> None:
+        super().__init__()
+        self.inp = nn.Conv1d(dim + 1, channels, 1)
+        self.blocks = nn.Sequential(*[_Block(channels, d) for d in dilations])
+        self.out = nn.Conv1d(channels, dim, 1)
+
+    def _hidden(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        z = torch.cat([x * (1 - mask[..., None]), mask[..., None]], -1).transpose(1, 2)
+        return self.blocks(self.inp(z))  # (B, channels, T)
+
+    def embed(self, x: torch.Tensor) -> torch.Tensor:
+        return self._hidden(x, x.new_zeros(x.shape[:2])).transpose(1, 2)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return self.out(self._hidden(x, mask)).transpose(1, 2)
+
+
+def span_mask(
+    batch: int, length: int, ratio: float, gen: torch.Generator, longest: int = 23
+) -> torch.Tensor:
+    """(batch, length) masks, 1 on spans of 4-`longest` frames until `ratio` of the frames
+    are."""
+    m = torch.zeros(batch, length)
+    for b in range(batch):
+        while m[b].mean() < ratio:
+            n = int(torch.randint(4, longest + 1, (1,), generator=gen))
+            s = int(torch.randint(0, length - n, (1,), generator=gen))
+            m[b, s : s + n] = 1
+    return m
+
+
+def pretrain_sequences(
+    model: SequenceEncoder,
+    data: torch.Tensor,
+    seconds: float,
+    ratio: float = 0.5,
+    longest: int = 23,
+    length: int = 256,
+    batch: int = 32,
+) -> dict:
+    """Masked-span reconstruction on random crops of the standardised sessions data (S, T, D)
+    for `seconds` (AdamW, lr 1e-3; `ratio` of each crop hidden in spans of 4-`longest`
+    frames); {"steps", "loss" (the last 100 steps' mean)}."""
+    gen = torch.Generator().manual_seed(0)
+    opt = torch.optim.AdamW(model.parameters(), 1e-3, weight_decay=1e-4)
+    model.train()
+    t0, losses = time.perf_counter(), []
+    while time.perf_counter() - t0 < seconds:
+        si = torch.randint(0, data.shape[0], (batch,), generator=gen)
+        st = torch.randint(0, data.shape[1] - length, (batch,), generator=gen)
+        x = torch.stack([data[i, s : s + length] for i, s in zip(si.tolist(), st.tolist())])
+        m = span_mask(batch, length, ratio, gen, longest)
+        loss = (((model(x, m) - x) ** 2).mean(-1) * m).sum() / m.sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+        if len(losses) % 200 == 0:
+            log.info("step %d: masked reconstruction %.4f", len(losses), np.mean(losses[-100:]))
+    model.eval()
+    return {"steps": len(losses), "loss": float(np.mean(losses[-100:]))}
+
+
+@torch.no_grad()
+def embeddings(model: SequenceEncoder, data: torch.Tensor) -> np.ndarray:
+    """Each frame's embedding (S T, 3 channels): the net's output with its mean and standard
+    deviation over centred spans of CONTEXT frames (within the session)."""
+    z = torch.cat([model.embed(x[None]) for x in data]).transpose(1, 2)  # (S, C, T)
+    out = [z]
+    for span in CONTEXT:
+        mu = nn.functional.avg_pool1d(z, span, 1, span // 2, count_include_pad=False)
+        sq = nn.functional.avg_pool1d(z**2, span, 1, span // 2, count_include_pad=False)
+        out += [mu, (sq - mu**2).clamp_min(0).sqrt()]
+    return torch.cat(out, 1).transpose(1, 2).flatten(0, 1).numpy()
+
+
+def fit_score(kind: str, xtr, xte, idx, y, w, yte, classes, forest: dict) -> float:
+    """Test macro-F1 of one learner ("lr" or "forest") fitted on the labelled rows idx of the
+    (training-standardised) features."""
+    from sklearn.ensemble import RandomForestClassifier
+    from sklearn.linear_model import LogisticRegression
+
+    mu, sd = xtr.mean(0), xtr.std(0)
+    sd = np.where(sd > 1e-6, sd, 1.0)
+    a, b = (xtr - mu) / sd, (xte - mu) / sd
+    cw = {int(c): float(w[int(c)]) for c in np.unique(y)}
+    if kind == "lr":
+        clf = LogisticRegression(C=1.0, max_iter=3000, class_weight=cw)
+    else:
+        clf = RandomForestClassifier(
+            n_estimators=int(forest["trees"]), min_samples_leaf=int(forest["min_samples_leaf"]),
+            max_features=forest["max_features"], random_state=int(forest["seed"]), n_jobs=1,
+            class_weight=cw,
+        )  # fmt: skip
+    clf.fit(a[idx], y)
+    return scores(yte, clf.predict(b), classes, "test")["macro_f1"]
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=3000)
+    ap.add_argument("--train", type=int, default=6)
+    ap.add_argument("--test", type=int, default=4)
+    ap.add_argument("--unlabelled", type=int, default=8,
+                    help="more sessions of the mouse for the pretraining (no labels)")  # fmt: skip
+    ap.add_argument("--pretrained", default=None,
+                    help="deformnet-train checkpoint (the frozen deformation encoder whose "
+                         "outputs are among the per-frame features; else a 240 s run)")  # fmt: skip
+    ap.add_argument("--seconds", type=float, default=300, help="masked-span pretraining time")
+    ap.add_argument("--mask-ratio", type=float, default=0.5, help="share of the frames hidden")
+    ap.add_argument("--longest-span", type=int, default=23, help="longest hidden span, frames")
+    ap.add_argument("--dilations", default="1,2,4,8,16",
+                    help="the residual blocks' dilations (receptive field 1 + 2 sum)")  # fmt: skip
+    ap.add_argument("--draws", type=int, default=3, help="label draws at 1%%")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_mae.json"))
+    ap.add_argument("--threads", type=int, default=1)
+    args = start(ap, argv)
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    t_start = time.perf_counter()
+    work = Path(args.work)
+    sessions = {
+        split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
+        for split, n in (("train", args.train), ("test", args.test))
+    }
+    unl = [make_session(work, UNLABELLED_SEED + i, args.frames) for i in range(args.unlabelled)]
+    box, mech = rig_mechanisms({**sessions, "unlabelled": unl})
+    extra: dict = {}
+    ckpt = args.pretrained
+    if ckpt is None:
+        ckpt, secs = pretrain(work / "probe_pretrained", 240)
+        extra["deformation_pretrain_seconds"] = round(secs, 1)
+    ov = [f"mechanisms.calibration={box}", "measurements=true", "heights_up=[0,0,1]"]
+    per, built = encoder_features(ckpt, sessions, [*ov, "context.frames=[]"])
+    per_unl, _ = encoder_features(ckpt, {"train": unl}, [*ov, "context.frames=[]"])
+    ctx, built_ctx = encoder_features(ckpt, sessions, ov)
+    _, cfg, classes = built
+    T = args.frames
+
+    def seqs(x: torch.Tensor) -> torch.Tensor:
+        return x.float().reshape(-1, T, x.shape[-1])
+
+    xtr, xte, xun = (
+        seqs(per["train"]["features"]),
+        seqs(per["test"]["features"]),
+        seqs(per_unl["train"]["features"]),
+    )
+    pool = torch.cat([xtr, xun]).flatten(0, 1)  # no test frame sets the standardisation
+    mu, sd = pool.mean(0), pool.std(0)
+    sd = torch.where(sd > 1e-3, sd, torch.ones_like(sd))
+
+    def norm(x: torch.Tensor) -> torch.Tensor:
+        return ((x - mu) / sd).clamp(-8, 8)
+
+    D = xtr.shape[-1]
+    torch.manual_seed(0)
+    dil = tuple(int(d) for d in args.dilations.split(","))
+    random_net = SequenceEncoder(D, dilations=dil)
+    torch.manual_seed(0)
+    net = SequenceEncoder(D, dilations=dil)
+    log.info("masked-span pretraining on %d sessions for %g s", len(xtr) + len(xun), args.seconds)
+    extra["pretraining"] = pretrain_sequences(
+        net, norm(torch.cat([xtr, xun])), args.seconds, args.mask_ratio, args.longest_span
+    )
+    fcols = built_ctx[0].frame_columns().numpy()
+    feats = {
+        "pretrained": (embeddings(net, norm(xtr)), embeddings(net, norm(xte))),
+        "random": (embeddings(random_net, norm(xtr)), embeddings(random_net, norm(xte))),
+        "frame": (
+            ctx["train"]["features"].numpy()[:, fcols],
+            ctx["test"]["features"].numpy()[:, fcols],
+        ),  # fmt: skip
+    }
+    feats["frame_pretrained"] = tuple(
+        np.hstack([f, p]) for f, p in zip(feats["frame"], feats["pretrained"])
+    )
+    forest = dict(to_plain(compose("classify", ["head=forest"]).head))
+    yte = per["test"]["labels"].numpy()
+    plan = [(0.01, d) for d in range(args.draws)] + [(0.1, 0)]
+    methods = [("lr", "pretrained"), ("lr", "random"), ("lr", "frame"),
+               ("forest", "pretrained"), ("forest", "random"), ("forest", "frame"),
+               ("lr", "frame_pretrained"), ("forest", "frame_pretrained")]  # fmt: skip
+    results: dict = {}
+    for f, d in plan:
+        idx, y, w = labelled(per, built, f, d)
+        idx, y = idx.numpy(), y.numpy()
+        for kind, name in methods:
+            xa, xb = feats[name]
+            results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = fit_score(
+                kind, xa, xb, idx, y, w, yte, classes, forest
+            )
+        results.setdefault("rf", {})[f"{f:g}/{d}"] = run_rf(
+            sessions, "track", f, label_seed=d, mechanisms=mech
+        )["macro_f1"]
+        now = {k: round(v[f"{f:g}/{d}"], 3) for k, v in results.items()}
+        log.info("%g / draw %d: %s", f, d, now)
+    table = {}
+    for name, r in results.items():
+        one = [r[f"0.01/{d}"] for d in range(args.draws)]
+        table[name] = {"1%": float(np.mean(one)), "1%_draws": one, "10%": r["0.1/0"]}
+    print(f"\nbehavior-scale masked pretraining: test macro-F1 ({args.train} train / {args.test} "
+          f"test sessions x {T} frames; pretrained on {args.train + args.unlabelled} sessions, "
+          f"{extra['pretraining']['steps']} steps)")  # fmt: skip
+    w_ = max(len(n) for n in table) + 2
+    print(f"{'method':<{w_}}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}")
+    for name, t in table.items():
+        draws = " / ".join(f"{x:.3f}" for x in t["1%_draws"])
+        print(f"{name:<{w_}}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
+    pairs = [("lr_pretrained", "lr_random"), ("forest_pretrained", "forest_random"),
+             ("lr_pretrained", "lr_frame"), ("lr_pretrained", "rf"), ("forest_pretrained", "rf"),
+             ("lr_frame_pretrained", "lr_frame"), ("forest_frame_pretrained", "forest_frame"),
+             ("forest_frame", "rf")]  # fmt: skip
+    checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"] for a, b in pairs}
+    print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
+    summary = {
+        "table": table,
+        "checks": checks,
+        "checkpoint": ckpt,
+        **extra,
+        "setup": {
+            "frames": T,
+            "train": args.train,
+            "test": args.test,
+            "unlabelled": args.unlabelled,
+            "seconds": args.seconds,
+            "draws": args.draws,
+            "seeds": SEEDS | {"unlabelled": UNLABELLED_SEED},
+        },  # fmt: skip
+        "total_seconds": round(time.perf_counter() - t_start, 1),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    return emit(_round(summary), args.out)
+
+
+if __name__ == "__main__":
+    main()
