@@ -301,6 +301,9 @@ def main(argv: list[str] | None = None) -> dict:
             "unlabelled": args.unlabelled,
             "seconds": args.seconds,
             "draws": args.draws,
+            "mask_ratio": args.mask_ratio,
+            "longest_span": args.longest_span,
+            "dilations": list(dil),
             "seeds": SEEDS | {"unlabelled": UNLABELLED_SEED},
         },  # fmt: skip
         "total_seconds": round(time.perf_counter() - t_start, 1),
