@@ -193,6 +193,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_mae.json"))
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
+    if args.unlabelled < 0 or args.train < 1 or args.test < 1:
+        ap.error("--train and --test must be >= 1 and --unlabelled >= 0")
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
     t_start = time.perf_counter()
     work = Path(args.work)
@@ -209,7 +211,9 @@ def main(argv: list[str] | None = None) -> dict:
         extra["deformation_pretrain_seconds"] = round(secs, 1)
     ov = [f"mechanisms.calibration={box}", "measurements=true", "heights_up=[0,0,1]"]
     per, built = encoder_features(ckpt, sessions, [*ov, "context.frames=[]"])
-    per_unl, _ = encoder_features(ckpt, {"train": unl}, [*ov, "context.frames=[]"])
+    per_unl = None  # --unlabelled 0: the training sessions alone
+    if unl:
+        per_unl, _ = encoder_features(ckpt, {"train": unl}, [*ov, "context.frames=[]"])
     ctx, built_ctx = encoder_features(ckpt, sessions, ov)
     _, cfg, classes = built
     T = args.frames
@@ -217,11 +221,8 @@ def main(argv: list[str] | None = None) -> dict:
     def seqs(x: torch.Tensor) -> torch.Tensor:
         return x.float().reshape(-1, T, x.shape[-1])
 
-    xtr, xte, xun = (
-        seqs(per["train"]["features"]),
-        seqs(per["test"]["features"]),
-        seqs(per_unl["train"]["features"]),
-    )
+    xtr, xte = seqs(per["train"]["features"]), seqs(per["test"]["features"])
+    xun = xtr[:0] if per_unl is None else seqs(per_unl["train"]["features"])
     pool = torch.cat([xtr, xun]).flatten(0, 1)  # no test frame sets the standardisation
     mu, sd = pool.mean(0), pool.std(0)
     sd = torch.where(sd > 1e-3, sd, torch.ones_like(sd))
