@@ -151,15 +151,19 @@ def embeddings(model: SequenceEncoder, data: torch.Tensor) -> np.ndarray:
     return torch.cat(out, 1).transpose(1, 2).flatten(0, 1).numpy()
 
 
-def fit_score(kind: str, xtr, xte, idx, y, w, yte, classes, forest: dict) -> float:
+def standardised(xtr: np.ndarray, xte: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Training and test features standardised by every training frame's mean and std."""
+    mu, sd = xtr.mean(0), xtr.std(0)
+    sd = np.where(sd > 1e-6, sd, 1.0)
+    return (xtr - mu) / sd, (xte - mu) / sd
+
+
+def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> float:
     """Test macro-F1 of one learner ("lr" or "forest") fitted on the labelled rows idx of the
-    (training-standardised) features."""
+    standardised training features a, tested on the test features b."""
     from sklearn.ensemble import RandomForestClassifier
     from sklearn.linear_model import LogisticRegression
 
-    mu, sd = xtr.mean(0), xtr.std(0)
-    sd = np.where(sd > 1e-6, sd, 1.0)
-    a, b = (xtr - mu) / sd, (xte - mu) / sd
     cw = {int(c): float(w[int(c)]) for c in np.unique(y)}
     if kind == "lr":
         clf = LogisticRegression(C=1.0, max_iter=3000, class_weight=cw)
@@ -215,7 +219,7 @@ def main(argv: list[str] | None = None) -> dict:
     if unl:
         per_unl, _ = encoder_features(ckpt, {"train": unl}, [*ov, "context.frames=[]"])
     ctx, built_ctx = encoder_features(ckpt, sessions, ov)
-    _, cfg, classes = built
+    classes = built[2]
     T = args.frames
 
     def seqs(x: torch.Tensor) -> torch.Tensor:
@@ -252,6 +256,7 @@ def main(argv: list[str] | None = None) -> dict:
     feats["frame_pretrained"] = tuple(
         np.hstack([f, p]) for f, p in zip(feats["frame"], feats["pretrained"])
     )
+    feats = {k: standardised(*v) for k, v in feats.items()}
     forest = dict(to_plain(compose("classify", ["head=forest"]).head))
     yte = per["test"]["labels"].numpy()
     plan = [(0.01, d) for d in range(args.draws)] + [(0.1, 0)]

@@ -8,7 +8,6 @@ named by $MOUSETRACK_BENCH_PYTHON; `run_anipose` writes the arrays to a temporar
 
 from __future__ import annotations
 
-import logging
 import os
 import subprocess
 import tempfile
@@ -49,14 +48,13 @@ def bench_python() -> Path | None:
 def wanted(skip: bool) -> bool:
     """Whether a benchmark runs aniposelib: not skipped (``--no-anipose``) and installed; a
     warning when it is wanted but missing."""
-    if skip:
-        return False
-    if bench_python() is None:
-        logging.getLogger("benchmarks").warning(
-            "aniposelib not installed (make bench-env): its rows are skipped"
-        )
-        return False
-    return True
+    from peers import wanted as peer_wanted
+
+    return peer_wanted(
+        skip,
+        bench_python() is not None,
+        "aniposelib not installed (make bench-env): its rows are skipped",
+    )
 
 
 def constraint_indices(parts, pairs) -> np.ndarray:

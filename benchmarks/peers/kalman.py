@@ -11,7 +11,6 @@ then smoothed. A part never triangulated stays missing (nothing to fill it from)
 
 from __future__ import annotations
 
-import logging
 import time
 
 import numpy as np
@@ -29,14 +28,13 @@ def available() -> bool:
 def wanted(skip: bool) -> bool:
     """Whether a benchmark runs the Kalman smoother: not skipped (``--no-kalman``) and
     installed; a warning when it is wanted but missing."""
-    if skip:
-        return False
-    if not available():
-        logging.getLogger("benchmarks").warning(
-            "pykalman not installed (pip install -e '.[bench]'): the Kalman rows are skipped"
-        )
-        return False
-    return True
+    from peers import wanted as peer_wanted
+
+    return peer_wanted(
+        skip,
+        available(),
+        "pykalman not installed (pip install -e '.[bench]'): the Kalman rows are skipped",
+    )
 
 
 def kalman_smooth(points: np.ndarray, em_iterations: int = 10) -> tuple[np.ndarray, float]:
