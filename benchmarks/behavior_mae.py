@@ -26,11 +26,15 @@ forest head's random forest (conf/head/forest.yaml) on the pretrained embedding;
 ``lr_frame`` / ``forest_frame``: the same on the classifier's frame features with their context
 (no encoder: `behavior_probe.py`'s forest_frame); ``lr_frame_pretrained`` /
 ``forest_frame_pretrained``: the same on both; ``rf``: the SimBA-style random forest with ROI
-features (`behavior.py --box`).
+features (`behavior.py --box`). With ``--finetune STEPS``, also the issue's fine-tuning
+protocol on this encoder: ``finetune_pretrained``, the pretrained net and a linear head on its
+embedding trained end to end on the labelled frames (the head alone for ``--probe-steps``, then
+the net too at ``--encoder-lr``), and ``finetune_scratch``, the same architecture from random
+weights (seed 0) trained the same way at 1e-3 (`finetune`).
 
     .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--seconds 300]
         [--unlabelled 8] [--draws 3] [--mask-ratio 0.5] [--longest-span 23]
-        [--dilations 1,2,4,8,16]
+        [--dilations 1,2,4,8,16] [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_mae.json.
@@ -138,17 +142,79 @@ def pretrain_sequences(
     return {"steps": len(losses), "loss": float(np.mean(losses[-100:]))}
 
 
+def pooled(z: torch.Tensor, eps: float = 0.0) -> torch.Tensor:
+    """Per-frame outputs z (S, C, T) -> (S, T, (1 + 2 len(CONTEXT)) C): each frame's output
+    with its mean and standard deviation over centred spans of CONTEXT frames (within the
+    session; eps under the square root keeps the gradient finite)."""
+    out = [z]
+    for span in CONTEXT:
+        mu = nn.functional.avg_pool1d(z, span, 1, span // 2, count_include_pad=False)
+        sq = nn.functional.avg_pool1d(z**2, span, 1, span // 2, count_include_pad=False)
+        out += [mu, (sq - mu**2).clamp_min(eps).sqrt()]
+    return torch.cat(out, 1).transpose(1, 2)
+
+
 @torch.no_grad()
 def embeddings(model: SequenceEncoder, data: torch.Tensor) -> np.ndarray:
     """Each frame's embedding (S T, 3 channels): the net's output with its mean and standard
     deviation over centred spans of CONTEXT frames (within the session)."""
     z = torch.cat([model.embed(x[None]) for x in data]).transpose(1, 2)  # (S, C, T)
-    out = [z]
-    for span in CONTEXT:
-        mu = nn.functional.avg_pool1d(z, span, 1, span // 2, count_include_pad=False)
-        sq = nn.functional.avg_pool1d(z**2, span, 1, span // 2, count_include_pad=False)
-        out += [mu, (sq - mu**2).clamp_min(0).sqrt()]
-    return torch.cat(out, 1).transpose(1, 2).flatten(0, 1).numpy()
+    return pooled(z).flatten(0, 1).numpy()
+
+
+def finetune(
+    model: SequenceEncoder,
+    xtr: torch.Tensor,
+    idx: np.ndarray,
+    y: np.ndarray,
+    w: np.ndarray,
+    xte: torch.Tensor,
+    steps: int,
+    probe_steps: int,
+    encoder_lr: float,
+) -> np.ndarray:
+    """End-to-end fine-tuning (the issue's protocol) of a copy of `model` with a linear head on
+    its pooled embedding (`pooled`, standardised by the initial net's training frames): class-
+    weighted cross-entropy on the labelled training frames idx (labels y, class weights w),
+    the whole standardised training sessions xtr (S, T, D) through the net at every step
+    (input dropout 0.1; AdamW, weight decay 0.01, head lr 1e-3), the head alone for the first
+    `probe_steps`, then the net too at `encoder_lr`; `steps` in all, a fixed budget (no
+    validation split at 1% labels). The test sessions' (xte) predicted classes (S' T,)."""
+    import copy
+
+    net = copy.deepcopy(model)
+    drop = nn.Dropout(0.1)
+
+    def feats(x: torch.Tensor) -> torch.Tensor:
+        z = net._hidden(drop(x), x.new_zeros(x.shape[:2]))
+        return pooled(z, 1e-8).flatten(0, 1)
+
+    net.eval()
+    with torch.no_grad():
+        f = feats(xtr)
+        fm, fs = f.mean(0), f.std(0).clamp_min(1e-6)
+    torch.manual_seed(0)
+    head = nn.Linear(f.shape[1], len(w))
+    loss_fn = nn.CrossEntropyLoss(weight=torch.as_tensor(w, dtype=torch.float32))
+    opt = torch.optim.AdamW(
+        [{"params": net.parameters(), "lr": encoder_lr}, {"params": head.parameters()}],
+        lr=1e-3, weight_decay=1e-2,
+    )  # fmt: skip
+    idx_t, y_t = torch.as_tensor(idx), torch.as_tensor(y)
+    for step in range(steps):
+        tune = step >= probe_steps
+        net.train(tune)
+        drop.train()
+        for p in net.parameters():
+            p.requires_grad_(tune)
+        loss = loss_fn(head((feats(xtr)[idx_t] - fm) / fs), y_t)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    net.eval()
+    drop.eval()
+    with torch.no_grad():
+        return head((feats(xte) - fm) / fs).argmax(-1).numpy()
 
 
 def standardised(xtr: np.ndarray, xte: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -192,6 +258,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--longest-span", type=int, default=23, help="longest hidden span, frames")
     ap.add_argument("--dilations", default="1,2,4,8,16",
                     help="the residual blocks' dilations (receptive field 1 + 2 sum)")  # fmt: skip
+    ap.add_argument("--finetune", type=int, default=0,
+                    help="steps of end-to-end fine-tuning of the pretrained net with a linear "
+                         "head, and of the same net from scratch (0: not run)")  # fmt: skip
+    ap.add_argument("--probe-steps", type=int, default=50,
+                    help="fine-tuning the pretrained net: the head alone first, steps")  # fmt: skip
+    ap.add_argument("--encoder-lr", type=float, default=1e-4,
+                    help="fine-tuning: the pretrained net's learning rate "
+                         "(from scratch: 1e-3)")  # fmt: skip
     ap.add_argument("--draws", type=int, default=3, help="label draws at 1%%")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_mae.json"))
@@ -199,6 +273,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = start(ap, argv)
     if args.unlabelled < 0 or args.train < 1 or args.test < 1:
         ap.error("--train and --test must be >= 1 and --unlabelled >= 0")
+    if args.finetune < 0 or not 0 <= args.probe_steps <= args.finetune or args.encoder_lr <= 0:
+        ap.error("--finetune must be >= 0, --probe-steps in [0, --finetune], --encoder-lr > 0")
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
     t_start = time.perf_counter()
     work = Path(args.work)
@@ -272,6 +348,18 @@ def main(argv: list[str] | None = None) -> dict:
             results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = fit_score(
                 kind, xa, xb, idx, y, w, yte, classes, forest
             )
+        if args.finetune:
+            for name, model, probe, lr in (
+                ("finetune_pretrained", net, args.probe_steps, args.encoder_lr),
+                ("finetune_scratch", random_net, 0, 1e-3),
+            ):
+                t_ft = time.perf_counter()
+                pred = finetune(model, norm(xtr), idx, y, w, norm(xte), args.finetune, probe, lr)
+                f1 = scores(yte, pred, classes, "test")["macro_f1"]
+                results.setdefault(name, {})[f"{f:g}/{d}"] = f1
+                extra.setdefault("finetune_seconds", []).append(
+                    round(time.perf_counter() - t_ft, 1)
+                )
         results.setdefault("rf", {})[f"{f:g}/{d}"] = run_rf(
             sessions, "track", f, label_seed=d, mechanisms=mech
         )["macro_f1"]
@@ -293,6 +381,9 @@ def main(argv: list[str] | None = None) -> dict:
              ("lr_pretrained", "lr_frame"), ("lr_pretrained", "rf"), ("forest_pretrained", "rf"),
              ("lr_frame_pretrained", "lr_frame"), ("forest_frame_pretrained", "forest_frame"),
              ("forest_frame", "rf")]  # fmt: skip
+    if args.finetune:
+        pairs += [("finetune_pretrained", "finetune_scratch"), ("finetune_pretrained", "rf"),
+                  ("finetune_pretrained", "lr_pretrained")]  # fmt: skip
     checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"] for a, b in pairs}
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {
@@ -310,6 +401,9 @@ def main(argv: list[str] | None = None) -> dict:
             "mask_ratio": args.mask_ratio,
             "longest_span": args.longest_span,
             "dilations": list(dil),
+            "finetune": args.finetune,
+            "probe_steps": args.probe_steps,
+            "encoder_lr": args.encoder_lr,
             "seeds": SEEDS | {"unlabelled": UNLABELLED_SEED},
         },  # fmt: skip
         "total_seconds": round(time.perf_counter() - t_start, 1),
