@@ -30,11 +30,15 @@ features (`behavior.py --box`). With ``--finetune STEPS``, also the issue's fine
 protocol on this encoder: ``finetune_pretrained``, the pretrained net and a linear head on its
 embedding trained end to end on the labelled frames (the head alone for ``--probe-steps``, then
 the net too at ``--encoder-lr``), and ``finetune_scratch``, the same architecture from random
-weights (seed 0) trained the same way at 1e-3 (`finetune`).
+weights (seed 0) trained the same way at 1e-3 (`finetune`). With ``--target frame`` the net
+reconstructs only the hidden frames' frame features (pose, offsets, mechanism distances,
+measurements: the hand-made features labs read), not the deformation encoder's outputs, as in
+"task programming" (Sun et al., CVPR 2021: self-supervision that predicts expert features).
 
     .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--seconds 300]
         [--unlabelled 8] [--draws 3] [--mask-ratio 0.5] [--longest-span 23]
-        [--dilations 1,2,4,8,16] [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]]
+        [--dilations 1,2,4,8,16] [--target all|frame]
+        [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_mae.json.
@@ -77,13 +81,15 @@ class _Block(nn.Module):
 class SequenceEncoder(nn.Module):
     """A session's per-frame features (B, T, D) with hidden frames (mask (B, T), 1 = hidden:
     their features are zeroed and flagged) -> per-frame embeddings (B, T, channels)
-    (`embed`) and reconstructed features (B, T, D) (`forward`)."""
+    (`embed`) and reconstructed features (B, T, out_dim, default D) (`forward`)."""
 
-    def __init__(self, dim: int, channels: int = 128, dilations=(1, 2, 4, 8, 16)) -> None:
+    def __init__(
+        self, dim: int, channels: int = 128, dilations=(1, 2, 4, 8, 16), out_dim: int | None = None
+    ) -> None:
         super().__init__()
         self.inp = nn.Conv1d(dim + 1, channels, 1)
         self.blocks = nn.Sequential(*[_Block(channels, d) for d in dilations])
-        self.out = nn.Conv1d(channels, dim, 1)
+        self.out = nn.Conv1d(channels, dim if out_dim is None else out_dim, 1)
 
     def _hidden(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         z = torch.cat([x * (1 - mask[..., None]), mask[..., None]], -1).transpose(1, 2)
@@ -118,10 +124,13 @@ def pretrain_sequences(
     longest: int = 23,
     length: int = 256,
     batch: int = 32,
+    target: torch.Tensor | None = None,
 ) -> dict:
     """Masked-span reconstruction on random crops of the standardised sessions data (S, T, D)
     for `seconds` (AdamW, lr 1e-3; `ratio` of each crop hidden in spans of 4-`longest`
-    frames); {"steps", "loss" (the last 100 steps' mean)}."""
+    frames): of every feature, or of the columns `target` (the model's out_dim of them)
+    only; {"steps", "loss" (the last 100 steps' mean)}."""
+    cols = torch.arange(data.shape[-1]) if target is None else target
     gen = torch.Generator().manual_seed(0)
     opt = torch.optim.AdamW(model.parameters(), 1e-3, weight_decay=1e-4)
     model.train()
@@ -131,7 +140,7 @@ def pretrain_sequences(
         st = torch.randint(0, data.shape[1] - length, (batch,), generator=gen)
         x = torch.stack([data[i, s : s + length] for i, s in zip(si.tolist(), st.tolist())])
         m = span_mask(batch, length, ratio, gen, longest)
-        loss = (((model(x, m) - x) ** 2).mean(-1) * m).sum() / m.sum()
+        loss = (((model(x, m) - x[..., cols]) ** 2).mean(-1) * m).sum() / m.sum()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -256,6 +265,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--seconds", type=float, default=300, help="masked-span pretraining time")
     ap.add_argument("--mask-ratio", type=float, default=0.5, help="share of the frames hidden")
     ap.add_argument("--longest-span", type=int, default=23, help="longest hidden span, frames")
+    ap.add_argument("--target", choices=("all", "frame"), default="all",
+                    help="what a hidden frame's reconstruction is of: all its features, or "
+                         "only the frame features (pose, offsets, mechanism distances, "
+                         "measurements), not the deformation encoder's outputs")  # fmt: skip
     ap.add_argument("--dilations", default="1,2,4,8,16",
                     help="the residual blocks' dilations (receptive field 1 + 2 sum)")  # fmt: skip
     ap.add_argument("--finetune", type=int, default=0,
@@ -311,15 +324,19 @@ def main(argv: list[str] | None = None) -> dict:
         return ((x - mu) / sd).clamp(-8, 8)
 
     D = xtr.shape[-1]
+    # --target frame: only the frame features' columns (not the deformation encoder's outputs)
+    target = built[0].frame_columns() if args.target == "frame" else None
+    out_dim = None if target is None else len(target)
     torch.manual_seed(0)
     dil = tuple(int(d) for d in args.dilations.split(","))
-    random_net = SequenceEncoder(D, dilations=dil)
+    random_net = SequenceEncoder(D, dilations=dil, out_dim=out_dim)
     torch.manual_seed(0)
-    net = SequenceEncoder(D, dilations=dil)
+    net = SequenceEncoder(D, dilations=dil, out_dim=out_dim)
     log.info("masked-span pretraining on %d sessions for %g s", len(xtr) + len(xun), args.seconds)
     extra["pretraining"] = pretrain_sequences(
-        net, norm(torch.cat([xtr, xun])), args.seconds, args.mask_ratio, args.longest_span
-    )
+        net, norm(torch.cat([xtr, xun])), args.seconds, args.mask_ratio, args.longest_span,
+        target=target,
+    )  # fmt: skip
     fcols = built_ctx[0].frame_columns().numpy()
     feats = {
         "pretrained": (embeddings(net, norm(xtr)), embeddings(net, norm(xte))),
@@ -401,6 +418,7 @@ def main(argv: list[str] | None = None) -> dict:
             "mask_ratio": args.mask_ratio,
             "longest_span": args.longest_span,
             "dilations": list(dil),
+            "target": args.target,
             "finetune": args.finetune,
             "probe_steps": args.probe_steps,
             "encoder_lr": args.encoder_lr,
