@@ -284,10 +284,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_mae.json"))
     ap.add_argument("--threads", type=int, default=1)
     args = start(ap, argv)
-    if args.unlabelled < 0 or args.train < 1 or args.test < 1:
-        ap.error("--train and --test must be >= 1 and --unlabelled >= 0")
-    if args.finetune < 0 or not 0 <= args.probe_steps <= args.finetune or args.encoder_lr <= 0:
-        ap.error("--finetune must be >= 0, --probe-steps in [0, --finetune], --encoder-lr > 0")
+    if args.unlabelled < 0 or args.train < 1 or args.test < 1 or args.frames < 300:
+        ap.error("--frames must be >= 300, --train and --test >= 1 and --unlabelled >= 0")
+    if args.finetune < 0 or args.probe_steps < 0 or args.encoder_lr <= 0:
+        ap.error("--finetune and --probe-steps must be >= 0, --encoder-lr > 0")
+    if args.finetune and args.probe_steps > args.finetune:
+        ap.error(f"--probe-steps {args.probe_steps} is more than --finetune {args.finetune}")
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
     t_start = time.perf_counter()
     work = Path(args.work)
