@@ -233,9 +233,10 @@ def standardised(xtr: np.ndarray, xte: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return (xtr - mu) / sd, (xte - mu) / sd
 
 
-def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> float:
-    """Test macro-F1 of one learner ("lr" or "forest") fitted on the labelled rows idx of the
-    standardised training features a, tested on the test features b."""
+def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> dict:
+    """Test macro-F1 and per-class F1 ({"macro_f1", "f1"}) of one learner ("lr" or "forest")
+    fitted on the labelled rows idx of the standardised training features a, tested on the test
+    features b."""
     from sklearn.ensemble import RandomForestClassifier
     from sklearn.linear_model import LogisticRegression
 
@@ -249,7 +250,7 @@ def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> float:
             class_weight=cw,
         )  # fmt: skip
     clf.fit(a[idx], y)
-    return scores(yte, clf.predict(b), classes, "test")["macro_f1"]
+    return scores(yte, clf.predict(b), classes, "test")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -359,14 +360,15 @@ def main(argv: list[str] | None = None) -> dict:
                ("forest", "pretrained"), ("forest", "random"), ("forest", "frame"),
                ("lr", "frame_pretrained"), ("forest", "frame_pretrained")]  # fmt: skip
     results: dict = {}
+    per_class: dict = {}  # method -> {plan: {class: F1}}
     for f, d in plan:
         idx, y, w = labelled(per, built, f, d)
         idx, y = idx.numpy(), y.numpy()
         for kind, name in methods:
             xa, xb = feats[name]
-            results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = fit_score(
-                kind, xa, xb, idx, y, w, yte, classes, forest
-            )
+            sc = fit_score(kind, xa, xb, idx, y, w, yte, classes, forest)
+            results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["macro_f1"]
+            per_class.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["f1"]
         if args.finetune:
             for name, model, probe, lr in (
                 ("finetune_pretrained", net, args.probe_steps, args.encoder_lr),
@@ -374,8 +376,9 @@ def main(argv: list[str] | None = None) -> dict:
             ):
                 t_ft = time.perf_counter()
                 pred = finetune(model, norm(xtr), idx, y, w, norm(xte), args.finetune, probe, lr)
-                f1 = scores(yte, pred, classes, "test")["macro_f1"]
-                results.setdefault(name, {})[f"{f:g}/{d}"] = f1
+                sc = scores(yte, pred, classes, "test")
+                results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
+                per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
                 extra.setdefault("finetune_seconds", []).append(
                     round(time.perf_counter() - t_ft, 1)
                 )
@@ -388,6 +391,12 @@ def main(argv: list[str] | None = None) -> dict:
     for name, r in results.items():
         one = [r[f"0.01/{d}"] for d in range(args.draws)]
         table[name] = {"1%": float(np.mean(one)), "1%_draws": one, "10%": r["0.1/0"]}
+        if name in per_class:  # per-class F1: mean of the 1% draws, and at 10%
+            pc = per_class[name]
+            table[name]["1%_f1"] = {
+                c: float(np.mean([pc[f"0.01/{d}"][c] for d in range(args.draws)])) for c in classes
+            }
+            table[name]["10%_f1"] = pc["0.1/0"]
     print(f"\nbehavior-scale masked pretraining: test macro-F1 ({args.train} train / {args.test} "
           f"test sessions x {T} frames; pretrained on {args.train + args.unlabelled} sessions, "
           f"{extra['pretraining']['steps']} steps)")  # fmt: skip
