@@ -183,7 +183,8 @@ def finetune(
     encoder_lr: float,
 ) -> np.ndarray:
     """End-to-end fine-tuning (the issue's protocol) of a copy of `model` with a linear head on
-    its pooled embedding (`pooled`, standardised by the initial net's training frames): class-
+    its pooled embedding (`pooled`, standardised by the initial net's training frames as the
+    training sees them, input dropout included; inverted dropout keeps their mean): class-
     weighted cross-entropy on the labelled training frames idx (labels y, class weights w),
     the whole standardised training sessions xtr (S, T, D) through the net at every step
     (input dropout 0.1; AdamW, weight decay 0.01, head lr 1e-3), the head alone for the first
