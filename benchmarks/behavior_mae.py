@@ -211,17 +211,14 @@ def finetune(
         lr=1e-3, weight_decay=1e-2,
     )  # fmt: skip
     idx_t, y_t = torch.as_tensor(idx), torch.as_tensor(y)
+    drop.train()  # the net has no dropout or batch statistics of its own
     for step in range(steps):
-        tune = step >= probe_steps
-        net.train(tune)
-        drop.train()
-        for p in net.parameters():
-            p.requires_grad_(tune)
+        if step in (0, probe_steps):  # the head alone, then the net too
+            net.requires_grad_(step >= probe_steps)
         loss = loss_fn(head((feats(xtr)[idx_t] - fm) / fs), y_t)
         opt.zero_grad()
         loss.backward()
         opt.step()
-    net.eval()
     drop.eval()
     with torch.no_grad():
         return head((feats(xte) - fm) / fs).argmax(-1).numpy()
