@@ -137,3 +137,70 @@ def test_readme_lists_the_config_groups_as_they_are():
     # joblib comes with hydra-joblib-launcher; slurm is ours
     launchers = {f.stem for f in (CONF_DIR / "hydra" / "launcher").glob("*.yaml")} | {"joblib"}
     assert {o.strip() for o in rows["hydra/launcher"].split(",")} == launchers
+
+
+def _hydra_help(app: str) -> subprocess.Popen:
+    """The app's help page as Hydra itself makes it (the app's module, not the console
+    script's quick path)."""
+    import tomllib
+
+    scripts = tomllib.loads((REPO_DIR / "pyproject.toml").read_text())["project"]["scripts"]
+    module = {
+        "adjust-track": "adjust.track",
+        "deformnet-classify": "deformnet.classify",
+        "adjust-events": "adjust.events_cli",
+    }[app]
+    assert scripts[app].split(":")[0] in ("adjust.entry", "deformnet.entry")
+    code = f"import sys; sys.argv = [{app!r}, '--help']; from {module} import main; main()"
+    return subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+
+
+def test_quick_help_is_hydras_page_without_importing_torch(helps):
+    """A bare --help is printed without composing the config or importing torch, and is the
+    very page Hydra prints (one app of each kind of entry point)."""
+    procs = {
+        app: _hydra_help(app) for app in ("adjust-track", "deformnet-classify", "adjust-events")
+    }
+    for app, p in procs.items():
+        stdout, stderr = p.communicate(timeout=120)
+        assert p.returncode == 0, stderr
+        assert helps[app].stdout == stdout, app
+    code = (
+        "import sys; sys.argv = ['adjust-track', '-h']; from adjust.entry import track; "
+        "track(); assert 'torch' not in sys.modules and 'hydra' not in sys.modules"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("adjust-track:")
+
+
+def test_console_script_falls_through_to_the_app(tmp_path, monkeypatch, capsys):
+    """Anything but a bare --help, or a page that substitutes Hydra's variables, goes to the
+    app's entry point."""
+    import deformnet.paths
+    from deformnet.quickhelp import console_script, help_page
+
+    (tmp_path / "hydra" / "help").mkdir(parents=True)
+    (tmp_path / "hydra" / "help" / "plain.yaml").write_text("template: |\n  plain: a page\n")
+    (tmp_path / "hydra" / "help" / "subst.yaml").write_text("template: |\n  $APP_CONFIG_GROUPS\n")
+    monkeypatch.setattr(deformnet.paths, "CONF_DIR", tmp_path)
+    assert help_page("plain") == "plain: a page\n"
+    assert help_page("subst") is None
+    calls = []
+    monkeypatch.setattr(sys.modules[__name__], "_app", lambda: calls.append(list(sys.argv)),
+                        raising=False)  # fmt: skip
+    for name, argv, called in [
+        ("plain", ["x", "--help"], False),
+        ("plain", ["x", "-h"], False),
+        ("plain", ["x", "--help", "body=mouse"], True),
+        ("plain", ["x", "seed=1"], True),
+        ("subst", ["x", "--help"], True),
+    ]:
+        monkeypatch.setattr(sys, "argv", argv)
+        calls.clear()
+        console_script(name, f"{__name__}:_app")()
+        assert bool(calls) == called, (name, argv)
+        out = capsys.readouterr().out
+        assert (out == "plain: a page\n\n") == (not called), (name, argv, out)

@@ -1,0 +1,49 @@
+"""Console scripts whose ``--help`` page comes at once.
+
+Hydra prints an app's help page (conf/hydra/help/<config>.yaml's template) only after
+composing the config and listing every config group with its options, and the app's module
+imports torch first: 3-4 s for a page of text. Each page of ours is plain text (no ``$``
+substitutions), so a bare ``--help`` / ``-h`` prints the template as Hydra would, without
+importing the app; any other command line (overrides with ``--help``, ``--cfg``, a run) goes to
+the app's own entry point unchanged. `adjust.entry` and `deformnet.entry` hold the console
+scripts (pyproject.toml's ``[project.scripts]``).
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Callable
+
+
+def help_page(config_name: str) -> str | None:
+    """The ``--help`` page of the app whose primary config is conf/<config_name>.yaml, as
+    Hydra prints it (conf/hydra/help/<config_name>.yaml's template), or None when the template
+    substitutes Hydra's variables (then only Hydra can make the page)."""
+    from omegaconf import OmegaConf
+
+    from deformnet.paths import CONF_DIR
+
+    path = CONF_DIR / "hydra" / "help" / f"{config_name}.yaml"
+    template = OmegaConf.load(path).get("template")
+    if not isinstance(template, str) or "$" in template:
+        return None
+    return template
+
+
+def console_script(config_name: str, target: str) -> Callable[[], None]:
+    """A console script's entry point: a bare ``--help`` / ``-h`` prints `help_page`
+    (config_name: the app's primary config); anything else calls `target`
+    ("package.module:function", imported only then)."""
+
+    def main() -> None:
+        if sys.argv[1:] in (["--help"], ["-h"]):
+            page = help_page(config_name)
+            if page is not None:
+                print(page)
+                return
+        module, func = target.split(":")
+        getattr(importlib.import_module(module), func)()
+
+    main.__doc__ = f"Console script: {target} (bare --help: conf/hydra/help/{config_name}.yaml)."
+    return main
