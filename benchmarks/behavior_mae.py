@@ -240,8 +240,9 @@ def standardised(xtr: np.ndarray, xte: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def binned(xtr: np.ndarray, xte: np.ndarray, bins: int = BINS) -> tuple[np.ndarray, np.ndarray]:
     """The standardised frame features xtr (N, F) / xte (M, F) beside their one-hot quantile
-    bins (`bins` per feature, edges from every training frame, labelled or not): (N, F (1 +
-    bins)), (M, ...). A linear head on them can threshold a feature, as a forest's split does."""
+    bins (`bins` per feature, fewer where a feature has fewer distinct values; edges from every
+    training frame, labelled or not): (N, B + F), (M, B + F), B the bins in all. A linear head
+    on them can threshold a feature, as a forest's split does."""
     import warnings
 
     from sklearn.preprocessing import KBinsDiscretizer
