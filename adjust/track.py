@@ -155,13 +155,21 @@ def load_deformation(path: str):
 
 
 def make_deformable_observation(
-    model, body_points: np.ndarray, det: Detections, cams, cfg_def, cons=None, few_var=None
+    model,
+    body_points: np.ndarray,
+    det: Detections,
+    cams,
+    cfg_def,
+    cons=None,
+    few_var=None,
+    net_parts=None,
 ):
     """The solver's deformable observation for this data: the net's ``deformed`` inputs for
     observed tokens are the parts triangulated (robustly) from the detections (the session's
     gated 3D observations `cons` when given), gated by their distance from the rigid model
     (`deform.gate_mm`). few_var: (K, 3) torch, the spread of parts with too few 3D observations
-    (`refine_body`; NaN: unknown)."""
+    (`refine_body`; NaN: unknown). net_parts: (K,) bool, the parts that take the net's
+    prediction (`heldout_check`; None: all)."""
     cfg_def = cfg_def if cfg_def is not None else {}
     if cons is not None:
         X = torch.as_tensor(cons.points, dtype=torch.float64)
@@ -192,8 +200,95 @@ def make_deformable_observation(
         few_var=few_var,
         step=deform_step(model, cfg_def),
         far_steps=far_steps(model, cfg_def),
+        net_parts=None if net_parts is None else torch.as_tensor(net_parts, dtype=torch.bool),
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
+
+
+REQUIRE_BETTER = ("auto", "parts", "all", "report", "false")
+
+
+def heldout_check(model, poses, body, cons, cfg_def, where: str, mode: str = "default"):
+    """``deform.require_better``: a net not trained on this recording (``deformation=default``
+    or a checkpoint) against interpolation (the rigid model plus interpolated offsets, as
+    ``deformation=interp``) on the recording's own held-out parts
+    (`deformnet.heldout.heldout_errors` on its tokens from the interp poses (T, 6)).
+    ``parts``: the net predicts only the parts it predicts better (a part with too few
+    held-out targets follows the verdict over all parts); ``all``: every part if it is better
+    over all parts, else none; ``report``: every part, the figures computed and a worse part
+    logged; ``false``: every part, unchecked; ``auto`` (default): ``parts`` for the shipped
+    net (`mode` ``default``), ``report`` for a checkpoint (the user's own net, used as given:
+    a ``deformation=self`` run's checkpoint reproduces its tracks).
+    Returns (net_parts (K,) bool numpy or None for all, facts); all False: the tracks are
+    ``deformation=interp``'s (logged loudly)."""
+    from adjust.tokens import session_tokens
+    from deformnet.heldout import MIN_TARGETS, heldout_errors
+
+    spec = str((cfg_def or {}).get("require_better", "auto")).lower()
+    if spec not in REQUIRE_BETTER:
+        raise InputError(
+            f"deform.require_better must be one of {', '.join(REQUIRE_BETTER)}, got {spec!r}"
+        )
+    if spec == "auto":
+        spec = "parts" if mode == "default" else "report"
+    if spec == "false" or cons is None:
+        return None, {"require_better": spec, "checked": False}
+    tokens = session_tokens(poses, body.points, cons, body.parts, body.name, source=where)
+    try:
+        h = heldout_errors(model, tokens, step=deform_step(model, cfg_def))
+    except ValueError as exc:  # shorter than one window: nothing to judge by
+        log.warning("deform.require_better: the net is not checked (%s)", exc)
+        return None, {"require_better": spec, "checked": False, "reason": str(exc)}
+    overall = bool(h["net_all_mm"] < h["interp_all_mm"])
+    net_mm, int_mm = np.array(h["net_mm"]), np.array(h["interp_mm"])
+    enough = np.array(h["targets"]) >= MIN_TARGETS
+    better = np.where(enough, net_mm < int_mm, overall)
+    keep = {"all": np.full(len(body.parts), overall), "parts": better}.get(
+        spec, np.ones(len(body.parts), bool)
+    )
+    facts = {
+        "require_better": spec,
+        "checked": True,
+        **{k: h[k] for k in ("windows", "targets", "net_all_mm", "interp_all_mm")},
+        "net_mm": dict(zip(body.parts, map(float, net_mm))),
+        "interp_mm": dict(zip(body.parts, map(float, int_mm))),
+        "net_parts": [p for p, k in zip(body.parts, keep) if k],
+    }
+    worse = ", ".join(p for p, b in zip(body.parts, better) if not b)
+    figures = (h["net_all_mm"], h["interp_all_mm"], h["windows"])
+    if not keep.any():
+        log.warning(
+            "deformation: the net does not predict this recording's held-out parts better "
+            "than interpolation (RMSE %.2f vs %.2f mm over %d windows%s): the tracks are "
+            "deformation=interp's. A net for this animal: deformation=self "
+            "(deform.require_better=false uses the net anyway)",
+            *figures,
+            "" if spec == "all" else "; per part no better either",
+        )
+    elif not keep.all():
+        log.warning(
+            "deformation: the net predicts this recording's held-out parts worse than "
+            "interpolation for %s (RMSE over all parts %.2f vs %.2f mm, %d windows): those "
+            "parts are interpolated (deform.require_better=%s)",
+            worse,
+            *figures,
+            spec,
+        )
+    elif worse:  # report: used as given
+        log.warning(
+            "deformation: the net predicts this recording's held-out parts worse than "
+            "interpolation for %s (RMSE over all parts %.2f vs %.2f mm, %d windows); it is "
+            "used for every part as given (deform.require_better=parts interpolates those)",
+            worse,
+            *figures,
+        )
+    else:
+        log.info(
+            "deformation: the net beats interpolation on this recording's held-out parts "
+            "(RMSE %.2f vs %.2f mm, %d windows)",
+            *figures,
+        )
+    return (None if spec == "report" else keep), facts
 
 
 def check_world_up(model, poses: np.ndarray, where: str) -> float | None:
@@ -612,10 +707,26 @@ def _run(cfg: DictConfig) -> dict:
     up_deg = None
     if model is not None and init_poses is not None:
         up_deg = check_world_up(model, init_poses, str(detections))
+    heldout_facts, net_parts = None, None
+    if model is not None and mode in ("default", "net") and init_poses is not None:
+        t1 = time.perf_counter()
+        net_parts, heldout_facts = heldout_check(
+            model, init_poses, body, cons, deform_cfg, str(detections), mode
+        )
+        timings["heldout_check_s"] = time.perf_counter() - t1
+        if net_parts is not None and not bool(net_parts.any()):
+            model = None  # `res`: the interp adjustment's, outputs complete
     if model is not None:
         t1 = time.perf_counter()
         observation, def_facts = make_deformable_observation(
-            model, body.points, det, cams, cfg.get("deform"), cons=cons, few_var=few_var
+            model,
+            body.points,
+            det,
+            cams,
+            cfg.get("deform"),
+            cons=cons,
+            few_var=few_var,
+            net_parts=net_parts,
         )
         if adapt_facts is not None:
             def_facts["adapt"] = adapt_facts
@@ -664,7 +775,7 @@ def _run(cfg: DictConfig) -> dict:
             target.set_measured_var(rigid_obs.var)
             res = solve(dcfg if observation is not None else solver_cfg, target, res.poses)
         timings["measured_prior_s"] = time.perf_counter() - t1
-    if mode == "interp" or (mode == "self" and model is None):
+    if mode == "interp" or (mode in ("self", "default", "net") and model is None):
         def_facts = interp_facts(observation if mode == "interp" else interp_obs, body)
         if adapt_facts is not None:
             def_facts["adapt"] = adapt_facts
@@ -683,6 +794,8 @@ def _run(cfg: DictConfig) -> dict:
         }
     if measured_facts is not None:
         def_facts["measured_prior"] = measured_facts
+    if heldout_facts is not None:
+        def_facts["heldout"] = heldout_facts
     timings["adjust_s"] = time.perf_counter() - t0 - timings.get("adapt_s", 0.0)
 
     # --- outputs ------------------------------------------------------------------------

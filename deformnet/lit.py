@@ -41,7 +41,8 @@ from torch import Tensor, nn
 
 from deformnet.deformation import CHECKPOINT_KEY, DeformationModel
 from deformnet.heads import window_summary
-from deformnet.tokens import linear_baseline, masked_mse
+from deformnet.heldout import window_sums
+from deformnet.tokens import masked_mse
 
 __all__ = ["DeformLit"]
 
@@ -201,26 +202,11 @@ class DeformLit(L.LightningModule):
     def on_validation_epoch_start(self) -> None:
         self._val_sums = {}
 
-    def _accumulate(self, key: str, pred: Tensor, target: Tensor, mask: Tensor) -> None:
-        sq = ((pred - target) ** 2).sum(-1) * mask  # (B, K)
-        s = sq.sum(0).double()
-        if key in self._val_sums:
-            self._val_sums[key] += s
-        else:
-            self._val_sums[key] = s
-
     def validation_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
-        rigid, deformed, observed = batch["rigid"], batch["deformed"], batch["observed"]
-        target, mask = batch["target"], batch["target_mask"]
+        rigid = batch["rigid"]
         loss, _ = self._canonical_loss(batch)
-        pred = self.model(rigid, deformed, observed)
-        m = mask.to(pred.dtype)
-        self._accumulate("net", pred, target, m)
-        self._accumulate("rigid", rigid[:, self.mid], target, m)
-        self._accumulate("linear", linear_baseline(rigid, deformed, observed, self.mid), target, m)
-        self._accumulate(
-            "count", torch.ones_like(pred[..., :1]), torch.zeros_like(pred[..., :1]), m
-        )
+        for key, s in window_sums(self.model, batch, self.mid).items():
+            self._val_sums[key] = self._val_sums[key] + s if key in self._val_sums else s
         self.log("val/loss", loss, batch_size=rigid.shape[0], sync_dist=True)
         return loss
 

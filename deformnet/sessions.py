@@ -126,9 +126,9 @@ class SessionTokens:
         return cls(rigid, deformed, observed, parts, body, name, fps, str(path))
 
     def to_sequence(self, start: int = 0, stop: int | None = None):
-        """Frames start..stop-1 as a `deformnet.data.SequenceArrays` (unmeasured deformed values
+        """Frames start..stop-1 as a `deformnet.windows.SequenceArrays` (unmeasured deformed values
         replaced by the rigid points; they are masked)."""
-        from deformnet.data import SequenceArrays
+        from deformnet.windows import SequenceArrays
 
         s = slice(start, stop)
         obs = self.observed[s]

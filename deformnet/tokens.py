@@ -41,6 +41,7 @@ __all__ = [
     "PRIOR_FEATURES",
     "masked_mse",
     "linear_baseline",
+    "offset_baseline",
 ]
 
 NUM_FEATURES = 7  # rigid_c (3), deformation offset in the frame's own body frame (3), observed (1)
@@ -264,3 +265,21 @@ def linear_baseline(rigid: Tensor, deformed: Tensor, observed: Tensor, mid: int)
     xb, xa = _gather_frames(deformed, ib), _gather_frames(deformed, ia)
     lin = xb + _lerp_weight(ib, ia, mid, deformed.dtype) * (xa - xb)
     return torch.where((has_b & has_a)[..., None], lin, rigid[..., mid, :, :])
+
+
+def offset_baseline(rigid: Tensor, deformed: Tensor, observed: Tensor, mid: int) -> Tensor:
+    """Offset-interpolation baseline for the mid frame's deformed positions: the rigid mid
+    point plus the part's offset from its rigid point (deformed - rigid), interpolated
+    linearly in time between the nearest observed frames before and after the mid frame (the
+    mid frame itself is never used), in global axes. It is what `adjust-track`'s default
+    (``deformation=interp``) does within a window: the rigid model carries the motion, the
+    offsets are interpolated (interp kriges them in each frame's body axes, which over a
+    window's span turn little). Where a side has no observation, the rigid mid point.
+    rigid, deformed (..., W, K, 3), observed (..., W, K) bool -> (..., K, 3).
+    """
+    ib, ia, has_b, has_a = _nearest_observed(observed.bool(), mid)
+    off = deformed - rigid
+    ob, oa = _gather_frames(off, ib), _gather_frames(off, ia)
+    lerp = ob + _lerp_weight(ib, ia, mid, off.dtype) * (oa - ob)
+    mid_rigid = rigid[..., mid, :, :]
+    return torch.where((has_b & has_a)[..., None], mid_rigid + lerp, mid_rigid)

@@ -3,7 +3,8 @@
 - `deformnet` never imports `adjust` (not at the top of a module, not inside a function, not by
   ``importlib.import_module``): the learning half stands alone; `adjust` may import `deformnet`.
 - Every module of `adjust` and of `deformnet.sim` imports without Lightning (only training,
-  `deformnet.lit` / `deformnet.train` / ..., needs it).
+  `deformnet.lit` / `deformnet.train` / ..., needs it), and so do the `deformnet` modules that
+  `adjust-track` loads at run time outside training (`RUNTIME`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,13 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 LIGHTNING = ("lightning", "pytorch_lightning", "lightning_fabric")
+RUNTIME = [
+    "deformnet.deformation",
+    "deformnet.pretrained",
+    "deformnet.sessions",
+    "deformnet.windows",
+    "deformnet.heldout",
+]
 
 
 def _imported_modules(path: Path) -> list[tuple[int, str]]:
@@ -76,12 +84,18 @@ class _NoLightning:
 sys.meta_path.insert(0, _NoLightning())
 import adjust, deformnet.sim
 failed = []
-for pkg in (adjust, deformnet.sim):
-    for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
-        try:
-            importlib.import_module(info.name)
-        except ImportError as exc:
-            failed.append(info.name + ": " + str(exc))
+names = [
+    info.name
+    for pkg in (adjust, deformnet.sim)
+    for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + ".")
+]
+# what adjust-track loads at run time (a net, its held-out check on the session's tokens)
+names += {RUNTIME!r}
+for name in names:
+    try:
+        importlib.import_module(name)
+    except ImportError as exc:
+        failed.append(name + ": " + str(exc))
 loaded = sorted(m for m in sys.modules if m.split(".")[0] in {LIGHTNING!r})
 print("\\n".join(failed + loaded))
 sys.exit(1 if failed or loaded else 0)

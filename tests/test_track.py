@@ -203,6 +203,8 @@ def test_deformable_run_with_tiny_checkpoint(scene, rigid_run, tmp_path):
     out = tmp_path / "out"
     summary = _track(scene, out, [f"deformation={ckpt}", "deform.max_iterations=2"])
     assert summary["deformation"]["window"] == 5
+    # a checkpoint is the user's own net: checked and reported, used as given
+    assert summary["deformation"]["heldout"]["require_better"] == "report"
     assert summary["body"]["source"] == "checkpoint"
     assert summary["completeness"] == 1.0
     d = read_points3d(out / "points3d.csv")

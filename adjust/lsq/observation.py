@@ -421,7 +421,9 @@ class NetObservation(DeformableObservation):
     ``half_window`` frames to each side; ``beyond_window="interp"`` (default): a part-frame
     whose window holds no observation of the part on one side of the mid frame takes the
     interpolation's prediction too (kriged across the whole gap, `InterpObservation`);
-    ``"net"``: the net there as well. `use_net` (T, K) says where the net was used.
+    ``"net"``: the net there as well. ``net_parts`` (K,) bool: only those parts take the net's
+    prediction, the others interp's everywhere (`adjust-track`'s held-out check,
+    ``deform.require_better``; None: every part). `use_net` (T, K) says where the net was used.
 
     `deformation_cov`: the interpolation's kriging variance (how uncertainty grows with the
     distance to the part's observations; conservative for the net in gaps, where it is the
@@ -450,8 +452,14 @@ class NetObservation(DeformableObservation):
         measured_var: Tensor | None = None,
         step: int = 1,
         far_steps: tuple[int, ...] = (),
+        net_parts: Tensor | None = None,
     ):
         super().__init__(model, body_points, window, observed, batch_size, step)
+        K = observed.shape[-1]
+        if net_parts is not None and tuple(net_parts.shape) != (K,):
+            raise ValueError(f"net_parts must be ({K},) bool, got {tuple(net_parts.shape)}")
+        # (K,) bool: the parts whose predictions may come from the net (None: all)
+        self.net_parts = None if net_parts is None else net_parts.to(torch.bool)
         self.far_steps = tuple(sorted(int(s) for s in far_steps if int(s) > self.step))
         if self.far_steps and jacobian != "frozen":
             raise ValueError("deform.far_steps needs deform.jacobian=frozen")
@@ -557,6 +565,8 @@ class NetObservation(DeformableObservation):
             use = use & ~m
         if self.beyond_window == "interp":
             use = use & self.reach.to(m.device)
+        if self.net_parts is not None:
+            use = use & self.net_parts.to(m.device)[None, :]
         self.use_net = use
         use = use[..., None]
         M = torch.where(use, M, Mi)
@@ -635,4 +645,5 @@ class NetObservation(DeformableObservation):
             measured_var=self.interp.measured_var,
             step=self.step,
             far_steps=self.far_steps,
+            net_parts=self.net_parts,
         )

@@ -1,0 +1,553 @@
+"""Masked token windows over sequences, without Lightning: what the deformation nets learn from
+and are checked on (`deformnet.data` builds its LightningDataModule on these; `adjust-track`
+checks a net on a recording's own windows, `deformnet.heldout`).
+
+`WindowBank` cuts windows of W = 2n + 1 frames from sequences (`SequenceArrays`);
+`make_masks` hides deformed positions in patterns like multi-camera occlusion (`MaskConfig`):
+random dropout, mid-centred gaps (all parts or a subset; the mid frame is always hidden) and
+contiguous per-part gaps elsewhere.
+
+A batch is a dict of float32 / bool tensors:
+    rigid (B, W, K, 3), deformed (B, W, K, 3)  global mm (deformed: the true values; hidden ones
+                                                are zeroed),
+    observed (B, W, K)                          input flags (mid frame false),
+    target (B, K, 3), target_mask (B, K)        the mid frame's deformed positions and whether
+                                                they were observed (the loss uses only those),
+    pair (with pair_shift > 0)                  {rigid, deformed, observed} of windows a few
+                                                frames away in the same sequence (positives of
+                                                the temporal-contrastive term, `DeformLit`).
+    ahead (with ahead_shift)                    {points (B, K, 3) global mm, mask (B, K), shift
+                                                (B,)}: the true positions of the frame `shift`
+                                                token steps from each window's mid frame (signed:
+                                                > 0 later; 0 where the sequence has no such frame,
+                                                mask false), the targets of the forecasting term.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset, IterableDataset
+
+from deformnet.body import BodyModel
+
+__all__ = [
+    "Augment",
+    "MaskConfig",
+    "SequenceArrays",
+    "mirror_asymmetry",
+    "mirror_permutation",
+    "toy_sequence",
+    "load_sequences",
+    "make_masks",
+    "gap_masks",
+    "WindowBank",
+    "RandomWindowBatches",
+    "FixedWindowBatches",
+    "check_ahead_shift",
+    "simulate_sequences",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# sequences
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SequenceArrays:
+    """The parts of a simulated sequence the nets need: rigid, deformed (T, K, 3) global mm,
+    observed (T, K) bool."""
+
+    rigid: np.ndarray
+    deformed: np.ndarray
+    observed: np.ndarray
+
+    @classmethod
+    def of(cls, seq: Any) -> SequenceArrays:
+        """From a `deformnet.sim.SimData` (or anything with those three attributes)."""
+        rigid = np.asarray(seq.rigid, dtype=np.float32)
+        deformed = np.asarray(seq.deformed, dtype=np.float32)
+        observed = getattr(seq, "observed", None)
+        observed = (
+            np.ones(rigid.shape[:2], dtype=bool) if observed is None else np.asarray(observed, bool)
+        )
+        finite = np.isfinite(deformed).all(-1)
+        observed = observed & finite
+        deformed = np.where(finite[..., None], deformed, rigid)  # truth kept where known
+        if rigid.shape != deformed.shape or rigid.ndim != 3 or rigid.shape[-1] != 3:
+            raise ValueError(
+                f"rigid/deformed must be (T, K, 3), got {rigid.shape}, {deformed.shape}"
+            )
+        return cls(rigid, deformed, observed)
+
+
+def toy_sequence(
+    body: BodyModel, num_frames: int = 600, seed: int = 0, fps: float = 30.0
+) -> SequenceArrays:
+    """A small stand-in for the simulator: the rigid model moved along a smooth curve with a
+    smoothly turning heading, plus smooth sinusoidal per-part offsets in the body frame."""
+    from deformnet.so3 import transform_points
+
+    rng = np.random.default_rng(seed)
+    T, K = int(num_frames), body.num_parts
+    t = np.arange(T) / fps
+    yaw = np.cumsum(0.6 * np.sin(2 * np.pi * 0.13 * t + rng.uniform(0, 6.3)) / fps) + rng.uniform(
+        0, 6.3
+    )
+    speed = 50.0 + 20.0 * np.sin(2 * np.pi * 0.21 * t + rng.uniform(0, 6.3))
+    xy = np.cumsum(speed[:, None] * np.stack((-np.sin(yaw), np.cos(yaw)), -1) / fps, 0)
+    poses = np.zeros((T, 6))
+    poses[:, 2] = yaw
+    poses[:, 0] = 0.1 * np.sin(2 * np.pi * 0.4 * t)  # small pitch wobble
+    poses[:, 3:5] = xy
+    poses[:, 5] = 10.0
+    model = torch.tensor(np.array(body.points))
+    rigid = transform_points(torch.tensor(poses), model.expand(T, K, 3)).numpy()
+    amp = rng.uniform(1.0, 4.0, (K, 3))
+    freq = rng.uniform(0.5, 2.5, (K, 1))
+    phase = rng.uniform(0, 2 * np.pi, (K, 3))
+    off_local = amp * np.sin(2 * np.pi * freq * t[:, None, None] + phase)  # (T, K, 3)
+    off = transform_points(
+        torch.tensor(np.concatenate((poses[:, :3], np.zeros((T, 3))), 1)),
+        torch.tensor(off_local),
+    ).numpy()
+    observed = rng.random((T, K)) > 0.02
+    return SequenceArrays(rigid.astype(np.float32), (rigid + off).astype(np.float32), observed)
+
+
+def simulate_sequences(
+    sim_cfg: Any, body: BodyModel, num_frames: int, seeds: Sequence[int]
+) -> list[SequenceArrays]:
+    """Simulate one sequence per seed with `deformnet.sim.simulate`."""
+    from deformnet import sim
+
+    out = []
+    for s in seeds:
+        data = sim.simulate(sim_cfg, num_frames=int(num_frames), seed=int(s), body=body)
+        out.append(SequenceArrays.of(data))
+    return out
+
+
+def load_sequences(paths: Sequence[str | os.PathLike]) -> list[SequenceArrays]:
+    """Load simulator files with `deformnet.sim.dataset.load_sim`."""
+    from deformnet.sim.dataset import load_sim
+
+    return [SequenceArrays.of(load_sim(p)) for p in paths]
+
+
+def mirror_permutation(parts: Sequence[str]) -> list[int] | None:
+    """Part order of the mirror image: each left/right part (``left_*``/``right_*``,
+    ``l_*``/``r_*``, ``*_left``/``*_right``, ``*_l``/``*_r``, any case) swapped with its twin,
+    the others in place; None when no part has a twin (nothing to mirror)."""
+    names = [str(p) for p in parts]
+    low = {n.lower(): i for i, n in enumerate(names)}
+    swaps = (("left_", "right_"), ("l_", "r_"))
+    suffixes = (("_left", "_right"), ("_l", "_r"))
+    perm = list(range(len(names)))
+    found = False
+    for i, n in enumerate(names):
+        m = n.lower()
+        twin = None
+        for a, b in swaps:
+            for x, y in ((a, b), (b, a)):
+                if twin is None and m.startswith(x):
+                    twin = y + m[len(x) :]
+        for a, b in suffixes:
+            for x, y in ((a, b), (b, a)):
+                if twin is None and m.endswith(x):
+                    twin = m[: -len(x)] + y
+        if twin is not None and twin in low:
+            perm[i] = low[twin]
+            found = True
+    return perm if found else None
+
+
+def mirror_asymmetry(points: np.ndarray, perm: Sequence[int]) -> float:
+    """How far a body model is from bilateral symmetry: the rms distance (mm) between its points
+    and its mirror image (x -> -x, parts permuted by `perm`) moved onto them by the best rigid
+    motion (`deformnet.so3.kabsch`); 0 for a body symmetric about any plane."""
+    from deformnet.so3 import kabsch
+
+    P = torch.tensor(np.array(points, dtype=np.float64))
+    M = (P * torch.tensor([-1.0, 1.0, 1.0], dtype=P.dtype))[list(perm)]
+    R, t = kabsch(P, M)
+    return float(((M @ R.T + t - P) ** 2).sum(-1).mean().sqrt())
+
+
+@dataclass(frozen=True)
+class Augment:
+    """Training-window augmentation (self-supervised data is scarce: one recording's tokens).
+
+    mirror: probability of the window's mirror image (reflected through a vertical plane,
+    left and right parts swapped; a bilaterally symmetric body only, `mirror_permutation`);
+    reverse: probability of the window played backwards (the mid frame stays the mid frame);
+    steps: frames between tokens drawn per batch from these (None: the data's step), so one
+    recording yields windows at several token rates."""
+
+    mirror: float = 0.0
+    reverse: float = 0.0
+    steps: tuple[int, ...] | None = None
+
+    @classmethod
+    def from_any(cls, cfg: Mapping[str, Any] | Augment | None) -> Augment:
+        if isinstance(cfg, Augment):
+            return cfg
+        d = dict(cfg or {})
+        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown data.augment options {sorted(unknown)}")
+        steps = d.get("steps")
+        if steps is not None:
+            steps = tuple(int(x) for x in steps)
+            if not steps or min(steps) < 1:
+                raise ValueError(f"data.augment.steps must be integers >= 1, got {list(steps)}")
+        for key in ("mirror", "reverse"):
+            if not 0.0 <= float(d.get(key, 0.0)) <= 1.0:
+                raise ValueError(f"data.augment.{key} must be a probability, got {d[key]}")
+        return cls(float(d.get("mirror", 0.0)), float(d.get("reverse", 0.0)), steps)
+
+
+# --------------------------------------------------------------------------------------------
+# masks
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MaskConfig:
+    """Missing-data patterns for training windows (rates are probabilities per sample).
+
+    dropout: [min, max] rate of random token dropout, drawn per sample.
+    gap_prob: probability of a gap centred on the mid frame, of length 1..gap_max frames
+    (the mid frame is hidden anyway); it hides all parts with probability gap_all_parts, else a
+    random subset of parts.
+    occlusion_prob: per part, probability of one more contiguous gap of 1..occlusion_max frames at a
+    random place in the window (multi-camera occlusion of a single part).
+    """
+
+    dropout: tuple[float, float] = (0.0, 0.5)
+    gap_prob: float = 0.8
+    gap_max: int = 15
+    gap_all_parts: float = 0.7
+    occlusion_prob: float = 0.2
+    occlusion_max: int = 15
+
+    @classmethod
+    def from_any(cls, cfg: Mapping[str, Any] | MaskConfig | None) -> MaskConfig:
+        if isinstance(cfg, MaskConfig):
+            return cfg
+        d = dict(cfg or {})
+        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown masking options {sorted(unknown)}")
+        if "dropout" in d:
+            lo, hi = (float(x) for x in d["dropout"])
+            d["dropout"] = (lo, hi)
+        return cls(**d)
+
+
+def _runs(start: Tensor, length: Tensor, W: int) -> Tensor:
+    """(..., W) bool: frames start <= f < start + length."""
+    f = torch.arange(W)
+    return (f >= start[..., None]) & (f < (start + length)[..., None])
+
+
+def make_masks(B: int, W: int, K: int, cfg: MaskConfig, gen: torch.Generator) -> Tensor:
+    """(B, W, K) bool: True where a deformed position is hidden (mid frame always hidden)."""
+    mid = W // 2
+    lo, hi = cfg.dropout
+    rate = lo + (hi - lo) * torch.rand(B, 1, 1, generator=gen)
+    hide = torch.rand(B, W, K, generator=gen) < rate
+    # mid-centred gap
+    L = torch.randint(1, max(1, cfg.gap_max) + 1, (B,), generator=gen)
+    shift = torch.randint(0, 2, (B,), generator=gen) * (L % 2 == 0)  # even lengths: either side
+    start = mid - (L - 1) // 2 - shift
+    gap_t = _runs(start, L, W)  # (B, W)
+    all_parts = torch.rand(B, 1, generator=gen) < cfg.gap_all_parts
+    parts = all_parts | (torch.rand(B, K, generator=gen) < 0.5)
+    use = torch.rand(B, 1, 1, generator=gen) < cfg.gap_prob
+    hide |= use & gap_t[:, :, None] & parts[:, None, :]
+    # per-part occlusion gaps anywhere
+    Lo = torch.randint(1, max(1, cfg.occlusion_max) + 1, (B, K), generator=gen)
+    so = torch.randint(-int(cfg.occlusion_max), W, (B, K), generator=gen)
+    occ = _runs(so, Lo, W).transpose(1, 2)  # (B, W, K)
+    hide |= occ & (torch.rand(B, 1, K, generator=gen) < cfg.occlusion_prob)
+    hide[:, mid] = True
+    return hide
+
+
+def gap_masks(B: int, W: int, K: int, gap: int, dropout: float, gen: torch.Generator) -> Tensor:
+    """(B, W, K) bool hidden flags for evaluation: a gap of `gap` frames centred on the mid frame
+    (all parts; even gaps extend one frame further before the mid frame) plus random dropout of
+    the other tokens at rate `dropout`."""
+    mid = W // 2
+    hide = torch.rand(B, W, K, generator=gen) < dropout
+    start = mid - gap // 2
+    hide[:, max(0, start) : min(W, start + gap)] = True
+    hide[:, mid] = True
+    return hide
+
+
+# --------------------------------------------------------------------------------------------
+# windows
+# --------------------------------------------------------------------------------------------
+class WindowBank:
+    """All windows of W frames of a list of sequences, gathered by index without copies.
+
+    step: frames between a window's tokens (the window spans 2 n step + 1 frames): a recording
+    at a higher frame rate than the net's training data is seen at the same token rate."""
+
+    def __init__(
+        self,
+        sequences: Sequence[SequenceArrays],
+        half_window: int,
+        step: int = 1,
+    ) -> None:
+        self.n = int(half_window)
+        self.W = 2 * self.n + 1
+        self.step = int(step)
+        if self.step < 1:
+            raise ValueError(f"step must be >= 1, got {step}")
+        span = self.n * self.step
+        seqs = [s for s in sequences if s.rigid.shape[0] >= 2 * span + 1]
+        if not seqs:
+            raise ValueError(f"no sequence has the {2 * span + 1} frames a window needs")
+        self.K = seqs[0].rigid.shape[1]
+        self.rigid = torch.from_numpy(np.concatenate([s.rigid for s in seqs]))
+        self.deformed = torch.from_numpy(np.concatenate([s.deformed for s in seqs]))
+        self.observed = torch.from_numpy(np.concatenate([s.observed for s in seqs]))
+        self._pieces, off = [], 0
+        for s in seqs:
+            self._pieces.append((off, s.rigid.shape[0]))
+            off += s.rigid.shape[0]
+        self._mids: dict[int, Tensor] = {}
+        self._mid_seq: dict[int, Tensor] = {}
+        self.mids = self.mids_for(self.step)  # global frame index of every valid mid frame
+
+    def mids_for(self, step: int) -> Tensor:
+        """Mid frames (global indices) whose window at this token step lies inside its
+        sequence (empty when every sequence is too short for it)."""
+        step = int(step)
+        if step not in self._mids:
+            span = self.n * step
+            m, q = [], []
+            for i, (o, T) in enumerate(self._pieces):
+                if T > 2 * span:
+                    m.append(torch.arange(o + span, o + T - span))
+                    q.append(torch.full((T - 2 * span,), i, dtype=torch.long))
+            self._mids[step] = torch.cat(m) if m else torch.zeros(0, dtype=torch.long)
+            self._mid_seq[step] = torch.cat(q) if q else torch.zeros(0, dtype=torch.long)
+        return self._mids[step]
+
+    def shifted(self, idx: Tensor, shift: Tensor, step: int | None = None) -> Tensor:
+        """Indices into mids_for(step) of the mid frames `shift` (B,) frames after those of
+        `idx` (B,) in the same sequence; where that leaves the sequence's valid mids, `shift`
+        frames before; where that does too, `idx` itself."""
+        step = self.step if step is None else int(step)
+        self.mids_for(step)
+        seq = self._mid_seq[step]
+        M = len(seq)
+
+        def inside(j: Tensor) -> Tensor:
+            ok = (j >= 0) & (j < M)
+            return ok & (seq[j.clamp(0, max(M - 1, 0))] == seq[idx])
+
+        j = idx + shift
+        j = torch.where(inside(j), j, idx - shift)
+        return torch.where(inside(j), j, idx)
+
+    def __len__(self) -> int:
+        return len(self.mids)
+
+    def batch(
+        self,
+        idx: Tensor,
+        hide: Tensor,
+        noise_mm: float = 0.0,
+        gen=None,
+        step: int | None = None,
+        flip: Tensor | None = None,
+        reverse: Tensor | None = None,
+        perm: Sequence[int] | None = None,
+    ) -> dict:
+        """Windows around mids_for(step)[idx] with extra hidden flags `hide` (B, W, K); `step`
+        frames between tokens (None: the bank's); flip (B,) bool: mirror those windows (x -> -x,
+        parts permuted by `perm`); reverse (B,) bool: play those windows backwards."""
+        step = self.step if step is None else int(step)
+        mids = self.mids_for(step)
+        frames = mids[idx][:, None] + step * torch.arange(-self.n, self.n + 1)  # (B, W)
+        if reverse is not None:
+            frames = torch.where(reverse[:, None], frames.flip(1), frames)
+        rigid = self.rigid[frames]
+        truth = self.deformed[frames]
+        seen = self.observed[frames]
+        if flip is not None and perm is not None and bool(flip.any()):
+            sign = torch.tensor([-1.0, 1.0, 1.0], dtype=rigid.dtype)
+            p = torch.as_tensor(list(perm), dtype=torch.long)
+            f4 = flip[:, None, None, None]
+            rigid = torch.where(f4, (rigid * sign)[:, :, p], rigid)
+            truth = torch.where(f4, (truth * sign)[:, :, p], truth)
+            seen = torch.where(flip[:, None, None], seen[:, :, p], seen)
+        observed = seen & ~hide
+        deformed = truth
+        if noise_mm > 0:
+            deformed = truth + noise_mm * torch.randn(truth.shape, generator=gen)
+        deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
+        return {
+            "rigid": rigid,
+            "deformed": deformed,
+            "observed": observed,
+            "target": truth[:, self.n],
+            "target_mask": seen[:, self.n],
+        }
+
+
+def check_ahead_shift(ahead_shift: Sequence[int] | None) -> tuple[int, int] | None:
+    """(lo, hi) token steps, 1 <= lo <= hi, or None (no forecasting targets)."""
+    if ahead_shift is None:
+        return None
+    lo, hi = (int(x) for x in ahead_shift)
+    if not 1 <= lo <= hi:
+        raise ValueError(f"ahead_shift must be (lo, hi) with 1 <= lo <= hi, got {ahead_shift}")
+    return lo, hi
+
+
+class RandomWindowBatches(IterableDataset):
+    """`steps` random batches per pass (epoch), freshly masked each time; seeded by
+    (seed, rank, pass)."""
+
+    def __init__(
+        self,
+        bank: WindowBank,
+        batch_size: int,
+        steps: int,
+        masking: MaskConfig,
+        seed: int = 0,
+        noise_mm: float = 0.0,
+        augment: Augment | None = None,
+        mirror_perm: Sequence[int] | None = None,
+        pair_shift: int = 0,
+        ahead_shift: Sequence[int] | None = None,
+    ) -> None:
+        super().__init__()
+        self.bank, self.batch_size, self.steps = bank, int(batch_size), int(steps)
+        self.ahead_shift = check_ahead_shift(ahead_shift)
+        self.masking, self.seed, self.noise_mm = masking, int(seed), float(noise_mm)
+        self.augment = augment or Augment()
+        self.mirror_perm = None if mirror_perm is None else list(mirror_perm)
+        self.pair_shift = int(pair_shift)
+        if self.pair_shift < 0:
+            raise ValueError(f"pair_shift must be >= 0, got {pair_shift}")
+        self.rank = 0
+        self._pass = 0
+
+    def _with_pair(self, out: dict, idx: Tensor, gen, step, flip=None, rev=None) -> dict:
+        """With `pair_shift`: add out["pair"], the windows 1..pair_shift frames (either way,
+        same sequence) from each window, independently masked, same mirror / reversal (the
+        positives of a temporal-contrastive objective)."""
+        if self.pair_shift <= 0:
+            return out
+        b, B = self.bank, len(idx)
+        shift = torch.randint(1, self.pair_shift + 1, (B,), generator=gen)
+        shift = torch.where(torch.rand(B, generator=gen) < 0.5, shift, -shift)
+        j = b.shifted(idx, shift, step)
+        hide = make_masks(B, b.W, b.K, self.masking, gen)
+        pair = b.batch(j, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
+        out["pair"] = {k: pair[k] for k in ("rigid", "deformed", "observed")}
+        return out
+
+    def _with_ahead(self, out: dict, idx: Tensor, gen, step, flip=None, rev=None) -> dict:
+        """With `ahead_shift` (lo, hi): add out["ahead"], the true positions of the frame lo..hi
+        token steps before or after each window's mid frame (same sequence, same mirror; a
+        reversed window's shift changes sign)."""
+        if self.ahead_shift is None:
+            return out
+        b, B = self.bank, len(idx)
+        step = b.step if step is None else int(step)
+        lo, hi = self.ahead_shift
+        shift = torch.randint(lo, hi + 1, (B,), generator=gen)
+        shift = torch.where(torch.rand(B, generator=gen) < 0.5, shift, -shift)
+        j = b.shifted(idx, shift * step, step)
+        mids = b.mids_for(step)
+        actual = torch.div(mids[j] - mids[idx], step, rounding_mode="trunc")
+        if rev is not None:
+            actual = torch.where(rev, -actual, actual)
+        none = torch.zeros(B, b.W, b.K, dtype=torch.bool)
+        far = b.batch(j, none, 0.0, gen, step, flip, None, self.mirror_perm)
+        out["ahead"] = {
+            "points": far["target"],
+            "mask": far["target_mask"] & (actual != 0)[:, None],
+            "shift": actual.to(far["target"].dtype),
+        }
+        return out
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __iter__(self) -> Iterator[dict]:
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + self.rank * 7919 + self._pass)
+        self._pass += 1
+        b = self.bank
+        a = self.augment
+        steps = [s for s in (a.steps or ()) if len(b.mids_for(s))] or None
+        for _ in range(self.steps):
+            if a.mirror <= 0 and a.reverse <= 0 and a.steps is None:  # the plain windows
+                idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
+                hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
+                out = self._with_pair(b.batch(idx, hide, self.noise_mm, gen), idx, gen, None)
+                yield self._with_ahead(out, idx, gen, None)
+                continue
+            step = None
+            if steps is not None:  # a step some sequence is long enough for
+                step = steps[int(torch.randint(0, len(steps), (1,), generator=gen))]
+            n_mids = len(b.mids_for(b.step if step is None else step))
+            idx = torch.randint(0, n_mids, (self.batch_size,), generator=gen)
+            hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
+            B = self.batch_size
+            flip = torch.rand(B, generator=gen) < a.mirror
+            rev = torch.rand(B, generator=gen) < a.reverse
+            out = b.batch(idx, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
+            out = self._with_pair(out, idx, gen, step, flip, rev)
+            yield self._with_ahead(out, idx, gen, step, flip, rev)
+
+
+class FixedWindowBatches(Dataset):
+    """A fixed list of pre-built batches (validation / evaluation); indexable for samplers."""
+
+    def __init__(self, batches: Sequence[dict]) -> None:
+        self.batches = list(batches)
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+    def __getitem__(self, i: int) -> dict:
+        return self.batches[i]
+
+    @classmethod
+    def build(
+        cls,
+        bank: WindowBank,
+        num_windows: int,
+        batch_size: int,
+        seed: int,
+        masking: MaskConfig | None = None,
+        gap: int | None = None,
+        dropout: float = 0.3,
+    ) -> FixedWindowBatches:
+        """Evenly spaced windows, masked with `masking` (training-like) or, with `gap`, by
+        `gap_masks` (evaluation)."""
+        gen = torch.Generator().manual_seed(int(seed))
+        n = min(int(num_windows), len(bank))
+        idx = torch.linspace(0, len(bank) - 1, n).round().long()
+        out = []
+        for chunk in idx.split(int(batch_size)):
+            B = len(chunk)
+            if gap is not None:
+                hide = gap_masks(B, bank.W, bank.K, int(gap), float(dropout), gen)
+            else:
+                hide = make_masks(B, bank.W, bank.K, masking or MaskConfig(), gen)
+            out.append(bank.batch(chunk, hide))
+        return cls(out)
