@@ -220,7 +220,8 @@ def heldout_check(model, poses, body, cons, cfg_def, where: str, mode: str = "de
     net (`mode` ``default``), ``report`` for a checkpoint (the user's own net, used as given:
     a ``deformation=self`` run's checkpoint reproduces its tracks).
     Returns (net_parts (K,) bool numpy or None for all, facts); all False: the tracks are
-    ``deformation=interp``'s (logged loudly)."""
+    interpolated, ``deformation=interp``'s model adjusted to convergence (the solver's
+    iterations, not ``deform.max_iterations``; logged loudly)."""
     from adjust.tokens import session_tokens
     from deformnet.heldout import MIN_TARGETS, heldout_errors
 
@@ -259,8 +260,9 @@ def heldout_check(model, poses, body, cons, cfg_def, where: str, mode: str = "de
     if not keep.any():
         log.warning(
             "deformation: the net does not predict this recording's held-out parts better "
-            "than interpolation (RMSE %.2f vs %.2f mm over %d windows%s): the tracks are "
-            "deformation=interp's. A net for this animal: deformation=self "
+            "than interpolation (RMSE %.2f vs %.2f mm over %d windows%s): the net is not "
+            "used, the tracks are interpolated (deformation=interp's model, adjusted to "
+            "convergence). A net for this animal: deformation=self "
             "(deform.require_better=false uses the net anyway)",
             *figures,
             "" if spec == "all" else "; per part no better either",
@@ -694,7 +696,8 @@ def _run(cfg: DictConfig) -> dict:
             log.warning(
                 "deformation=self: the adapted net does not predict held-out parts better "
                 "than linear interpolation (val RMSE %s vs %s mm; too little data or time?): "
-                "the tracks are deformation=interp's (adapt.require_better=false uses the net "
+                "the tracks are interpolated (deformation=interp's model, adjusted to "
+                "convergence; adapt.require_better=false uses the net "
                 "anyway; its checkpoint is %s)",
                 f"{net_mm:.2f}" if net_mm is not None else "n/a",
                 f"{lin_mm:.2f}" if lin_mm is not None else "n/a",
