@@ -204,7 +204,9 @@ def run_deformable(T: int, checkpoint: str | None, threads: int, work: Path) -> 
             "seconds": round(seconds, 2),
             "adjust_s": t.get("adjust_s"),  # the adjustments alone (rigid [+ interp + net])
             "stages_s": {
-                k: t[k] for k in ("rigid_s", "interp_s", "net_s", "measured_prior_s") if k in t
+                k: t[k]
+                for k in ("rigid_s", "interp_s", "heldout_check_s", "net_s", "measured_prior_s")
+                if k in t
             },
             "iterations": summary.get("iterations"),
             "completeness": float(np.isfinite(points).all(-1).mean()),
