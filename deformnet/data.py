@@ -16,6 +16,7 @@ import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader
 
+from deformnet import windows
 from deformnet.body import BodyModel
 from deformnet.windows import (  # noqa: F401  (re-exported)
     Augment,
@@ -36,21 +37,7 @@ from deformnet.windows import (  # noqa: F401  (re-exported)
 
 log = logging.getLogger(__name__)
 
-__all__ = [
-    "Augment",
-    "MaskConfig",
-    "SequenceArrays",
-    "mirror_asymmetry",
-    "mirror_permutation",
-    "toy_sequence",
-    "load_sequences",
-    "make_masks",
-    "gap_masks",
-    "WindowBank",
-    "RandomWindowBatches",
-    "FixedWindowBatches",
-    "DeformDataModule",
-]
+__all__ = [*windows.__all__, "DeformDataModule"]
 
 
 def _identity(x):

@@ -57,3 +57,17 @@ def write_bout_labels(path, labels, classes, first: int = 0):
     ]
     pd.DataFrame(rows, columns=["start", "stop", "label"]).to_csv(path, index=False)
     return path
+
+
+def track_session(scene, out, overrides) -> dict:
+    """`adjust-track` (its `run` through the compose API) on a session folder `scene` into
+    `out`, without a progress bar; returns its summary."""
+    from adjust.track import run
+    from deformnet.confutil import compose
+
+    return run(
+        compose(
+            "track",
+            [f"input.session={scene}", f"output.dir={out}", "progress=false", *overrides],
+        )
+    )

@@ -176,14 +176,9 @@ def scene(tmp_path_factory) -> Path:
 
 
 def _track(scene: Path, out: Path, overrides: list[str]) -> dict:
-    from adjust.track import run
+    from helpers import track_session
 
-    return run(
-        compose(
-            "track",
-            [f"input.session={scene}", f"output.dir={out}", "progress=false", *overrides],
-        )
-    )
+    return track_session(scene, out, overrides)
 
 
 def test_the_shipped_net_passes_on_its_own_kind_of_mouse(scene, tmp_path):

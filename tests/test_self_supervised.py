@@ -26,14 +26,9 @@ def scene(tmp_path_factory) -> Path:
 
 
 def _track(scene: Path, out: Path, overrides: list[str]) -> dict:
-    from adjust.track import run
+    from helpers import track_session
 
-    return run(
-        compose(
-            "track",
-            [f"input.session={scene}", f"output.dir={out}", "progress=false", *overrides],
-        )
-    )
+    return track_session(scene, out, overrides)
 
 
 def _points(out: Path) -> np.ndarray:
