@@ -2,9 +2,11 @@
 
 Metrics: `train/loss`, `val/loss` (masked MSE, mm^2, canonical = global distances),
 `val/rmse_mm` and `val/rmse_mm/<part>` of the net, and on the same validation windows the rigid
-baseline `val/rmse_mm_rigid` (predict X̄) and the linear-interpolation baseline
-`val/rmse_mm_linear` (`deformnet.tokens.linear_baseline`). RMSE is over the mid frame's observed
-parts (3D point distance).
+baseline `val/rmse_mm_rigid` (predict X̄), the linear-interpolation baseline
+`val/rmse_mm_linear` (`deformnet.tokens.linear_baseline`) and the offset-interpolation baseline
+`val/rmse_mm_interp` (`deformnet.tokens.offset_baseline`: the rigid model plus interpolated
+offsets, what adjust-track's `interp` does). RMSE is over the mid frame's observed parts (3D
+point distance); the sums are `deformnet.heldout.window_sums`.
 
 With `contrast` (weight > 0) a temporal-contrastive term (InfoNCE, in-batch negatives) is added
 for behavior pretraining: each training window and its `pair` (the same sequence a few frames
@@ -226,6 +228,7 @@ class DeformLit(L.LightningModule):
         self.log("val/rmse_mm", rmse(sums["net"]), prog_bar=True, sync_dist=True)
         self.log("val/rmse_mm_rigid", rmse(sums["rigid"]), sync_dist=True)
         self.log("val/rmse_mm_linear", rmse(sums["linear"]), sync_dist=True)
+        self.log("val/rmse_mm_interp", rmse(sums["offset"]), sync_dist=True)
         per_part = (sums["net"] / count.clamp_min(1.0)).sqrt().float()
         for name, value, c in zip(self.parts, per_part, count):
             if c > 0:

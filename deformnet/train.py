@@ -346,11 +346,12 @@ def _run(cfg: DictConfig) -> dict:
     if trainer.is_global_zero:
         write_text(out / "metrics.json", json.dumps(result, indent=2) + "\n")
         log.info(
-            "%s: val/rmse_mm %.3f (rigid %.3f, linear %.3f); checkpoints in %s",
+            "%s: val/rmse_mm %.3f (rigid %.3f, linear %.3f, interp %.3f); checkpoints in %s",
             name,
             metrics.get("val/rmse_mm", float("nan")),
             metrics.get("val/rmse_mm_rigid", float("nan")),
             metrics.get("val/rmse_mm_linear", float("nan")),
+            metrics.get("val/rmse_mm_interp", float("nan")),
             Path(ckpt_dir),
         )
     return result

@@ -101,6 +101,7 @@ def test_short_run_writes_checkpoints_and_metrics(tmp_path):
     assert last and Path(last).exists()
     parts = default_mouse().parts
     want = {"train/loss", "val/loss", "val/rmse_mm", "val/rmse_mm_rigid", "val/rmse_mm_linear"}
+    want |= {"val/rmse_mm_interp"}
     want |= {f"val/rmse_mm/{p}" for p in parts}
     assert want <= set(result["metrics"])
     m = result["metrics"]
