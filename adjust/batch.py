@@ -39,6 +39,7 @@ SUMMARY_COLUMNS = (
     "frames",
     "completeness",
     "median_reprojection_error_px",
+    "net_parts",  # a checked net (deform.require_better): parts it predicted / all, e.g. 6/8
     "seconds",
     "output",
 )
@@ -124,6 +125,9 @@ def _row_from_summary(row: dict, summary: dict) -> None:
     row["frames"] = summary.get("num_frames")
     row["completeness"] = summary.get("completeness")
     row["median_reprojection_error_px"] = (summary.get("reprojection_error_px") or {}).get("median")
+    held = (summary.get("deformation") or {}).get("heldout") or {}
+    if held.get("checked"):  # 0/8: the net was not used, the tracks are interpolated
+        row["net_parts"] = f"{len(held['net_parts'])}/{len(held['net_mm'])}"
 
 
 def _one_line(exc: BaseException) -> str:

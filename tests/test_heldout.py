@@ -240,3 +240,15 @@ def test_require_better_is_checked(scene, tmp_path):
 
     with pytest.raises(InputError, match="deform.require_better must be one of auto, parts, all"):
         _track(scene, tmp_path / "x", ["deformation=default", "deform.require_better=some"])
+
+
+def test_batch_summary_says_how_many_parts_the_net_predicted():
+    from adjust.batch import _row_from_summary
+
+    row = {}
+    held = {"checked": True, "net_parts": ["nose_tip"], "net_mm": dict.fromkeys("abcdefgh", 1.0)}
+    _row_from_summary(row, {"num_frames": 9, "deformation": {"heldout": held}})
+    assert row["net_parts"] == "1/8" and row["frames"] == 9
+    row = {}
+    _row_from_summary(row, {"deformation": {"mode": "interp"}})
+    assert "net_parts" not in row
