@@ -244,9 +244,12 @@ def heldout_check(model, poses, body, cons, cfg_def, where: str, mode: str = "de
     net_mm, int_mm = np.array(h["net_mm"]), np.array(h["interp_mm"])
     enough = np.array(h["targets"]) >= MIN_TARGETS
     better = np.where(enough, net_mm < int_mm, overall)
-    keep = {"all": np.full(len(body.parts), overall), "parts": better}.get(
-        spec, np.ones(len(body.parts), bool)
-    )
+    if spec == "parts":
+        keep = better
+    elif spec == "all":
+        keep = np.full(len(body.parts), overall)
+    else:  # report
+        keep = np.ones(len(body.parts), bool)
     facts = {
         "require_better": spec,
         "checked": True,

@@ -39,6 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit, start  # noqa: E402
+from domain_gap import evaluate  # noqa: E402
 from tracking import ensure_scene, run_track  # noqa: E402
 
 log = logging.getLogger("benchmarks.heldout_gate")
@@ -57,13 +58,6 @@ METHODS = {
 
 def seeds(text: str) -> list[int]:
     return [int(s) for s in str(text).split(",") if s.strip()]
-
-
-def evaluate(est: np.ndarray, truth: np.ndarray, nviews: np.ndarray) -> dict:
-    from adjust.metrics import point_errors
-
-    m = point_errors(est, truth, nviews)
-    return {"rmse_all": m["rmse_all"], "rmse_occluded": m["rmse_occluded"]}
 
 
 def group_summary(rows: dict, names: list[str]) -> dict:
@@ -108,8 +102,9 @@ def main(argv: list[str] | None = None) -> dict:
                 est, secs, summ = run_track(scene, work / name / method, ["threads=1", *mov])
                 d = summ.get("deformation", {})
                 h = d.get("heldout") or {}
+                m = evaluate(est, tr["points"], tr["nviews"])
                 rows[name][method] = {
-                    **evaluate(est, tr["points"], tr["nviews"]),
+                    **{k: m[k] for k in ("rmse_all", "rmse_occluded")},
                     "net_used_fraction": d.get("net_used_fraction", 0.0),
                     "net_parts": h.get("net_parts"),
                     "seconds": round(secs, 2),
