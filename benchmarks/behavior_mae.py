@@ -40,11 +40,23 @@ head that can threshold a feature, as the forest's splits do), alone / beside th
 net's / beside the pretrained net's embedding. This head was chosen after looking at the test
 sessions' macro-F1 of several heads; ``--test-offset 4`` tests on 4 other sessions (seeds
 95204..) to measure it without that choice's optimism.
+``pseudo_*``: the pretrained encoder as a teacher. A class-weighted logistic regression on a
+teacher's features labels the unlabelled training frames (class-balanced: each class's most
+confident 30% of the frames it predicts, its probabilities averaged over 9 frames;
+`pseudo_labels`), and the forest head's random forest on the frame features (the student,
+`forest_frame`'s learner) is fitted on the labelled and the pseudo-labelled frames
+(`fit_pseudo`). Teachers: ``pseudo_pretrained`` the binned frame features beside the
+pretrained embedding (`lr_binned_pretrained`'s features), ``pseudo_random`` beside the random
+net's, ``pseudo_binned`` the binned frame features alone (no encoder), ``pseudo_forest`` the
+forest on the frame features itself (self-training). The student reads no embedding: at test
+time the classifier is a forest on the frame features; what the encoder adds is in the labels it
+was fitted on. These rows were designed on the first 8 test sessions (seeds 95200-95207);
+``--test-offset 8`` tests them on 4 sessions no choice looked at (seeds 95208..).
 
     .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--seconds 300]
         [--unlabelled 8] [--draws 3] [--mask-ratio 0.5] [--longest-span 23]
         [--dilations 1,2,4,8,16] [--target all|frame]
-        [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]] [--test-offset 4]
+        [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]] [--test-offset 4|8]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_mae.json.
@@ -72,6 +84,9 @@ log = logging.getLogger("benchmarks.behavior_mae")
 UNLABELLED_SEED = 95_500  # the pretraining-only sessions (no other benchmark uses them)
 CONTEXT = (15, 33)  # the embedding's context spans (deformnet-classify's context.frames)
 BINS = 4  # quantile bins per frame feature of the binned rows (`binned`)
+SMOOTH = 9  # frames over which a teacher's probabilities are averaged (`pseudo_labels`)
+KEEP = 0.3  # share of each class's most confident frames pseudo-labelled
+LABELLED_WEIGHT = 5.0  # a labelled frame's weight against a pseudo-labelled one's
 
 
 class _Block(nn.Module):
@@ -253,6 +268,79 @@ def binned(xtr: np.ndarray, xte: np.ndarray, bins: int = BINS) -> tuple[np.ndarr
     return tuple(np.hstack([kb.transform(x).astype(x.dtype), x]) for x in (xtr, xte))
 
 
+def pseudo_labels(
+    teacher,
+    a: np.ndarray,
+    idx: np.ndarray,
+    frames: int,
+    classes: int,
+    smooth: int = SMOOTH,
+    keep: float = KEEP,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Class-balanced pseudo-labels of the unlabelled training frames from a fitted teacher
+    (scikit-learn classifier with `predict_proba`) on their features a (N, F), N = S frames:
+    its class probabilities averaged over centred spans of `smooth` frames within each session
+    (behaviors come in bouts), each frame given its most probable class, and of the frames given
+    a class the most confident `keep` share kept (every class its own share: a few-label
+    teacher's confidence is not comparable across classes, and a global threshold would keep
+    the easy classes only; Zou et al., ECCV 2018, class-balanced self-training). The labelled
+    frames idx are not pseudo-labelled. Returns the rows (M,) and their labels (M,)."""
+    from scipy.ndimage import uniform_filter1d
+
+    P = np.zeros((len(a), classes))
+    P[:, teacher.classes_] = teacher.predict_proba(a)
+    if smooth > 1:
+        P = uniform_filter1d(P.reshape(-1, frames, classes), smooth, axis=1, mode="nearest")
+        P = P.reshape(-1, classes)
+    pred, conf = P.argmax(1), P.max(1)
+    keep_mask = np.zeros(len(a), bool)
+    for c in range(classes):
+        rows = np.flatnonzero(pred == c)
+        if rows.size:
+            keep_mask[rows[conf[rows] >= np.quantile(conf[rows], 1.0 - keep)]] = True
+    keep_mask[idx] = False
+    rows = np.flatnonzero(keep_mask)
+    return rows, pred[rows]
+
+
+def fit_pseudo(
+    teacher_kind: str, ta, sa, sb, idx, y, w, yte, classes, forest: dict, frames: int
+) -> dict:
+    """The forest head's random forest (the student) on the frame features sa / sb, fitted on
+    the labelled frames idx (labels y) and the teacher's class-balanced pseudo-labels of the
+    other training frames (`pseudo_labels`); the teacher ("lr": the class-weighted logistic
+    regression, or "forest": the same forest on the frame features, i.e. self-training) fitted
+    on the labelled frames of its features ta. Sample weights: balanced over the labels and
+    pseudo-labels together, a labelled frame LABELLED_WEIGHT times a pseudo-labelled one. Test
+    macro-F1 and per-class F1."""
+    from sklearn.ensemble import RandomForestClassifier
+    from sklearn.linear_model import LogisticRegression
+
+    C = len(classes)
+    cw = {int(c): float(w[int(c)]) for c in np.unique(y)}
+
+    def new_forest(class_weight):
+        return RandomForestClassifier(
+            n_estimators=int(forest["trees"]), min_samples_leaf=int(forest["min_samples_leaf"]),
+            max_features=forest["max_features"], random_state=int(forest["seed"]), n_jobs=1,
+            class_weight=class_weight,
+        )  # fmt: skip
+
+    if teacher_kind == "lr":
+        teacher = LogisticRegression(C=1.0, max_iter=3000, class_weight=cw)
+    else:
+        teacher = new_forest(cw)
+    teacher.fit(ta[idx], y)
+    rows, yp = pseudo_labels(teacher, ta, idx, frames, C)
+    Y = np.concatenate([y, yp])
+    counts = np.bincount(Y, minlength=C)
+    sw = (counts.sum() / np.maximum(C * counts, 1))[Y]
+    sw[: len(y)] *= LABELLED_WEIGHT
+    student = new_forest(None)
+    student.fit(np.vstack([sa[idx], sa[rows]]), Y, sample_weight=sw)
+    return scores(yte, student.predict(sb), classes, "test")
+
+
 def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> dict:
     """Test macro-F1 and per-class F1 ({"macro_f1", "f1"}) of one learner ("lr" or "forest")
     fitted on the labelled rows idx of the standardised training features a, tested on the test
@@ -271,6 +359,16 @@ def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> dict:
         )  # fmt: skip
     clf.fit(a[idx], y)
     return scores(yte, clf.predict(b), classes, "test")
+
+
+# the pseudo-label rows: name -> (teacher learner, teacher features); the student is always the
+# forest on the frame features
+PSEUDO = {
+    "pseudo_pretrained": ("lr", "binned_pretrained"),
+    "pseudo_random": ("lr", "binned_random"),
+    "pseudo_binned": ("lr", "binned"),
+    "pseudo_forest": ("forest", "frame"),
+}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -401,6 +499,11 @@ def main(argv: list[str] | None = None) -> dict:
             sc = fit_score(kind, xa, xb, idx, y, w, yte, classes, forest)
             results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["macro_f1"]
             per_class.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["f1"]
+        for name, (kind, teacher) in PSEUDO.items():  # the forest student, taught
+            sc = fit_pseudo(kind, feats[teacher][0], *feats["frame"], idx, y, w, yte, classes,
+                            forest, T)  # fmt: skip
+            results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
+            per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
         if args.finetune:
             for name, model, probe, lr in (
                 ("finetune_pretrained", net, args.probe_steps, args.encoder_lr),
@@ -442,7 +545,10 @@ def main(argv: list[str] | None = None) -> dict:
              ("lr_frame_pretrained", "lr_frame"), ("forest_frame_pretrained", "forest_frame"),
              ("forest_frame", "rf"), ("lr_binned_pretrained", "rf"),
              ("lr_binned_pretrained", "lr_binned_random"),
-             ("lr_binned_pretrained", "lr_binned")]  # fmt: skip
+             ("lr_binned_pretrained", "lr_binned"),
+             ("pseudo_pretrained", "rf"), ("pseudo_pretrained", "pseudo_random"),
+             ("pseudo_pretrained", "pseudo_binned"), ("pseudo_pretrained", "pseudo_forest"),
+             ("pseudo_pretrained", "forest_frame")]  # fmt: skip
     if args.finetune:
         pairs += [("finetune_pretrained", "finetune_scratch"), ("finetune_pretrained", "rf"),
                   ("finetune_pretrained", "lr_pretrained")]  # fmt: skip
