@@ -24,6 +24,9 @@ one draw moves macro-F1 by several points.
   ``rf``) on the classifier's frame features (the tracked pose, the per-part offsets and their
   temporal context; the encoder's outputs are not read): ``rf`` and ``forest`` are the same
   learner on SimBA's features and on the tracked pose's;
+- ``forest_self``: ``forest`` self-trained (`pseudo_labels.teacher=self`, `deformnet.pseudo`):
+  the forest fitted on the labelled frames labels the other training frames, each class's most
+  confident 30% of them join the labelled ones, and the forest is fitted again on both;
 - ``forest_all``: the same forest head on every feature (`head.inputs=all`: the pretrained
   encoder's outputs with their temporal context besides the frame features);
   ``scratch_forest_all``: the same on the same architecture's random weights (what pretraining
@@ -118,6 +121,7 @@ METHODS = (
     "scratch",
     "scratch_frozen",
     "forest",
+    "forest_self",
     "forest_all",
     "scratch_forest_all",
     "rf",
@@ -289,9 +293,10 @@ def run_classifier(
             ov.append("freeze=true")
         if method == "scratch_forest_all":
             ov += ["head=forest", "head.inputs=all"]
-    elif method in ("forest", "forest_all"):
+    elif method in ("forest", "forest_self", "forest_all"):
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest"]
         ov += ["head.inputs=all"] if method == "forest_all" else []
+        ov += ["pseudo_labels.teacher=self"] if method == "forest_self" else []
     else:
         ov += [f"pretrained={ckpt}", f"freeze={'true' if method == 'frozen' else 'false'}"]
     t0 = time.perf_counter()
@@ -801,6 +806,10 @@ def main(argv: list[str] | None = None) -> dict:
         checks["pretrained_beats_rf_1pct"] = r1["pretrained"]["macro_f1"] > r1["rf"]["macro_f1"]
     if {"forest", "rf"} <= set(r1):
         checks["forest_beats_rf_1pct"] = r1["forest"]["macro_f1"] > r1["rf"]["macro_f1"]
+    if {"forest_self", "forest"} <= set(r1):
+        checks["forest_self_beats_forest_1pct"] = (
+            r1["forest_self"]["macro_f1"] > r1["forest"]["macro_f1"]
+        )
     for key in [k for k in ("0.01", "0.1") if transfer and k in results]:
         r, pct = results[key], f"{float(key) * 100:g}pct"
         for a, b in (("pretrained", "rf"), ("forest_all", "rf"), ("forest_all", "forest"),

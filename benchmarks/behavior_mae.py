@@ -43,7 +43,7 @@ sessions' macro-F1 of several heads; ``--test-offset 4`` tests on 4 other sessio
 ``pseudo_*``: the pretrained encoder as a teacher. A class-weighted logistic regression on a
 teacher's features labels the unlabelled training frames (class-balanced: each class's most
 confident 30% of the frames it predicts, its probabilities averaged over 9 frames;
-`pseudo_labels`), and the forest head's random forest on the frame features (the student,
+`deformnet.pseudo`), and the forest head's random forest on the frame features (the student,
 `forest_frame`'s learner) is fitted on the labelled and the pseudo-labelled frames
 (`fit_pseudo`). Teachers: ``pseudo_pretrained`` the binned frame features beside the
 pretrained embedding (`lr_binned_pretrained`'s features), ``pseudo_random`` beside the random
@@ -78,13 +78,14 @@ from common import emit, start
 from torch import nn
 
 from deformnet.confutil import compose, to_plain
+from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
 
 log = logging.getLogger("benchmarks.behavior_mae")
 
 UNLABELLED_SEED = 95_500  # the pretraining-only sessions (no other benchmark uses them)
 CONTEXT = (15, 33)  # the embedding's context spans (deformnet-classify's context.frames)
 BINS = 4  # quantile bins per frame feature of the binned rows (`binned`)
-SMOOTH = 9  # frames over which a teacher's probabilities are averaged (`pseudo_labels`)
+SMOOTH = 9  # frames over which a teacher's probabilities are averaged (`fit_pseudo`)
 KEEP = 0.3  # share of each class's most confident frames pseudo-labelled
 LABELLED_WEIGHT = 5.0  # a labelled frame's weight against a pseudo-labelled one's
 
@@ -268,50 +269,17 @@ def binned(xtr: np.ndarray, xte: np.ndarray, bins: int = BINS) -> tuple[np.ndarr
     return tuple(np.hstack([kb.transform(x).astype(x.dtype), x]) for x in (xtr, xte))
 
 
-def pseudo_labels(
-    teacher,
-    a: np.ndarray,
-    idx: np.ndarray,
-    frames: int,
-    classes: int,
-    smooth: int = SMOOTH,
-    keep: float = KEEP,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Class-balanced pseudo-labels of the unlabelled training frames from a fitted teacher
-    (scikit-learn classifier with `predict_proba`) on their features a (N, F), N = S frames:
-    its class probabilities averaged over centred spans of `smooth` frames within each session
-    (behaviors come in bouts), each frame given its most probable class, and of the frames given
-    a class the most confident `keep` share kept (every class its own share: a few-label
-    teacher's confidence is not comparable across classes, and a global threshold would keep
-    the easy classes only; Zou et al., ECCV 2018, class-balanced self-training). The labelled
-    frames idx are not pseudo-labelled. Returns the rows (M,) and their labels (M,)."""
-    from scipy.ndimage import uniform_filter1d
-
-    P = np.zeros((len(a), classes))
-    P[:, teacher.classes_] = teacher.predict_proba(a)
-    if smooth > 1:
-        P = uniform_filter1d(P.reshape(-1, frames, classes), smooth, axis=1, mode="nearest")
-        P = P.reshape(-1, classes)
-    pred, conf = P.argmax(1), P.max(1)
-    keep_mask = np.zeros(len(a), bool)
-    for c in range(classes):
-        rows = np.flatnonzero(pred == c)
-        if rows.size:
-            keep_mask[rows[conf[rows] >= np.quantile(conf[rows], 1.0 - keep)]] = True
-    keep_mask[idx] = False
-    rows = np.flatnonzero(keep_mask)
-    return rows, pred[rows]
-
-
 def fit_pseudo(
     teacher_kind: str, ta, sa, sb, idx, y, w, yte, classes, forest: dict, frames: int
 ) -> dict:
     """The forest head's random forest (the student) on the frame features sa / sb, fitted on
     the labelled frames idx (labels y) and the teacher's class-balanced pseudo-labels of the
-    other training frames (`pseudo_labels`); the teacher ("lr": the class-weighted logistic
-    regression, or "forest": the same forest on the frame features, i.e. self-training) fitted
-    on the labelled frames of its features ta. Sample weights: balanced over the labels and
-    pseudo-labels together, a labelled frame LABELLED_WEIGHT times a pseudo-labelled one. Test
+    other training frames (`deformnet.pseudo.class_balanced_pseudo_labels`: each class's most
+    confident KEEP share, probabilities averaged over SMOOTH frames); the teacher ("lr": the
+    class-weighted logistic regression, or "forest": the same forest on the frame features,
+    i.e. self-training) fitted on the labelled frames of its features ta. Sample weights
+    (`deformnet.pseudo.pseudo_sample_weights`): balanced over the labels and pseudo-labels
+    together, a labelled frame LABELLED_WEIGHT times a pseudo-labelled one. Test
     macro-F1 and per-class F1."""
     from sklearn.ensemble import RandomForestClassifier
     from sklearn.linear_model import LogisticRegression
@@ -331,11 +299,14 @@ def fit_pseudo(
     else:
         teacher = new_forest(cw)
     teacher.fit(ta[idx], y)
-    rows, yp = pseudo_labels(teacher, ta, idx, frames, C)
+    P = np.zeros((len(ta), C))
+    P[:, teacher.classes_] = teacher.predict_proba(ta)
+    labelled_rows = np.zeros(len(ta), bool)
+    labelled_rows[idx] = True
+    sessions = [frames] * (len(ta) // frames)
+    rows, yp = class_balanced_pseudo_labels(P, sessions, labelled_rows, KEEP, SMOOTH)
     Y = np.concatenate([y, yp])
-    counts = np.bincount(Y, minlength=C)
-    sw = (counts.sum() / np.maximum(C * counts, 1))[Y]
-    sw[: len(y)] *= LABELLED_WEIGHT
+    sw = pseudo_sample_weights(Y, len(y), C, LABELLED_WEIGHT)
     student = new_forest(None)
     student.fit(np.vstack([sa[idx], sa[rows]]), Y, sample_weight=sw)
     return scores(yte, student.predict(sb), classes, "test")

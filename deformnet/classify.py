@@ -272,11 +272,17 @@ def _lbfgs(head: nn.Module, x: Tensor, labels: Tensor, sw: Tensor, l2: float, ma
 
 
 def fit_head_forest(
-    model, features: Tensor, labels: Tensor, class_weights: Sequence[float] | None = None
+    model,
+    features: Tensor,
+    labels: Tensor,
+    class_weights: Sequence[float] | None = None,
+    sample_weight: np.ndarray | None = None,
 ) -> dict:
     """Fit the classifier's `ForestHead` (scikit-learn's RandomForestClassifier with the head's
     settings, class-weighted) on fixed features (N, out_dim) as `model.features` gives them
-    (standardised as `model.classify` does; trees do not care) and labels (N,). With
+    (standardised as `model.classify` does; trees do not care) and labels (N,); or, with
+    ``sample_weight`` (N,), weighted per frame instead of per class (self-training's labelled
+    and pseudo-labelled frames, `deformnet.pseudo.pseudo_sample_weights`). With
     ``head.inputs == "frame"`` the forest reads only the frame-feature columns
     (`BehaviorClassifier.frame_columns`). Returns {"trees", "nodes", "depth", "columns"}."""
     from sklearn.ensemble import RandomForestClassifier
@@ -297,8 +303,10 @@ def fit_head_forest(
     y = labels.numpy()
     present = np.unique(y)
     weights = None
-    if class_weights is not None:
+    if class_weights is not None and sample_weight is None:
         weights = {int(c): float(class_weights[int(c)]) for c in present}
+    if sample_weight is not None and np.shape(sample_weight) != y.shape:
+        raise ValueError(f"sample_weight must be ({y.size},), got {np.shape(sample_weight)}")
     forest = RandomForestClassifier(
         n_estimators=head.trees,
         min_samples_leaf=head.min_samples_leaf,
@@ -307,7 +315,7 @@ def fit_head_forest(
         random_state=head.seed,
         n_jobs=1,
     )
-    forest.fit(x.double().numpy(), y)
+    forest.fit(x.double().numpy(), y, sample_weight=sample_weight)
     head.set_forest(forest, cols.numpy(), forest.classes_)
     return {
         "trees": head.trees,
@@ -315,6 +323,74 @@ def fit_head_forest(
         "depth": int(head.depth),
         "columns": int(cols.numel()),
     }
+
+
+PSEUDO_TEACHERS = ("none", "self")
+
+
+def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
+    """`pseudo_labels` checked before any data is read: None (teacher none) or {"teacher",
+    "keep", "smooth", "labelled_weight"}."""
+    pl = dict(to_plain(cfg.get("pseudo_labels")) or {})
+    teacher = str(pl.get("teacher", "none"))
+    if teacher not in PSEUDO_TEACHERS:
+        raise ValueError(f"pseudo_labels.teacher must be one of {PSEUDO_TEACHERS}, got "
+                         f"'{teacher}'")  # fmt: skip
+    if teacher == "none":
+        return None
+    if not forest:
+        raise ValueError(f"pseudo_labels.teacher={teacher} self-trains the forest head: set "
+                         "head=forest freeze=true (or pseudo_labels.teacher=none)")  # fmt: skip
+    out = {"teacher": teacher}
+    for key, default, kind in (("keep", 0.3, float), ("smooth", 9, int),
+                               ("labelled_weight", 5.0, float)):  # fmt: skip
+        v = pl.get(key, default)
+        try:
+            if isinstance(v, bool) or (kind is int and float(v) != int(float(v))):
+                raise ValueError
+            out[key] = kind(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"pseudo_labels.{key} must be a number, got {v!r}") from None
+    if not 0.0 < out["keep"] <= 1.0:
+        raise ValueError(f"pseudo_labels.keep must be in (0, 1], got {out['keep']}")
+    if out["smooth"] < 1:
+        raise ValueError(f"pseudo_labels.smooth must be an integer >= 1, got {out['smooth']}")
+    if out["labelled_weight"] <= 0:
+        raise ValueError(f"pseudo_labels.labelled_weight must be > 0, got "
+                         f"{out['labelled_weight']}")  # fmt: skip
+    return out
+
+
+def self_train_forest(
+    model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
+    settings: dict, all_features: Tensor | None = None,
+) -> tuple[dict, Tensor]:  # fmt: skip
+    """Self-training of a fitted forest head (`pseudo_labels.teacher=self`): it labels every
+    training frame of ``bank`` (sessions of ``lengths`` frames), the class-balanced pseudo-labels
+    of the unlabelled ones (`deformnet.pseudo.class_balanced_pseudo_labels`) join the labelled
+    frames ``idx`` (their features ``features`` (N, D)) and the forest is fitted again on both,
+    weighted per frame (`pseudo_sample_weights`). Returns facts (the pseudo-labelled frames in all
+    and per class, the refitted forest's) and every training frame's features (len(bank), D)."""
+    from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
+
+    if all_features is None:
+        all_features = context_features(model, bank, torch.arange(len(bank)))
+    with torch.no_grad():
+        probs = model.classify(all_features).softmax(-1).double().numpy()
+    labels = bank.labels.numpy()
+    C = probs.shape[1]
+    rows, pseudo = class_balanced_pseudo_labels(
+        probs, lengths, labels >= 0, settings["keep"], settings["smooth"]
+    )
+    facts = {"teacher": settings["teacher"], "frames": int(rows.size),
+             "per_class": np.bincount(pseudo, minlength=C).tolist()}  # fmt: skip
+    if rows.size == 0:  # every frame is labelled: nothing to teach
+        return facts, all_features
+    y = np.concatenate([labels[idx], pseudo])
+    sw = pseudo_sample_weights(y, len(idx), C, settings["labelled_weight"])
+    x = torch.cat([features, all_features[torch.as_tensor(rows)]])
+    facts["forest"] = fit_head_forest(model, x, torch.as_tensor(y), sample_weight=sw)
+    return facts, all_features
 
 
 def _loader(bank, idx: np.ndarray, batch_size: int, samples: int | None, seed: int):
@@ -729,6 +805,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         raise ValueError(
             "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
         )
+    pseudo = pseudo_settings(cfg, forest)
     scale_mode = str(cfg.get("body_scale", "none"))  # settings checked before any data is read
     if scale_mode not in BODY_SCALE_MODES:
         raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{scale_mode}'")
@@ -830,6 +907,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     steps = 0
     trainer = None
     probe_facts: dict = {}
+    all_features = None  # every training frame's features (the forest's self-training)
     if bool(cfg.freeze) or probe > 0:
         fbank = _FeatureBank(model, bank, idx, train_features)
         fval = fv = None
@@ -840,6 +918,13 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         if solver in ("lbfgs", "forest"):
             if forest:
                 probe_facts = fit_head_forest(model, fbank.features, fbank.labels, weights)
+                if pseudo is not None:
+                    probe_facts["pseudo_labels"], all_features = self_train_forest(
+                        model, bank, [len(s) for s in train], idx, fbank.features, pseudo
+                    )
+                    pl = probe_facts["pseudo_labels"]
+                    log.info("self-training: %d pseudo-labelled frames (%s)", pl["frames"],
+                             dict(zip(classes, pl["per_class"])))  # fmt: skip
             else:
                 probe_facts = fit_head_lbfgs(
                     model,
@@ -883,7 +968,9 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     model.eval()
     # what the training data look like to the trained classifier: each feature's range over
     # every training frame (labelled or not), for telling a recording unlike them (predict)
-    rng = feature_range(context_features(model, bank, torch.arange(len(bank))))
+    if all_features is None:
+        all_features = context_features(model, bank, torch.arange(len(bank)))
+    rng = feature_range(all_features)
 
     smoothing = dict(to_plain(cfg.smoothing) or {})
     meta = {

@@ -1,0 +1,135 @@
+"""Class-balanced pseudo-labels (`deformnet.pseudo`) and the forest head's self-training
+(`deformnet-classify pseudo_labels.teacher=self`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from test_classify import CLASSES, TINY, _compose, _files, _toy_session
+
+from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
+
+
+def test_every_class_keeps_its_own_most_confident_share():
+    """A teacher sure of class 0 (0.9-0.99) and unsure of class 1 (0.51-0.6): a global threshold
+    at 0.7 would keep class 0 only; the class-balanced choice keeps the top 30% of each, the
+    labelled frames never, and the labels are the teacher's classes."""
+    n0, n1 = 100, 50
+    c0 = np.linspace(0.9, 0.99, n0)
+    c1 = np.linspace(0.51, 0.6, n1)
+    probs = np.concatenate(
+        [np.stack([c0, 1 - c0], 1), np.stack([1 - c1, c1], 1)]
+    )  # frames 0-99 class 0, 100-149 class 1
+    labelled = np.zeros(n0 + n1, bool)
+    labelled[[99, 149]] = True  # the most confident frame of each class is labelled
+    rows, labels = class_balanced_pseudo_labels(probs, [n0 + n1], labelled, keep=0.3, smooth=1)
+    # the share among every frame given the class (labelled ones included), then those dropped
+    expect0 = np.arange(n0)[c0 >= np.quantile(c0, 0.7)]
+    expect1 = n0 + np.arange(n1)[c1 >= np.quantile(c1, 0.7)]
+    expect = np.setdiff1d(np.concatenate([expect0, expect1]), [99, 149])
+    np.testing.assert_array_equal(rows, expect)
+    np.testing.assert_array_equal(labels, (rows >= n0).astype(int))
+    assert (labels == 1).sum() == len(expect1) - 1 == 14  # 30% of 50, less the labelled one
+    assert probs[rows[labels == 1]].max() < 0.7  # what a global threshold of 0.7 would drop
+    all_rows, _ = class_balanced_pseudo_labels(probs, [n0 + n1], np.zeros(n0 + n1, bool), 1.0, 1)
+    np.testing.assert_array_equal(all_rows, np.arange(n0 + n1))  # keep=1: every frame
+
+
+def test_smoothing_stays_within_each_session():
+    """Probabilities are averaged over 9 frames within a session: a lone flipped frame takes
+    its neighbours' class, and the last frames of a session keep their (weak) class beside the
+    next session's strong other class, which an average across the boundary would give them."""
+    a = np.tile([0.6, 0.4], (20, 1))
+    a[10] = [0.3, 0.7]  # a lone flip inside session 1
+    b = np.tile([0.1, 0.9], (20, 1))
+    probs = np.concatenate([a, b])
+    none = np.zeros(40, bool)
+    rows, labels = class_balanced_pseudo_labels(probs, [20, 20], none, keep=1.0, smooth=9)
+    np.testing.assert_array_equal(rows, np.arange(40))
+    np.testing.assert_array_equal(labels, np.r_[np.zeros(20, int), np.ones(20, int)])
+    _, raw = class_balanced_pseudo_labels(probs, [20, 20], none, keep=1.0, smooth=1)
+    assert raw[10] == 1  # unsmoothed, the flip stays
+    _, joined = class_balanced_pseudo_labels(probs, [40], none, keep=1.0, smooth=9)
+    assert joined[19] == 1 and joined[15] == 0  # one 40-frame session: b reaches into a
+    assert probs[19, 0] == 0.6  # the inputs are not changed in place
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"keep": 0.0}, r"keep must be in \(0, 1\]"),
+        ({"keep": 1.5}, r"keep must be in \(0, 1\]"),
+        ({"smooth": 0}, "smooth must be an integer >= 1"),
+        ({"smooth": 2.5}, "smooth must be an integer >= 1"),
+        ({"lengths": [3, 3]}, "must be >= 0 and sum to 10 frames"),
+        ({"labelled": np.zeros(9, bool)}, r"labelled must be \(10,\)"),
+    ],
+)
+def test_pseudo_label_argument_errors(kwargs, match):
+    args = {"probs": np.full((10, 2), 0.5), "lengths": [10], "labelled": np.zeros(10, bool)}
+    args |= kwargs
+    with pytest.raises(ValueError, match=match):
+        class_balanced_pseudo_labels(**args)
+
+
+def test_sample_weights_balance_classes_and_favour_labels():
+    y = np.array([0, 1, 0, 0, 0, 1])  # 2 labelled (0, 1), 4 pseudo-labelled
+    w = pseudo_sample_weights(y, 2, 3, labelled_weight=5.0)
+    per = np.array([6 / (3 * 4), 6 / (3 * 2)])  # class 0: 4 frames, class 1: 2
+    np.testing.assert_allclose(w, per[y] * np.r_[5.0, 5.0, 1, 1, 1, 1])
+    # balanced: each present class carries the same total weight among the pseudo-labels
+    assert w[2:][y[2:] == 0].sum() == pytest.approx(3 * per[0])
+    with pytest.raises(ValueError, match="labelled_weight must be > 0"):
+        pseudo_sample_weights(y, 2, 3, 0.0)
+
+
+def test_forest_self_training_in_deformnet_classify(tmp_path):
+    """pseudo_labels.teacher=self with head=forest: the forest labels the unlabelled training
+    frames, about `keep` of them (per class) join the labelled ones, the forest is refitted on
+    both and is still right on a held-out session; classifier.pt reloads and mode=predict
+    round-trips. A teacher for a head that is not a forest, or a bad share, is an error before
+    any data is read."""
+    from deformnet.classify import load_classifier, run
+
+    train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
+    test = [_toy_session(tmp_path, "test", 8)]
+    base = [
+        *TINY,
+        f"labels.classes=[{','.join(CLASSES)}]",
+        "labels.fraction=0.05",
+        *_files("train", train),
+        *_files("test", test),
+        "logger=none",
+        "smoothing.median=0",
+        "smoothing.min_bout=0",
+    ]
+    forest = ["head=forest", "head.trees=25", "freeze=true"]
+    with pytest.raises(ValueError, match="pseudo_labels.teacher=self self-trains the forest"):
+        run(_compose([*base, "pseudo_labels.teacher=self", f"output.dir={tmp_path / 'x'}"]))
+    with pytest.raises(ValueError, match=r"pseudo_labels.keep must be in \(0, 1\]"):
+        run(_compose([*base, *forest, "pseudo_labels.teacher=self", "pseudo_labels.keep=2",
+                      f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
+    with pytest.raises(ValueError, match="pseudo_labels.teacher must be one of"):
+        run(_compose([*base, *forest, "pseudo_labels.teacher=sequence",
+                      f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
+    out = tmp_path / "self"
+    rep = run(_compose([*base, *forest, "pseudo_labels.teacher=self", f"output.dir={out}"]))[
+        "report"
+    ]
+    pl = rep["probe"]["pseudo_labels"]
+    frames, labelled = 2 * 360, 2 * 18
+    assert pl["teacher"] == "self" and sum(pl["per_class"]) == pl["frames"]
+    # every class keeps at least 30% of the frames given it (ties can add more), less labelled
+    assert 0.3 * frames - labelled <= pl["frames"] <= 0.5 * frames
+    assert min(pl["per_class"]) >= 0.3 * 0.3 * frames  # both behaviors, not the easy one only
+    assert pl["forest"]["trees"] == 25
+    assert rep["raw"]["macro_f1"] >= 0.95, rep["raw"]
+    plain = run(_compose([*base, *forest, f"output.dir={tmp_path / 'plain'}"]))["report"]
+    assert "pseudo_labels" not in plain["probe"]  # teacher=none (default): labelled frames only
+    model, meta = load_classifier(out / "classifier.pt")
+    assert int(model.head.roots.numel()) == 25
+    p = run(_compose(["mode=predict", f"checkpoint={out / 'classifier.pt'}",
+                      f"tracks={test[0][0]}", f"output.dir={tmp_path / 'pred'}"]))  # fmt: skip
+    df = pd.read_csv(p["predictions"])
+    assert np.mean(df["label"].to_numpy() == np.asarray(CLASSES)[test[0][2]]) >= 0.95
