@@ -350,7 +350,8 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
                 raise ValueError
             out[key] = kind(v)
         except (TypeError, ValueError):
-            raise ValueError(f"pseudo_labels.{key} must be a number, got {v!r}") from None
+            what = "an integer" if kind is int else "a number"
+            raise ValueError(f"pseudo_labels.{key} must be {what}, got {v!r}") from None
     if not 0.0 < out["keep"] <= 1.0:
         raise ValueError(f"pseudo_labels.keep must be in (0, 1], got {out['keep']}")
     if out["smooth"] < 1:

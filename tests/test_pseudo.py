@@ -110,6 +110,9 @@ def test_forest_self_training_in_deformnet_classify(tmp_path):
     with pytest.raises(ValueError, match=r"pseudo_labels.keep must be in \(0, 1\]"):
         run(_compose([*base, *forest, "pseudo_labels.teacher=self", "pseudo_labels.keep=2",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
+    with pytest.raises(ValueError, match="pseudo_labels.smooth must be an integer"):
+        run(_compose([*base, *forest, "pseudo_labels.teacher=self", "pseudo_labels.smooth=2.5",
+                      f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
     with pytest.raises(ValueError, match="pseudo_labels.teacher must be one of"):
         run(_compose([*base, *forest, "pseudo_labels.teacher=sequence",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
