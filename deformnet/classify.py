@@ -364,7 +364,7 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
 
 def self_train_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
-    settings: dict, all_features: Tensor | None = None,
+    settings: dict,
 ) -> tuple[dict, Tensor]:  # fmt: skip
     """Self-training of a fitted forest head (`pseudo_labels.teacher=self`): it labels every
     training frame of ``bank`` (sessions of ``lengths`` frames), the class-balanced pseudo-labels
@@ -374,8 +374,7 @@ def self_train_forest(
     and per class, the refitted forest's) and every training frame's features (len(bank), D)."""
     from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
 
-    if all_features is None:
-        all_features = context_features(model, bank, torch.arange(len(bank)))
+    all_features = context_features(model, bank, torch.arange(len(bank)))
     with torch.no_grad():
         probs = model.classify(all_features).softmax(-1).double().numpy()
     labels = bank.labels.numpy()
