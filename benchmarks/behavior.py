@@ -122,11 +122,15 @@ METHODS = (
     "scratch_frozen",
     "forest",
     "forest_self",
+    "forest_sequence",
+    "forest_sequence_random",
     "forest_all",
     "scratch_forest_all",
     "rf",
 )
 TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's sessions (nothing trains on them)
+UNLABELLED_SEED = 95_500  # --unlabelled: sessions without labels (sequence pretraining only)
+SEQUENCE_METHODS = ("forest_sequence", "forest_sequence_random")
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,11 +267,13 @@ def run_classifier(
     transfer: list[dict] | None = None,
     body_scale: str = "session",
     resample: bool = True,
+    sequence: dict | None = None,
 ) -> dict:
     """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
     context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`;
     transfer: sessions the trained classifier then labels (`transfer_score`); body_scale:
-    the classifier's."""
+    the classifier's; sequence (the forest_sequence methods): {"unlabelled": sessions,
+    "steps": pretraining steps, "encoder": a sequence_encoder.pt to reuse or None}."""
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
@@ -297,6 +303,16 @@ def run_classifier(
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest"]
         ov += ["head.inputs=all"] if method == "forest_all" else []
         ov += ["pseudo_labels.teacher=self"] if method == "forest_self" else []
+    elif method in SEQUENCE_METHODS:
+        sq = sequence or {}
+        ov += [f"pretrained={ckpt}", "freeze=true", "head=forest", "pseudo_labels.teacher=sequence"]
+        if sq.get("encoder"):
+            ov.append(f"pseudo_labels.sequence.encoder={sq['encoder']}")
+        else:  # forest_sequence_random: the same net's random weights (no pretraining)
+            steps = 0 if method == "forest_sequence_random" else int(sq.get("steps", 1000))
+            ov.append(f"pseudo_labels.sequence.steps={steps}")
+            if sq.get("unlabelled") and steps:
+                ov.append(f"data.unlabelled_tracks={_list(u[source] for u in sq['unlabelled'])}")
     else:
         ov += [f"pretrained={ckpt}", f"freeze={'true' if method == 'frozen' else 'false'}"]
     t0 = time.perf_counter()
@@ -310,6 +326,9 @@ def run_classifier(
         "steps": rep["training_steps"],
         "seconds": round(time.perf_counter() - t0, 1),
     }
+    pl = (rep.get("probe") or {}).get("pseudo_labels")
+    if pl:  # the teacher's facts (its pseudo-labels, the sequence encoder's pretraining)
+        out_["pseudo_labels"] = {k: v for k, v in pl.items() if k != "forest"}
     if transfer:
         out_ |= transfer_score(out / "classifier.pt", transfer, source, resample)
         train_rate = sessions["train"][0]["fps"]
@@ -653,9 +672,20 @@ def main(argv: list[str] | None = None) -> dict:
         "events always run)",
     )
     add_context_args(ap)
+    ap.add_argument("--unlabelled", type=int, default=8,
+                    help="forest_sequence: more sessions without labels (seeds 95500..) the "
+                         "sequence encoder also pretrains on (data.unlabelled_tracks)")  # fmt: skip
+    ap.add_argument(
+        "--sequence-steps",
+        type=int,
+        default=1000,
+        help="forest_sequence: pretraining steps (pseudo_labels.sequence.steps)",
+    )
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
+    if args.unlabelled < 0 or args.sequence_steps < 1:
+        ap.error("--unlabelled must be >= 0 and --sequence-steps >= 1")
     methods = subset(ap, args.methods, METHODS, "--methods")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
@@ -696,6 +726,9 @@ def main(argv: list[str] | None = None) -> dict:
     extra["transfer_resampled"] = bool(transfer) and not args.no_resample
     extra["transfer_fps"] = sorted({s["fps"] for s in sessions.get("transfer", [])}) or None
 
+    unlabelled = [make_session(work, UNLABELLED_SEED + i, args.frames)
+                  for i in range(args.unlabelled)]  # fmt: skip
+    seq_encoders: dict[str, str] = {}  # forest_sequence*: the first run's sequence encoder
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:
         key = f"{frac:g}"
@@ -704,16 +737,21 @@ def main(argv: list[str] | None = None) -> dict:
         # several points: every method is run on the same `--label-draws` draws, averaged
         draws = range(args.label_draws if frac <= 0.01 else 1)
         for method in [m for m in methods if m != "rf"]:
-            runs = [
-                run_classifier(
-                    work / f"{tag}cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
-                    else work / f"{tag}cls_track_{method}_{key}",
-                    sessions, "track", frac, method, ckpt, args.seconds, label_seed=d, box=box,
-                    measurements=args.measurements, transfer=sessions.get("transfer"),
-                    body_scale=args.body_scale, resample=not args.no_resample,
-                )
-                for d in draws
-            ]  # fmt: skip
+            runs = []
+            for d in draws:
+                out = (work / f"{tag}cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
+                       else work / f"{tag}cls_track_{method}_{key}")  # fmt: skip
+                sq = None
+                if method in SEQUENCE_METHODS:  # pretrained once (no labels), then reused
+                    sq = {"unlabelled": unlabelled, "steps": args.sequence_steps,
+                          "encoder": seq_encoders.get(method)}  # fmt: skip
+                runs.append(run_classifier(
+                    out, sessions, "track", frac, method, ckpt, args.seconds, label_seed=d,
+                    box=box, measurements=args.measurements, transfer=sessions.get("transfer"),
+                    body_scale=args.body_scale, resample=not args.no_resample, sequence=sq,
+                ))  # fmt: skip
+                if method in SEQUENCE_METHODS and method not in seq_encoders:
+                    seq_encoders[method] = str(out / "sequence_encoder.pt")
             results[key][method] = averaged(runs)
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
         if "rf" in methods:
@@ -810,6 +848,11 @@ def main(argv: list[str] | None = None) -> dict:
         checks["forest_self_beats_forest_1pct"] = (
             r1["forest_self"]["macro_f1"] > r1["forest"]["macro_f1"]
         )
+    for b in ("rf", "forest_sequence_random", "forest_self", "forest"):
+        if {"forest_sequence", b} <= set(r1):  # the pretrained sequence encoder as a teacher
+            checks[f"forest_sequence_beats_{b}_1pct"] = (
+                r1["forest_sequence"]["macro_f1"] > r1[b]["macro_f1"]
+            )
     for key in [k for k in ("0.01", "0.1") if transfer and k in results]:
         r, pct = results[key], f"{float(key) * 100:g}pct"
         for a, b in (("pretrained", "rf"), ("forest_all", "rf"), ("forest_all", "forest"),
@@ -840,7 +883,11 @@ def main(argv: list[str] | None = None) -> dict:
         "setup": {
             "frames": args.frames,
             "sessions": counts,
-            "seeds": SEEDS | ({"transfer": TRANSFER_SEED} if transfer else {}),
+            "seeds": SEEDS
+            | ({"transfer": TRANSFER_SEED} if transfer else {})
+            | ({"unlabelled": UNLABELLED_SEED} if unlabelled else {}),
+            "unlabelled_sessions": len(unlabelled),
+            "sequence_steps": args.sequence_steps,
             "seconds_per_classifier": args.seconds,
             "label_draws_at_1pct": args.label_draws,
             "fractions": args.fractions,

@@ -9,10 +9,12 @@ own scale instead. Each frame of a session is the classifier's per-frame feature
 (`deformnet-classify`'s, without temporal context: the frozen deformation encoder's output, the
 mid pose, the per-part offsets, the lock-box mechanism distances and the SimBA-style
 measurements; `context.frames=[]`, `mechanisms.calibration`, `measurements=true`). A temporal
-convolutional net (`SequenceEncoder`: five residual dilated convolutions, 63 frames of
-receptive field, 128 channels) reads a session's sequence of them with spans of frames hidden
-(half of the frames, spans of 4-23) and is trained to reconstruct the hidden frames' features
-(MSE on the standardised features), on the training sessions and `--unlabelled` more
+convolutional net (`deformnet.sequence.SequenceEncoder`, the one `deformnet-classify
+pseudo_labels.teacher=sequence` pretrains: by default here five residual dilated convolutions,
+63 frames of receptive field, 128 channels) reads a session's sequence of them with spans of
+frames hidden (half of the frames, spans of 4-23) and is trained for `--steps` (1000) to
+reconstruct the hidden frames' features (MSE on the standardised features;
+`deformnet.sequence.pretrain_sequences`), on the training sessions and `--unlabelled` more
 sessions of the same simulated mouse, no labels (seeds 95500.., which no other benchmark
 uses). Its per-frame outputs, with their mean and standard deviation over centred spans of 15
 and 33 frames (as `deformnet-classify`'s context), are a frame's embedding.
@@ -53,7 +55,7 @@ time the classifier is a forest on the frame features; what the encoder adds is 
 was fitted on. These rows were designed on the first 8 test sessions (seeds 95200-95207);
 ``--test-offset 8`` tests them on 4 sessions no choice looked at (seeds 95208..).
 
-    .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--seconds 300]
+    .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--steps 1000]
         [--unlabelled 8] [--draws 3] [--mask-ratio 0.5] [--longest-span 23]
         [--dilations 1,2,4,8,16] [--target all|frame]
         [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]] [--test-offset 4|8]
@@ -79,6 +81,13 @@ from torch import nn
 
 from deformnet.confutil import compose, to_plain
 from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
+from deformnet.sequence import (
+    SequenceEncoder,
+    embeddings,
+    pooled,
+    pretrain_sequences,
+    quantile_binner,
+)
 
 log = logging.getLogger("benchmarks.behavior_mae")
 
@@ -88,110 +97,6 @@ BINS = 4  # quantile bins per frame feature of the binned rows (`binned`)
 SMOOTH = 9  # frames over which a teacher's probabilities are averaged (`fit_pseudo`)
 KEEP = 0.3  # share of each class's most confident frames pseudo-labelled
 LABELLED_WEIGHT = 5.0  # a labelled frame's weight against a pseudo-labelled one's
-
-
-class _Block(nn.Module):
-    def __init__(self, channels: int, dilation: int) -> None:
-        super().__init__()
-        self.conv = nn.Conv1d(channels, channels, 3, padding=dilation, dilation=dilation)
-        self.norm = nn.GroupNorm(1, channels)
-        self.mix = nn.Conv1d(channels, channels, 1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.mix(nn.functional.gelu(self.norm(self.conv(x))))
-
-
-class SequenceEncoder(nn.Module):
-    """A session's per-frame features (B, T, D) with hidden frames (mask (B, T), 1 = hidden:
-    their features are zeroed and flagged) -> per-frame embeddings (B, T, channels)
-    (`embed`) and reconstructed features (B, T, out_dim, default D) (`forward`)."""
-
-    def __init__(
-        self, dim: int, channels: int = 128, dilations=(1, 2, 4, 8, 16), out_dim: int | None = None
-    ) -> None:
-        super().__init__()
-        self.inp = nn.Conv1d(dim + 1, channels, 1)
-        self.blocks = nn.Sequential(*[_Block(channels, d) for d in dilations])
-        self.out = nn.Conv1d(channels, dim if out_dim is None else out_dim, 1)
-
-    def _hidden(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        z = torch.cat([x * (1 - mask[..., None]), mask[..., None]], -1).transpose(1, 2)
-        return self.blocks(self.inp(z))  # (B, channels, T)
-
-    def embed(self, x: torch.Tensor) -> torch.Tensor:
-        return self._hidden(x, x.new_zeros(x.shape[:2])).transpose(1, 2)
-
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        return self.out(self._hidden(x, mask)).transpose(1, 2)
-
-
-def span_mask(
-    batch: int, length: int, ratio: float, gen: torch.Generator, longest: int = 23
-) -> torch.Tensor:
-    """(batch, length) masks, 1 on spans of 4-`longest` frames until `ratio` of the frames
-    are."""
-    m = torch.zeros(batch, length)
-    for b in range(batch):
-        while m[b].mean() < ratio:
-            n = int(torch.randint(4, longest + 1, (1,), generator=gen))
-            s = int(torch.randint(0, length - n, (1,), generator=gen))
-            m[b, s : s + n] = 1
-    return m
-
-
-def pretrain_sequences(
-    model: SequenceEncoder,
-    data: torch.Tensor,
-    seconds: float,
-    ratio: float = 0.5,
-    longest: int = 23,
-    length: int = 256,
-    batch: int = 32,
-    target: torch.Tensor | None = None,
-) -> dict:
-    """Masked-span reconstruction on random crops of the standardised sessions data (S, T, D)
-    for `seconds` (AdamW, lr 1e-3; `ratio` of each crop hidden in spans of 4-`longest`
-    frames): of every feature, or of the columns `target` (the model's out_dim of them)
-    only; {"steps", "loss" (the last 100 steps' mean)}."""
-    cols = torch.arange(data.shape[-1]) if target is None else target
-    gen = torch.Generator().manual_seed(0)
-    opt = torch.optim.AdamW(model.parameters(), 1e-3, weight_decay=1e-4)
-    model.train()
-    t0, losses = time.perf_counter(), []
-    while time.perf_counter() - t0 < seconds:
-        si = torch.randint(0, data.shape[0], (batch,), generator=gen)
-        st = torch.randint(0, data.shape[1] - length, (batch,), generator=gen)
-        x = torch.stack([data[i, s : s + length] for i, s in zip(si.tolist(), st.tolist())])
-        m = span_mask(batch, length, ratio, gen, longest)
-        loss = (((model(x, m) - x[..., cols]) ** 2).mean(-1) * m).sum() / m.sum()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
-        if len(losses) % 200 == 0:
-            log.info("step %d: masked reconstruction %.4f", len(losses), np.mean(losses[-100:]))
-    model.eval()
-    return {"steps": len(losses), "loss": float(np.mean(losses[-100:]))}
-
-
-def pooled(z: torch.Tensor, eps: float = 0.0) -> torch.Tensor:
-    """Per-frame outputs z (S, C, T) -> (S, T, (1 + 2 len(CONTEXT)) C): each frame's output
-    with its mean and standard deviation over centred spans of CONTEXT frames (within the
-    session; eps under the square root keeps the gradient finite)."""
-    out = [z]
-    for span in CONTEXT:
-        mu = nn.functional.avg_pool1d(z, span, 1, span // 2, count_include_pad=False)
-        sq = nn.functional.avg_pool1d(z**2, span, 1, span // 2, count_include_pad=False)
-        out += [mu, (sq - mu**2).clamp_min(eps).sqrt()]
-    return torch.cat(out, 1).transpose(1, 2)
-
-
-@torch.no_grad()
-def embeddings(model: SequenceEncoder, data: torch.Tensor) -> np.ndarray:
-    """Each frame's embedding (S T, 3 channels): the net's output with its mean and standard
-    deviation over centred spans of CONTEXT frames (within the session)."""
-    z = torch.cat([model.embed(x[None]) for x in data]).transpose(1, 2)  # (S, C, T)
-    return pooled(z).flatten(0, 1).numpy()
 
 
 def finetune(
@@ -219,8 +124,8 @@ def finetune(
     drop = nn.Dropout(0.1)
 
     def feats(x: torch.Tensor) -> torch.Tensor:
-        z = net._hidden(drop(x), x.new_zeros(x.shape[:2]))
-        return pooled(z, 1e-8).flatten(0, 1)
+        z = net._hidden(drop(net.normalize(x)), x.new_zeros(x.shape[:2]))
+        return pooled(z, CONTEXT, 1e-8).flatten(0, 1)
 
     net.eval()
     with torch.no_grad():
@@ -259,14 +164,8 @@ def binned(xtr: np.ndarray, xte: np.ndarray, bins: int = BINS) -> tuple[np.ndarr
     bins (`bins` per feature, fewer where a feature has fewer distinct values; edges from every
     training frame, labelled or not): (N, B + F), (M, B + F), B the bins in all. A linear head
     on them can threshold a feature, as a forest's split does."""
-    import warnings
-
-    from sklearn.preprocessing import KBinsDiscretizer
-
-    with warnings.catch_warnings():  # a constant feature (an absent mechanism) gets one bin
-        warnings.filterwarnings("ignore", "Bins whose width are too small", UserWarning)
-        kb = KBinsDiscretizer(bins, encode="onehot-dense", strategy="quantile").fit(xtr)
-    return tuple(np.hstack([kb.transform(x).astype(x.dtype), x]) for x in (xtr, xte))
+    transform = quantile_binner(xtr, bins)
+    return transform(xtr), transform(xte)
 
 
 def fit_pseudo(
@@ -352,7 +251,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--pretrained", default=None,
                     help="deformnet-train checkpoint (the frozen deformation encoder whose "
                          "outputs are among the per-frame features; else a 240 s run)")  # fmt: skip
-    ap.add_argument("--seconds", type=float, default=300, help="masked-span pretraining time")
+    ap.add_argument("--steps", type=int, default=1000, help="masked-span pretraining steps")
     ap.add_argument("--mask-ratio", type=float, default=0.5, help="share of the frames hidden")
     ap.add_argument("--longest-span", type=int, default=23, help="longest hidden span, frames")
     ap.add_argument("--target", choices=("all", "frame"), default="all",
@@ -416,31 +315,28 @@ def main(argv: list[str] | None = None) -> dict:
 
     xtr, xte = seqs(per["train"]["features"]), seqs(per["test"]["features"])
     xun = xtr[:0] if per_unl is None else seqs(per_unl["train"]["features"])
-    pool = torch.cat([xtr, xun]).flatten(0, 1)  # no test frame sets the standardisation
-    mu, sd = pool.mean(0), pool.std(0)
-    sd = torch.where(sd > 1e-3, sd, torch.ones_like(sd))
-
-    def norm(x: torch.Tensor) -> torch.Tensor:
-        return ((x - mu) / sd).clamp(-8, 8)
-
+    pool = torch.cat([xtr, xun])  # no test frame sets the standardisation
     D = xtr.shape[-1]
     # --target frame: only the frame features' columns (not the deformation encoder's outputs)
     target = built[0].frame_columns() if args.target == "frame" else None
-    out_dim = None if target is None else len(target)
     torch.manual_seed(0)
     dil = tuple(int(d) for d in args.dilations.split(","))
-    random_net = SequenceEncoder(D, dilations=dil, out_dim=out_dim)
+    random_net = SequenceEncoder(D, dilations=dil, target=target)
+    random_net.set_standardization(pool.flatten(0, 1))
     torch.manual_seed(0)
-    net = SequenceEncoder(D, dilations=dil, out_dim=out_dim)
-    log.info("masked-span pretraining on %d sessions for %g s", len(xtr) + len(xun), args.seconds)
+    net = SequenceEncoder(D, dilations=dil, target=target)
+    log.info("masked-span pretraining on %d sessions, %d steps", len(pool), args.steps)
     extra["pretraining"] = pretrain_sequences(
-        net, norm(torch.cat([xtr, xun])), args.seconds, args.mask_ratio, args.longest_span,
-        target=target,
-    )  # fmt: skip
+        net, list(pool), args.steps, args.mask_ratio, args.longest_span
+    )
+
+    def emb(model: SequenceEncoder, x: torch.Tensor) -> np.ndarray:
+        return embeddings(model, list(x), CONTEXT).numpy()
+
     fcols = built_ctx[0].frame_columns().numpy()
     feats = {
-        "pretrained": (embeddings(net, norm(xtr)), embeddings(net, norm(xte))),
-        "random": (embeddings(random_net, norm(xtr)), embeddings(random_net, norm(xte))),
+        "pretrained": (emb(net, xtr), emb(net, xte)),
+        "random": (emb(random_net, xtr), emb(random_net, xte)),
         "frame": (
             ctx["train"]["features"].numpy()[:, fcols],
             ctx["test"]["features"].numpy()[:, fcols],
@@ -481,7 +377,7 @@ def main(argv: list[str] | None = None) -> dict:
                 ("finetune_scratch", random_net, 0, 1e-3),
             ):
                 t_ft = time.perf_counter()
-                pred = finetune(model, norm(xtr), idx, y, w, norm(xte), args.finetune, probe, lr)
+                pred = finetune(model, xtr, idx, y, w, xte, args.finetune, probe, lr)
                 sc = scores(yte, pred, classes, "test")
                 results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
                 per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
@@ -536,7 +432,7 @@ def main(argv: list[str] | None = None) -> dict:
             "test": args.test,
             "test_offset": args.test_offset,
             "unlabelled": args.unlabelled,
-            "seconds": args.seconds,
+            "steps": args.steps,
             "draws": args.draws,
             "mask_ratio": args.mask_ratio,
             "longest_span": args.longest_span,

@@ -69,6 +69,7 @@ from deformnet.confutil import to_plain
 from deformnet.deformation import check_track_up
 from deformnet.lockbox import calibration_mechanisms, mechanism_table
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.sequence import feature_signature
 
 log = logging.getLogger(__name__)
 
@@ -325,12 +326,66 @@ def fit_head_forest(
     }
 
 
-PSEUDO_TEACHERS = ("none", "self")
+PSEUDO_TEACHERS = ("none", "self", "sequence")
+SEQUENCE_DEFAULTS = {  # pseudo_labels.sequence (conf/classify.yaml documents them)
+    "encoder": None, "steps": 1000, "channels": 128, "dilations": [1, 2, 4, 8, 16, 32, 64],
+    "mask_ratio": 0.75, "longest_span": 60, "crop": 256, "batch": 32, "lr": 1e-3,
+    "target": "frame", "context": [15, 33], "bins": 4, "seed": 0,
+}  # fmt: skip
+
+
+def _number(block: str, key: str, v, kind):
+    try:
+        if isinstance(v, bool) or (kind is int and float(v) != int(float(v))):
+            raise ValueError
+        return kind(v)
+    except (TypeError, ValueError):
+        what = "an integer" if kind is int else "a number"
+        raise ValueError(f"{block}.{key} must be {what}, got {v!r}") from None
+
+
+def _sequence_settings(block) -> dict:
+    """`pseudo_labels.sequence` checked (ValueError naming the setting)."""
+    sq = {**SEQUENCE_DEFAULTS, **(dict(to_plain(block)) if block else {})}
+    unknown = sorted(set(sq) - set(SEQUENCE_DEFAULTS))
+    if unknown:
+        raise ValueError(f"pseudo_labels.sequence: unknown settings {unknown} (known: "
+                         f"{sorted(SEQUENCE_DEFAULTS)})")  # fmt: skip
+    b = "pseudo_labels.sequence"
+    out = {"encoder": None if sq["encoder"] in (None, "") else str(sq["encoder"])}
+    for key, kind, low in (("steps", int, 0), ("channels", int, 1), ("longest_span", int, 4),
+                           ("crop", int, 16), ("batch", int, 1), ("bins", int, 2),
+                           ("seed", int, None), ("lr", float, None),
+                           ("mask_ratio", float, None)):  # fmt: skip
+        out[key] = _number(b, key, sq[key], kind)
+        if low is not None and out[key] < low:
+            raise ValueError(f"{b}.{key} must be >= {low}, got {out[key]}")
+    if out["lr"] <= 0:
+        raise ValueError(f"{b}.lr must be > 0, got {out['lr']}")
+    if not 0.0 < out["mask_ratio"] < 1.0:
+        raise ValueError(f"{b}.mask_ratio must be in (0, 1), got {out['mask_ratio']}")
+    if str(sq["target"]) not in ("frame", "all"):
+        raise ValueError(f"{b}.target must be 'frame' or 'all', got '{sq['target']}'")
+    out["target"] = str(sq["target"])
+    for key in ("dilations", "context"):
+        v = sq[key]
+        if not isinstance(v, (list, tuple)):
+            raise ValueError(f"{b}.{key} must be a list of integers, got {v!r}")
+        out[key] = [_number(b, key, x, int) for x in v]
+    if not out["dilations"] or min(out["dilations"]) < 1:
+        raise ValueError(f"{b}.dilations must be a non-empty list of integers >= 1, got "
+                         f"{out['dilations']}")  # fmt: skip
+    if any(c < 3 or c % 2 == 0 for c in out["context"]):
+        raise ValueError(f"{b}.context must be odd frame counts >= 3, got {out['context']}")
+    if out["encoder"] is None and out["steps"] == 0:
+        log.warning("%s.steps=0: the sequence encoder is not pretrained (its random weights "
+                    "teach: a control, not a classifier to use)", b)  # fmt: skip
+    return out
 
 
 def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     """`pseudo_labels` checked before any data is read: None (teacher none) or {"teacher",
-    "keep", "smooth", "labelled_weight"}."""
+    "keep", "smooth", "labelled_weight"} (teacher=sequence: and "sequence", its settings)."""
     pl = dict(to_plain(cfg.get("pseudo_labels")) or {})
     teacher = str(pl.get("teacher", "none"))
     if teacher not in PSEUDO_TEACHERS:
@@ -341,17 +396,10 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     if not forest:
         raise ValueError(f"pseudo_labels.teacher={teacher} self-trains the forest head: set "
                          "head=forest freeze=true (or pseudo_labels.teacher=none)")  # fmt: skip
-    out = {"teacher": teacher}
+    out: dict = {"teacher": teacher}
     for key, default, kind in (("keep", 0.3, float), ("smooth", 9, int),
                                ("labelled_weight", 5.0, float)):  # fmt: skip
-        v = pl.get(key, default)
-        try:
-            if isinstance(v, bool) or (kind is int and float(v) != int(float(v))):
-                raise ValueError
-            out[key] = kind(v)
-        except (TypeError, ValueError):
-            what = "an integer" if kind is int else "a number"
-            raise ValueError(f"pseudo_labels.{key} must be {what}, got {v!r}") from None
+        out[key] = _number("pseudo_labels", key, pl.get(key, default), kind)
     if not 0.0 < out["keep"] <= 1.0:
         raise ValueError(f"pseudo_labels.keep must be in (0, 1], got {out['keep']}")
     if out["smooth"] < 1:
@@ -359,24 +407,107 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     if out["labelled_weight"] <= 0:
         raise ValueError(f"pseudo_labels.labelled_weight must be > 0, got "
                          f"{out['labelled_weight']}")  # fmt: skip
+    if teacher == "sequence":
+        out["sequence"] = _sequence_settings(pl.get("sequence"))
     return out
+
+
+def frame_feature_columns(model) -> Tensor:
+    """Indices (F,) of the frame features among a frame's own encoder output (the first
+    `model.encoder.out_dim` of its context features; `BehaviorClassifier.frame_columns`)."""
+    cols = model.frame_columns()
+    return cols[cols < model.encoder.out_dim]
+
+
+def sequence_teacher(
+    model,
+    train_features: Tensor,
+    lengths: Sequence[int],
+    unlabelled: Sequence[Tensor],
+    idx: np.ndarray,
+    labels: np.ndarray,
+    num_classes: int,
+    class_weights,
+    settings: dict,
+    signature: Mapping,
+    out: Path,
+) -> tuple[np.ndarray, dict]:
+    """`pseudo_labels.teacher=sequence`: the behavior-scale sequence encoder
+    (`deformnet.sequence`), pretrained by masked-span reconstruction on the training sessions'
+    per-frame features (each frame's own encoder output: the first `encoder.out_dim` columns of
+    ``train_features`` (N, out_dim), every training frame, sessions of ``lengths`` frames) and
+    the unlabelled sessions' (``unlabelled``: (T_i, encoder.out_dim) each), or loaded
+    (``settings["encoder"]``, checked against ``signature``); it is saved to
+    out/sequence_encoder.pt. Its embedding beside the binned frame features (with context) is
+    the logistic-regression teacher (`sequence_teacher_probs`) fitted on the labelled frames
+    ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights (C,) or None). Returns
+    every training frame's probabilities (N, C) and facts."""
+    from deformnet.atomic import atomic_path
+    from deformnet.sequence import (
+        SequenceEncoder,
+        embeddings,
+        export_sequence_encoder,
+        load_sequence_encoder,
+        pretrain_sequences,
+        sequence_teacher_probs,
+    )
+
+    D = model.encoder.out_dim
+    per_frame = train_features[:, :D].float()
+    bounds = np.cumsum([0, *lengths])
+    train_seqs = [per_frame[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    fcols = frame_feature_columns(model)
+    facts: dict = {}
+    if settings["encoder"]:
+        seq = load_sequence_encoder(settings["encoder"], signature)
+        if seq.dim != D:
+            raise ValueError(f"{settings['encoder']}: the sequence encoder reads {seq.dim} "
+                             f"features per frame, this classifier has {D}")  # fmt: skip
+        facts["encoder"] = str(settings["encoder"])
+        log.info("sequence encoder from %s", settings["encoder"])
+    else:
+        torch.manual_seed(int(settings["seed"]))
+        target = fcols if settings["target"] == "frame" else None
+        seq = SequenceEncoder(D, settings["channels"], settings["dilations"], target)
+        seqs = train_seqs + [torch.as_tensor(u, dtype=torch.float32) for u in unlabelled]
+        log.info("sequence pretraining: %d steps on %d sessions (%d unlabelled), %d frames",
+                 settings["steps"], len(seqs), len(unlabelled),
+                 sum(len(s) for s in seqs))  # fmt: skip
+        facts["pretraining"] = pretrain_sequences(
+            seq, seqs, settings["steps"], settings["mask_ratio"], settings["longest_span"],
+            settings["crop"], settings["batch"], settings["lr"], settings["seed"],
+        )  # fmt: skip
+        log.info("sequence pretraining: %s", facts["pretraining"])
+        path = out / "sequence_encoder.pt"
+        with atomic_path(path) as tmp:
+            torch.save(export_sequence_encoder(seq, signature, facts["pretraining"]), tmp)
+        facts["encoder"] = str(path)
+    emb = embeddings(seq, train_seqs, settings["context"]).double().numpy()
+    frame = train_features[:, model.frame_columns()].double().numpy()
+    probs = sequence_teacher_probs(frame, emb, idx, labels, num_classes, class_weights,
+                                   settings["bins"])  # fmt: skip
+    return probs, facts
 
 
 def self_train_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
-    settings: dict,
+    settings: dict, all_features: Tensor | None = None, probs: np.ndarray | None = None,
 ) -> tuple[dict, Tensor]:  # fmt: skip
-    """Self-training of a fitted forest head (`pseudo_labels.teacher=self`): it labels every
-    training frame of ``bank`` (sessions of ``lengths`` frames), the class-balanced pseudo-labels
-    of the unlabelled ones (`deformnet.pseudo.class_balanced_pseudo_labels`) join the labelled
-    frames ``idx`` (their features ``features`` (N, D)) and the forest is fitted again on both,
-    weighted per frame (`pseudo_sample_weights`). Returns facts (the pseudo-labelled frames in all
-    and per class, the refitted forest's) and every training frame's features (len(bank), D)."""
+    """Self-training of a fitted forest head: a teacher's class probabilities of every training
+    frame of ``bank`` (sessions of ``lengths`` frames; ``probs`` (len(bank), C), by default the
+    forest's own, `pseudo_labels.teacher=self`), the class-balanced pseudo-labels of the
+    unlabelled frames (`deformnet.pseudo.class_balanced_pseudo_labels`) join the labelled frames
+    ``idx`` (their features ``features`` (N, D)) and the forest is fitted again on both,
+    weighted per frame (`pseudo_sample_weights`). ``all_features``: every training frame's
+    features (len(bank), D), computed when not given. Returns facts (the pseudo-labelled frames
+    in all and per class, the refitted forest's) and every training frame's features."""
     from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
 
-    all_features = context_features(model, bank, torch.arange(len(bank)))
-    with torch.no_grad():
-        probs = model.classify(all_features).softmax(-1).double().numpy()
+    if all_features is None:
+        all_features = context_features(model, bank, torch.arange(len(bank)))
+    if probs is None:
+        with torch.no_grad():
+            probs = model.classify(all_features).softmax(-1).double().numpy()
     labels = bank.labels.numpy()
     C = probs.shape[1]
     rows, pseudo = class_balanced_pseudo_labels(
@@ -634,7 +765,10 @@ def set_body_scales(sessions: Sequence[Session], mode: str, body) -> None:
 
 
 def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list[Session]:
+    """The sessions of a split (train, val, test; or unlabelled: data.unlabelled_tracks, no
+    labels files, every frame's label -1) as the config reads them."""
     d = cfg.data
+    unl = split == "unlabelled"
     interp = bool(d.get("interpolate", False))
     if str(d.source) == "sim":
         from deformnet import sim
@@ -646,6 +780,7 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
             data = sim.simulate(sim_cfg, num_frames=int(d.sim.num_frames), seed=int(s), body=body)
             lut = {b: classes.index(b) if b in classes else -1 for b in data.behaviors}
             labels = np.array([lut[data.behaviors[i]] for i in data.labels], dtype=np.int64)
+            labels = np.full_like(labels, -1) if unl else labels
             obs = np.asarray(data.observed, bool)
             rigid = np.asarray(data.rigid, np.float32)
             deformed = np.where(obs[..., None], data.deformed, rigid).astype(np.float32)
@@ -656,6 +791,8 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
         raise ValueError(f"data.source must be 'files' or 'sim', got '{d.source}'")
     tracks = [str(p) for p in (d.get(f"{split}_tracks") or [])]
     labels = [str(p) for p in (d.get(f"{split}_labels") or [])]
+    if unl:
+        labels = [None] * len(tracks)
     if len(tracks) != len(labels):
         raise ValueError(
             f"data.{split}_tracks has {len(tracks)} files but data.{split}_labels {len(labels)}"
@@ -677,7 +814,10 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
     out = []
     for i, (tp, lp) in enumerate(zip(tracks, labels)):
         tr = read_tracks(tp, body, interpolate=interp)
-        lab = read_labels(lp, tr["fnum"], classes, tracks=tp)
+        if lp is None:
+            lab = np.full(len(tr["fnum"]), -1, dtype=np.int64)
+        else:
+            lab = read_labels(lp, tr["fnum"], classes, tracks=tp)
         parts = (tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"])
         s = Session(tp, *parts, lab, pose=tr["pose"])
         if rates is not None and not same_fps(rates[i], fps):
@@ -823,10 +963,17 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     train = _sessions(cfg, "train", body, classes)
     val = _sessions(cfg, "val", body, classes)
     test = _sessions(cfg, "test", body, classes)
+    # more recordings without labels: the sequence teacher's pretraining reads them
+    unlabelled = _sessions(cfg, "unlabelled", body, classes)
+    if unlabelled and (pseudo is None or pseudo["teacher"] != "sequence"):
+        log.warning("data.unlabelled_tracks: %d sessions not read (only "
+                    "pseudo_labels.teacher=sequence learns from them)",
+                    len(unlabelled))  # fmt: skip
+        unlabelled = []
     hup = model.encoder.heights_up if meas else None
-    for s in (*train, *val, *test):  # a heading-frame encoder or the heights: the tracks'
-        check_track_up(s.rigid, body.points, model.encoder.heights_up, s.name)  # world's up
-    set_body_scales((*train, *val, *test), scale_mode, body)
+    for s in (*train, *val, *test, *unlabelled):  # a heading-frame encoder or the heights: the
+        check_track_up(s.rigid, body.points, model.encoder.heights_up, s.name)  # tracks' up
+    set_body_scales((*train, *val, *test, *unlabelled), scale_mode, body)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
     frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
@@ -919,9 +1066,27 @@ def _train(cfg: DictConfig, out: Path) -> dict:
             if forest:
                 probe_facts = fit_head_forest(model, fbank.features, fbank.labels, weights)
                 if pseudo is not None:
+                    lengths = [len(s) for s in train]
+                    tprobs, tfacts = None, {}
+                    if pseudo["teacher"] == "sequence":
+                        all_features = context_features(model, bank, torch.arange(len(bank)))
+                        D = model.encoder.out_dim
+                        banks = [SessionBank([u], span) for u in unlabelled]
+                        unl_x = [context_features(model, ub, torch.arange(len(ub)))[:, :D]
+                                 for ub in banks]  # fmt: skip
+                        signature = feature_signature(model.encoder, {
+                            "mechanisms": None if mech is None else mech["names"],
+                            "measurements": bool(meas), "frame_features": bool(ff),
+                            "body_scale": scale_mode, "out_dim": D,
+                        })  # fmt: skip
+                        tprobs, tfacts = sequence_teacher(
+                            model, all_features, lengths, unl_x, idx, bank.labels.numpy()[idx],
+                            C, weights, pseudo["sequence"], signature, out,
+                        )  # fmt: skip
                     probe_facts["pseudo_labels"], all_features = self_train_forest(
-                        model, bank, [len(s) for s in train], idx, fbank.features, pseudo
+                        model, bank, lengths, idx, fbank.features, pseudo, all_features, tprobs
                     )
+                    probe_facts["pseudo_labels"] |= tfacts
                     pl = probe_facts["pseudo_labels"]
                     log.info("self-training: %d pseudo-labelled frames (%s)", pl["frames"],
                              dict(zip(classes, pl["per_class"])))  # fmt: skip

@@ -114,7 +114,7 @@ def test_forest_self_training_in_deformnet_classify(tmp_path):
         run(_compose([*base, *forest, "pseudo_labels.teacher=self", "pseudo_labels.smooth=2.5",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
     with pytest.raises(ValueError, match="pseudo_labels.teacher must be one of"):
-        run(_compose([*base, *forest, "pseudo_labels.teacher=sequence",
+        run(_compose([*base, *forest, "pseudo_labels.teacher=teacher",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
     out = tmp_path / "self"
     rep = run(_compose([*base, *forest, "pseudo_labels.teacher=self", f"output.dir={out}"]))[
