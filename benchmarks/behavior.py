@@ -27,6 +27,16 @@ one draw moves macro-F1 by several points.
 - ``forest_self``: ``forest`` self-trained (`pseudo_labels.teacher=self`, `deformnet.pseudo`):
   the forest fitted on the labelled frames labels the other training frames, each class's most
   confident 30% of them join the labelled ones, and the forest is fitted again on both;
+- ``forest_sequence``: ``forest`` taught by the pretrained behavior-scale sequence encoder
+  (`pseudo_labels.teacher=sequence`, `deformnet.sequence`): a temporal conv net over each
+  session's per-frame features, pretrained without labels (`--sequence-steps`, 1000) to fill in
+  hidden spans on the training sessions and `--unlabelled` (8) more sessions of the same mouse
+  (seeds 95500..; `data.unlabelled_tracks`); a logistic regression on its embedding beside the
+  binned frame features labels the other training frames, each class's most confident 30% join
+  the labelled ones. Pretrained once (the first run), its `sequence_encoder.pt` reused by the
+  other label draws and fractions (`pseudo_labels.sequence.encoder`: no labels are involved);
+  ``forest_sequence_random``: the same with the net's random weights (`steps=0`: what the
+  pretraining adds);
 - ``forest_all``: the same forest head on every feature (`head.inputs=all`: the pretrained
   encoder's outputs with their temporal context besides the frame features);
   ``scratch_forest_all``: the same on the same architecture's random weights (what pretraining
@@ -61,6 +71,8 @@ without `fps=` does.
 ``--body-scale session|none``: every `deformnet-classify` classifier's `body_scale` (session, the
 default: each session's animal size against the body model divided out of its pose features;
 none: the points as they are, as every run before stop 29).
+``--test-offset N``: the test sessions are seeds 95200+N.. (e.g. 12: sessions simulated after
+every choice of the pseudo-label methods was made; 95200-95211 were looked at).
 Input comparison: ``pretrained`` and ``rf`` at 10% on DLT (gap-filled) vs adjust-track output.
 Test macro-F1 over the test sessions (scikit-learn), raw and with the smoothing (median 9 +
 min bout 5) reported separately.
@@ -80,6 +92,7 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
         [--seconds 75]
         [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf] [--box]
         [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30] [--body-scale session|none]
+        [--unlabelled 8] [--sequence-steps 1000] [--test-offset 0]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
 and five L-BFGS fits on all 18000 training frames take about 20 min per method. A run with a
@@ -672,6 +685,9 @@ def main(argv: list[str] | None = None) -> dict:
         "events always run)",
     )
     add_context_args(ap)
+    ap.add_argument("--test-offset", type=int, default=0,
+                    help="the test sessions' seeds start this far after 95200 (e.g. 12: "
+                         "sessions no choice of a method looked at)")  # fmt: skip
     ap.add_argument("--unlabelled", type=int, default=8,
                     help="forest_sequence: more sessions without labels (seeds 95500..) the "
                          "sequence encoder also pretrains on (data.unlabelled_tracks)")  # fmt: skip
@@ -684,8 +700,11 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior.json"))
     args = ap.parse_args(argv)
-    if args.unlabelled < 0 or args.sequence_steps < 1:
-        ap.error("--unlabelled must be >= 0 and --sequence-steps >= 1")
+    if args.unlabelled < 0 or args.sequence_steps < 1 or args.test_offset < 0:
+        ap.error("--unlabelled and --test-offset must be >= 0 and --sequence-steps >= 1")
+    if SEEDS["test"] + args.test_offset + args.test > TRANSFER_SEED:
+        ap.error(f"--test-offset {args.test_offset}: the test seeds would reach the other "
+                 f"mouse's ({TRANSFER_SEED}..)")  # fmt: skip
     methods = subset(ap, args.methods, METHODS, "--methods")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
@@ -695,10 +714,12 @@ def main(argv: list[str] | None = None) -> dict:
     t_start = time.perf_counter()
 
     counts = {"train": args.train, "val": args.val, "test": args.test}
+    offsets = {"test": args.test_offset}
     sessions = {
-        split: [make_session(work, SEEDS[split] + i, args.frames) for i in range(n)]
+        split: [make_session(work, SEEDS[split] + offsets.get(split, 0) + i, args.frames)
+                for i in range(n)]
         for split, n in counts.items()
-    }
+    }  # fmt: skip
     transfer = add_transfer_sessions(sessions, work, args)
     t_sessions = time.perf_counter() - t_start
     extra: dict = {"sessions_seconds": round(t_sessions, 1)}
@@ -797,31 +818,31 @@ def main(argv: list[str] | None = None) -> dict:
         f"\nbehavior: {sum(counts.values())} sessions x {args.frames} frames (train "
         f"{args.train}, val {args.val}, test {args.test}); test macro-F1 (raw / smoothed)"
     )
-    print(f"{'labels':<8}" + "".join(f"{m:>22}" for m in methods))
+    print(f"{'labels':<8}" + "".join(f"{m:>24}" for m in methods))
     for key, r in results.items():
         cells = []
         for m in methods:
             sm = r[m].get("macro_f1_smoothed")
             cells.append(f"{_fmt(r[m]['macro_f1'])}" + (f" / {_fmt(sm)}" if sm is not None else ""))
-        print(f"{key:<8}" + "".join(f"{c:>22}" for c in cells))
+        print(f"{key:<8}" + "".join(f"{c:>24}" for c in cells))
     if transfer:
         print(f"\nthe other mouse ({', '.join(transfer)}; {args.test} sessions): macro-F1 (raw)")
-        print(f"{'labels':<8}" + "".join(f"{m:>22}" for m in methods))
+        print(f"{'labels':<8}" + "".join(f"{m:>24}" for m in methods))
         for key, r in results.items():
-            print(f"{key:<8}" + "".join(f"{_fmt(r[m].get('transfer_macro_f1')):>22}"
+            print(f"{key:<8}" + "".join(f"{_fmt(r[m].get('transfer_macro_f1')):>24}"
                                         for m in methods))  # fmt: skip
         if any("transfer_no_antialias" in r[m] for r in results.values() for m in methods):
             print("the same, resampled to the training rate without the low-pass (antialias=false)")
             for key, r in results.items():
                 print(f"{key:<8}" + "".join(
-                    f"{_fmt(r[m].get('transfer_no_antialias', {}).get('macro_f1')):>22}"
+                    f"{_fmt(r[m].get('transfer_no_antialias', {}).get('macro_f1')):>24}"
                     for m in methods))  # fmt: skip
         print("unfamiliar frames (deformnet-classify's check), test sessions / the other mouse")
         for key, r in results.items():
             cells = [f"{_fmt(r[m].get('unfamiliar_frames'))} / "
                      f"{_fmt(r[m].get('transfer_unfamiliar_frames'))}" if m != "rf" else "n/a"
                      for m in methods]  # fmt: skip
-            print(f"{key:<8}" + "".join(f"{c:>22}" for c in cells))
+            print(f"{key:<8}" + "".join(f"{c:>24}" for c in cells))
     print("\ninput (10% labels)  pretrained      rf")
     for src, r in inputs.items():
         print(f"{src:<18}{_fmt(r['pretrained']):>11}{_fmt(r['rf']):>9}")
@@ -886,6 +907,7 @@ def main(argv: list[str] | None = None) -> dict:
             "seeds": SEEDS
             | ({"transfer": TRANSFER_SEED} if transfer else {})
             | ({"unlabelled": UNLABELLED_SEED} if unlabelled else {}),
+            "test_offset": args.test_offset,
             "unlabelled_sessions": len(unlabelled),
             "sequence_steps": args.sequence_steps,
             "seconds_per_classifier": args.seconds,

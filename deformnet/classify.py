@@ -966,9 +966,14 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     # more recordings without labels: the sequence teacher's pretraining reads them
     unlabelled = _sessions(cfg, "unlabelled", body, classes)
     if unlabelled and (pseudo is None or pseudo["teacher"] != "sequence"):
-        log.warning("data.unlabelled_tracks: %d sessions not read (only "
+        log.warning("data.unlabelled_tracks: %d sessions not used (only "
                     "pseudo_labels.teacher=sequence learns from them)",
                     len(unlabelled))  # fmt: skip
+        unlabelled = []
+    elif unlabelled and pseudo["sequence"]["encoder"]:
+        log.warning("data.unlabelled_tracks: %d sessions not used (the sequence encoder is "
+                    "reused from %s, not pretrained)", len(unlabelled),
+                    pseudo["sequence"]["encoder"])  # fmt: skip
         unlabelled = []
     hup = model.encoder.heights_up if meas else None
     for s in (*train, *val, *test, *unlabelled):  # a heading-frame encoder or the heights: the
@@ -1157,6 +1162,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "feature_range": rng,
         "body_scale": scale_mode,
         "fps": fps,
+        "pseudo_labels": pseudo,  # how the forest head was taught (None: labelled frames only)
     }
     ckpt = out / "classifier.pt"
     from deformnet.atomic import atomic_path

@@ -187,7 +187,7 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     classifier is right on a held-out session; a run that reuses the saved encoder pseudo-labels
     the same frames; one whose per-frame features differ is told so; bad settings are errors
     before any data is read."""
-    from deformnet.classify import run
+    from deformnet.classify import load_classifier, run
 
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8)]
@@ -225,6 +225,9 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     assert pl["pretraining"]["steps"] == 30
     assert min(pl["per_class"]) >= 0.3 * 0.3 * 720  # both behaviors pseudo-labelled
     assert rep["report"]["raw"]["macro_f1"] >= 0.95, rep["report"]["raw"]
+    _, meta = load_classifier(out / "classifier.pt")  # how the head was taught is kept
+    assert meta["pseudo_labels"]["teacher"] == "sequence"
+    assert meta["pseudo_labels"]["sequence"]["steps"] == 30
     reused = run(_compose([*base, f"pseudo_labels.sequence.encoder={out / 'sequence_encoder.pt'}",
                            f"output.dir={tmp_path / 'reuse'}"]))["report"]  # fmt: skip
     rpl = reused["probe"]["pseudo_labels"]
