@@ -84,14 +84,9 @@ def test_sample_weights_balance_classes_and_favour_labels():
         pseudo_sample_weights(y, 2, 3, 0.0)
 
 
-def test_forest_self_training_in_deformnet_classify(tmp_path):
-    """pseudo_labels.teacher=self with head=forest: the forest labels the unlabelled training
-    frames, about `keep` of them (per class) join the labelled ones, the forest is refitted on
-    both and is still right on a held-out session; classifier.pt reloads and mode=predict
-    round-trips. A teacher for a head that is not a forest, or a bad share, is an error before
-    any data is read."""
-    from deformnet.classify import load_classifier, run
-
+def few_label_toy(tmp_path) -> tuple[list[str], list]:
+    """deformnet-classify overrides for two toy training sessions at 5% labels and a test
+    session (`test_classify._toy_session`), and the test sessions."""
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8)]
     base = [
@@ -104,6 +99,18 @@ def test_forest_self_training_in_deformnet_classify(tmp_path):
         "smoothing.median=0",
         "smoothing.min_bout=0",
     ]
+    return base, test
+
+
+def test_forest_self_training_in_deformnet_classify(tmp_path):
+    """pseudo_labels.teacher=self with head=forest: the forest labels the unlabelled training
+    frames, about `keep` of them (per class) join the labelled ones, the forest is refitted on
+    both and is still right on a held-out session; classifier.pt reloads and mode=predict
+    round-trips. A teacher for a head that is not a forest, or a bad share, is an error before
+    any data is read."""
+    from deformnet.classify import load_classifier, run
+
+    base, test = few_label_toy(tmp_path)
     forest = ["head=forest", "head.trees=25", "freeze=true"]
     with pytest.raises(ValueError, match="pseudo_labels.teacher=self self-trains the forest"):
         run(_compose([*base, "pseudo_labels.teacher=self", f"output.dir={tmp_path / 'x'}"]))

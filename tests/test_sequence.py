@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_classify import CLASSES, TINY, _compose, _files, _toy_session
+from test_classify import _compose, _toy_session
+from test_pseudo import few_label_toy
 
 from deformnet.sequence import (
     SequenceEncoder,
@@ -189,18 +190,10 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     before any data is read."""
     from deformnet.classify import load_classifier, run
 
-    train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
-    test = [_toy_session(tmp_path, "test", 8)]
+    base, _ = few_label_toy(tmp_path)
     unl = _toy_session(tmp_path, "unlabelled", 5)
     base = [
-        *TINY,
-        f"labels.classes=[{','.join(CLASSES)}]",
-        "labels.fraction=0.05",
-        *_files("train", train),
-        *_files("test", test),
-        "logger=none",
-        "smoothing.median=0",
-        "smoothing.min_bout=0",
+        *base,
         "head=forest",
         "head.trees=25",
         "freeze=true",
