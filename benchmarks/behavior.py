@@ -281,12 +281,14 @@ def run_classifier(
     body_scale: str = "session",
     resample: bool = True,
     sequence: dict | None = None,
+    extra: tuple[str, ...] = (),
 ) -> dict:
     """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
     context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`;
     transfer: sessions the trained classifier then labels (`transfer_score`); body_scale:
     the classifier's; sequence (the forest_sequence methods): {"unlabelled": sessions,
-    "steps": pretraining steps, "encoder": a sequence_encoder.pt to reuse or None}."""
+    "steps": pretraining steps, "encoder": a sequence_encoder.pt to reuse or None}; extra:
+    more deformnet-classify overrides."""
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
@@ -304,6 +306,7 @@ def run_classifier(
         ov.append(f"mechanisms.calibration={box}")
     if measurements:
         ov.append("measurements=true")
+    ov += list(extra)
     if fraction >= 1.0:  # the head's ensemble is for few labels; one MLP on all 18000 frames
         ov.append("head.ensemble=1")  # (five L-BFGS fits on them: about 20 min per method)
     if method in ("scratch", "scratch_frozen", "scratch_forest_all"):  # the checkpoint's
@@ -685,6 +688,9 @@ def main(argv: list[str] | None = None) -> dict:
         "events always run)",
     )
     add_context_args(ap)
+    ap.add_argument("--heights-up", action="store_true",
+                    help="--measurements with a body-frame encoder: heights_up=[0,0,1] (the "
+                         "parts' heights in the measurements, as behavior_mae.py has)")  # fmt: skip
     ap.add_argument("--test-offset", type=int, default=0,
                     help="the test sessions' seeds start this far after 95200 (e.g. 12: "
                          "sessions no choice of a method looked at)")  # fmt: skip
@@ -749,6 +755,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     unlabelled = [make_session(work, UNLABELLED_SEED + i, args.frames)
                   for i in range(args.unlabelled)]  # fmt: skip
+    extra_ov = ("heights_up=[0,0,1]",) if args.heights_up else ()
     seq_encoders: dict[str, str] = {}  # forest_sequence*: the first run's sequence encoder
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:
@@ -770,6 +777,7 @@ def main(argv: list[str] | None = None) -> dict:
                     out, sessions, "track", frac, method, ckpt, args.seconds, label_seed=d,
                     box=box, measurements=args.measurements, transfer=sessions.get("transfer"),
                     body_scale=args.body_scale, resample=not args.no_resample, sequence=sq,
+                    extra=extra_ov,
                 ))  # fmt: skip
                 if method in SEQUENCE_METHODS and method not in seq_encoders:
                     seq_encoders[method] = str(out / "sequence_encoder.pt")
@@ -785,6 +793,7 @@ def main(argv: list[str] | None = None) -> dict:
         r10["pretrained"] = run_classifier(
             work / f"{tag}cls_track_pretrained_0.1", sessions, "track", 0.1, "pretrained", ckpt,
             args.seconds, box=box, measurements=args.measurements, body_scale=args.body_scale,
+            extra=extra_ov,
         )  # fmt: skip
     if "rf" not in r10:
         r10["rf"] = run_rf(sessions, "track", 0.1, mechanisms=mech)
@@ -806,6 +815,7 @@ def main(argv: list[str] | None = None) -> dict:
                 box=box,
                 measurements=args.measurements,
                 body_scale=args.body_scale,
+                extra=extra_ov,
             )["macro_f1"],  # fmt: skip
             "rf": run_rf(same_mouse, "dlt", 0.1, mechanisms=mech)["macro_f1"],
         },
@@ -908,6 +918,7 @@ def main(argv: list[str] | None = None) -> dict:
             | ({"transfer": TRANSFER_SEED} if transfer else {})
             | ({"unlabelled": UNLABELLED_SEED} if unlabelled else {}),
             "test_offset": args.test_offset,
+            "heights_up": bool(args.heights_up),
             "unlabelled_sessions": len(unlabelled),
             "sequence_steps": args.sequence_steps,
             "seconds_per_classifier": args.seconds,
