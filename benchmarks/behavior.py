@@ -92,7 +92,8 @@ Targets: macro-F1 >= 0.9 at 10% labels (pretrained, tracked input); pretrained >
         [--seconds 75]
         [--label-draws 3] [--fractions 0.01,0.1,1] [--methods pretrained,...,forest,rf] [--box]
         [--measurements] [--transfer-sim sim=mouse_b,sim.fps=30] [--body-scale session|none]
-        [--unlabelled 8] [--sequence-steps 1000] [--test-offset 0]
+        [--unlabelled 8] [--sequence-steps 1000] [--sequence-encoder sequence_encoder.pt]
+        [--heights-up] [--test-offset 0]
 
 At 100% labels the head is one MLP (`head.ensemble=1`): the 5-MLP ensemble is for few labels,
 and five L-BFGS fits on all 18000 training frames take about 20 min per method. A run with a
@@ -691,6 +692,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--heights-up", action="store_true",
                     help="--measurements with a body-frame encoder: heights_up=[0,0,1] (the "
                          "parts' heights in the measurements, as behavior_mae.py has)")  # fmt: skip
+    ap.add_argument("--sequence-encoder", default=None,
+                    help="forest_sequence: a sequence_encoder.pt an earlier run pretrained on "
+                         "these training sessions, reused (no pretraining)")  # fmt: skip
     ap.add_argument("--test-offset", type=int, default=0,
                     help="the test sessions' seeds start this far after 95200 (e.g. 12: "
                          "sessions no choice of a method looked at)")  # fmt: skip
@@ -757,6 +761,8 @@ def main(argv: list[str] | None = None) -> dict:
                   for i in range(args.unlabelled)]  # fmt: skip
     extra_ov = ("heights_up=[0,0,1]",) if args.heights_up else ()
     seq_encoders: dict[str, str] = {}  # forest_sequence*: the first run's sequence encoder
+    if args.sequence_encoder:
+        seq_encoders["forest_sequence"] = args.sequence_encoder
     results: dict[str, dict] = {}
     for frac in [float(f) for f in args.fractions.split(",")]:
         key = f"{frac:g}"
@@ -919,6 +925,7 @@ def main(argv: list[str] | None = None) -> dict:
             | ({"unlabelled": UNLABELLED_SEED} if unlabelled else {}),
             "test_offset": args.test_offset,
             "heights_up": bool(args.heights_up),
+            "sequence_encoder": args.sequence_encoder,
             "unlabelled_sessions": len(unlabelled),
             "sequence_steps": args.sequence_steps,
             "seconds_per_classifier": args.seconds,
