@@ -143,7 +143,7 @@ METHODS = (
     "rf",
 )
 TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's sessions (nothing trains on them)
-UNLABELLED_SEED = 95_500  # --unlabelled: sessions without labels (sequence pretraining only)
+UNLABELLED_SEED = 95_500  # sessions without labels (sequence pretraining only; behavior_mae too)
 SEQUENCE_METHODS = ("forest_sequence", "forest_sequence_random")
 
 
@@ -757,8 +757,9 @@ def main(argv: list[str] | None = None) -> dict:
     extra["transfer_resampled"] = bool(transfer) and not args.no_resample
     extra["transfer_fps"] = sorted({s["fps"] for s in sessions.get("transfer", [])}) or None
 
-    unlabelled = [make_session(work, UNLABELLED_SEED + i, args.frames)
-                  for i in range(args.unlabelled)]  # fmt: skip
+    # the sequence methods' unlabelled sessions (made only where one of them runs)
+    n_unl = args.unlabelled if set(SEQUENCE_METHODS) & set(methods) else 0
+    unlabelled = [make_session(work, UNLABELLED_SEED + i, args.frames) for i in range(n_unl)]
     extra_ov = ("heights_up=[0,0,1]",) if args.heights_up else ()
     seq_encoders: dict[str, str] = {}  # forest_sequence*: the first run's sequence encoder
     if args.sequence_encoder:

@@ -74,7 +74,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from behavior import ROOT, SEEDS, _round, make_session, pretrain, rig_mechanisms, run_rf
+from behavior import (
+    ROOT,
+    SEEDS,
+    UNLABELLED_SEED,
+    _round,
+    make_session,
+    pretrain,
+    rig_mechanisms,
+    run_rf,
+)
 from behavior_probe import encoder_features, labelled, scores
 from common import emit, start
 from torch import nn
@@ -91,7 +100,6 @@ from deformnet.sequence import (
 
 log = logging.getLogger("benchmarks.behavior_mae")
 
-UNLABELLED_SEED = 95_500  # the pretraining-only sessions (no other benchmark uses them)
 CONTEXT = (15, 33)  # the embedding's context spans (deformnet-classify's context.frames)
 BINS = 4  # quantile bins per frame feature of the binned rows (`binned`)
 SMOOTH = 9  # frames over which a teacher's probabilities are averaged (`fit_pseudo`)

@@ -168,21 +168,40 @@ def context_features(model, bank: SessionBank, idx, batch_size: int = 512) -> Te
             m.training = mode
 
 
-def _context_features(model, bank: SessionBank, idx, batch_size: int) -> Tensor:
-    idx = torch.as_tensor(idx, dtype=torch.long)
+def _encode(model, bank: SessionBank, positions: Tensor, batch_size: int) -> Tensor:
+    """The encoder's outputs (P, encoder.out_dim) of the windows centred at ``positions`` (P,)
+    in the bank's arrays."""
     enc = model.encoder
     if bank.n != model.half_window:
         raise ValueError(f"bank half window {bank.n} != the classifier's {model.half_window}")
-    offsets = torch.as_tensor(model.offsets)
-    pos = bank.mids[idx][:, None] + offsets  # (N, O) positions in the bank's arrays
-    uniq, inverse = torch.unique(pos, return_inverse=True)
     steps = torch.arange(-enc.half_window, enc.half_window + 1)
     feats = []
-    for chunk in uniq.split(int(batch_size)):
+    for chunk in positions.split(int(batch_size)):
         fr = chunk[:, None] + steps
         scale = None if bank.scale is None else bank.scale[chunk]
         feats.append(enc(bank.rigid[fr], bank.deformed[fr], bank.observed[fr], scale))
-    F = torch.cat(feats) if feats else torch.zeros(0, enc.out_dim)
+    return torch.cat(feats) if feats else torch.zeros(0, enc.out_dim)
+
+
+@torch.no_grad()
+def frame_encodings(model, bank: SessionBank, batch_size: int = 512) -> Tensor:
+    """Every bank frame's own encoder output (len(bank), encoder.out_dim): its features
+    without temporal context (the first encoder.out_dim of `context_features`), in eval mode."""
+    modes = {m: m.training for m in model.modules()}
+    try:
+        model.eval()
+        return _encode(model, bank, bank.mids, batch_size)
+    finally:
+        for m, mode in modes.items():
+            m.training = mode
+
+
+def _context_features(model, bank: SessionBank, idx, batch_size: int) -> Tensor:
+    idx = torch.as_tensor(idx, dtype=torch.long)
+    offsets = torch.as_tensor(model.offsets)
+    pos = bank.mids[idx][:, None] + offsets  # (N, O) positions in the bank's arrays
+    uniq, inverse = torch.unique(pos, return_inverse=True)
+    F = _encode(model, bank, uniq, batch_size)
     out = [
         model.pool(F[inv])
         for inv in inverse.split(max(1, int(batch_size) * 8 // max(len(model.offsets), 1)))
@@ -419,11 +438,22 @@ def frame_feature_columns(model) -> Tensor:
     return cols[cols < model.encoder.out_dim]
 
 
+def sequence_signature(model, mech: Mapping | None, scale_mode: str) -> dict:
+    """What a sequence encoder pretrained on this classifier's per-frame features must match
+    (`deformnet.sequence.feature_signature`)."""
+    enc = model.encoder
+    return feature_signature(enc, {
+        "mechanisms": None if mech is None else mech["names"],
+        "measurements": bool(enc.measurements), "frame_features": bool(enc.frame_features),
+        "body_scale": scale_mode, "out_dim": enc.out_dim,
+    })  # fmt: skip
+
+
 def sequence_teacher(
     model,
     train_features: Tensor,
     lengths: Sequence[int],
-    unlabelled: Sequence[Tensor],
+    unlabelled: Sequence[Session],
     idx: np.ndarray,
     labels: np.ndarray,
     num_classes: int,
@@ -436,8 +466,8 @@ def sequence_teacher(
     (`deformnet.sequence`), pretrained by masked-span reconstruction on the training sessions'
     per-frame features (each frame's own encoder output: the first `encoder.out_dim` columns of
     ``train_features`` (N, out_dim), every training frame, sessions of ``lengths`` frames) and
-    the unlabelled sessions' (``unlabelled``: (T_i, encoder.out_dim) each), or loaded
-    (``settings["encoder"]``, checked against ``signature``); it is saved to
+    the ``unlabelled`` sessions' (`frame_encodings`), or loaded (``settings["encoder"]``,
+    checked against ``signature``, `sequence_signature`); it is saved to
     out/sequence_encoder.pt. Its embedding beside the binned frame features (with context) is
     the logistic-regression teacher (`sequence_teacher_probs`) fitted on the labelled frames
     ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights (C,) or None). Returns
@@ -456,20 +486,17 @@ def sequence_teacher(
     per_frame = train_features[:, :D].float()
     bounds = np.cumsum([0, *lengths])
     train_seqs = [per_frame[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-    fcols = frame_feature_columns(model)
     facts: dict = {}
-    if settings["encoder"]:
+    if settings["encoder"]:  # the signature holds the feature count (out_dim)
         seq = load_sequence_encoder(settings["encoder"], signature)
-        if seq.dim != D:
-            raise ValueError(f"{settings['encoder']}: the sequence encoder reads {seq.dim} "
-                             f"features per frame, this classifier has {D}")  # fmt: skip
         facts["encoder"] = str(settings["encoder"])
         log.info("sequence encoder from %s", settings["encoder"])
     else:
         torch.manual_seed(int(settings["seed"]))
-        target = fcols if settings["target"] == "frame" else None
+        target = frame_feature_columns(model) if settings["target"] == "frame" else None
         seq = SequenceEncoder(D, settings["channels"], settings["dilations"], target)
-        seqs = train_seqs + [torch.as_tensor(u, dtype=torch.float32) for u in unlabelled]
+        span = model.half_window
+        seqs = train_seqs + [frame_encodings(model, SessionBank([u], span)) for u in unlabelled]
         log.info("sequence pretraining: %d steps on %d sessions (%d unlabelled), %d frames",
                  settings["steps"], len(seqs), len(unlabelled),
                  sum(len(s) for s in seqs))  # fmt: skip
@@ -1075,18 +1102,10 @@ def _train(cfg: DictConfig, out: Path) -> dict:
                     tprobs, tfacts = None, {}
                     if pseudo["teacher"] == "sequence":
                         all_features = context_features(model, bank, torch.arange(len(bank)))
-                        D = model.encoder.out_dim
-                        banks = [SessionBank([u], span) for u in unlabelled]
-                        unl_x = [context_features(model, ub, torch.arange(len(ub)))[:, :D]
-                                 for ub in banks]  # fmt: skip
-                        signature = feature_signature(model.encoder, {
-                            "mechanisms": None if mech is None else mech["names"],
-                            "measurements": bool(meas), "frame_features": bool(ff),
-                            "body_scale": scale_mode, "out_dim": D,
-                        })  # fmt: skip
                         tprobs, tfacts = sequence_teacher(
-                            model, all_features, lengths, unl_x, idx, bank.labels.numpy()[idx],
-                            C, weights, pseudo["sequence"], signature, out,
+                            model, all_features, lengths, unlabelled, idx,
+                            bank.labels.numpy()[idx], C, weights, pseudo["sequence"],
+                            sequence_signature(model, mech, scale_mode), out,
                         )  # fmt: skip
                     probe_facts["pseudo_labels"], all_features = self_train_forest(
                         model, bank, lengths, idx, fbank.features, pseudo, all_features, tprobs

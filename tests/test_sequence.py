@@ -188,7 +188,14 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     classifier is right on a held-out session; a run that reuses the saved encoder pseudo-labels
     the same frames; one whose per-frame features differ is told so; bad settings are errors
     before any data is read."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.classify import (
+        SessionBank,
+        context_features,
+        frame_encodings,
+        load_classifier,
+        read_session,
+        run,
+    )
 
     base, _ = few_label_toy(tmp_path)
     unl = _toy_session(tmp_path, "unlabelled", 5)
@@ -218,8 +225,12 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     assert pl["pretraining"]["steps"] == 30
     assert min(pl["per_class"]) >= 0.3 * 0.3 * 720  # both behaviors pseudo-labelled
     assert rep["report"]["raw"]["macro_f1"] >= 0.95, rep["report"]["raw"]
-    _, meta = load_classifier(out / "classifier.pt")  # how the head was taught is kept
+    model, meta = load_classifier(out / "classifier.pt")  # how the head was taught is kept
     assert meta["pseudo_labels"]["teacher"] == "sequence"
+    # what the unlabelled sessions give the pretraining: each frame's own encoder output
+    bank = SessionBank([read_session(str(unl[0]), model, meta)], model.half_window)
+    own = context_features(model, bank, torch.arange(len(bank)))[:, : model.encoder.out_dim]
+    torch.testing.assert_close(frame_encodings(model, bank), own, rtol=1e-5, atol=1e-5)
     assert meta["pseudo_labels"]["sequence"]["steps"] == 30
     reused = run(_compose([*base, f"pseudo_labels.sequence.encoder={out / 'sequence_encoder.pt'}",
                            f"output.dir={tmp_path / 'reuse'}"]))["report"]  # fmt: skip
