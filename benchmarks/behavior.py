@@ -27,6 +27,8 @@ one draw moves macro-F1 by several points.
 - ``forest_self``: ``forest`` self-trained (`pseudo_labels.teacher=self`, `deformnet.pseudo`):
   the forest fitted on the labelled frames labels the other training frames, each class's most
   confident 30% of them join the labelled ones, and the forest is fitted again on both;
+- ``forest_linear``: the same with a logistic regression on the binned frame features as the
+  teacher (`pseudo_labels.teacher=linear`: no encoder, no pretraining);
 - ``forest_sequence``: ``forest`` taught by the pretrained behavior-scale sequence encoder
   (`pseudo_labels.teacher=sequence`, `deformnet.sequence`): a temporal conv net over each
   session's per-frame features, pretrained without labels (`--sequence-steps`, 1000) to fill in
@@ -136,6 +138,7 @@ METHODS = (
     "scratch_frozen",
     "forest",
     "forest_self",
+    "forest_linear",
     "forest_sequence",
     "forest_sequence_random",
     "forest_all",
@@ -316,10 +319,11 @@ def run_classifier(
             ov.append("freeze=true")
         if method == "scratch_forest_all":
             ov += ["head=forest", "head.inputs=all"]
-    elif method in ("forest", "forest_self", "forest_all"):
+    elif method in ("forest", "forest_self", "forest_linear", "forest_all"):
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest"]
         ov += ["head.inputs=all"] if method == "forest_all" else []
         ov += ["pseudo_labels.teacher=self"] if method == "forest_self" else []
+        ov += ["pseudo_labels.teacher=linear"] if method == "forest_linear" else []
     elif method in SEQUENCE_METHODS:
         sq = sequence or {}
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest", "pseudo_labels.teacher=sequence"]
@@ -886,7 +890,7 @@ def main(argv: list[str] | None = None) -> dict:
         checks["forest_self_beats_forest_1pct"] = (
             r1["forest_self"]["macro_f1"] > r1["forest"]["macro_f1"]
         )
-    for b in ("rf", "forest_sequence_random", "forest_self", "forest"):
+    for b in ("rf", "forest_sequence_random", "forest_linear", "forest_self", "forest"):
         if {"forest_sequence", b} <= set(r1):  # the pretrained sequence encoder as a teacher
             checks[f"forest_sequence_beats_{b}_1pct"] = (
                 r1["forest_sequence"]["macro_f1"] > r1[b]["macro_f1"]

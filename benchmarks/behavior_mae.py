@@ -93,6 +93,7 @@ from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
 from deformnet.sequence import (
     SequenceEncoder,
     embeddings,
+    load_sequence_encoder,
     pooled,
     pretrain_sequences,
     quantile_binner,
@@ -177,8 +178,9 @@ def binned(xtr: np.ndarray, xte: np.ndarray, bins: int = BINS) -> tuple[np.ndarr
 
 
 def fit_pseudo(
-    teacher_kind: str, ta, sa, sb, idx, y, w, yte, classes, forest: dict, frames: int
-) -> dict:
+    teacher_kind: str, ta, sa, sb, idx, y, w, yte, classes, forest: dict, frames: int,
+    student_kind: str = "forest", fa=None,
+) -> dict:  # fmt: skip
     """The forest head's random forest (the student) on the frame features sa / sb, fitted on
     the labelled frames idx (labels y) and the teacher's class-balanced pseudo-labels of the
     other training frames (`deformnet.pseudo.class_balanced_pseudo_labels`: each class's most
@@ -201,20 +203,29 @@ def fit_pseudo(
             class_weight=class_weight,
         )  # fmt: skip
 
+    def probs(teacher, x):
+        teacher.fit(x[idx], y)
+        P = np.zeros((len(x), C))
+        P[:, teacher.classes_] = teacher.predict_proba(x)
+        return P
+
     if teacher_kind == "lr":
-        teacher = LogisticRegression(C=1.0, max_iter=3000, class_weight=cw)
-    else:
-        teacher = new_forest(cw)
-    teacher.fit(ta[idx], y)
-    P = np.zeros((len(ta), C))
-    P[:, teacher.classes_] = teacher.predict_proba(ta)
+        P = probs(LogisticRegression(C=1.0, max_iter=3000, class_weight=cw), ta)
+    elif teacher_kind == "forest":
+        P = probs(new_forest(cw), ta)
+    else:  # "ensemble": the mean of the logistic regression's and the forest's (frame features)
+        P = 0.5 * (probs(LogisticRegression(C=1.0, max_iter=3000, class_weight=cw), ta)
+                   + probs(new_forest(cw), sa if fa is None else fa))  # fmt: skip
     labelled_rows = np.zeros(len(ta), bool)
     labelled_rows[idx] = True
     sessions = [frames] * (len(ta) // frames)
     rows, yp = class_balanced_pseudo_labels(P, sessions, labelled_rows, KEEP, SMOOTH)
     Y = np.concatenate([y, yp])
     sw = pseudo_sample_weights(Y, len(y), C, LABELLED_WEIGHT)
-    student = new_forest(None)
+    if student_kind == "lr":
+        student = LogisticRegression(C=1.0, max_iter=3000)
+    else:
+        student = new_forest(None)
     student.fit(np.vstack([sa[idx], sa[rows]]), Y, sample_weight=sw)
     return scores(yte, student.predict(sb), classes, "test")
 
@@ -239,14 +250,27 @@ def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> dict:
     return scores(yte, clf.predict(b), classes, "test")
 
 
-# the pseudo-label rows: name -> (teacher learner, teacher features); the student is always the
-# forest on the frame features
+# the pseudo-label rows: name -> (teacher learner, teacher features[, student learner,
+# student features]); the student is by default the forest on the frame features
 PSEUDO = {
     "pseudo_pretrained": ("lr", "binned_pretrained"),
     "pseudo_random": ("lr", "binned_random"),
     "pseudo_binned": ("lr", "binned"),
     "pseudo_forest": ("forest", "frame"),
-}
+    "pseudo_ensemble_pretrained": ("ensemble", "binned_pretrained"),
+    "pseudo_ensemble_random": ("ensemble", "binned_random"),
+    "pseudo_ensemble_binned": ("ensemble", "binned"),
+    "pseudo_ensemble_emb_pretrained": ("ensemble", "pretrained"),
+    "pseudo_ensemble_emb_random": ("ensemble", "random"),
+    # students that read the embedding too
+    "pseudo_pretrained_forest_frame_pretrained": ("lr", "binned_pretrained", "forest",
+                                                  "frame_pretrained"),
+    "pseudo_random_forest_frame_random": ("lr", "binned_random", "forest", "frame_random"),
+    "pseudo_pretrained_lr_binned_pretrained": ("lr", "binned_pretrained", "lr",
+                                               "binned_pretrained"),
+    "pseudo_random_lr_binned_random": ("lr", "binned_random", "lr", "binned_random"),
+    "pseudo_binned_lr_binned": ("lr", "binned", "lr", "binned"),
+}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -280,6 +304,15 @@ def main(argv: list[str] | None = None) -> dict:
                     help="the test sessions' seeds start this far after the usual ones "
                          "(e.g. 4: sessions no earlier choice of a head looked at)")  # fmt: skip
     ap.add_argument("--draws", type=int, default=3, help="label draws at 1%%")
+    ap.add_argument("--sequence-encoder", default=None,
+                    help="a sequence_encoder.pt deformnet-classify (teacher=sequence) saved, "
+                         "pretrained on these per-frame features: used instead of pretraining "
+                         "one (--steps, --mask-ratio, --longest-span, --dilations, --target "
+                         "are then its own)")  # fmt: skip
+    ap.add_argument("--pseudo-only", action="store_true",
+                    help="only the pseudo_* rows (and rf): the teachers")  # fmt: skip
+    ap.add_argument("--pseudo", default=",".join(PSEUDO),
+                    help="the pseudo_* rows to run, comma-separated (default: all)")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_mae.json"))
     ap.add_argument("--threads", type=int, default=1)
@@ -291,6 +324,10 @@ def main(argv: list[str] | None = None) -> dict:
     if SEEDS["test"] + args.test_offset + args.test > UNLABELLED_SEED:
         ap.error(f"--test-offset {args.test_offset}: the test seeds would reach the unlabelled "
                  f"sessions' ({UNLABELLED_SEED}..)")  # fmt: skip
+    pseudo_rows = [n for n in args.pseudo.split(",") if n]
+    if set(pseudo_rows) - set(PSEUDO):
+        ap.error(f"--pseudo: unknown rows {sorted(set(pseudo_rows) - set(PSEUDO))} "
+                 f"(known: {', '.join(PSEUDO)})")  # fmt: skip
     if args.finetune < 0 or args.probe_steps < 0 or args.encoder_lr <= 0:
         ap.error("--finetune and --probe-steps must be >= 0, --encoder-lr > 0")
     if args.finetune and args.probe_steps > args.finetune:
@@ -327,16 +364,25 @@ def main(argv: list[str] | None = None) -> dict:
     D = xtr.shape[-1]
     # --target frame: only the frame features' columns (not the deformation encoder's outputs)
     target = built[0].frame_columns() if args.target == "frame" else None
-    torch.manual_seed(0)
     dil = tuple(int(d) for d in args.dilations.split(","))
-    random_net = SequenceEncoder(D, dilations=dil, target=target)
-    random_net.set_standardization(pool.flatten(0, 1))
+    if args.sequence_encoder:  # deformnet-classify's: its own architecture and target
+        net = load_sequence_encoder(args.sequence_encoder)
+        if net.dim != D:
+            ap.error(f"--sequence-encoder {args.sequence_encoder} reads {net.dim} features per "
+                     f"frame, these sessions have {D}")  # fmt: skip
+        saved = torch.load(args.sequence_encoder, map_location="cpu", weights_only=False)
+        extra["pretraining"] = {**saved["facts"], "encoder": args.sequence_encoder}
+        dil, target = tuple(net.dilations), net.target
     torch.manual_seed(0)
-    net = SequenceEncoder(D, dilations=dil, target=target)
-    log.info("masked-span pretraining on %d sessions, %d steps", len(pool), args.steps)
-    extra["pretraining"] = pretrain_sequences(
-        net, list(pool), args.steps, args.mask_ratio, args.longest_span
-    )
+    random_net = SequenceEncoder(D, dilations=dil, target=target)  # 128 channels
+    random_net.set_standardization(pool.flatten(0, 1))
+    if not args.sequence_encoder:
+        torch.manual_seed(0)
+        net = SequenceEncoder(D, dilations=dil, target=target)
+        log.info("masked-span pretraining on %d sessions, %d steps", len(pool), args.steps)
+        extra["pretraining"] = pretrain_sequences(
+            net, list(pool), args.steps, args.mask_ratio, args.longest_span
+        )
 
     def emb(model: SequenceEncoder, x: torch.Tensor) -> np.ndarray:
         return embeddings(model, list(x), CONTEXT).numpy()
@@ -350,9 +396,10 @@ def main(argv: list[str] | None = None) -> dict:
             ctx["test"]["features"].numpy()[:, fcols],
         ),  # fmt: skip
     }
-    feats["frame_pretrained"] = tuple(
-        np.hstack([f, p]) for f, p in zip(feats["frame"], feats["pretrained"])
-    )
+    for name in ("pretrained", "random"):
+        feats[f"frame_{name}"] = tuple(
+            np.hstack([f, p]) for f, p in zip(feats["frame"], feats[name])
+        )
     feats = {k: standardised(*v) for k, v in feats.items()}
     feats["binned"] = binned(*feats["frame"])
     for name in ("pretrained", "random"):  # the binned frame features beside an embedding
@@ -364,6 +411,8 @@ def main(argv: list[str] | None = None) -> dict:
                ("forest", "pretrained"), ("forest", "random"), ("forest", "frame"),
                ("lr", "frame_pretrained"), ("forest", "frame_pretrained"),
                ("lr", "binned"), ("lr", "binned_random"), ("lr", "binned_pretrained")]  # fmt: skip
+    if args.pseudo_only:
+        methods = []
     results: dict = {}
     per_class: dict = {}  # method -> {plan: {class: F1}}
     for f, d in plan:
@@ -374,9 +423,11 @@ def main(argv: list[str] | None = None) -> dict:
             sc = fit_score(kind, xa, xb, idx, y, w, yte, classes, forest)
             results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["macro_f1"]
             per_class.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["f1"]
-        for name, (kind, teacher) in PSEUDO.items():  # the forest student, taught
-            sc = fit_pseudo(kind, feats[teacher][0], *feats["frame"], idx, y, w, yte, classes,
-                            forest, T)  # fmt: skip
+        for name in pseudo_rows:  # a student, taught
+            kind, teacher, *student = PSEUDO[name]
+            skind, sname = student or ("forest", "frame")
+            sc = fit_pseudo(kind, feats[teacher][0], *feats[sname], idx, y, w, yte, classes,
+                            forest, T, skind, feats["frame"][0])  # fmt: skip
             results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
             per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
         if args.finetune:
@@ -411,10 +462,11 @@ def main(argv: list[str] | None = None) -> dict:
           f"test sessions x {T} frames; pretrained on {args.train + args.unlabelled} sessions, "
           f"{extra['pretraining']['steps']} steps)")  # fmt: skip
     w_ = max(len(n) for n in table) + 2
-    print(f"{'method':<{w_}}{'1% (mean)':>10}{'1% draws':>26}{'10%':>8}")
+    wd = 8 * args.draws + 2  # "0.123 / " per draw
+    print(f"{'method':<{w_}}{'1% (mean)':>10}{'1% draws':>{wd}}{'10%':>8}")
     for name, t in table.items():
         draws = " / ".join(f"{x:.3f}" for x in t["1%_draws"])
-        print(f"{name:<{w_}}{t['1%']:>10.3f}{draws:>26}{t['10%']:>8.3f}")
+        print(f"{name:<{w_}}{t['1%']:>10.3f}{draws:>{wd}}{t['10%']:>8.3f}")
     pairs = [("lr_pretrained", "lr_random"), ("forest_pretrained", "forest_random"),
              ("lr_pretrained", "lr_frame"), ("lr_pretrained", "rf"), ("forest_pretrained", "rf"),
              ("lr_frame_pretrained", "lr_frame"), ("forest_frame_pretrained", "forest_frame"),
@@ -427,7 +479,13 @@ def main(argv: list[str] | None = None) -> dict:
     if args.finetune:
         pairs += [("finetune_pretrained", "finetune_scratch"), ("finetune_pretrained", "rf"),
                   ("finetune_pretrained", "lr_pretrained")]  # fmt: skip
-    checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"] for a, b in pairs}
+    pairs += [("pseudo_ensemble_pretrained", "pseudo_ensemble_random"),
+              ("pseudo_ensemble_pretrained", "pseudo_ensemble_binned"),
+              ("pseudo_ensemble_pretrained", "pseudo_pretrained"),
+              ("pseudo_ensemble_emb_pretrained", "pseudo_ensemble_emb_random"),
+              ("pseudo_ensemble_emb_pretrained", "pseudo_pretrained")]  # fmt: skip
+    checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"]
+              for a, b in pairs if a in table and b in table}  # fmt: skip
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {
         "table": table,
@@ -440,12 +498,15 @@ def main(argv: list[str] | None = None) -> dict:
             "test": args.test,
             "test_offset": args.test_offset,
             "unlabelled": args.unlabelled,
-            "steps": args.steps,
+            # a loaded encoder (--sequence-encoder): its own pretraining, in "pretraining"
+            "sequence_encoder": args.sequence_encoder,
+            "steps": None if args.sequence_encoder else args.steps,
             "draws": args.draws,
-            "mask_ratio": args.mask_ratio,
-            "longest_span": args.longest_span,
+            "mask_ratio": None if args.sequence_encoder else args.mask_ratio,
+            "longest_span": None if args.sequence_encoder else args.longest_span,
             "dilations": list(dil),
-            "target": args.target,
+            "target": (None if args.sequence_encoder else args.target),
+            "pseudo": pseudo_rows,
             "finetune": args.finetune,
             "probe_steps": args.probe_steps,
             "encoder_lr": args.encoder_lr,

@@ -345,11 +345,11 @@ def fit_head_forest(
     }
 
 
-PSEUDO_TEACHERS = ("none", "self", "sequence")
+PSEUDO_TEACHERS = ("none", "self", "linear", "sequence")
 SEQUENCE_DEFAULTS = {  # pseudo_labels.sequence (conf/classify.yaml documents them)
     "encoder": None, "steps": 1000, "channels": 128, "dilations": [1, 2, 4, 8, 16, 32, 64],
     "mask_ratio": 0.75, "longest_span": 60, "crop": 256, "batch": 32, "lr": 1e-3,
-    "target": "frame", "context": [15, 33], "bins": 4, "seed": 0,
+    "target": "frame", "context": [15, 33], "seed": 0,
 }  # fmt: skip
 
 
@@ -368,12 +368,13 @@ def _sequence_settings(block) -> dict:
     sq = {**SEQUENCE_DEFAULTS, **(dict(to_plain(block)) if block else {})}
     unknown = sorted(set(sq) - set(SEQUENCE_DEFAULTS))
     if unknown:
+        moved = " (bins is pseudo_labels.bins)" if "bins" in unknown else ""
         raise ValueError(f"pseudo_labels.sequence: unknown settings {unknown} (known: "
-                         f"{sorted(SEQUENCE_DEFAULTS)})")  # fmt: skip
+                         f"{sorted(SEQUENCE_DEFAULTS)}){moved}")  # fmt: skip
     b = "pseudo_labels.sequence"
     out = {"encoder": None if sq["encoder"] in (None, "") else str(sq["encoder"])}
     for key, kind, low in (("steps", int, 0), ("channels", int, 1), ("longest_span", int, 4),
-                           ("crop", int, 16), ("batch", int, 1), ("bins", int, 2),
+                           ("crop", int, 16), ("batch", int, 1),
                            ("seed", int, None), ("lr", float, None),
                            ("mask_ratio", float, None)):  # fmt: skip
         out[key] = _number(b, key, sq[key], kind)
@@ -404,7 +405,8 @@ def _sequence_settings(block) -> dict:
 
 def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     """`pseudo_labels` checked before any data is read: None (teacher none) or {"teacher",
-    "keep", "smooth", "labelled_weight"} (teacher=sequence: and "sequence", its settings)."""
+    "keep", "smooth", "labelled_weight", "bins"} (teacher=sequence: and "sequence", its
+    settings)."""
     pl = dict(to_plain(cfg.get("pseudo_labels")) or {})
     teacher = str(pl.get("teacher", "none"))
     if teacher not in PSEUDO_TEACHERS:
@@ -417,8 +419,10 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
                          "head=forest freeze=true (or pseudo_labels.teacher=none)")  # fmt: skip
     out: dict = {"teacher": teacher}
     for key, default, kind in (("keep", 0.3, float), ("smooth", 9, int),
-                               ("labelled_weight", 5.0, float)):  # fmt: skip
+                               ("labelled_weight", 5.0, float), ("bins", 4, int)):  # fmt: skip
         out[key] = _number("pseudo_labels", key, pl.get(key, default), kind)
+    if out["bins"] < 2:
+        raise ValueError(f"pseudo_labels.bins must be an integer >= 2, got {out['bins']}")
     if not 0.0 < out["keep"] <= 1.0:
         raise ValueError(f"pseudo_labels.keep must be in (0, 1], got {out['keep']}")
     if out["smooth"] < 1:
@@ -461,6 +465,7 @@ def sequence_teacher(
     settings: dict,
     signature: Mapping,
     out: Path,
+    bins: int = 4,
 ) -> tuple[np.ndarray, dict]:
     """`pseudo_labels.teacher=sequence`: the behavior-scale sequence encoder
     (`deformnet.sequence`), pretrained by masked-span reconstruction on the training sessions'
@@ -469,17 +474,18 @@ def sequence_teacher(
     the ``unlabelled`` sessions' (`frame_encodings`), or loaded (``settings["encoder"]``,
     checked against ``signature``, `sequence_signature`); it is saved to
     out/sequence_encoder.pt. Its embedding beside the binned frame features (with context) is
-    the logistic-regression teacher (`sequence_teacher_probs`) fitted on the labelled frames
-    ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights (C,) or None). Returns
+    the logistic-regression teacher (`linear_teacher_probs`, ``bins`` per frame feature) fitted
+    on the labelled frames ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights
+    (C,) or None). Returns
     every training frame's probabilities (N, C) and facts."""
     from deformnet.atomic import atomic_path
     from deformnet.sequence import (
         SequenceEncoder,
         embeddings,
         export_sequence_encoder,
+        linear_teacher_probs,
         load_sequence_encoder,
         pretrain_sequences,
-        sequence_teacher_probs,
     )
 
     D = model.encoder.out_dim
@@ -511,8 +517,7 @@ def sequence_teacher(
         facts["encoder"] = str(path)
     emb = embeddings(seq, train_seqs, settings["context"]).double().numpy()
     frame = train_features[:, model.frame_columns()].double().numpy()
-    probs = sequence_teacher_probs(frame, emb, idx, labels, num_classes, class_weights,
-                                   settings["bins"])  # fmt: skip
+    probs = linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins, emb)
     return probs, facts
 
 
@@ -1100,13 +1105,21 @@ def _train(cfg: DictConfig, out: Path) -> dict:
                 if pseudo is not None:
                     lengths = [len(s) for s in train]
                     tprobs, tfacts = None, {}
-                    if pseudo["teacher"] == "sequence":
+                    if pseudo["teacher"] in ("linear", "sequence"):
                         all_features = context_features(model, bank, torch.arange(len(bank)))
+                        ylab = bank.labels.numpy()[idx]
+                    if pseudo["teacher"] == "sequence":
                         tprobs, tfacts = sequence_teacher(
-                            model, all_features, lengths, unlabelled, idx,
-                            bank.labels.numpy()[idx], C, weights, pseudo["sequence"],
-                            sequence_signature(model, mech, scale_mode), out,
+                            model, all_features, lengths, unlabelled, idx, ylab, C, weights,
+                            pseudo["sequence"], sequence_signature(model, mech, scale_mode),
+                            out, pseudo["bins"],
                         )  # fmt: skip
+                    elif pseudo["teacher"] == "linear":
+                        from deformnet.sequence import linear_teacher_probs
+
+                        frame = all_features[:, model.frame_columns()].double().numpy()
+                        tprobs = linear_teacher_probs(frame, idx, ylab, C, weights,
+                                                      pseudo["bins"])  # fmt: skip
                     probe_facts["pseudo_labels"], all_features = self_train_forest(
                         model, bank, lengths, idx, fbank.features, pseudo, all_features, tprobs
                     )

@@ -13,7 +13,7 @@ hidden frames' frame features (`pretrain_sequences`; the hand-made features labs
 from more recordings of the same animals (`deformnet-classify data.unlabelled_tracks=`).
 
 Its per-frame outputs with their mean and standard deviation over centred spans (`embeddings`)
-are a frame's embedding. With few labels it is a teacher (`sequence_teacher_probs`): a
+are a frame's embedding. With few labels it is a teacher (`linear_teacher_probs`): a
 class-weighted logistic regression on the embedding beside the binned frame features (`binned`:
 one-hot quantile bins, so that a linear model can threshold a feature as a tree does) labels
 the unlabelled training frames, and the forest head learns from the labelled and the
@@ -299,30 +299,37 @@ def binned(x: np.ndarray, bins: int = 4) -> np.ndarray:
     return quantile_binner(x, bins)(x)
 
 
-def sequence_teacher_probs(
+def linear_teacher_probs(
     frame: np.ndarray,
-    embedding: np.ndarray,
     idx: np.ndarray,
     labels: np.ndarray,
     num_classes: int,
     class_weights: Sequence[float] | None = None,
     bins: int = 4,
+    embedding: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The teacher's class probabilities (N, C) of every frame: a logistic regression (C=1,
+    """A teacher's class probabilities (N, C) of every frame: a logistic regression (C=1,
     scikit-learn) on the standardised frame features ``frame`` (N, F) with their one-hot
-    quantile bins (`binned`) beside the standardised embedding ``embedding`` (N, E) (both
+    quantile bins (`binned`), beside the standardised ``embedding`` (N, E) when given (both
     standardised over all N frames, labelled or not), fitted on the labelled rows ``idx`` (L,)
     with ``labels`` (L,), class-weighted by ``class_weights`` (C,) (None: unweighted). A class
-    no labelled frame has gets probability 0."""
+    no labelled frame has gets probability 0. `deformnet-classify pseudo_labels.teacher=linear`
+    (no embedding) and ``sequence`` (the sequence encoder's, `embeddings`)."""
     from sklearn.linear_model import LogisticRegression
 
-    frame, embedding = np.asarray(frame, np.float64), np.asarray(embedding, np.float64)
+    frame = np.asarray(frame, np.float64)
+    if frame.ndim != 2:
+        raise ValueError(f"frame must be (N, F), got {frame.shape}")
+    parts = [binned(standardised(frame), bins)]
+    if embedding is not None:
+        embedding = np.asarray(embedding, np.float64)
+        if embedding.ndim != 2 or len(embedding) != len(frame):
+            raise ValueError(f"embedding must be ({len(frame)}, E), got {embedding.shape}")
+        parts.append(standardised(embedding))
     idx, y = np.asarray(idx, np.int64), np.asarray(labels, np.int64)
-    if frame.ndim != 2 or embedding.ndim != 2 or len(frame) != len(embedding):
-        raise ValueError(f"frame (N, F) and embedding (N, E), got {frame.shape}, {embedding.shape}")
     if idx.shape != y.shape or idx.size == 0:
         raise ValueError(f"idx and labels must be (L,) with L >= 1, got {idx.shape}, {y.shape}")
-    x = np.hstack([binned(standardised(frame), bins), standardised(embedding)])
+    x = np.hstack(parts)
     present = np.unique(y)
     cw = None if class_weights is None else {int(c): float(class_weights[int(c)]) for c in present}
     P = np.zeros((len(x), int(num_classes)))

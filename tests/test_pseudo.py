@@ -143,3 +143,27 @@ def test_forest_self_training_in_deformnet_classify(tmp_path):
                       f"tracks={test[0][0]}", f"output.dir={tmp_path / 'pred'}"]))  # fmt: skip
     df = pd.read_csv(p["predictions"])
     assert np.mean(df["label"].to_numpy() == np.asarray(CLASSES)[test[0][2]]) >= 0.95
+
+
+def test_linear_teacher_in_deformnet_classify(tmp_path):
+    """pseudo_labels.teacher=linear: a logistic regression on the binned frame features labels
+    the unlabelled training frames (both behaviors), the forest head is refitted on them and is
+    right on a held-out session; the teacher is kept in classifier.pt; bins < 2 is an error
+    before any data is read."""
+    from deformnet.classify import load_classifier, run
+
+    base, _ = few_label_toy(tmp_path)
+    forest = ["head=forest", "head.trees=25", "freeze=true", "pseudo_labels.teacher=linear"]
+    with pytest.raises(ValueError, match="pseudo_labels.bins must be an integer >= 2"):
+        run(_compose([*base, *forest, "pseudo_labels.bins=1", f"output.dir={tmp_path / 'x'}"]))
+    out = tmp_path / "linear"
+    rep = run(_compose([*base, *forest, f"output.dir={out}"]))["report"]
+    pl = rep["probe"]["pseudo_labels"]
+    frames, labelled = 2 * 360, 2 * 18
+    assert pl["teacher"] == "linear" and sum(pl["per_class"]) == pl["frames"]
+    assert 0.3 * frames - labelled <= pl["frames"] <= 0.5 * frames
+    assert min(pl["per_class"]) >= 0.3 * 0.3 * frames
+    assert "pretraining" not in pl and "encoder" not in pl
+    assert rep["raw"]["macro_f1"] >= 0.95, rep["raw"]
+    _, meta = load_classifier(out / "classifier.pt")
+    assert meta["pseudo_labels"]["teacher"] == "linear" and meta["pseudo_labels"]["bins"] == 4
