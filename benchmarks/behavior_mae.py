@@ -54,11 +54,20 @@ forest on the frame features itself (self-training). The student reads no embedd
 time the classifier is a forest on the frame features; what the encoder adds is in the labels it
 was fitted on. These rows were designed on the first 8 test sessions (seeds 95200-95207);
 ``--test-offset 8`` tests them on 4 sessions no choice looked at (seeds 95208..).
+``pseudo_ensemble_*``: the teacher's probabilities averaged with the frame-feature forest's
+(two views; ``emb``: the embedding alone beside the forest). Students that read the embedding
+too: ``pseudo_<teacher>_forest_frame_<net>`` (the forest on the frame features beside the
+embedding) and ``pseudo_<teacher>_lr_binned_<net>`` (the regression on the teacher's own
+features). ``--pseudo`` picks rows, ``--pseudo-only`` skips the rows without pseudo-labels, and
+``--sequence-encoder`` reads a `sequence_encoder.pt` that `deformnet-classify
+pseudo_labels.teacher=sequence` wrote (its own architecture and pretraining) instead of
+pretraining one.
 
     .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--steps 1000]
         [--unlabelled 8] [--draws 3] [--mask-ratio 0.5] [--longest-span 23]
         [--dilations 1,2,4,8,16] [--target all|frame]
         [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]] [--test-offset 4|8]
+        [--sequence-encoder sequence_encoder.pt] [--pseudo ROWS] [--pseudo-only]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_mae.json.
