@@ -476,8 +476,7 @@ def sequence_teacher(
     out/sequence_encoder.pt. Its embedding beside the binned frame features (with context) is
     the logistic-regression teacher (`linear_teacher_probs`, ``bins`` per frame feature) fitted
     on the labelled frames ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights
-    (C,) or None). Returns
-    every training frame's probabilities (N, C) and facts."""
+    (C,) or None). Returns every training frame's probabilities (N, C) and facts."""
     from deformnet.atomic import atomic_path
     from deformnet.sequence import (
         SequenceEncoder,
