@@ -279,6 +279,10 @@ PSEUDO = {
                                                "binned_pretrained"),
     "pseudo_random_lr_binned_random": ("lr", "binned_random", "lr", "binned_random"),
     "pseudo_binned_lr_binned": ("lr", "binned", "lr", "binned"),
+    # the unlabelled sessions' frames pseudo-labelled too (the student learns from them)
+    "pseudo_pretrained_unl": ("lr", "binned_pretrained"),
+    "pseudo_binned_unl": ("lr", "binned"),
+    "pseudo_random_unl": ("lr", "binned_random"),
 }  # fmt: skip
 
 
@@ -397,13 +401,18 @@ def main(argv: list[str] | None = None) -> dict:
         return embeddings(model, list(x), CONTEXT).numpy()
 
     fcols = built_ctx[0].frame_columns().numpy()
+    # the *_unl rows: the unlabelled sessions' frames ride behind the test frames through the
+    # same standardisation and bins (training frames' statistics), then are split off
+    with_unl = bool(unl) and any(n.endswith("_unl") for n in pseudo_rows)
+    xte_ = torch.cat([xte, xun]) if with_unl else xte
+    fte = ctx["test"]["features"].numpy()[:, fcols]
+    if with_unl:
+        ctx_unl, _ = encoder_features(ckpt, {"train": unl}, ov)
+        fte = np.vstack([fte, ctx_unl["train"]["features"].numpy()[:, fcols]])
     feats = {
-        "pretrained": (emb(net, xtr), emb(net, xte)),
-        "random": (emb(random_net, xtr), emb(random_net, xte)),
-        "frame": (
-            ctx["train"]["features"].numpy()[:, fcols],
-            ctx["test"]["features"].numpy()[:, fcols],
-        ),  # fmt: skip
+        "pretrained": (emb(net, xtr), emb(net, xte_)),
+        "random": (emb(random_net, xtr), emb(random_net, xte_)),
+        "frame": (ctx["train"]["features"].numpy()[:, fcols], fte),
     }
     for name in ("pretrained", "random"):
         feats[f"frame_{name}"] = tuple(
@@ -413,6 +422,9 @@ def main(argv: list[str] | None = None) -> dict:
     feats["binned"] = binned(*feats["frame"])
     for name in ("pretrained", "random"):  # the binned frame features beside an embedding
         feats[f"binned_{name}"] = tuple(np.hstack(p) for p in zip(feats["binned"], feats[name]))
+    n_te = len(xte) * T
+    unl_feats = {k: v[1][n_te:] for k, v in feats.items()}  # empty without *_unl rows
+    feats = {k: (v[0], v[1][:n_te]) for k, v in feats.items()}
     forest = dict(to_plain(compose("classify", ["head=forest"]).head))
     yte = per["test"]["labels"].numpy()
     plan = [(0.01, d) for d in range(args.draws)] + [(0.1, 0)]
@@ -435,8 +447,11 @@ def main(argv: list[str] | None = None) -> dict:
         for name in pseudo_rows:  # a student, taught
             kind, teacher, *student = PSEUDO[name]
             skind, sname = student or ("forest", "frame")
-            sc = fit_pseudo(kind, feats[teacher][0], *feats[sname], idx, y, w, yte, classes,
-                            forest, T, skind, feats["frame"][0])  # fmt: skip
+            ta, (sa, sb), fa = feats[teacher][0], feats[sname], feats["frame"][0]
+            if name.endswith("_unl"):  # the unlabelled sessions' frames pseudo-labelled too
+                ta, sa, fa = (np.vstack([a, unl_feats[k]]) for a, k in
+                              ((ta, teacher), (sa, sname), (fa, "frame")))  # fmt: skip
+            sc = fit_pseudo(kind, ta, sa, sb, idx, y, w, yte, classes, forest, T, skind, fa)
             results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
             per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
         if args.finetune:
