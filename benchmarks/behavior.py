@@ -39,6 +39,9 @@ one draw moves macro-F1 by several points.
   other label draws and fractions (`pseudo_labels.sequence.encoder`: no labels are involved);
   ``forest_sequence_random``: the same with the net's random weights (`steps=0`: what the
   pretraining adds);
+  the teachers (``forest_linear`` and these two) also pseudo-label the unlabelled sessions'
+  frames, and the forest learns from them (`pseudo_labels.unlabelled`, since stop 39;
+  ``--no-teach-unlabelled``: stop 38's set-up, where only the pretraining read them);
 - ``forest_all``: the same forest head on every feature (`head.inputs=all`: the pretrained
   encoder's outputs with their temporal context besides the frame features);
   ``scratch_forest_all``: the same on the same architecture's random weights (what pretraining
@@ -148,6 +151,7 @@ METHODS = (
 TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's sessions (nothing trains on them)
 UNLABELLED_SEED = 95_500  # sessions without labels (sequence pretraining only; behavior_mae too)
 SEQUENCE_METHODS = ("forest_sequence", "forest_sequence_random")
+TEACHERS = ("forest_linear", *SEQUENCE_METHODS)  # they read the unlabelled sessions
 
 
 # --------------------------------------------------------------------------------------------
@@ -324,16 +328,21 @@ def run_classifier(
         ov += ["head.inputs=all"] if method == "forest_all" else []
         ov += ["pseudo_labels.teacher=self"] if method == "forest_self" else []
         ov += ["pseudo_labels.teacher=linear"] if method == "forest_linear" else []
+        sq = sequence or {}
+        if method == "forest_linear" and sq.get("unlabelled") and sq.get("teach"):
+            ov.append(f"data.unlabelled_tracks={_list(u[source] for u in sq['unlabelled'])}")
     elif method in SEQUENCE_METHODS:
         sq = sequence or {}
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest", "pseudo_labels.teacher=sequence"]
+        steps = 0 if method == "forest_sequence_random" else int(sq.get("steps", 1000))
         if sq.get("encoder"):
             ov.append(f"pseudo_labels.sequence.encoder={sq['encoder']}")
         else:  # forest_sequence_random: the same net's random weights (no pretraining)
-            steps = 0 if method == "forest_sequence_random" else int(sq.get("steps", 1000))
             ov.append(f"pseudo_labels.sequence.steps={steps}")
-            if sq.get("unlabelled") and steps:
-                ov.append(f"data.unlabelled_tracks={_list(u[source] for u in sq['unlabelled'])}")
+        # the unlabelled sessions: pseudo-labelled (teach) at every draw, else only pretrained on
+        if sq.get("unlabelled") and (sq.get("teach") or (steps and not sq.get("encoder"))):
+            ov.append(f"data.unlabelled_tracks={_list(u[source] for u in sq['unlabelled'])}")
+        ov.append(f"pseudo_labels.unlabelled={'true' if sq.get('teach') else 'false'}")
     else:
         ov += [f"pretrained={ckpt}", f"freeze={'true' if method == 'frozen' else 'false'}"]
     t0 = time.perf_counter()
@@ -703,8 +712,12 @@ def main(argv: list[str] | None = None) -> dict:
                     help="the test sessions' seeds start this far after 95200 (e.g. 12: "
                          "sessions no choice of a method looked at)")  # fmt: skip
     ap.add_argument("--unlabelled", type=int, default=8,
-                    help="forest_sequence: more sessions without labels (seeds 95500..) the "
-                         "sequence encoder also pretrains on (data.unlabelled_tracks)")  # fmt: skip
+                    help="the teachers (forest_linear, forest_sequence*): more sessions without "
+                         "labels (seeds 95500..; data.unlabelled_tracks) whose frames they "
+                         "pseudo-label too; the sequence encoder pretrains on them")  # fmt: skip
+    ap.add_argument("--no-teach-unlabelled", action="store_true",
+                    help="stop 38's set-up: the unlabelled sessions only pretrain the sequence "
+                         "encoder (pseudo_labels.unlabelled=false)")  # fmt: skip
     ap.add_argument(
         "--sequence-steps",
         type=int,
@@ -762,7 +775,8 @@ def main(argv: list[str] | None = None) -> dict:
     extra["transfer_fps"] = sorted({s["fps"] for s in sessions.get("transfer", [])}) or None
 
     # the sequence methods' unlabelled sessions (made only where one of them runs)
-    n_unl = args.unlabelled if set(SEQUENCE_METHODS) & set(methods) else 0
+    teaching = set(SEQUENCE_METHODS) | (set() if args.no_teach_unlabelled else {"forest_linear"})
+    n_unl = args.unlabelled if teaching & set(methods) else 0
     unlabelled = [make_session(work, UNLABELLED_SEED + i, args.frames) for i in range(n_unl)]
     extra_ov = ("heights_up=[0,0,1]",) if args.heights_up else ()
     seq_encoders: dict[str, str] = {}  # forest_sequence*: the first run's sequence encoder
@@ -781,9 +795,10 @@ def main(argv: list[str] | None = None) -> dict:
                 out = (work / f"{tag}cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
                        else work / f"{tag}cls_track_{method}_{key}")  # fmt: skip
                 sq = None
-                if method in SEQUENCE_METHODS:  # pretrained once (no labels), then reused
+                if method in TEACHERS:  # a sequence encoder: pretrained once, then reused
                     sq = {"unlabelled": unlabelled, "steps": args.sequence_steps,
-                          "encoder": seq_encoders.get(method)}  # fmt: skip
+                          "encoder": seq_encoders.get(method),
+                          "teach": not args.no_teach_unlabelled}  # fmt: skip
                 runs.append(run_classifier(
                     out, sessions, "track", frac, method, ckpt, args.seconds, label_seed=d,
                     box=box, measurements=args.measurements, transfer=sessions.get("transfer"),
@@ -932,6 +947,7 @@ def main(argv: list[str] | None = None) -> dict:
             "heights_up": bool(args.heights_up),
             "sequence_encoder": args.sequence_encoder,
             "unlabelled_sessions": len(unlabelled),
+            "teach_unlabelled": not args.no_teach_unlabelled,
             "sequence_steps": args.sequence_steps,
             "seconds_per_classifier": args.seconds,
             "label_draws_at_1pct": args.label_draws,

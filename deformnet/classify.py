@@ -183,19 +183,6 @@ def _encode(model, bank: SessionBank, positions: Tensor, batch_size: int) -> Ten
     return torch.cat(feats) if feats else torch.zeros(0, enc.out_dim)
 
 
-@torch.no_grad()
-def frame_encodings(model, bank: SessionBank, batch_size: int = 512) -> Tensor:
-    """Every bank frame's own encoder output (len(bank), encoder.out_dim): its features
-    without temporal context (the first encoder.out_dim of `context_features`), in eval mode."""
-    modes = {m: m.training for m in model.modules()}
-    try:
-        model.eval()
-        return _encode(model, bank, bank.mids, batch_size)
-    finally:
-        for m, mode in modes.items():
-            m.training = mode
-
-
 def _context_features(model, bank: SessionBank, idx, batch_size: int) -> Tensor:
     idx = torch.as_tensor(idx, dtype=torch.long)
     offsets = torch.as_tensor(model.offsets)
@@ -405,8 +392,8 @@ def _sequence_settings(block) -> dict:
 
 def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     """`pseudo_labels` checked before any data is read: None (teacher none) or {"teacher",
-    "keep", "smooth", "labelled_weight", "bins"} (teacher=sequence: and "sequence", its
-    settings)."""
+    "keep", "smooth", "labelled_weight", "bins", "unlabelled"} (teacher=sequence: and
+    "sequence", its settings)."""
     pl = dict(to_plain(cfg.get("pseudo_labels")) or {})
     teacher = str(pl.get("teacher", "none"))
     if teacher not in PSEUDO_TEACHERS:
@@ -421,6 +408,10 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     for key, default, kind in (("keep", 0.3, float), ("smooth", 9, int),
                                ("labelled_weight", 5.0, float), ("bins", 4, int)):  # fmt: skip
         out[key] = _number("pseudo_labels", key, pl.get(key, default), kind)
+    out["unlabelled"] = pl.get("unlabelled", True)
+    if not isinstance(out["unlabelled"], bool):
+        raise ValueError(f"pseudo_labels.unlabelled must be true or false, got "
+                         f"{out['unlabelled']!r}")  # fmt: skip
     if out["bins"] < 2:
         raise ValueError(f"pseudo_labels.bins must be an integer >= 2, got {out['bins']}")
     if not 0.0 < out["keep"] <= 1.0:
@@ -457,7 +448,7 @@ def sequence_teacher(
     model,
     train_features: Tensor,
     lengths: Sequence[int],
-    unlabelled: Sequence[Session],
+    unlabelled: Sequence[Tensor],
     idx: np.ndarray,
     labels: np.ndarray,
     num_classes: int,
@@ -466,17 +457,20 @@ def sequence_teacher(
     signature: Mapping,
     out: Path,
     bins: int = 4,
+    teach_unlabelled: bool = True,
 ) -> tuple[np.ndarray, dict]:
     """`pseudo_labels.teacher=sequence`: the behavior-scale sequence encoder
     (`deformnet.sequence`), pretrained by masked-span reconstruction on the training sessions'
     per-frame features (each frame's own encoder output: the first `encoder.out_dim` columns of
     ``train_features`` (N, out_dim), every training frame, sessions of ``lengths`` frames) and
-    the ``unlabelled`` sessions' (`frame_encodings`), or loaded (``settings["encoder"]``,
-    checked against ``signature``, `sequence_signature`); it is saved to
-    out/sequence_encoder.pt. Its embedding beside the binned frame features (with context) is
+    the ``unlabelled`` sessions' (their features, (T_u, out_dim) each), or loaded
+    (``settings["encoder"]``, checked against ``signature``, `sequence_signature`); it is saved
+    to out/sequence_encoder.pt. Its embedding beside the binned frame features (with context) is
     the logistic-regression teacher (`linear_teacher_probs`, ``bins`` per frame feature) fitted
     on the labelled frames ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights
-    (C,) or None). Returns every training frame's probabilities (N, C) and facts."""
+    (C,) or None). Returns the probabilities (N + M, C) of every training frame, then every
+    unlabelled session's (M frames in all; M = 0 without ``teach_unlabelled``: then only the
+    pretraining reads them), and facts."""
     from deformnet.atomic import atomic_path
     from deformnet.sequence import (
         SequenceEncoder,
@@ -491,6 +485,7 @@ def sequence_teacher(
     per_frame = train_features[:, :D].float()
     bounds = np.cumsum([0, *lengths])
     train_seqs = [per_frame[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    unl_seqs = [u[:, :D].float() for u in unlabelled]
     facts: dict = {}
     if settings["encoder"]:  # the signature holds the feature count (out_dim)
         seq = load_sequence_encoder(settings["encoder"], signature)
@@ -500,8 +495,7 @@ def sequence_teacher(
         torch.manual_seed(int(settings["seed"]))
         target = frame_feature_columns(model) if settings["target"] == "frame" else None
         seq = SequenceEncoder(D, settings["channels"], settings["dilations"], target)
-        span = model.half_window
-        seqs = train_seqs + [frame_encodings(model, SessionBank([u], span)) for u in unlabelled]
+        seqs = train_seqs + unl_seqs
         log.info("sequence pretraining: %d steps on %d sessions (%d unlabelled), %d frames",
                  settings["steps"], len(seqs), len(unlabelled),
                  sum(len(s) for s in seqs))  # fmt: skip
@@ -514,15 +508,18 @@ def sequence_teacher(
         with atomic_path(path) as tmp:
             torch.save(export_sequence_encoder(seq, signature, facts["pretraining"]), tmp)
         facts["encoder"] = str(path)
-    emb = embeddings(seq, train_seqs, settings["context"]).double().numpy()
-    frame = train_features[:, model.frame_columns()].double().numpy()
-    probs = linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins, emb)
+    taught = list(unlabelled) if teach_unlabelled else []
+    emb = embeddings(seq, train_seqs + unl_seqs[: len(taught)], settings["context"])
+    frame = torch.cat([train_features, *taught])[:, model.frame_columns()].double().numpy()
+    probs = linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins,
+                                 emb.double().numpy())  # fmt: skip
     return probs, facts
 
 
 def self_train_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
     settings: dict, all_features: Tensor | None = None, probs: np.ndarray | None = None,
+    unlabelled: Sequence[Tensor] = (),
 ) -> tuple[dict, Tensor]:  # fmt: skip
     """Self-training of a fitted forest head: a teacher's class probabilities of every training
     frame of ``bank`` (sessions of ``lengths`` frames; ``probs`` (len(bank), C), by default the
@@ -530,27 +527,36 @@ def self_train_forest(
     unlabelled frames (`deformnet.pseudo.class_balanced_pseudo_labels`) join the labelled frames
     ``idx`` (their features ``features`` (N, D)) and the forest is fitted again on both,
     weighted per frame (`pseudo_sample_weights`). ``all_features``: every training frame's
-    features (len(bank), D), computed when not given. Returns facts (the pseudo-labelled frames
-    in all and per class, the refitted forest's) and every training frame's features."""
+    features (len(bank), D), computed when not given. ``unlabelled``: the features (T_u, D) of
+    sessions nobody labelled (`data.unlabelled_tracks`), whose frames the teacher labels too
+    (``probs`` then (len(bank) + M, C), their M frames after the training frames). Returns facts
+    (the pseudo-labelled frames in all, per class and from the unlabelled sessions, the
+    refitted forest's) and every training frame's features."""
     from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
 
     if all_features is None:
         all_features = context_features(model, bank, torch.arange(len(bank)))
+    pool = torch.cat([all_features, *unlabelled]) if len(unlabelled) else all_features
     if probs is None:
         with torch.no_grad():
-            probs = model.classify(all_features).softmax(-1).double().numpy()
+            probs = model.classify(pool).softmax(-1).double().numpy()
     labels = bank.labels.numpy()
-    C = probs.shape[1]
+    N, C = len(labels), probs.shape[1]
+    if probs.shape[0] != len(pool):
+        raise ValueError(f"probs must be ({len(pool)}, C), got {probs.shape}")
+    labelled = np.r_[labels >= 0, np.zeros(len(pool) - N, bool)]
     rows, pseudo = class_balanced_pseudo_labels(
-        probs, lengths, labels >= 0, settings["keep"], settings["smooth"]
-    )
+        probs, [*lengths, *(len(u) for u in unlabelled)], labelled, settings["keep"],
+        settings["smooth"],
+    )  # fmt: skip
     facts = {"teacher": settings["teacher"], "frames": int(rows.size),
-             "per_class": np.bincount(pseudo, minlength=C).tolist()}  # fmt: skip
+             "per_class": np.bincount(pseudo, minlength=C).tolist(),
+             "unlabelled_frames": int((rows >= N).sum())}  # fmt: skip
     if rows.size == 0:  # every frame is labelled: nothing to teach
         return facts, all_features
     y = np.concatenate([labels[idx], pseudo])
     sw = pseudo_sample_weights(y, len(idx), C, settings["labelled_weight"])
-    x = torch.cat([features, all_features[torch.as_tensor(rows)]])
+    x = torch.cat([features, pool[torch.as_tensor(rows)]])
     facts["forest"] = fit_head_forest(model, x, torch.as_tensor(y), sample_weight=sw)
     return facts, all_features
 
@@ -994,17 +1000,21 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     train = _sessions(cfg, "train", body, classes)
     val = _sessions(cfg, "val", body, classes)
     test = _sessions(cfg, "test", body, classes)
-    # more recordings without labels: the sequence teacher's pretraining reads them
+    # more recordings without labels: the linear and sequence teachers label their frames too
+    # (the forest learns from them), and the sequence teacher's pretraining reads them
     unlabelled = _sessions(cfg, "unlabelled", body, classes)
-    if unlabelled and (pseudo is None or pseudo["teacher"] != "sequence"):
+    if unlabelled and (pseudo is None or pseudo["teacher"] not in ("linear", "sequence")):
         log.warning("data.unlabelled_tracks: %d sessions not used (only "
-                    "pseudo_labels.teacher=sequence learns from them)",
+                    "pseudo_labels.teacher=linear|sequence learns from them)",
                     len(unlabelled))  # fmt: skip
         unlabelled = []
-    elif unlabelled and pseudo["sequence"]["encoder"]:
-        log.warning("data.unlabelled_tracks: %d sessions not used (the sequence encoder is "
-                    "reused from %s, not pretrained)", len(unlabelled),
-                    pseudo["sequence"]["encoder"])  # fmt: skip
+    elif (
+        unlabelled
+        and not pseudo["unlabelled"]
+        and (pseudo["teacher"] == "linear" or pseudo["sequence"]["encoder"])
+    ):
+        log.warning("data.unlabelled_tracks: %d sessions not used (pseudo_labels.unlabelled="
+                    "false, and no sequence pretraining reads them)", len(unlabelled))  # fmt: skip
         unlabelled = []
     hup = model.encoder.heights_up if meas else None
     for s in (*train, *val, *test, *unlabelled):  # a heading-frame encoder or the heights: the
@@ -1104,24 +1114,31 @@ def _train(cfg: DictConfig, out: Path) -> dict:
                 if pseudo is not None:
                     lengths = [len(s) for s in train]
                     tprobs, tfacts = None, {}
+                    ufeats: list = []  # the unlabelled sessions' features
                     if pseudo["teacher"] in ("linear", "sequence"):
                         all_features = context_features(model, bank, torch.arange(len(bank)))
                         ylab = bank.labels.numpy()[idx]
+                        for u in unlabelled:
+                            ub = SessionBank([u], span)
+                            ufeats.append(context_features(model, ub, torch.arange(len(ub))))
+                    taught = ufeats if pseudo["unlabelled"] else []  # pseudo-labelled too
                     if pseudo["teacher"] == "sequence":
                         tprobs, tfacts = sequence_teacher(
-                            model, all_features, lengths, unlabelled, idx, ylab, C, weights,
+                            model, all_features, lengths, ufeats, idx, ylab, C, weights,
                             pseudo["sequence"], sequence_signature(model, mech, scale_mode),
-                            out, pseudo["bins"],
+                            out, pseudo["bins"], len(taught) > 0,
                         )  # fmt: skip
                     elif pseudo["teacher"] == "linear":
                         from deformnet.sequence import linear_teacher_probs
 
-                        frame = all_features[:, model.frame_columns()].double().numpy()
+                        frame = torch.cat([all_features, *taught])[:, model.frame_columns()]
+                        frame = frame.double().numpy()
                         tprobs = linear_teacher_probs(frame, idx, ylab, C, weights,
                                                       pseudo["bins"])  # fmt: skip
                     probe_facts["pseudo_labels"], all_features = self_train_forest(
-                        model, bank, lengths, idx, fbank.features, pseudo, all_features, tprobs
-                    )
+                        model, bank, lengths, idx, fbank.features, pseudo, all_features, tprobs,
+                        taught,
+                    )  # fmt: skip
                     probe_facts["pseudo_labels"] |= tfacts
                     pl = probe_facts["pseudo_labels"]
                     log.info("self-training: %d pseudo-labelled frames (%s)", pl["frames"],

@@ -167,3 +167,26 @@ def test_linear_teacher_in_deformnet_classify(tmp_path):
     assert rep["raw"]["macro_f1"] >= 0.95, rep["raw"]
     _, meta = load_classifier(out / "classifier.pt")
     assert meta["pseudo_labels"]["teacher"] == "linear" and meta["pseudo_labels"]["bins"] == 4
+    # a recording nobody labelled: its frames are pseudo-labelled too, and the forest learns
+    # from them
+    unl = _toy_session(tmp_path, "unlabelled", 5)
+    more = run(_compose([*base, *forest, f"data.unlabelled_tracks=[{unl[0]}]",
+                         f"output.dir={tmp_path / 'linear_unl'}"]))["report"]  # fmt: skip
+    mpl = more["probe"]["pseudo_labels"]
+    assert pl["unlabelled_frames"] == 0 and 0.2 * 360 <= mpl["unlabelled_frames"] <= 360
+    assert mpl["frames"] > pl["frames"] and more["raw"]["macro_f1"] >= 0.95, more["raw"]
+    off = run(
+        _compose(
+            [
+                *base,
+                *forest,
+                f"data.unlabelled_tracks=[{unl[0]}]",
+                "pseudo_labels.unlabelled=false",
+                f"output.dir={tmp_path / 'off'}",
+            ]
+        )
+    )
+    assert off["report"]["probe"]["pseudo_labels"]["per_class"] == pl["per_class"]
+    with pytest.raises(ValueError, match="pseudo_labels.unlabelled must be true or false"):
+        run(_compose([*base, *forest, "pseudo_labels.unlabelled=3",
+                      f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
