@@ -39,9 +39,9 @@ one draw moves macro-F1 by several points.
   other label draws and fractions (`pseudo_labels.sequence.encoder`: no labels are involved);
   ``forest_sequence_random``: the same with the net's random weights (`steps=0`: what the
   pretraining adds);
-  the teachers (``forest_linear`` and these two) also pseudo-label the unlabelled sessions'
-  frames, and the forest learns from them (`pseudo_labels.unlabelled`, since stop 39;
-  ``--no-teach-unlabelled``: stop 38's set-up, where only the pretraining read them);
+  with ``--teach-unlabelled`` the teachers (``forest_linear`` and these two) also pseudo-label
+  the unlabelled sessions' frames, and the forest learns from them
+  (`pseudo_labels.unlabelled=true`); without it only the pretraining reads them;
 - ``forest_all``: the same forest head on every feature (`head.inputs=all`: the pretrained
   encoder's outputs with their temporal context besides the frame features);
   ``scratch_forest_all``: the same on the same architecture's random weights (what pretraining
@@ -712,12 +712,13 @@ def main(argv: list[str] | None = None) -> dict:
                     help="the test sessions' seeds start this far after 95200 (e.g. 12: "
                          "sessions no choice of a method looked at)")  # fmt: skip
     ap.add_argument("--unlabelled", type=int, default=8,
-                    help="the teachers (forest_linear, forest_sequence*): more sessions without "
-                         "labels (seeds 95500..; data.unlabelled_tracks) whose frames they "
-                         "pseudo-label too; the sequence encoder pretrains on them")  # fmt: skip
-    ap.add_argument("--no-teach-unlabelled", action="store_true",
-                    help="stop 38's set-up: the unlabelled sessions only pretrain the sequence "
-                         "encoder (pseudo_labels.unlabelled=false)")  # fmt: skip
+                    help="forest_sequence*: more sessions without labels (seeds 95500..; "
+                         "data.unlabelled_tracks) the sequence encoder pretrains on (and, with "
+                         "--teach-unlabelled, the teachers pseudo-label)")  # fmt: skip
+    ap.add_argument("--teach-unlabelled", action="store_true",
+                    help="the teachers also pseudo-label the unlabelled sessions' frames "
+                         "(pseudo_labels.unlabelled=true); else only the sequence encoder "
+                         "pretrains on them")  # fmt: skip
     ap.add_argument(
         "--sequence-steps",
         type=int,
@@ -775,7 +776,7 @@ def main(argv: list[str] | None = None) -> dict:
     extra["transfer_fps"] = sorted({s["fps"] for s in sessions.get("transfer", [])}) or None
 
     # the sequence methods' unlabelled sessions (made only where one of them runs)
-    teaching = set(SEQUENCE_METHODS) | (set() if args.no_teach_unlabelled else {"forest_linear"})
+    teaching = set(SEQUENCE_METHODS) | ({"forest_linear"} if args.teach_unlabelled else set())
     n_unl = args.unlabelled if teaching & set(methods) else 0
     unlabelled = [make_session(work, UNLABELLED_SEED + i, args.frames) for i in range(n_unl)]
     extra_ov = ("heights_up=[0,0,1]",) if args.heights_up else ()
@@ -798,7 +799,7 @@ def main(argv: list[str] | None = None) -> dict:
                 if method in TEACHERS:  # a sequence encoder: pretrained once, then reused
                     sq = {"unlabelled": unlabelled, "steps": args.sequence_steps,
                           "encoder": seq_encoders.get(method),
-                          "teach": not args.no_teach_unlabelled}  # fmt: skip
+                          "teach": args.teach_unlabelled}  # fmt: skip
                 runs.append(run_classifier(
                     out, sessions, "track", frac, method, ckpt, args.seconds, label_seed=d,
                     box=box, measurements=args.measurements, transfer=sessions.get("transfer"),
@@ -947,7 +948,7 @@ def main(argv: list[str] | None = None) -> dict:
             "heights_up": bool(args.heights_up),
             "sequence_encoder": args.sequence_encoder,
             "unlabelled_sessions": len(unlabelled),
-            "teach_unlabelled": not args.no_teach_unlabelled,
+            "teach_unlabelled": bool(args.teach_unlabelled),
             "sequence_steps": args.sequence_steps,
             "seconds_per_classifier": args.seconds,
             "label_draws_at_1pct": args.label_draws,

@@ -171,6 +171,7 @@ def test_linear_teacher_in_deformnet_classify(tmp_path):
     # from them
     unl = _toy_session(tmp_path, "unlabelled", 5)
     more = run(_compose([*base, *forest, f"data.unlabelled_tracks=[{unl[0]}]",
+                         "pseudo_labels.unlabelled=true",
                          f"output.dir={tmp_path / 'linear_unl'}"]))["report"]  # fmt: skip
     mpl = more["probe"]["pseudo_labels"]
     assert pl["unlabelled_frames"] == 0 and 0.2 * 360 <= mpl["unlabelled_frames"] <= 360

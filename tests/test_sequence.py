@@ -222,7 +222,8 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
         with pytest.raises(ValueError, match=match):
             run(_compose([*base, bad, f"output.dir={tmp_path / 'x'}"]))
     out = tmp_path / "seq"
-    rep = run(_compose([*base, f"data.unlabelled_tracks=[{unl[0]}]", f"output.dir={out}"]))
+    unl_on = [f"data.unlabelled_tracks=[{unl[0]}]", "pseudo_labels.unlabelled=true"]
+    rep = run(_compose([*base, *unl_on, f"output.dir={out}"]))
     pl = rep["report"]["probe"]["pseudo_labels"]
     assert pl["teacher"] == "sequence" and pl["encoder"] == str(out / "sequence_encoder.pt")
     assert pl["pretraining"]["sessions"] == 3 and pl["pretraining"]["frames"] == 3 * 360
@@ -235,8 +236,7 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     assert 0 < pl["unlabelled_frames"] <= 360 and pl["frames"] == sum(pl["per_class"])
     assert meta["pseudo_labels"]["sequence"]["steps"] == 30
     reused = run(_compose([*base, f"pseudo_labels.sequence.encoder={out / 'sequence_encoder.pt'}",
-                           f"data.unlabelled_tracks=[{unl[0]}]",
-                           f"output.dir={tmp_path / 'reuse'}"]))["report"]  # fmt: skip
+                           *unl_on, f"output.dir={tmp_path / 'reuse'}"]))["report"]  # fmt: skip
     rpl = reused["probe"]["pseudo_labels"]
     assert "pretraining" not in rpl and rpl["per_class"] == pl["per_class"]
     assert not (tmp_path / "reuse" / "sequence_encoder.pt").exists()
