@@ -796,7 +796,8 @@ def main(argv: list[str] | None = None) -> dict:
                 out = (work / f"{tag}cls_track_{method}_{key}" / f"draw{d}" if len(draws) > 1
                        else work / f"{tag}cls_track_{method}_{key}")  # fmt: skip
                 sq = None
-                if method in TEACHERS:  # a sequence encoder: pretrained once, then reused
+                if method in TEACHERS:  # the unlabelled sessions; a sequence encoder is
+                    # pretrained once (no labels), then reused
                     sq = {"unlabelled": unlabelled, "steps": args.sequence_steps,
                           "encoder": seq_encoders.get(method),
                           "teach": args.teach_unlabelled}  # fmt: skip

@@ -529,7 +529,7 @@ def main(argv: list[str] | None = None) -> dict:
             "mask_ratio": None if args.sequence_encoder else args.mask_ratio,
             "longest_span": None if args.sequence_encoder else args.longest_span,
             "dilations": list(dil),
-            "target": (None if args.sequence_encoder else args.target),
+            "target": None if args.sequence_encoder else args.target,
             "pseudo": pseudo_rows,
             "finetune": args.finetune,
             "probe_steps": args.probe_steps,

@@ -485,7 +485,6 @@ def sequence_teacher(
     per_frame = train_features[:, :D].float()
     bounds = np.cumsum([0, *lengths])
     train_seqs = [per_frame[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-    unl_seqs = [u[:, :D].float() for u in unlabelled]
     facts: dict = {}
     if settings["encoder"]:  # the signature holds the feature count (out_dim)
         seq = load_sequence_encoder(settings["encoder"], signature)
@@ -495,7 +494,7 @@ def sequence_teacher(
         torch.manual_seed(int(settings["seed"]))
         target = frame_feature_columns(model) if settings["target"] == "frame" else None
         seq = SequenceEncoder(D, settings["channels"], settings["dilations"], target)
-        seqs = train_seqs + unl_seqs
+        seqs = train_seqs + [u[:, :D].float() for u in unlabelled]
         log.info("sequence pretraining: %d steps on %d sessions (%d unlabelled), %d frames",
                  settings["steps"], len(seqs), len(unlabelled),
                  sum(len(s) for s in seqs))  # fmt: skip
@@ -508,8 +507,8 @@ def sequence_teacher(
         with atomic_path(path) as tmp:
             torch.save(export_sequence_encoder(seq, signature, facts["pretraining"]), tmp)
         facts["encoder"] = str(path)
-    taught = list(unlabelled) if teach_unlabelled else []
-    emb = embeddings(seq, train_seqs + unl_seqs[: len(taught)], settings["context"])
+    taught = list(unlabelled) if teach_unlabelled else []  # the frames to label, after training's
+    emb = embeddings(seq, train_seqs + [u[:, :D].float() for u in taught], settings["context"])
     frame = torch.cat([train_features, *taught])[:, model.frame_columns()].double().numpy()
     probs = linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins,
                                  emb.double().numpy())  # fmt: skip
