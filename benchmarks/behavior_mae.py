@@ -62,12 +62,19 @@ features). ``--pseudo`` picks rows, ``--pseudo-only`` skips the rows without pse
 ``--sequence-encoder`` reads a `sequence_encoder.pt` that `deformnet-classify
 pseudo_labels.teacher=sequence` wrote (its own architecture and pretraining) instead of
 pretraining one.
+``pseudo_<teacher>_tcn_<net>`` (``--student-steps N``; not run by default): the student is the
+sequence encoder itself with a linear head on its embedding, fine-tuned end to end on the
+labelled and pseudo-labelled frames (`finetune`, batches of 8 crops of 512 frames, the
+pretrained net's head alone for ``--probe-steps`` first, then the net at ``--encoder-lr``; the
+same net from random weights, ``scratch``, at 1e-3 throughout): the issue's fine-tuned
+pretrained encoder, given the teacher's thousands of pseudo-labels instead of 180 labels.
 
     .venv/bin/python benchmarks/behavior_mae.py [--pretrained CKPT] [--steps 1000]
         [--unlabelled 8] [--draws 3] [--mask-ratio 0.5] [--longest-span 23]
         [--dilations 1,2,4,8,16] [--target all|frame]
         [--finetune 150 [--probe-steps 50] [--encoder-lr 1e-4]] [--test-offset 4|8]
         [--sequence-encoder sequence_encoder.pt] [--pseudo ROWS] [--pseudo-only]
+        [--student-steps 300]
 
 Prints a table; the last line is JSON, also written atomically to
 runs/benchmarks/behavior_mae.json.
@@ -120,54 +127,75 @@ LABELLED_WEIGHT = 5.0  # a labelled frame's weight against a pseudo-labelled one
 def finetune(
     model: SequenceEncoder,
     xtr: torch.Tensor,
-    idx: np.ndarray,
-    y: np.ndarray,
-    w: np.ndarray,
+    rows: np.ndarray,
+    labels: np.ndarray,
+    weights: np.ndarray,
     xte: torch.Tensor,
     steps: int,
     probe_steps: int,
     encoder_lr: float,
+    num_classes: int,
+    crop: int | None = None,
+    batch: int = 8,
 ) -> np.ndarray:
     """End-to-end fine-tuning (the issue's protocol) of a copy of `model` with a linear head on
     its pooled embedding (`pooled`, standardised by the initial net's training frames as the
-    training sees them, input dropout included; inverted dropout keeps their mean): class-
-    weighted cross-entropy on the labelled training frames idx (labels y, class weights w),
-    the whole standardised training sessions xtr (S, T, D) through the net at every step
-    (input dropout 0.1; AdamW, weight decay 0.01, head lr 1e-3), the head alone for the first
+    training sees them, input dropout included; inverted dropout keeps their mean): cross-
+    entropy on the training frames ``rows`` (R,) of the training sessions xtr (S, T, D) with
+    their ``labels`` (R,), each weighted by ``weights`` (R,) (the loss is their weighted mean),
+    input dropout 0.1; AdamW, weight decay 0.01, head lr 1e-3; the head alone for the first
     `probe_steps`, then the net too at `encoder_lr`; `steps` in all, a fixed budget (no
-    validation split at 1% labels). The test sessions' (xte) predicted classes (S' T,)."""
+    validation split at 1% labels); ``num_classes`` outputs. Each step reads the whole
+    sessions (``crop`` None) or ``batch`` random crops of ``crop`` frames (their rows among
+    ``rows``; seed 0). The test sessions' (xte) predicted classes (S' T,)."""
     import copy
 
     net = copy.deepcopy(model)
     drop = nn.Dropout(0.1)
+    S, T = xtr.shape[:2]
 
-    def feats(x: torch.Tensor) -> torch.Tensor:
+    def feats(x: torch.Tensor) -> torch.Tensor:  # (B, T, D) -> (B, T, E)
         z = net._hidden(drop(net.normalize(x)), x.new_zeros(x.shape[:2]))
-        return pooled(z, CONTEXT, 1e-8).flatten(0, 1)
+        return pooled(z, CONTEXT, 1e-8)
 
     net.eval()
     with torch.no_grad():
-        f = feats(xtr)
+        f = feats(xtr).flatten(0, 1)
         fm, fs = f.mean(0), f.std(0).clamp_min(1e-6)
+    # per frame of the training sessions: its label and weight (0: not a training row)
+    r = torch.as_tensor(np.asarray(rows, np.int64))
+    W = torch.zeros(S * T)
+    W[r] = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
+    L = torch.zeros(S * T, dtype=torch.long)
+    L[r] = torch.as_tensor(np.asarray(labels, np.int64))
+    W, L = W.reshape(S, T), L.reshape(S, T)
     torch.manual_seed(0)
-    head = nn.Linear(f.shape[1], len(w))
-    loss_fn = nn.CrossEntropyLoss(weight=torch.as_tensor(w, dtype=torch.float32))
+    head = nn.Linear(f.shape[1], int(num_classes))
     opt = torch.optim.AdamW(
         [{"params": net.parameters(), "lr": encoder_lr}, {"params": head.parameters()}],
         lr=1e-3, weight_decay=1e-2,
     )  # fmt: skip
-    idx_t, y_t = torch.as_tensor(idx), torch.as_tensor(y)
+    gen = torch.Generator().manual_seed(0)
     drop.train()  # the net has no dropout or batch statistics of its own
     for step in range(steps):
         if step in (0, probe_steps):  # the head alone, then the net too
             net.requires_grad_(step >= probe_steps)
-        loss = loss_fn(head((feats(xtr)[idx_t] - fm) / fs), y_t)
+        if crop is None:
+            xb, wb, lb = xtr, W, L
+        else:
+            si = torch.randint(0, S, (batch,), generator=gen).tolist()
+            st = torch.randint(0, T - crop + 1, (batch,), generator=gen).tolist()
+            xb, wb, lb = (torch.stack([a[i, s : s + crop] for i, s in zip(si, st)])
+                          for a in (xtr, W, L))  # fmt: skip
+        ce = nn.functional.cross_entropy(head((feats(xb) - fm) / fs).flatten(0, 1),
+                                         lb.flatten(), reduction="none")  # fmt: skip
+        loss = (ce * wb.flatten()).sum() / wb.sum().clamp_min(1e-12)
         opt.zero_grad()
         loss.backward()
         opt.step()
     drop.eval()
     with torch.no_grad():
-        return head((feats(xte) - fm) / fs).argmax(-1).numpy()
+        return head((feats(xte).flatten(0, 1) - fm) / fs).argmax(-1).numpy()
 
 
 def standardised(xtr: np.ndarray, xte: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -188,7 +216,7 @@ def binned(xtr: np.ndarray, xte: np.ndarray, bins: int = BINS) -> tuple[np.ndarr
 
 def fit_pseudo(
     teacher_kind: str, ta, sa, sb, idx, y, w, yte, classes, forest: dict, frames: int,
-    student_kind: str = "forest", fa=None,
+    student_kind: str = "forest", fa=None, student_fn=None,
 ) -> dict:  # fmt: skip
     """The forest head's random forest (the student) on the frame features sa / sb, fitted on
     the labelled frames idx (labels y) and the teacher's class-balanced pseudo-labels of the
@@ -198,7 +226,8 @@ def fit_pseudo(
     i.e. self-training) fitted on the labelled frames of its features ta. Sample weights
     (`deformnet.pseudo.pseudo_sample_weights`): balanced over the labels and pseudo-labels
     together, a labelled frame LABELLED_WEIGHT times a pseudo-labelled one. Test
-    macro-F1 and per-class F1."""
+    macro-F1 and per-class F1. ``student_fn(rows, labels, weights)``, when given, is the
+    student instead: it learns from those training rows and returns the test predictions."""
     from sklearn.ensemble import RandomForestClassifier
     from sklearn.linear_model import LogisticRegression
 
@@ -231,6 +260,8 @@ def fit_pseudo(
     rows, yp = class_balanced_pseudo_labels(P, sessions, labelled_rows, KEEP, SMOOTH)
     Y = np.concatenate([y, yp])
     sw = pseudo_sample_weights(Y, len(y), C, LABELLED_WEIGHT)
+    if student_fn is not None:
+        return scores(yte, student_fn(np.concatenate([idx, rows]), Y, sw), classes, "test")
     if student_kind == "lr":
         student = LogisticRegression(C=1.0, max_iter=3000)
     else:
@@ -283,7 +314,13 @@ PSEUDO = {
     "pseudo_pretrained_unl": ("lr", "binned_pretrained"),
     "pseudo_binned_unl": ("lr", "binned"),
     "pseudo_random_unl": ("lr", "binned_random"),
+    # the student a sequence encoder fine-tuned end to end (`finetune`, --student-steps): the
+    # pretrained one, or the same net from random weights
+    "pseudo_pretrained_tcn_pretrained": ("lr", "binned_pretrained", "tcn", "pretrained"),
+    "pseudo_pretrained_tcn_scratch": ("lr", "binned_pretrained", "tcn", "scratch"),
+    "pseudo_binned_tcn_pretrained": ("lr", "binned", "tcn", "pretrained"),
 }  # fmt: skip
+TCN_ROWS = [n for n, v in PSEUDO.items() if v[2:3] == ("tcn",)]  # need --student-steps
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -324,8 +361,12 @@ def main(argv: list[str] | None = None) -> dict:
                          "are then its own)")  # fmt: skip
     ap.add_argument("--pseudo-only", action="store_true",
                     help="only the pseudo_* rows (and rf): the teachers")  # fmt: skip
-    ap.add_argument("--pseudo", default=",".join(PSEUDO),
-                    help="the pseudo_* rows to run, comma-separated (default: all)")  # fmt: skip
+    ap.add_argument("--pseudo", default=",".join(n for n in PSEUDO if n not in TCN_ROWS),
+                    help="the pseudo_* rows to run, comma-separated (default: all but the "
+                         "*_tcn_* rows)")  # fmt: skip
+    ap.add_argument("--student-steps", type=int, default=0,
+                    help="the *_tcn_* rows: fine-tuning steps of the sequence-encoder student "
+                         "(batches of 8 crops of 512 frames)")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "behavior"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "behavior_mae.json"))
     ap.add_argument("--threads", type=int, default=1)
@@ -341,6 +382,9 @@ def main(argv: list[str] | None = None) -> dict:
     if set(pseudo_rows) - set(PSEUDO):
         ap.error(f"--pseudo: unknown rows {sorted(set(pseudo_rows) - set(PSEUDO))} "
                  f"(known: {', '.join(PSEUDO)})")  # fmt: skip
+    if set(pseudo_rows) & set(TCN_ROWS) and args.student_steps < 1:
+        ap.error(f"--pseudo {','.join(sorted(set(pseudo_rows) & set(TCN_ROWS)))}: these rows "
+                 "need --student-steps >= 1")  # fmt: skip
     if args.finetune < 0 or args.probe_steps < 0 or args.encoder_lr <= 0:
         ap.error("--finetune and --probe-steps must be >= 0, --encoder-lr > 0")
     if args.finetune and args.probe_steps > args.finetune:
@@ -447,11 +491,24 @@ def main(argv: list[str] | None = None) -> dict:
         for name in pseudo_rows:  # a student, taught
             kind, teacher, *student = PSEUDO[name]
             skind, sname = student or ("forest", "frame")
+            student_fn = None
+            if skind == "tcn":  # a sequence encoder, fine-tuned on the sessions' frames
+                init, probe, lr = ((net, args.probe_steps, args.encoder_lr)
+                                   if sname == "pretrained" else (random_net, 0, 1e-3))  # fmt: skip
+
+                def student_fn(rows, labels, weights, init=init, probe=probe, lr=lr):
+                    return finetune(init, xtr, rows, labels, weights, xte, args.student_steps,
+                                    min(probe, args.student_steps), lr, len(classes),
+                                    crop=min(512, T))  # fmt: skip
+
+                sname = "frame"  # (unused: the student reads the sessions themselves)
             ta, (sa, sb), fa = feats[teacher][0], feats[sname], feats["frame"][0]
             if name.endswith("_unl"):  # the unlabelled sessions' frames pseudo-labelled too
                 ta, sa, fa = (np.vstack([a, unl_feats[k]]) for a, k in
                               ((ta, teacher), (sa, sname), (fa, "frame")))  # fmt: skip
-            sc = fit_pseudo(kind, ta, sa, sb, idx, y, w, yte, classes, forest, T, skind, fa)
+            sc = fit_pseudo(
+                kind, ta, sa, sb, idx, y, w, yte, classes, forest, T, skind, fa, student_fn
+            )
             results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
             per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
         if args.finetune:
@@ -460,7 +517,7 @@ def main(argv: list[str] | None = None) -> dict:
                 ("finetune_scratch", random_net, 0, 1e-3),
             ):
                 t_ft = time.perf_counter()
-                pred = finetune(model, xtr, idx, y, w, xte, args.finetune, probe, lr)
+                pred = finetune(model, xtr, idx, y, w[y], xte, args.finetune, probe, lr, len(w))
                 sc = scores(yte, pred, classes, "test")
                 results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
                 per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
@@ -507,7 +564,10 @@ def main(argv: list[str] | None = None) -> dict:
               ("pseudo_ensemble_pretrained", "pseudo_ensemble_binned"),
               ("pseudo_ensemble_pretrained", "pseudo_pretrained"),
               ("pseudo_ensemble_emb_pretrained", "pseudo_ensemble_emb_random"),
-              ("pseudo_ensemble_emb_pretrained", "pseudo_pretrained")]  # fmt: skip
+              ("pseudo_ensemble_emb_pretrained", "pseudo_pretrained"),
+              ("pseudo_pretrained_tcn_pretrained", "pseudo_pretrained_tcn_scratch"),
+              ("pseudo_pretrained_tcn_pretrained", "pseudo_pretrained"),
+              ("pseudo_pretrained_tcn_pretrained", "rf")]  # fmt: skip
     checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"]
               for a, b in pairs if a in table and b in table}  # fmt: skip
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
@@ -532,6 +592,7 @@ def main(argv: list[str] | None = None) -> dict:
             "target": None if args.sequence_encoder else args.target,
             "pseudo": pseudo_rows,
             "finetune": args.finetune,
+            "student_steps": args.student_steps,
             "probe_steps": args.probe_steps,
             "encoder_lr": args.encoder_lr,
             "seeds": SEEDS | {"unlabelled": UNLABELLED_SEED},
