@@ -294,9 +294,9 @@ def run_classifier(
     """One deformnet-classify run; box: a calibration.toml whose lock box gives the lock-box
     context (`mechanisms.calibration`), None: without it; measurements: `measurements=true`;
     transfer: sessions the trained classifier then labels (`transfer_score`); body_scale:
-    the classifier's; sequence (the forest_sequence methods): {"unlabelled": sessions,
-    "steps": pretraining steps, "encoder": a sequence_encoder.pt to reuse or None}; extra:
-    more deformnet-classify overrides."""
+    the classifier's; sequence (the TEACHERS methods): {"unlabelled": sessions, "steps":
+    pretraining steps, "encoder": a sequence_encoder.pt to reuse or None, "teach": the teacher
+    pseudo-labels the unlabelled sessions too}; extra: more deformnet-classify overrides."""
     from deformnet.classify import run
 
     ov = [f"output.dir={out}", "logger=none", f"labels.fraction={fraction}"]
@@ -317,6 +317,7 @@ def run_classifier(
     ov += list(extra)
     if fraction >= 1.0:  # the head's ensemble is for few labels; one MLP on all 18000 frames
         ov.append("head.ensemble=1")  # (five L-BFGS fits on them: about 20 min per method)
+    sq, pretrains = sequence or {}, False  # the teachers': unlabelled sessions, pretraining
     if method in ("scratch", "scratch_frozen", "scratch_forest_all"):  # the checkpoint's
         ov += ["pretrained=null", *scratch_like(ckpt)]  # architecture and frame
         if method != "scratch":
@@ -328,23 +329,21 @@ def run_classifier(
         ov += ["head.inputs=all"] if method == "forest_all" else []
         ov += ["pseudo_labels.teacher=self"] if method == "forest_self" else []
         ov += ["pseudo_labels.teacher=linear"] if method == "forest_linear" else []
-        sq = sequence or {}
-        if method == "forest_linear" and sq.get("unlabelled") and sq.get("teach"):
-            ov.append(f"data.unlabelled_tracks={_list(u[source] for u in sq['unlabelled'])}")
     elif method in SEQUENCE_METHODS:
-        sq = sequence or {}
         ov += [f"pretrained={ckpt}", "freeze=true", "head=forest", "pseudo_labels.teacher=sequence"]
         steps = 0 if method == "forest_sequence_random" else int(sq.get("steps", 1000))
         if sq.get("encoder"):
             ov.append(f"pseudo_labels.sequence.encoder={sq['encoder']}")
         else:  # forest_sequence_random: the same net's random weights (no pretraining)
             ov.append(f"pseudo_labels.sequence.steps={steps}")
-        # the unlabelled sessions: pseudo-labelled (teach) at every draw, else only pretrained on
-        if sq.get("unlabelled") and (sq.get("teach") or (steps and not sq.get("encoder"))):
-            ov.append(f"data.unlabelled_tracks={_list(u[source] for u in sq['unlabelled'])}")
-        ov.append(f"pseudo_labels.unlabelled={'true' if sq.get('teach') else 'false'}")
+            pretrains = steps > 0
     else:
         ov += [f"pretrained={ckpt}", f"freeze={'true' if method == 'frozen' else 'false'}"]
+    if method in TEACHERS:  # the unlabelled sessions: pseudo-labelled (teach) at every draw,
+        # else only read by a sequence pretraining here
+        if sq.get("unlabelled") and (sq.get("teach") or pretrains):
+            ov.append(f"data.unlabelled_tracks={_list(u[source] for u in sq['unlabelled'])}")
+        ov.append(f"pseudo_labels.unlabelled={'true' if sq.get('teach') else 'false'}")
     t0 = time.perf_counter()
     rep = run(compose("classify", ov))["report"]
     out_ = {
