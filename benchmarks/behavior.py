@@ -491,10 +491,12 @@ def run_rf(
     label_seed: int = 0,
     mechanisms: np.ndarray | None = None,
     resample: bool = True,
+    predictions: bool = False,
 ) -> dict:
     """The SimBA-style random forest trained on the labelled frames of sessions["train"],
     scored on sessions["test"] and, when there (--transfer-sim), the same forest on
-    sessions["transfer"] ("transfer_macro_f1", "transfer_f1")."""
+    sessions["transfer"] ("transfer_macro_f1", "transfer_f1"); ``predictions``: the test
+    sessions' predicted labels too ("pred", their frames in order)."""
     from sklearn.ensemble import RandomForestClassifier
 
     from deformnet.behavior_labels import Session, subsample_labels
@@ -528,8 +530,11 @@ def run_rf(
     out = {"labelled_frames": int(len(y))}
     for split in [k for k in ("test", "transfer") if k in sessions]:
         Xte, yte = load(split)
-        ev = evaluate(np.concatenate(yte), rf.predict(np.concatenate(Xte)), classes)
+        pred = rf.predict(np.concatenate(Xte))
+        ev = evaluate(np.concatenate(yte), pred, classes)
         pre = "" if split == "test" else "transfer_"
+        if predictions and split == "test":
+            out["pred"] = pred
         out |= {f"{pre}macro_f1": ev["macro_f1"],
                 f"{pre}f1": {c: v["f1"] for c, v in ev["per_class"].items()}}  # fmt: skip
     return out | {"seconds": round(time.perf_counter() - t0, 1)}

@@ -226,8 +226,9 @@ def fit_pseudo(
     i.e. self-training) fitted on the labelled frames of its features ta. Sample weights
     (`deformnet.pseudo.pseudo_sample_weights`): balanced over the labels and pseudo-labels
     together, a labelled frame LABELLED_WEIGHT times a pseudo-labelled one. Test
-    macro-F1 and per-class F1. ``student_fn(rows, labels, weights)``, when given, is the
-    student instead: it learns from those training rows and returns the test predictions."""
+    macro-F1, per-class F1 and the test predictions ("pred"). ``student_fn(rows, labels,
+    weights)``, when given, is the student instead: it learns from those training rows and
+    returns the test predictions."""
     from sklearn.ensemble import RandomForestClassifier
     from sklearn.linear_model import LogisticRegression
 
@@ -261,19 +262,21 @@ def fit_pseudo(
     Y = np.concatenate([y, yp])
     sw = pseudo_sample_weights(Y, len(y), C, LABELLED_WEIGHT)
     if student_fn is not None:
-        return scores(yte, student_fn(np.concatenate([idx, rows]), Y, sw), classes, "test")
+        pred = student_fn(np.concatenate([idx, rows]), Y, sw)
+        return scores(yte, pred, classes, "test") | {"pred": pred}
     if student_kind == "lr":
         student = LogisticRegression(C=1.0, max_iter=3000)
     else:
         student = new_forest(None)
     student.fit(np.vstack([sa[idx], sa[rows]]), Y, sample_weight=sw)
-    return scores(yte, student.predict(sb), classes, "test")
+    pred = student.predict(sb)
+    return scores(yte, pred, classes, "test") | {"pred": pred}
 
 
 def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> dict:
-    """Test macro-F1 and per-class F1 ({"macro_f1", "f1"}) of one learner ("lr" or "forest")
-    fitted on the labelled rows idx of the standardised training features a, tested on the test
-    features b."""
+    """Test macro-F1, per-class F1 and predictions ({"macro_f1", "f1", "pred"}) of one learner
+    ("lr" or "forest") fitted on the labelled rows idx of the standardised training features a,
+    tested on the test features b."""
     from sklearn.ensemble import RandomForestClassifier
     from sklearn.linear_model import LogisticRegression
 
@@ -287,7 +290,43 @@ def fit_score(kind: str, a, b, idx, y, w, yte, classes, forest: dict) -> dict:
             class_weight=cw,
         )  # fmt: skip
     clf.fit(a[idx], y)
-    return scores(yte, clf.predict(b), classes, "test")
+    pred = clf.predict(b)
+    return scores(yte, pred, classes, "test") | {"pred": pred}
+
+
+def session_scores(preds: dict, yte: np.ndarray, classes, sessions: int, draws: int) -> dict:
+    """Each method's test macro-F1 per test session, the mean over the 1% label draws:
+    {method: (sessions,)}; preds: {method: {"0.01/<draw>": (sessions x T,) predictions}}."""
+    T = len(yte) // sessions
+    out = {}
+    for name, p in preds.items():
+        cut = [slice(s * T, (s + 1) * T) for s in range(sessions)]
+        per = [[scores(yte[c], p[f"0.01/{d}"][c], classes, "test")["macro_f1"] for c in cut]
+               for d in range(draws)]  # fmt: skip
+        out[name] = np.mean(per, axis=0)
+    return out
+
+
+def paired_table(pairs: list, table: dict, per_session: dict) -> dict:
+    """For each pair (a, b) at 1%: a - b paired over the label draws (macro-F1 on every test
+    session) and over the test sessions (each session's macro-F1, the mean over the draws),
+    `deformnet.behavior_report.paired_difference`; printed, and returned as
+    {"<a>_vs_<b>": {"draws": ..., "sessions": ..., "better": both better}}."""
+    from deformnet.behavior_report import paired_difference
+
+    out = {}
+    print("\npaired differences at 1% (mean, 95% CI, ahead/behind, Wilcoxon p): over the "
+          "label draws | over the test sessions")  # fmt: skip
+    for a, b in pairs:
+        by_draw = paired_difference(table[a]["1%_draws"], table[b]["1%_draws"])
+        by_session = paired_difference(per_session[a], per_session[b])
+        both = by_draw["better"] and by_session["better"]
+        out[f"{a}_vs_{b}"] = {"draws": by_draw, "sessions": by_session, "better": both}
+        text = [f"{r['mean']:+.3f} [{r['ci'][0]:+.3f}, {r['ci'][1]:+.3f}] "
+                f"{r['wins']}/{r['losses']} p={r['wilcoxon_p']:.3f}"
+                for r in (by_draw, by_session)]  # fmt: skip
+        print(f"  {a} vs {b}: {text[0]} | {text[1]}{'  BETTER' if both else ''}")
+    return out
 
 
 # the pseudo-label rows: name -> (teacher learner, teacher features[, student learner,
@@ -480,6 +519,7 @@ def main(argv: list[str] | None = None) -> dict:
         methods = []
     results: dict = {}
     per_class: dict = {}  # method -> {plan: {class: F1}}
+    preds: dict = {}  # method -> {plan: test predictions (test sessions x T frames)}
     for f, d in plan:
         idx, y, w = labelled(per, built, f, d)
         idx, y = idx.numpy(), y.numpy()
@@ -488,6 +528,7 @@ def main(argv: list[str] | None = None) -> dict:
             sc = fit_score(kind, xa, xb, idx, y, w, yte, classes, forest)
             results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["macro_f1"]
             per_class.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["f1"]
+            preds.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["pred"]
         for name in pseudo_rows:  # a student, taught
             kind, teacher, *student = PSEUDO[name]
             skind, sname = student or ("forest", "frame")
@@ -511,6 +552,7 @@ def main(argv: list[str] | None = None) -> dict:
             )
             results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
             per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
+            preds.setdefault(name, {})[f"{f:g}/{d}"] = sc["pred"]
         if args.finetune:
             for name, model, probe, lr in (
                 ("finetune_pretrained", net, args.probe_steps, args.encoder_lr),
@@ -521,12 +563,13 @@ def main(argv: list[str] | None = None) -> dict:
                 sc = scores(yte, pred, classes, "test")
                 results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
                 per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
+                preds.setdefault(name, {})[f"{f:g}/{d}"] = pred
                 extra.setdefault("finetune_seconds", []).append(
                     round(time.perf_counter() - t_ft, 1)
                 )
-        results.setdefault("rf", {})[f"{f:g}/{d}"] = run_rf(
-            sessions, "track", f, label_seed=d, mechanisms=mech
-        )["macro_f1"]
+        sc = run_rf(sessions, "track", f, label_seed=d, mechanisms=mech, predictions=True)
+        results.setdefault("rf", {})[f"{f:g}/{d}"] = sc["macro_f1"]
+        preds.setdefault("rf", {})[f"{f:g}/{d}"] = sc["pred"]
         now = {k: round(v[f"{f:g}/{d}"], 3) for k, v in results.items()}
         log.info("%g / draw %d: %s", f, d, now)
     table = {}
@@ -568,12 +611,22 @@ def main(argv: list[str] | None = None) -> dict:
               ("pseudo_pretrained_tcn_pretrained", "pseudo_pretrained_tcn_scratch"),
               ("pseudo_pretrained_tcn_pretrained", "pseudo_pretrained"),
               ("pseudo_pretrained_tcn_pretrained", "rf")]  # fmt: skip
+    pairs += [("pseudo_pretrained_unl", "pseudo_binned_unl"), ("pseudo_pretrained_unl", "rf"),
+              ("pseudo_pretrained_unl", "pseudo_random_unl"),
+              ("pseudo_pretrained_unl", "pseudo_pretrained")]  # fmt: skip
     checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"]
               for a, b in pairs if a in table and b in table}  # fmt: skip
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
+    paired = {}
+    if args.draws >= 2:  # is the difference more than the draws' and the sessions' spread?
+        paired = paired_table(
+            [(a, b) for a, b in pairs if a in table and b in table], table,
+            session_scores(preds, yte, classes, args.test, args.draws),
+        )  # fmt: skip
     summary = {
         "table": table,
         "checks": checks,
+        "paired": paired,
         "checkpoint": ckpt,
         **extra,
         "setup": {

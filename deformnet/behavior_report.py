@@ -10,7 +10,10 @@ import numpy as np
 
 from deformnet.behavior_labels import bouts
 
-__all__ = ["bout_stats", "evaluate", "confusion_figure", "ethogram_figure", "save_figure"]
+__all__ = [
+    "bout_stats", "evaluate", "paired_difference", "confusion_figure", "ethogram_figure",
+    "save_figure",
+]  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -56,6 +59,38 @@ def evaluate(y_true: np.ndarray, y_pred: np.ndarray, classes: Sequence[str]) -> 
             for c, name in enumerate(classes)
         },
         "confusion": confusion_matrix(yt, yp, labels=np.arange(C)).tolist(),
+    }
+
+
+def paired_difference(a: Sequence[float], b: Sequence[float], level: float = 0.95) -> dict:
+    """Is method a better than method b? Their scores a, b (N,) paired by unit (a label draw, a
+    test session: the same unit for both), N >= 2. Returns the mean difference a - b, its
+    two-sided Student-t confidence interval at ``level`` ("ci", [low, high]), the units where a
+    is ahead / behind ("wins", "losses"; ties are neither), and the two-sided Wilcoxon
+    signed-rank p-value (scipy; 1.0 when every difference is 0). "better" is true when the
+    interval lies above 0 and p < 1 - level: a difference the units' spread cannot explain."""
+    from scipy import stats
+
+    x, y = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if x.ndim != 1 or x.shape != y.shape or x.size < 2:
+        raise ValueError(f"a and b must be (N >= 2,) paired scores, got {x.shape} and {y.shape}")
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise ValueError("paired_difference: the scores must be finite")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    d = x - y
+    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(d.size))
+    half = float(stats.t.ppf(0.5 + level / 2, d.size - 1)) * se
+    p = 1.0 if not np.any(d != 0) else float(stats.wilcoxon(d).pvalue)
+    low, high = mean - half, mean + half
+    return {
+        "mean": mean,
+        "ci": [low, high],
+        "units": int(d.size),
+        "wins": int(np.sum(d > 0)),
+        "losses": int(np.sum(d < 0)),
+        "wilcoxon_p": p,
+        "better": bool(low > 0 and p < 1.0 - level),
     }
 
 

@@ -136,6 +136,29 @@ def test_smoothing_and_bouts():
     assert (smooth(probs) == probs.argmax(-1)).all()
 
 
+def test_paired_difference():
+    from deformnet.behavior_report import paired_difference
+
+    # differences 1, 2, 3, 4: mean 2.5, sd sqrt(5/3), t(0.975, 3 dof) = 3.182446
+    r = paired_difference([2.0, 4.0, 6.0, 8.0], [1.0, 2.0, 3.0, 4.0])
+    half = 3.182446305 * np.sqrt(5 / 3) / 2
+    assert r["mean"] == pytest.approx(2.5) and r["units"] == 4
+    assert r["ci"] == pytest.approx([2.5 - half, 2.5 + half], rel=1e-6)
+    assert (r["wins"], r["losses"]) == (4, 0)
+    # exact two-sided signed-rank p with every one of 4 differences positive: 2 / 2^4; the
+    # interval is above 0 but 4 units cannot rule out chance
+    assert r["wilcoxon_p"] == pytest.approx(0.125) and not r["better"]
+    r = paired_difference(np.arange(8) + 1.0, np.zeros(8))  # 8 of 8 ahead: p = 2 / 2^8
+    assert r["wilcoxon_p"] == pytest.approx(2 / 256) and r["better"]
+    r = paired_difference([1.0, 0.0, 1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0, 0.0, 1.0])
+    assert r["mean"] == 0 and (r["wins"], r["losses"]) == (3, 3) and not r["better"]
+    assert paired_difference([1.0, 1.0], [1.0, 1.0])["wilcoxon_p"] == 1.0
+    with pytest.raises(ValueError, match="paired"):
+        paired_difference([1.0, 2.0], [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="finite"):
+        paired_difference([1.0, np.nan], [1.0, 2.0])
+
+
 def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
     from deformnet.classify import run
 
