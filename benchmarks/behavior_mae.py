@@ -76,8 +76,13 @@ pretrained encoder, given the teacher's thousands of pseudo-labels instead of 18
         [--sequence-encoder sequence_encoder.pt] [--pseudo ROWS] [--pseudo-only]
         [--student-steps 300]
 
-Prints a table; the last line is JSON, also written atomically to
-runs/benchmarks/behavior_mae.json.
+Prints a table, then for each pair of rows it compares (the pretrained teacher against the one
+with no encoder, against the random weights, against the random forest...) the difference at
+1% paired over the label draws (macro-F1 on all the test sessions) and over the test sessions
+(each one's macro-F1, the mean over the draws): mean, 95% t interval, draws or sessions ahead
+and behind, Wilcoxon signed-rank p (`deformnet.behavior_report.paired_difference`; "better"
+when both intervals lie above 0 with p < 0.05). The last line is JSON, also written
+atomically to runs/benchmarks/behavior_mae.json ("paired": those comparisons).
 """
 
 from __future__ import annotations
@@ -613,16 +618,20 @@ def main(argv: list[str] | None = None) -> dict:
               ("pseudo_pretrained_tcn_pretrained", "rf")]  # fmt: skip
     pairs += [("pseudo_pretrained_unl", "pseudo_binned_unl"), ("pseudo_pretrained_unl", "rf"),
               ("pseudo_pretrained_unl", "pseudo_random_unl"),
-              ("pseudo_pretrained_unl", "pseudo_pretrained")]  # fmt: skip
+              ("pseudo_pretrained_unl", "pseudo_pretrained"),
+              ("pseudo_binned_unl", "pseudo_binned"), ("pseudo_random_unl", "pseudo_random"),
+              ("pseudo_binned", "pseudo_random"), ("pseudo_binned", "rf")]  # fmt: skip
     checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"]
               for a, b in pairs if a in table and b in table}  # fmt: skip
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     paired = {}
     if args.draws >= 2:  # is the difference more than the draws' and the sessions' spread?
+        per_session = session_scores(preds, yte, classes, args.test, args.draws)
+        for name, v in per_session.items():
+            table[name]["1%_sessions"] = v.tolist()
         paired = paired_table(
-            [(a, b) for a, b in pairs if a in table and b in table], table,
-            session_scores(preds, yte, classes, args.test, args.draws),
-        )  # fmt: skip
+            [(a, b) for a, b in pairs if a in table and b in table], table, per_session
+        )
     summary = {
         "table": table,
         "checks": checks,
