@@ -408,7 +408,7 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     for key, default, kind in (("keep", 0.3, float), ("smooth", 9, int),
                                ("labelled_weight", 5.0, float), ("bins", 4, int)):  # fmt: skip
         out[key] = _number("pseudo_labels", key, pl.get(key, default), kind)
-    out["unlabelled"] = pl.get("unlabelled", False)
+    out["unlabelled"] = pl.get("unlabelled", True)
     if not isinstance(out["unlabelled"], bool):
         raise ValueError(f"pseudo_labels.unlabelled must be true or false, got "
                          f"{out['unlabelled']!r}")  # fmt: skip

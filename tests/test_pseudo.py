@@ -167,11 +167,10 @@ def test_linear_teacher_in_deformnet_classify(tmp_path):
     assert rep["raw"]["macro_f1"] >= 0.95, rep["raw"]
     _, meta = load_classifier(out / "classifier.pt")
     assert meta["pseudo_labels"]["teacher"] == "linear" and meta["pseudo_labels"]["bins"] == 4
-    # a recording nobody labelled: its frames are pseudo-labelled too, and the forest learns
-    # from them
+    # a recording nobody labelled: by default (pseudo_labels.unlabelled=true) its frames are
+    # pseudo-labelled too, and the forest learns from them
     unl = _toy_session(tmp_path, "unlabelled", 5)
     more = run(_compose([*base, *forest, f"data.unlabelled_tracks=[{unl[0]}]",
-                         "pseudo_labels.unlabelled=true",
                          f"output.dir={tmp_path / 'linear_unl'}"]))["report"]  # fmt: skip
     mpl = more["probe"]["pseudo_labels"]
     assert pl["unlabelled_frames"] == 0 and 0.2 * 360 <= mpl["unlabelled_frames"] <= 360
