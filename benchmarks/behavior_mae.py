@@ -305,6 +305,10 @@ def session_scores(preds: dict, yte: np.ndarray, classes, sessions: int, draws: 
     T = len(yte) // sessions
     out = {}
     for name, p in preds.items():
+        sizes = {len(p[f"0.01/{d}"]) for d in range(draws)}
+        if len(yte) != sessions * T or sizes != {len(yte)}:
+            raise RuntimeError(f"{name}: {sorted(sizes)} test predictions for {len(yte)} test "
+                               f"frames of {sessions} sessions")  # fmt: skip
         cut = [slice(s * T, (s + 1) * T) for s in range(sessions)]
         per = [[scores(yte[c], p[f"0.01/{d}"][c], classes, "test")["macro_f1"] for c in cut]
                for d in range(draws)]  # fmt: skip
