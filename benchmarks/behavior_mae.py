@@ -303,13 +303,13 @@ def session_scores(preds: dict, yte: np.ndarray, classes, sessions: int, draws: 
     """Each method's test macro-F1 per test session, the mean over the 1% label draws:
     {method: (sessions,)}; preds: {method: {"0.01/<draw>": (sessions x T,) predictions}}."""
     T = len(yte) // sessions
+    cut = [slice(s * T, (s + 1) * T) for s in range(sessions)]
     out = {}
     for name, p in preds.items():
         sizes = {len(p[f"0.01/{d}"]) for d in range(draws)}
         if len(yte) != sessions * T or sizes != {len(yte)}:
             raise RuntimeError(f"{name}: {sorted(sizes)} test predictions for {len(yte)} test "
                                f"frames of {sessions} sessions")  # fmt: skip
-        cut = [slice(s * T, (s + 1) * T) for s in range(sessions)]
         per = [[scores(yte[c], p[f"0.01/{d}"][c], classes, "test")["macro_f1"] for c in cut]
                for d in range(draws)]  # fmt: skip
         out[name] = np.mean(per, axis=0)
@@ -529,15 +529,19 @@ def main(argv: list[str] | None = None) -> dict:
     results: dict = {}
     per_class: dict = {}  # method -> {plan: {class: F1}}
     preds: dict = {}  # method -> {plan: test predictions (test sessions x T frames)}
+
+    def record(name: str, key: str, sc: dict) -> None:  # one method's scores at one plan
+        results.setdefault(name, {})[key] = sc["macro_f1"]
+        per_class.setdefault(name, {})[key] = sc["f1"]
+        preds.setdefault(name, {})[key] = sc["pred"]
+
     for f, d in plan:
         idx, y, w = labelled(per, built, f, d)
         idx, y = idx.numpy(), y.numpy()
         for kind, name in methods:
             xa, xb = feats[name]
-            sc = fit_score(kind, xa, xb, idx, y, w, yte, classes, forest)
-            results.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["macro_f1"]
-            per_class.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["f1"]
-            preds.setdefault(f"{kind}_{name}", {})[f"{f:g}/{d}"] = sc["pred"]
+            record(f"{kind}_{name}", f"{f:g}/{d}",
+                   fit_score(kind, xa, xb, idx, y, w, yte, classes, forest))  # fmt: skip
         for name in pseudo_rows:  # a student, taught
             kind, teacher, *student = PSEUDO[name]
             skind, sname = student or ("forest", "frame")
@@ -559,9 +563,7 @@ def main(argv: list[str] | None = None) -> dict:
             sc = fit_pseudo(
                 kind, ta, sa, sb, idx, y, w, yte, classes, forest, T, skind, fa, student_fn
             )
-            results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
-            per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
-            preds.setdefault(name, {})[f"{f:g}/{d}"] = sc["pred"]
+            record(name, f"{f:g}/{d}", sc)
         if args.finetune:
             for name, model, probe, lr in (
                 ("finetune_pretrained", net, args.probe_steps, args.encoder_lr),
@@ -569,15 +571,12 @@ def main(argv: list[str] | None = None) -> dict:
             ):
                 t_ft = time.perf_counter()
                 pred = finetune(model, xtr, idx, y, w[y], xte, args.finetune, probe, lr, len(w))
-                sc = scores(yte, pred, classes, "test")
-                results.setdefault(name, {})[f"{f:g}/{d}"] = sc["macro_f1"]
-                per_class.setdefault(name, {})[f"{f:g}/{d}"] = sc["f1"]
-                preds.setdefault(name, {})[f"{f:g}/{d}"] = pred
+                record(name, f"{f:g}/{d}", scores(yte, pred, classes, "test") | {"pred": pred})
                 extra.setdefault("finetune_seconds", []).append(
                     round(time.perf_counter() - t_ft, 1)
                 )
         sc = run_rf(sessions, "track", f, label_seed=d, mechanisms=mech, predictions=True)
-        results.setdefault("rf", {})[f"{f:g}/{d}"] = sc["macro_f1"]
+        results.setdefault("rf", {})[f"{f:g}/{d}"] = sc["macro_f1"]  # (no per-class F1 kept)
         preds.setdefault("rf", {})[f"{f:g}/{d}"] = sc["pred"]
         now = {k: round(v[f"{f:g}/{d}"], 3) for k, v in results.items()}
         log.info("%g / draw %d: %s", f, d, now)
