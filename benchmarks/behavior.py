@@ -39,7 +39,12 @@ one draw moves macro-F1 by several points.
   other label draws and fractions (`pseudo_labels.sequence.encoder`: no labels are involved);
   ``forest_sequence_random``: the same with the net's random weights (`steps=0`: what the
   pretraining adds);
-  with ``--teach-unlabelled`` the teachers (``forest_linear`` and these two) also pseudo-label
+  ``forest_cotrain``: two teachers instead (`pseudo_labels.teacher=cotrain`, co-training): the
+  logistic regression on the binned frame features and one on the sequence encoder's embedding
+  alone, each view's confident frames pooled, conflicts dropped (the same pretrained encoder
+  as ``forest_sequence``, reused when that ran first); ``forest_cotrain_random``: the same
+  with the net's random weights;
+  with ``--teach-unlabelled`` the teachers (``forest_linear`` and these four) also pseudo-label
   the unlabelled sessions' frames, and the forest learns from them
   (`pseudo_labels.unlabelled=true`); without it only the pretraining reads them;
 - ``forest_all``: the same forest head on every feature (`head.inputs=all`: the pretrained
@@ -144,13 +149,19 @@ METHODS = (
     "forest_linear",
     "forest_sequence",
     "forest_sequence_random",
+    "forest_cotrain",
+    "forest_cotrain_random",
     "forest_all",
     "scratch_forest_all",
     "rf",
 )
 TRANSFER_SEED = 95_300  # --transfer-sim: the other mouse's sessions (nothing trains on them)
 UNLABELLED_SEED = 95_500  # sessions without labels (sequence pretraining only; behavior_mae too)
-SEQUENCE_METHODS = ("forest_sequence", "forest_sequence_random")
+SEQUENCE_METHODS = ("forest_sequence", "forest_sequence_random", "forest_cotrain",
+                    "forest_cotrain_random")  # fmt: skip
+# the co-training teachers read the same sequence encoder as these (reused when they ran first)
+SAME_ENCODER = {"forest_cotrain": "forest_sequence",
+                "forest_cotrain_random": "forest_sequence_random"}  # fmt: skip
 TEACHERS = ("forest_linear", *SEQUENCE_METHODS)  # they read the unlabelled sessions
 
 
@@ -330,11 +341,13 @@ def run_classifier(
         ov += ["pseudo_labels.teacher=self"] if method == "forest_self" else []
         ov += ["pseudo_labels.teacher=linear"] if method == "forest_linear" else []
     elif method in SEQUENCE_METHODS:
-        ov += [f"pretrained={ckpt}", "freeze=true", "head=forest", "pseudo_labels.teacher=sequence"]
-        steps = 0 if method == "forest_sequence_random" else int(sq.get("steps", 1000))
+        teacher = "cotrain" if method.startswith("forest_cotrain") else "sequence"
+        ov += [f"pretrained={ckpt}", "freeze=true", "head=forest",
+               f"pseudo_labels.teacher={teacher}"]  # fmt: skip
+        steps = 0 if method.endswith("_random") else int(sq.get("steps", 1000))
         if sq.get("encoder"):
             ov.append(f"pseudo_labels.sequence.encoder={sq['encoder']}")
-        else:  # forest_sequence_random: the same net's random weights (no pretraining)
+        else:  # forest_*_random: the same net's random weights (no pretraining)
             ov.append(f"pseudo_labels.sequence.steps={steps}")
             pretrains = steps > 0
     else:
@@ -803,7 +816,8 @@ def main(argv: list[str] | None = None) -> dict:
                 if method in TEACHERS:  # the unlabelled sessions; a sequence encoder is
                     # pretrained once (no labels), then reused
                     sq = {"unlabelled": unlabelled, "steps": args.sequence_steps,
-                          "encoder": seq_encoders.get(method),
+                          "encoder": seq_encoders.get(method,
+                                                      seq_encoders.get(SAME_ENCODER.get(method))),
                           "teach": args.teach_unlabelled}  # fmt: skip
                 runs.append(run_classifier(
                     out, sessions, "track", frac, method, ckpt, args.seconds, label_seed=d,
@@ -812,7 +826,9 @@ def main(argv: list[str] | None = None) -> dict:
                     extra=extra_ov,
                 ))  # fmt: skip
                 if method in SEQUENCE_METHODS and method not in seq_encoders:
-                    seq_encoders[method] = str(out / "sequence_encoder.pt")
+                    seq_encoders[method] = (sq or {}).get("encoder") or str(
+                        out / "sequence_encoder.pt"
+                    )  # fmt: skip
             results[key][method] = averaged(runs)
             log.info("labels %s %s: macro-F1 %.3f", key, method, results[key][method]["macro_f1"])
         if "rf" in methods:
@@ -915,6 +931,11 @@ def main(argv: list[str] | None = None) -> dict:
         if {"forest_sequence", b} <= set(r1):  # the pretrained sequence encoder as a teacher
             checks[f"forest_sequence_beats_{b}_1pct"] = (
                 r1["forest_sequence"]["macro_f1"] > r1[b]["macro_f1"]
+            )
+    for b in ("rf", "forest_cotrain_random", "forest_sequence", "forest_linear"):
+        if {"forest_cotrain", b} <= set(r1):  # ... and as the second view of a co-training
+            checks[f"forest_cotrain_beats_{b}_1pct"] = (
+                r1["forest_cotrain"]["macro_f1"] > r1[b]["macro_f1"]
             )
     for key in [k for k in ("0.01", "0.1") if transfer and k in results]:
         r, pct = results[key], f"{float(key) * 100:g}pct"

@@ -110,7 +110,11 @@ from common import emit, start
 from torch import nn
 
 from deformnet.confutil import compose, to_plain
-from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
+from deformnet.pseudo import (
+    class_balanced_pseudo_labels,
+    co_training_pseudo_labels,
+    pseudo_sample_weights,
+)
 from deformnet.sequence import (
     SequenceEncoder,
     embeddings,
@@ -127,6 +131,7 @@ BINS = 4  # quantile bins per frame feature of the binned rows (`binned`)
 SMOOTH = 9  # frames over which a teacher's probabilities are averaged (`fit_pseudo`)
 KEEP = 0.3  # share of each class's most confident frames pseudo-labelled
 LABELLED_WEIGHT = 5.0  # a labelled frame's weight against a pseudo-labelled one's
+EMBEDDING_KEEP = 0.5  # co-training: share of each class's frames the embedding's teacher keeps
 
 
 def finetune(
@@ -221,7 +226,7 @@ def binned(xtr: np.ndarray, xte: np.ndarray, bins: int = BINS) -> tuple[np.ndarr
 
 def fit_pseudo(
     teacher_kind: str, ta, sa, sb, idx, y, w, yte, classes, forest: dict, frames: int,
-    student_kind: str = "forest", fa=None, student_fn=None,
+    student_kind: str = "forest", fa=None, student_fn=None, tb=None,
 ) -> dict:  # fmt: skip
     """The forest head's random forest (the student) on the frame features sa / sb, fitted on
     the labelled frames idx (labels y) and the teacher's class-balanced pseudo-labels of the
@@ -231,9 +236,12 @@ def fit_pseudo(
     i.e. self-training) fitted on the labelled frames of its features ta. Sample weights
     (`deformnet.pseudo.pseudo_sample_weights`): balanced over the labels and pseudo-labels
     together, a labelled frame LABELLED_WEIGHT times a pseudo-labelled one. Test
-    macro-F1, per-class F1 and the test predictions ("pred"). ``student_fn(rows, labels,
-    weights)``, when given, is the student instead: it learns from those training rows and
-    returns the test predictions."""
+    macro-F1, per-class F1 and the test predictions ("pred"). Teacher "co" (co-training): the
+    logistic regression on ta and another on a second view tb (the embedding alone), each
+    view's class-balanced pseudo-labels (KEEP and EMBEDDING_KEEP) pooled, frames the two give
+    different classes dropped (`deformnet.pseudo.co_training_pseudo_labels`).
+    ``student_fn(rows, labels, weights)``, when given, is the student instead: it learns from
+    those training rows and returns the test predictions."""
     from sklearn.ensemble import RandomForestClassifier
     from sklearn.linear_model import LogisticRegression
 
@@ -253,7 +261,7 @@ def fit_pseudo(
         P[:, teacher.classes_] = teacher.predict_proba(x)
         return P
 
-    if teacher_kind == "lr":
+    if teacher_kind in ("lr", "co"):
         P = probs(LogisticRegression(C=1.0, max_iter=3000, class_weight=cw), ta)
     elif teacher_kind == "forest":
         P = probs(new_forest(cw), ta)
@@ -263,7 +271,12 @@ def fit_pseudo(
     labelled_rows = np.zeros(len(ta), bool)
     labelled_rows[idx] = True
     sessions = [frames] * (len(ta) // frames)
-    rows, yp = class_balanced_pseudo_labels(P, sessions, labelled_rows, KEEP, SMOOTH)
+    if teacher_kind == "co":
+        P2 = probs(LogisticRegression(C=1.0, max_iter=3000, class_weight=cw), tb)
+        rows, yp, _ = co_training_pseudo_labels([P, P2], sessions, labelled_rows,
+                                                [KEEP, EMBEDDING_KEEP], SMOOTH)  # fmt: skip
+    else:
+        rows, yp = class_balanced_pseudo_labels(P, sessions, labelled_rows, KEEP, SMOOTH)
     Y = np.concatenate([y, yp])
     sw = pseudo_sample_weights(Y, len(y), C, LABELLED_WEIGHT)
     if student_fn is not None:
@@ -362,6 +375,11 @@ PSEUDO = {
     "pseudo_pretrained_unl": ("lr", "binned_pretrained"),
     "pseudo_binned_unl": ("lr", "binned"),
     "pseudo_random_unl": ("lr", "binned_random"),
+    # co-training: the binned frame features' teacher and the embedding's own (`fit_pseudo`)
+    "pseudo_cotrain": ("co:pretrained", "binned"),
+    "pseudo_cotrain_random": ("co:random", "binned"),
+    "pseudo_cotrain_unl": ("co:pretrained", "binned"),
+    "pseudo_cotrain_random_unl": ("co:random", "binned"),
     # the student a sequence encoder fine-tuned end to end (`finetune`, --student-steps): the
     # pretrained one, or the same net from random weights
     "pseudo_pretrained_tcn_pretrained": ("lr", "binned_pretrained", "tcn", "pretrained"),
@@ -544,6 +562,7 @@ def main(argv: list[str] | None = None) -> dict:
                    fit_score(kind, xa, xb, idx, y, w, yte, classes, forest))  # fmt: skip
         for name in pseudo_rows:  # a student, taught
             kind, teacher, *student = PSEUDO[name]
+            kind, _, view = kind.partition(":")  # co:<net>: the second view, an embedding
             skind, sname = student or ("forest", "frame")
             student_fn = None
             if skind == "tcn":  # a sequence encoder, fine-tuned on the sessions' frames
@@ -557,11 +576,13 @@ def main(argv: list[str] | None = None) -> dict:
 
                 sname = "frame"  # (unused: the student reads the sessions themselves)
             ta, (sa, sb), fa = feats[teacher][0], feats[sname], feats["frame"][0]
+            tb = feats[view][0] if view else None
             if name.endswith("_unl"):  # the unlabelled sessions' frames pseudo-labelled too
                 ta, sa, fa = (np.vstack([a, unl_feats[k]]) for a, k in
                               ((ta, teacher), (sa, sname), (fa, "frame")))  # fmt: skip
+                tb = None if tb is None else np.vstack([tb, unl_feats[view]])
             sc = fit_pseudo(
-                kind, ta, sa, sb, idx, y, w, yte, classes, forest, T, skind, fa, student_fn
+                kind, ta, sa, sb, idx, y, w, yte, classes, forest, T, skind, fa, student_fn, tb
             )
             record(name, f"{f:g}/{d}", sc)
         if args.finetune:
@@ -624,6 +645,12 @@ def main(argv: list[str] | None = None) -> dict:
               ("pseudo_pretrained_unl", "pseudo_pretrained"),
               ("pseudo_binned_unl", "pseudo_binned"), ("pseudo_random_unl", "pseudo_random"),
               ("pseudo_binned", "pseudo_random"), ("pseudo_binned", "rf")]  # fmt: skip
+    pairs += [("pseudo_cotrain_unl", "pseudo_cotrain_random_unl"),
+              ("pseudo_cotrain_unl", "pseudo_binned_unl"),
+              ("pseudo_cotrain_unl", "pseudo_random_unl"),
+              ("pseudo_cotrain_unl", "pseudo_pretrained_unl"), ("pseudo_cotrain_unl", "rf"),
+              ("pseudo_cotrain", "pseudo_cotrain_random"), ("pseudo_cotrain", "pseudo_binned"),
+              ("pseudo_cotrain", "pseudo_pretrained"), ("pseudo_cotrain", "rf")]  # fmt: skip
     checks = {f"{a}_beats_{b}_1pct": table[a]["1%"] > table[b]["1%"]
               for a, b in pairs if a in table and b in table}  # fmt: skip
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))

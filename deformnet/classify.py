@@ -332,7 +332,7 @@ def fit_head_forest(
     }
 
 
-PSEUDO_TEACHERS = ("none", "self", "linear", "sequence")
+PSEUDO_TEACHERS = ("none", "self", "linear", "sequence", "cotrain")
 SEQUENCE_DEFAULTS = {  # pseudo_labels.sequence (conf/classify.yaml documents them)
     "encoder": None, "steps": 1000, "channels": 128, "dilations": [1, 2, 4, 8, 16, 32, 64],
     "mask_ratio": 0.75, "longest_span": 60, "crop": 256, "batch": 32, "lr": 1e-3,
@@ -392,8 +392,8 @@ def _sequence_settings(block) -> dict:
 
 def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     """`pseudo_labels` checked before any data is read: None (teacher none) or {"teacher",
-    "keep", "smooth", "labelled_weight", "bins", "unlabelled"} (teacher=sequence: and
-    "sequence", its settings)."""
+    "keep", "smooth", "labelled_weight", "bins", "unlabelled"} (teacher=sequence or cotrain: and
+    "sequence", its settings; cotrain: and "embedding_keep")."""
     pl = dict(to_plain(cfg.get("pseudo_labels")) or {})
     teacher = str(pl.get("teacher", "none"))
     if teacher not in PSEUDO_TEACHERS:
@@ -421,8 +421,15 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     if out["labelled_weight"] <= 0:
         raise ValueError(f"pseudo_labels.labelled_weight must be > 0, got "
                          f"{out['labelled_weight']}")  # fmt: skip
-    if teacher == "sequence":
+    if teacher in ("sequence", "cotrain"):
         out["sequence"] = _sequence_settings(pl.get("sequence"))
+    if teacher == "cotrain":
+        out["embedding_keep"] = _number(
+            "pseudo_labels", "embedding_keep", pl.get("embedding_keep", 0.5), float
+        )
+        if not 0.0 < out["embedding_keep"] <= 1.0:
+            raise ValueError(f"pseudo_labels.embedding_keep must be in (0, 1], got "
+                             f"{out['embedding_keep']}")  # fmt: skip
     return out
 
 
@@ -458,7 +465,8 @@ def sequence_teacher(
     out: Path,
     bins: int = 4,
     teach_unlabelled: bool = True,
-) -> tuple[np.ndarray, dict]:
+    views: bool = False,
+) -> tuple[np.ndarray | list[np.ndarray], dict]:
     """`pseudo_labels.teacher=sequence`: the behavior-scale sequence encoder
     (`deformnet.sequence`), pretrained by masked-span reconstruction on the training sessions'
     per-frame features (each frame's own encoder output: the first `encoder.out_dim` columns of
@@ -470,10 +478,13 @@ def sequence_teacher(
     on the labelled frames ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights
     (C,) or None). Returns the probabilities (N + M, C) of every training frame, then every
     unlabelled session's (M frames in all; M = 0 without ``teach_unlabelled``: then only the
-    pretraining reads them), and facts."""
+    pretraining reads them), and facts. With ``views`` (`pseudo_labels.teacher=cotrain`) two
+    teachers, one per view: the binned frame features alone (`linear_teacher_probs`) and the
+    embedding alone (`embedding_teacher_probs`), their probabilities as a list of two."""
     from deformnet.atomic import atomic_path
     from deformnet.sequence import (
         SequenceEncoder,
+        embedding_teacher_probs,
         embeddings,
         export_sequence_encoder,
         linear_teacher_probs,
@@ -510,15 +521,20 @@ def sequence_teacher(
     taught = list(unlabelled) if teach_unlabelled else []  # the frames to label, after training's
     emb = embeddings(seq, train_seqs + [u[:, :D].float() for u in taught], settings["context"])
     frame = torch.cat([train_features, *taught])[:, model.frame_columns()].double().numpy()
-    probs = linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins,
-                                 emb.double().numpy())  # fmt: skip
+    emb = emb.double().numpy()
+    if views:
+        return [
+            linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins),
+            embedding_teacher_probs(emb, idx, labels, num_classes, class_weights),
+        ], facts  # fmt: skip
+    probs = linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins, emb)
     return probs, facts
 
 
 def self_train_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
-    settings: dict, all_features: Tensor | None = None, probs: np.ndarray | None = None,
-    unlabelled: Sequence[Tensor] = (),
+    settings: dict, all_features: Tensor | None = None,
+    probs: np.ndarray | Sequence[np.ndarray] | None = None, unlabelled: Sequence[Tensor] = (),
 ) -> tuple[dict, Tensor]:  # fmt: skip
     """Self-training of a fitted forest head: a teacher's class probabilities of every training
     frame of ``bank`` (sessions of ``lengths`` frames; ``probs`` (len(bank), C), by default the
@@ -528,10 +544,17 @@ def self_train_forest(
     weighted per frame (`pseudo_sample_weights`). ``all_features``: every training frame's
     features (len(bank), D), computed when not given. ``unlabelled``: the features (T_u, D) of
     sessions nobody labelled (`data.unlabelled_tracks`), whose frames the teacher labels too
-    (``probs`` then (len(bank) + M, C), their M frames after the training frames). Returns facts
-    (the pseudo-labelled frames in all, per class and from the unlabelled sessions, the
-    refitted forest's) and every training frame's features."""
-    from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
+    (``probs`` then (len(bank) + M, C), their M frames after the training frames). ``probs`` a
+    list of two (`pseudo_labels.teacher=cotrain`: the frame features' teacher's, the
+    embedding's): co-training (`deformnet.pseudo.co_training_pseudo_labels`, shares
+    settings["keep"] and settings["embedding_keep"]). Returns facts (the pseudo-labelled frames
+    in all, per class and from the unlabelled sessions, the refitted forest's; co-training: the
+    frames dropped for a conflict) and every training frame's features."""
+    from deformnet.pseudo import (
+        class_balanced_pseudo_labels,
+        co_training_pseudo_labels,
+        pseudo_sample_weights,
+    )
 
     if all_features is None:
         all_features = context_features(model, bank, torch.arange(len(bank)))
@@ -540,17 +563,28 @@ def self_train_forest(
         with torch.no_grad():
             probs = model.classify(pool).softmax(-1).double().numpy()
     labels = bank.labels.numpy()
-    N, C = len(labels), probs.shape[1]
-    if probs.shape[0] != len(pool):
-        raise ValueError(f"probs must be ({len(pool)}, C), got {probs.shape}")
+    views = [probs] if isinstance(probs, np.ndarray) else list(probs)
+    N, C = len(labels), views[0].shape[1]
+    for p in views:
+        if p.shape != (len(pool), C):
+            raise ValueError(f"probs must be ({len(pool)}, {C}), got {p.shape}")
     labelled = np.r_[labels >= 0, np.zeros(len(pool) - N, bool)]
-    rows, pseudo = class_balanced_pseudo_labels(
-        probs, [*lengths, *(len(u) for u in unlabelled)], labelled, settings["keep"],
-        settings["smooth"],
-    )  # fmt: skip
+    sizes = [*lengths, *(len(u) for u in unlabelled)]
+    conflicts = None
+    if len(views) == 1:
+        rows, pseudo = class_balanced_pseudo_labels(
+            views[0], sizes, labelled, settings["keep"], settings["smooth"]
+        )  # fmt: skip
+    else:
+        rows, pseudo, conflicts = co_training_pseudo_labels(
+            views, sizes, labelled, [settings["keep"], settings["embedding_keep"]],
+            settings["smooth"],
+        )  # fmt: skip
     facts = {"teacher": settings["teacher"], "frames": int(rows.size),
              "per_class": np.bincount(pseudo, minlength=C).tolist(),
              "unlabelled_frames": int((rows >= N).sum())}  # fmt: skip
+    if conflicts is not None:
+        facts["conflicts"] = conflicts
     if rows.size == 0:  # every frame is labelled: nothing to teach
         return facts, all_features
     y = np.concatenate([labels[idx], pseudo])
@@ -1002,9 +1036,11 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     # more recordings without labels: the linear and sequence teachers label their frames too
     # (the forest learns from them), and the sequence teacher's pretraining reads them
     unlabelled = _sessions(cfg, "unlabelled", body, classes)
-    if unlabelled and (pseudo is None or pseudo["teacher"] not in ("linear", "sequence")):
+    if unlabelled and (
+        pseudo is None or pseudo["teacher"] not in ("linear", "sequence", "cotrain")
+    ):
         log.warning("data.unlabelled_tracks: %d sessions not used (only "
-                    "pseudo_labels.teacher=linear|sequence learns from them)",
+                    "pseudo_labels.teacher=linear|sequence|cotrain learns from them)",
                     len(unlabelled))  # fmt: skip
         unlabelled = []
     elif (
@@ -1114,18 +1150,18 @@ def _train(cfg: DictConfig, out: Path) -> dict:
                     lengths = [len(s) for s in train]
                     tprobs, tfacts = None, {}
                     ufeats: list = []  # the unlabelled sessions' features
-                    if pseudo["teacher"] in ("linear", "sequence"):
+                    if pseudo["teacher"] in ("linear", "sequence", "cotrain"):
                         all_features = context_features(model, bank, torch.arange(len(bank)))
                         ylab = bank.labels.numpy()[idx]
                         for u in unlabelled:
                             ub = SessionBank([u], span)
                             ufeats.append(context_features(model, ub, torch.arange(len(ub))))
                     taught = ufeats if pseudo["unlabelled"] else []  # pseudo-labelled too
-                    if pseudo["teacher"] == "sequence":
+                    if pseudo["teacher"] in ("sequence", "cotrain"):
                         tprobs, tfacts = sequence_teacher(
                             model, all_features, lengths, ufeats, idx, ylab, C, weights,
                             pseudo["sequence"], sequence_signature(model, mech, scale_mode),
-                            out, pseudo["bins"], len(taught) > 0,
+                            out, pseudo["bins"], len(taught) > 0, pseudo["teacher"] == "cotrain",
                         )  # fmt: skip
                     elif pseudo["teacher"] == "linear":
                         from deformnet.sequence import linear_teacher_probs

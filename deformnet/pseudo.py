@@ -82,3 +82,37 @@ def pseudo_sample_weights(labels: np.ndarray, labelled: int, num_classes: int,
     w = (counts.sum() / np.maximum(num_classes * counts, 1))[y]
     w[: int(labelled)] *= float(labelled_weight)
     return w
+
+
+def co_training_pseudo_labels(
+    probs: Sequence[np.ndarray],
+    lengths: Sequence[int],
+    labelled: np.ndarray,
+    keep: Sequence[float],
+    smooth: int = 9,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Pseudo-labels from teachers that read different views of the frames (co-training, Blum
+    and Mitchell 1998): each view's class-balanced pseudo-labels
+    (`class_balanced_pseudo_labels`, its own ``keep`` share), pooled. A frame one view is sure of
+    and the others are not is labelled by that view, so a view adds the frames the others find
+    hard; a frame two views are sure of with different classes is dropped. probs: V arrays
+    (N, C), one per view; lengths, labelled (N,) and smooth as there; keep: V shares. Returns
+    the kept rows (M,) (ascending), their labels (M,) and the number of frames dropped for a
+    conflict."""
+    views = [np.asarray(p, dtype=np.float64) for p in probs]
+    keeps = [float(k) for k in keep]
+    if not views or len(keeps) != len(views):
+        raise ValueError(f"co-training needs one keep share per view: {len(views)} views, "
+                         f"{len(keeps)} shares")  # fmt: skip
+    if len({p.shape for p in views}) != 1:
+        raise ValueError(f"the views' probabilities must have one shape, got "
+                         f"{[p.shape for p in views]}")  # fmt: skip
+    label = np.full(views[0].shape[0], -1, dtype=np.int64)
+    conflict = np.zeros(views[0].shape[0], dtype=bool)
+    for P, k in zip(views, keeps):
+        rows, y = class_balanced_pseudo_labels(P, lengths, labelled, k, smooth)
+        conflict[rows[(label[rows] >= 0) & (label[rows] != y)]] = True
+        label[rows] = np.where(label[rows] >= 0, label[rows], y)
+    label[conflict] = -1
+    rows = np.flatnonzero(label >= 0)
+    return rows, label[rows], int(conflict.sum())

@@ -317,8 +317,6 @@ def linear_teacher_probs(
     with ``labels`` (L,), class-weighted by ``class_weights`` (C,) (None: unweighted). A class
     no labelled frame has gets probability 0. `deformnet-classify pseudo_labels.teacher=linear`
     (no embedding) and ``sequence`` (the sequence encoder's, `embeddings`)."""
-    from sklearn.linear_model import LogisticRegression
-
     frame = np.asarray(frame, np.float64)
     if frame.ndim != 2:
         raise ValueError(f"frame must be (N, F), got {frame.shape}")
@@ -328,10 +326,34 @@ def linear_teacher_probs(
         if embedding.ndim != 2 or len(embedding) != len(frame):
             raise ValueError(f"embedding must be ({len(frame)}, E), got {embedding.shape}")
         parts.append(standardised(embedding))
+    return _logistic_probs(np.hstack(parts), idx, labels, num_classes, class_weights)
+
+
+def embedding_teacher_probs(
+    embedding: np.ndarray,
+    idx: np.ndarray,
+    labels: np.ndarray,
+    num_classes: int,
+    class_weights: Sequence[float] | None = None,
+) -> np.ndarray:
+    """The class probabilities (N, C) of every frame of a teacher that reads only the
+    standardised ``embedding`` (N, E) (the sequence encoder's, `embeddings`): the logistic
+    regression of `linear_teacher_probs`, fitted on the labelled rows ``idx`` (L,) with
+    ``labels`` (L,). The second view of `deformnet-classify pseudo_labels.teacher=cotrain`."""
+    embedding = np.asarray(embedding, np.float64)
+    if embedding.ndim != 2:
+        raise ValueError(f"embedding must be (N, E), got {embedding.shape}")
+    return _logistic_probs(standardised(embedding), idx, labels, num_classes, class_weights)
+
+
+def _logistic_probs(x, idx, labels, num_classes, class_weights) -> np.ndarray:
+    """The class-weighted logistic regression (C=1) on features x (N, D) fitted on the rows
+    idx: every row's probabilities (N, C), 0 for a class no labelled row has."""
+    from sklearn.linear_model import LogisticRegression
+
     idx, y = np.asarray(idx, np.int64), np.asarray(labels, np.int64)
     if idx.shape != y.shape or idx.size == 0:
         raise ValueError(f"idx and labels must be (L,) with L >= 1, got {idx.shape}, {y.shape}")
-    x = np.hstack(parts)
     present = np.unique(y)
     cw = None if class_weights is None else {int(c): float(class_weights[int(c)]) for c in present}
     P = np.zeros((len(x), int(num_classes)))

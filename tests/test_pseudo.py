@@ -8,7 +8,11 @@ import pandas as pd
 import pytest
 from test_classify import CLASSES, TINY, _compose, _files, _toy_session
 
-from deformnet.pseudo import class_balanced_pseudo_labels, pseudo_sample_weights
+from deformnet.pseudo import (
+    class_balanced_pseudo_labels,
+    co_training_pseudo_labels,
+    pseudo_sample_weights,
+)
 
 
 def test_every_class_keeps_its_own_most_confident_share():
@@ -34,6 +38,40 @@ def test_every_class_keeps_its_own_most_confident_share():
     assert probs[rows[labels == 1]].max() < 0.7  # what a global threshold of 0.7 would drop
     all_rows, _ = class_balanced_pseudo_labels(probs, [n0 + n1], np.zeros(n0 + n1, bool), 1.0, 1)
     np.testing.assert_array_equal(all_rows, np.arange(n0 + n1))  # keep=1: every frame
+
+
+def test_co_training_pools_the_views_and_drops_their_conflicts():
+    """Two views of 40 frames: view A is sure of frames 0-9 (class 0) and 30-34 (class 0), view
+    B of frames 10-19 (class 1) and 30-34 (class 1), each unsure elsewhere. Each keeps its own
+    most confident share; the pool has A's and B's sure frames, the frames both are sure of with
+    different classes are dropped and counted, a labelled frame never appears, and one view
+    alone gives `class_balanced_pseudo_labels`' result."""
+    n = 40
+    a = np.tile([0.55, 0.45], (n, 1))
+    a[0:10] = a[30:35] = [0.95, 0.05]
+    b = np.tile([0.45, 0.55], (n, 1))
+    b[10:20] = [0.05, 0.95]
+    b[30:35] = [0.1, 0.9]
+    lab = np.zeros(n, bool)
+    lab[0] = True
+    # A gives class 0 to every frame: its top 30% are its 15 sure ones (ties kept); B gives
+    # class 1 to every frame, its top 30% its 15 sure ones
+    rows, y, conflicts = co_training_pseudo_labels([a, b], [n], lab, [0.3, 0.3], smooth=1)
+    np.testing.assert_array_equal(rows, np.r_[1:20])
+    np.testing.assert_array_equal(y, np.r_[np.zeros(9, int), np.ones(10, int)])
+    assert conflicts == 5
+    one = co_training_pseudo_labels([a], [n], lab, [0.3], smooth=1)
+    for got, want in zip(one[:2], class_balanced_pseudo_labels(a, [n], lab, 0.3, smooth=1)):
+        np.testing.assert_array_equal(got, want)
+    assert one[2] == 0
+    # views that agree add nothing twice and drop nothing
+    rows2, _, c2 = co_training_pseudo_labels([a, a], [n], lab, [0.3, 0.3], smooth=1)
+    np.testing.assert_array_equal(rows2, one[0])
+    assert c2 == 0
+    with pytest.raises(ValueError, match="one keep share per view: 2 views, 1 shares"):
+        co_training_pseudo_labels([a, b], [n], lab, [0.3], smooth=1)
+    with pytest.raises(ValueError, match="one shape"):
+        co_training_pseudo_labels([a, b[:20]], [n], lab, [0.3, 0.3], smooth=1)
 
 
 def test_smoothing_stays_within_each_session():

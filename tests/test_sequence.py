@@ -14,6 +14,7 @@ from deformnet.sequence import (
     binned,
     embeddings,
     export_sequence_encoder,
+    embedding_teacher_probs,
     linear_teacher_probs,
     load_sequence_encoder,
     pooled,
@@ -163,6 +164,12 @@ def test_teacher_probabilities():
     P = linear_teacher_probs(noise, idx, y[idx], 2, embedding=frame[:, :1])
     assert (P.argmax(1) == y).mean() >= 0.95
     assert (linear_teacher_probs(noise, idx, y[idx], 2).argmax(1) == y).mean() < 0.7  # chance
+    # the embedding's own teacher (cotrain's second view) reads the embedding alone
+    P = embedding_teacher_probs(frame[:, :1], idx, y[idx], 3, [1.0, 1.0, 1.0])
+    assert P.shape == (200, 3) and (P[:, 2] == 0).all() and (P.argmax(1) == y).mean() >= 0.95
+    assert (embedding_teacher_probs(noise, idx, y[idx], 2).argmax(1) == y).mean() < 0.7
+    with pytest.raises(ValueError, match=r"embedding must be \(N, E\)"):
+        embedding_teacher_probs(frame[:, 0], idx, y[idx], 2)
     one = linear_teacher_probs(frame, idx[:5], y[:5], 3, embedding=emb)
     assert (one[:, 0] == 1).all()
     with pytest.raises(ValueError, match=r"idx and labels"):
@@ -244,3 +251,42 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
         run(_compose([*base, f"pseudo_labels.sequence.encoder={out / 'sequence_encoder.pt'}",
                       "measurements=true", "heights_up=[0,0,1]",
                       f"output.dir={tmp_path / 'mismatch'}"]))  # fmt: skip
+
+
+def test_cotrain_teacher_in_deformnet_classify(tmp_path):
+    """pseudo_labels.teacher=cotrain: the sequence encoder pretrains as for teacher=sequence;
+    the binned frame features' teacher and the embedding's own teacher each pseudo-label their
+    most confident frames (keep, embedding_keep), pooled, conflicts dropped; the classifier is
+    right on a held-out session, and the pool holds more frames than one view's share alone.
+    A bad embedding_keep is an error before any data is read."""
+    from deformnet.classify import load_classifier, run
+
+    base, _ = few_label_toy(tmp_path)
+    unl = _toy_session(tmp_path, "unlabelled", 5)
+    base = [
+        *base,
+        "head=forest",
+        "head.trees=25",
+        "freeze=true",
+        "pseudo_labels.teacher=cotrain",
+        "pseudo_labels.sequence.steps=30",
+        "pseudo_labels.sequence.channels=16",
+        "pseudo_labels.sequence.dilations=[1,2,4]",
+        f"data.unlabelled_tracks=[{unl[0]}]",
+    ]
+    with pytest.raises(ValueError, match=r"embedding_keep must be in \(0, 1\]"):
+        run(_compose([*base, "pseudo_labels.embedding_keep=0", f"output.dir={tmp_path / 'x'}"]))
+    out = tmp_path / "co"
+    rep = run(_compose([*base, f"output.dir={out}"]))
+    pl = rep["report"]["probe"]["pseudo_labels"]
+    assert pl["teacher"] == "cotrain" and pl["encoder"] == str(out / "sequence_encoder.pt")
+    assert pl["pretraining"]["sessions"] == 3 and pl["pretraining"]["steps"] == 30
+    assert pl["frames"] == sum(pl["per_class"]) and pl["conflicts"] >= 0
+    assert 0 < pl["unlabelled_frames"] <= 360
+    # 720 training and 360 unlabelled frames: the embedding's teacher alone keeps about half
+    assert pl["frames"] + pl["conflicts"] >= 0.45 * 1080, pl
+    assert min(pl["per_class"]) >= 0.3 * 0.3 * 720  # both behaviors pseudo-labelled
+    assert rep["report"]["raw"]["macro_f1"] >= 0.95, rep["report"]["raw"]
+    _, meta = load_classifier(out / "classifier.pt")
+    assert meta["pseudo_labels"]["teacher"] == "cotrain"
+    assert meta["pseudo_labels"]["embedding_keep"] == 0.5
