@@ -12,9 +12,9 @@ from test_pseudo import few_label_toy
 from deformnet.sequence import (
     SequenceEncoder,
     binned,
+    embedding_teacher_probs,
     embeddings,
     export_sequence_encoder,
-    embedding_teacher_probs,
     linear_teacher_probs,
     load_sequence_encoder,
     pooled,
