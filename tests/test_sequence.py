@@ -198,6 +198,17 @@ def test_saved_encoder_round_trip_and_signature(tmp_path):
         load_sequence_encoder(str(tmp_path / "missing.pt"))
 
 
+def _teacher_toy(tmp_path, teacher: str) -> tuple[list, list]:
+    """The few-label toy's overrides for a forest head taught by ``teacher`` with a small,
+    briefly pretrained sequence encoder, and one unlabelled session's files."""
+    base, _ = few_label_toy(tmp_path)
+    unl = _toy_session(tmp_path, "unlabelled", 5)
+    return [*base, "head=forest", "head.trees=25", "freeze=true",
+            f"pseudo_labels.teacher={teacher}", "pseudo_labels.sequence.steps=30",
+            "pseudo_labels.sequence.channels=16",
+            "pseudo_labels.sequence.dilations=[1,2,4]"], unl  # fmt: skip
+
+
 def test_sequence_teacher_in_deformnet_classify(tmp_path):
     """pseudo_labels.teacher=sequence: the sequence encoder pretrains on the training and the
     unlabelled sessions (data.unlabelled_tracks), is saved, teaches the forest head (the
@@ -207,18 +218,7 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     before any data is read."""
     from deformnet.classify import load_classifier, run
 
-    base, _ = few_label_toy(tmp_path)
-    unl = _toy_session(tmp_path, "unlabelled", 5)
-    base = [
-        *base,
-        "head=forest",
-        "head.trees=25",
-        "freeze=true",
-        "pseudo_labels.teacher=sequence",
-        "pseudo_labels.sequence.steps=30",
-        "pseudo_labels.sequence.channels=16",
-        "pseudo_labels.sequence.dilations=[1,2,4]",
-    ]
+    base, unl = _teacher_toy(tmp_path, "sequence")
     for bad, match in (
         ("pseudo_labels.sequence.mask_ratio=1", r"mask_ratio must be in \(0, 1\)"),
         ("pseudo_labels.sequence.context=[4]", "context must be odd"),
@@ -261,19 +261,8 @@ def test_cotrain_teacher_in_deformnet_classify(tmp_path):
     A bad embedding_keep is an error before any data is read."""
     from deformnet.classify import load_classifier, run
 
-    base, _ = few_label_toy(tmp_path)
-    unl = _toy_session(tmp_path, "unlabelled", 5)
-    base = [
-        *base,
-        "head=forest",
-        "head.trees=25",
-        "freeze=true",
-        "pseudo_labels.teacher=cotrain",
-        "pseudo_labels.sequence.steps=30",
-        "pseudo_labels.sequence.channels=16",
-        "pseudo_labels.sequence.dilations=[1,2,4]",
-        f"data.unlabelled_tracks=[{unl[0]}]",
-    ]
+    base, unl = _teacher_toy(tmp_path, "cotrain")
+    base = [*base, f"data.unlabelled_tracks=[{unl[0]}]"]
     with pytest.raises(ValueError, match=r"embedding_keep must be in \(0, 1\]"):
         run(_compose([*base, "pseudo_labels.embedding_keep=0", f"output.dir={tmp_path / 'x'}"]))
     out = tmp_path / "co"
