@@ -110,11 +110,7 @@ from common import emit, start
 from torch import nn
 
 from deformnet.confutil import compose, to_plain
-from deformnet.pseudo import (
-    class_balanced_pseudo_labels,
-    co_training_pseudo_labels,
-    pseudo_sample_weights,
-)
+from deformnet.pseudo import co_training_pseudo_labels, pseudo_sample_weights
 from deformnet.sequence import (
     SequenceEncoder,
     embeddings,
@@ -271,12 +267,11 @@ def fit_pseudo(
     labelled_rows = np.zeros(len(ta), bool)
     labelled_rows[idx] = True
     sessions = [frames] * (len(ta) // frames)
+    views, keeps = [P], [KEEP]  # one view: class-balanced pseudo-labels alone
     if teacher_kind == "co":
-        P2 = probs(LogisticRegression(C=1.0, max_iter=3000, class_weight=cw), tb)
-        rows, yp, _ = co_training_pseudo_labels([P, P2], sessions, labelled_rows,
-                                                [KEEP, EMBEDDING_KEEP], SMOOTH)  # fmt: skip
-    else:
-        rows, yp = class_balanced_pseudo_labels(P, sessions, labelled_rows, KEEP, SMOOTH)
+        views.append(probs(LogisticRegression(C=1.0, max_iter=3000, class_weight=cw), tb))
+        keeps.append(EMBEDDING_KEEP)
+    rows, yp, _ = co_training_pseudo_labels(views, sessions, labelled_rows, keeps, SMOOTH)
     Y = np.concatenate([y, yp])
     sw = pseudo_sample_weights(Y, len(y), C, LABELLED_WEIGHT)
     if student_fn is not None:

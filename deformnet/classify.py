@@ -550,11 +550,7 @@ def self_train_forest(
     settings["keep"] and settings["embedding_keep"]). Returns facts (the pseudo-labelled frames
     in all, per class and from the unlabelled sessions, the refitted forest's; co-training: the
     frames dropped for a conflict) and every training frame's features."""
-    from deformnet.pseudo import (
-        class_balanced_pseudo_labels,
-        co_training_pseudo_labels,
-        pseudo_sample_weights,
-    )
+    from deformnet.pseudo import co_training_pseudo_labels, pseudo_sample_weights
 
     if all_features is None:
         all_features = context_features(model, bank, torch.arange(len(bank)))
@@ -569,21 +565,14 @@ def self_train_forest(
         if p.shape != (len(pool), C):
             raise ValueError(f"probs must be ({len(pool)}, {C}), got {p.shape}")
     labelled = np.r_[labels >= 0, np.zeros(len(pool) - N, bool)]
-    sizes = [*lengths, *(len(u) for u in unlabelled)]
-    conflicts = None
-    if len(views) == 1:
-        rows, pseudo = class_balanced_pseudo_labels(
-            views[0], sizes, labelled, settings["keep"], settings["smooth"]
-        )  # fmt: skip
-    else:
-        rows, pseudo, conflicts = co_training_pseudo_labels(
-            views, sizes, labelled, [settings["keep"], settings["embedding_keep"]],
-            settings["smooth"],
-        )  # fmt: skip
+    keeps = [settings["keep"], settings.get("embedding_keep")][: len(views)]
+    rows, pseudo, conflicts = co_training_pseudo_labels(  # one view: class-balanced alone
+        views, [*lengths, *(len(u) for u in unlabelled)], labelled, keeps, settings["smooth"]
+    )  # fmt: skip
     facts = {"teacher": settings["teacher"], "frames": int(rows.size),
              "per_class": np.bincount(pseudo, minlength=C).tolist(),
              "unlabelled_frames": int((rows >= N).sum())}  # fmt: skip
-    if conflicts is not None:
+    if len(views) > 1:
         facts["conflicts"] = conflicts
     if rows.size == 0:  # every frame is labelled: nothing to teach
         return facts, all_features
