@@ -109,6 +109,7 @@ from behavior_probe import encoder_features, labelled, scores
 from common import emit, start
 from torch import nn
 
+from deformnet.checkpoint import load_checkpoint
 from deformnet.confutil import compose, to_plain
 from deformnet.pseudo import co_training_pseudo_labels, pseudo_sample_weights
 from deformnet.sequence import (
@@ -488,7 +489,7 @@ def main(argv: list[str] | None = None) -> dict:
         if net.dim != D:
             ap.error(f"--sequence-encoder {args.sequence_encoder} reads {net.dim} features per "
                      f"frame, these sessions have {D}")  # fmt: skip
-        saved = torch.load(args.sequence_encoder, map_location="cpu", weights_only=False)
+        saved = load_checkpoint(args.sequence_encoder, "sequence encoder")  # weights_only=True
         extra["pretraining"] = {**saved["facts"], "encoder": args.sequence_encoder}
         dil, target = tuple(net.dilations), net.target
     torch.manual_seed(0)

@@ -611,7 +611,11 @@ def _build(
     mechanisms: dict | None = None,
     measurements: bool = False,
     heights_up=None,
+    source: str = "",
 ):
+    """The classifier a config or a checkpoint describes (``source``: the checkpoint file, for
+    errors); its net and head are built from allow-lists with plain arguments only
+    (`deformnet.deformation.build_net`, `deformnet.heads.build_head`)."""
     from deformnet.deformation import build_net
     from deformnet.heads import BehaviorClassifier, MechanismFeatures, WindowEncoder, build_head
 
@@ -622,14 +626,14 @@ def _build(
             mechanisms["positions"], parts, mechanisms["names"], float(mechanisms["scale"])
         )
     enc = WindowEncoder(
-        build_net(net_cfg), np.asarray(body.points), half_window, frame_features, up, mech,
+        build_net(net_cfg, source), np.asarray(body.points), half_window, frame_features, up, mech,
         measurements, heights_up,
     )  # fmt: skip
     ctx = dict(context or {})
     frames = [int(f) for f in (ctx.get("frames") or [])]
     dim = BehaviorClassifier.feature_dim(enc.out_dim, frames)
     return BehaviorClassifier(
-        enc, build_head(head_cfg, dim, C), frames, int(ctx.get("stride", 1) or 1)
+        enc, build_head(head_cfg, dim, C, source), frames, int(ctx.get("stride", 1) or 1)
     )
 
 
@@ -642,33 +646,40 @@ def export_classifier(model, meta: dict) -> dict:
 
 
 def load_classifier(path: str | os.PathLike):
-    """(model in eval mode, metadata) from a `classifier.pt` written by training."""
+    """(model in eval mode, metadata) from a `classifier.pt` written by training. Read as data
+    (`deformnet.checkpoint.load_checkpoint`, weights only); its net and head are built from
+    the allow-lists of this project's classes with plain arguments (`_build`); anything else
+    is a ValueError naming the file."""
     from deformnet.body import BodyModel
+    from deformnet.checkpoint import load_checkpoint
 
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"classifier checkpoint not found: {path}")
-    from deformnet.deformation import load_checkpoint_data
-
-    blob = load_checkpoint_data(path)  # weights_only: a checkpoint is data, never code
+    blob = load_checkpoint(path, "classifier checkpoint")
     if not isinstance(blob, dict) or blob.get("kind") != CHECKPOINT_KIND:
         raise ValueError(f"{path} is not a behavior classifier (write it with deformnet-classify)")
-    b = blob["body"]
-    body = BodyModel.from_mapping(b["parts"], b.get("aliases"), b.get("name", "body"))
-    model = _build(
-        blob["net_config"],
-        body,
-        int(blob["half_window"]),
-        blob["head"],
-        bool(blob["frame_features"]),
-        len(blob["classes"]),
-        blob.get("context"),
-        blob.get("up"),
-        blob.get("mechanisms"),
-        bool(blob.get("measurements", False)),
-        blob.get("heights_up"),
-    )
-    model.load_state_dict(blob["state_dict"])
+    try:
+        b = blob["body"]
+        body = BodyModel.from_mapping(b["parts"], b.get("aliases"), b.get("name", "body"))
+        model = _build(
+            blob["net_config"],
+            body,
+            int(blob["half_window"]),
+            blob["head"],
+            bool(blob["frame_features"]),
+            len(blob["classes"]),
+            blob.get("context"),
+            blob.get("up"),
+            blob.get("mechanisms"),
+            bool(blob.get("measurements", False)),
+            blob.get("heights_up"),
+            os.fspath(path),
+        )
+        model.load_state_dict(blob["state_dict"])
+    except (KeyError, TypeError, AttributeError, RuntimeError, IndexError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(
+            f"{path}: the classifier checkpoint does not fit this version of deformnet-classify "
+            f"(written by an older or newer one?): {first[:200]}"
+        ) from None
     return model.eval(), {**{k: v for k, v in blob.items() if k != "state_dict"}, "body": body}
 
 

@@ -11,8 +11,10 @@ with plain reverse-mode autograd over batched independent windows (nn.LSTM does 
 torch.func vmap-Jacobians, and CPU scaled-dot-product attention has no forward-mode AD), and
 supports `.double()`.
 
-Checkpoints are data, never code: `from_checkpoint` reads them with ``weights_only=True`` and
-never imports Lightning (a deformnet-train checkpoint holds only tensors and plain data).
+Checkpoints are data, never code: `from_checkpoint` reads them with ``weights_only=True``
+(`deformnet.checkpoint.load_checkpoint`), builds the net they name only from the allow-list of
+this project's nets with plain keyword values (`build_net`), and never imports Lightning (a
+deformnet-train checkpoint holds only tensors and plain data).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import torch
 from torch import Tensor, nn
 
 from deformnet.body import BodyModel
+from deformnet.checkpoint import load_checkpoint, plain_kwargs
+from deformnet.nets import NETS
 from deformnet.tokens import canonicalize, check_window, uncanonicalize
 
 log = logging.getLogger(__name__)
@@ -44,59 +48,34 @@ __all__ = [
 CHECKPOINT_KEY = "deformation_model"  # extra entry the Lightning module adds to its checkpoints
 
 
-def load_checkpoint_data(path: str | os.PathLike, map_location="cpu") -> Any:
-    """``torch.load(path, weights_only=True)`` with one-line ValueErrors: a file that is not a
-    torch checkpoint (not the zip archive `torch.save` writes), or one holding pickled objects
-    beyond tensors and plain data (refused unexecuted: unpickling them could run any code)."""
-    import pickle
-    import zipfile
-
-    path = os.fspath(path)
-    if not zipfile.is_zipfile(path):
-        raise ValueError(
-            f"{path} is not a PyTorch checkpoint (not the zip archive torch.save writes)"
-        )
-    try:
-        return torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as exc:
-        detail = next(
-            (ln.strip() for ln in str(exc).splitlines() if "global" in ln.lower()),
-            str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
-        )
-        raise ValueError(
-            f"{path}: refused: the checkpoint holds pickled Python objects, not only tensors "
-            f"and plain data, and loading them could run code ({detail[:200]})"
-        ) from None
-    except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, KeyError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ValueError(f"{path}: cannot read the checkpoint: {first[:200]}") from None
-
-
-def build_net(config: Mapping[str, Any]) -> nn.Module:
-    """A net from its config (a mapping with a `_target_` class path, as in conf/net/*.yaml,
-    or a checkpoint's `net_config`) by `hydra.utils.instantiate`; ValueError naming the class
-    when it cannot be imported or built."""
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
-
-    cfg = dict(config)
-    target = cfg.get("_target_")
+def build_net(config: Mapping[str, Any], source: str = "") -> nn.Module:
+    """A net from its config: a mapping with a `_target_` naming one of this project's nets
+    (`deformnet.nets.NETS`, as in conf/net/*.yaml or a checkpoint's `net_config`) and plain
+    keyword values (numbers, strings, bools, lists of those: `plain_kwargs`). Nothing a config
+    names is imported or instantiated (no `hydra.utils.instantiate`): another `_target_`, a
+    nested config (one carrying a `_target_` too) or any other value is a ValueError naming
+    ``source`` (the checkpoint file), as is a net its arguments cannot build."""
+    where = f"{source}: net_config" if source else "net config"
+    if not isinstance(config, Mapping):
+        raise ValueError(f"{where}: refused: a {type(config).__name__}, not a config mapping")
+    target = config.get("_target_")
     if not target:
-        raise ValueError(f"net config needs a '_target_' (a class path), got keys {sorted(cfg)}")
-    from hydra.utils import get_class
-
-    try:  # only a module class: a config (or a checkpoint) may not name any other callable
-        cls = get_class(str(target))
-    except (ImportError, ValueError, AttributeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"cannot import net class '{target}': {first}") from None
-    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
-        raise ValueError(f"net '{target}' is not a torch.nn.Module class")
+        raise ValueError(f"{where} needs a '_target_' (a net class), got keys {sorted(config)}")
+    if not isinstance(target, str) or target not in NETS:
+        raise ValueError(
+            f"{where}: refused: '_target_' {str(target)[:200]!r} is not one of this project's "
+            f"nets ({', '.join(NETS)})"
+        )
+    kwargs = plain_kwargs(config, where, skip=("_target_",))
     try:
-        return instantiate(cfg, _convert_="all")
-    except InstantiationException as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"cannot build net '{target}': {first}") from None
+        return NETS[target](**kwargs)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{where}: cannot build net '{target}': {_first_line(exc)}") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return (text.splitlines()[0] if text else type(exc).__name__)[:200]
 
 
 def check_up(up: Sequence[float] | None) -> tuple[float, float, float] | None:
@@ -275,11 +254,13 @@ class DeformationModel(nn.Module):
         return blob
 
     @classmethod
-    def from_export(cls, blob: Mapping[str, Any]) -> DeformationModel:
+    def from_export(cls, blob: Mapping[str, Any], source: str = "") -> DeformationModel:
+        """The model `export` describes (``source``: the file it came from, for errors); its
+        net is built by `build_net` (only this project's nets, plain arguments)."""
         body = BodyModel.from_mapping(
             blob["body"]["parts"], blob["body"].get("aliases"), blob["body"].get("name", "body")
         )
-        net = build_net(blob["net_config"])
+        net = build_net(blob["net_config"], source)
         model = cls(
             net,
             body,
@@ -307,11 +288,12 @@ class DeformationModel(nn.Module):
 
         Returns the model in eval mode, float32 on `map_location`. Checkpoints are data, not
         code: they are read with ``torch.load(weights_only=True)`` (tensors, numbers, strings,
-        lists and dicts only), so a checkpoint that carries any other pickled object (which
-        unpickling would run) is refused with a ValueError, as is a file that is not a torch
-        checkpoint at all.
+        lists and dicts only, `deformnet.checkpoint.load_checkpoint`), so a checkpoint that
+        carries any other pickled object (which unpickling would run) is refused with a
+        ValueError, as is a file that is not a torch checkpoint at all, and its net is built
+        only from this project's nets with plain arguments (`build_net`).
         """
-        ckpt = load_checkpoint_data(path, map_location)
+        ckpt = load_checkpoint(path, "checkpoint", map_location)
         if not isinstance(ckpt, dict):
             raise ValueError(
                 f"{path} is not a deformnet checkpoint (it holds a {type(ckpt).__name__}, not a "
@@ -322,13 +304,17 @@ class DeformationModel(nn.Module):
                 f"{path} is not a deformnet checkpoint (no '{CHECKPOINT_KEY}' entry); write it "
                 "with deformnet-train or DeformationModel.save"
             )
+        blob = ckpt[CHECKPOINT_KEY]
+        if not isinstance(blob, dict):
+            raise ValueError(f"{path}: its '{CHECKPOINT_KEY}' entry is not a dict")
         try:
-            model = cls.from_export(ckpt[CHECKPOINT_KEY])
-        except (RuntimeError, KeyError, TypeError) as exc:  # weights that do not fit the net
+            model = cls.from_export(blob, os.fspath(path))
+        except (RuntimeError, KeyError, TypeError, AttributeError) as exc:  # weights that do not
+            net_config = blob.get("net_config")  # fit the net, a missing or mistyped entry
+            target = net_config.get("_target_") if isinstance(net_config, dict) else None
             raise ValueError(
-                f"{path}: the checkpoint does not fit this version's "
-                f"{ckpt[CHECKPOINT_KEY].get('net_config', {}).get('_target_', 'net')} "
+                f"{path}: the checkpoint does not fit this version's {target or 'net'} "
                 f"(written by an older or newer deformnet?); retrain with deformnet-train. "
-                f"Detail: {str(exc).splitlines()[0]}"
+                f"Detail: {_first_line(exc)}"
             ) from None
         return model.to(map_location)

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from deformnet.checkpoint import plain_kwargs
 from deformnet.nets import LSTMPredictor, TransformerPredictor
 from deformnet.so3 import kabsch
 from deformnet.tokens import canonicalize
@@ -457,26 +458,36 @@ class ForestHead(nn.Module):
         return torch.log(p.clamp_min(1e-12))
 
 
+#: the heads a config or a checkpoint may name (its ``name``): `build_head` builds only these
 HEADS = {"linear": LinearHead, "mlp": MLPHead, "forest": ForestHead}
 
 
-def build_head(config: Mapping[str, Any], in_dim: int, num_classes: int) -> nn.Module:
-    """A head from a plain config {"name": linear|mlp, "ensemble": members (default 1),
-    ...constructor arguments}; ensemble > 1: an `EnsembleHead` of that many."""
-    cfg = dict(config)
+def build_head(
+    config: Mapping[str, Any], in_dim: int, num_classes: int, source: str = ""
+) -> nn.Module:
+    """A head from a plain config {"name": linear|mlp|forest (the allow-list `HEADS`),
+    "ensemble": members (default 1), ...constructor arguments (plain values only,
+    `deformnet.checkpoint.plain_kwargs`)}; ensemble > 1: an `EnsembleHead` of that many.
+    ValueError (naming ``source``, the checkpoint file, when given) for another name, a nested
+    config or a non-plain value."""
+    where = f"{source}: head" if source else "head"
+    cfg = plain_kwargs(config, where)
     name = str(cfg.pop("name", "linear"))
     if name not in HEADS:
-        raise ValueError(f"head.name must be one of {sorted(HEADS)}, got '{name}'")
+        raise ValueError(f"{where}.name must be one of {sorted(HEADS)}, got '{name[:200]}'")
     members = cfg.pop("ensemble", 1)
     if members is None or int(members) < 1:
-        raise ValueError(f"head.ensemble must be an integer >= 1, got {members}")
+        raise ValueError(f"{where}.ensemble must be an integer >= 1, got {members}")
     if name == "forest" and int(members) != 1:
-        raise ValueError("head.ensemble must be 1 for a forest (it is an ensemble: head.trees)")
-    if int(members) == 1:
-        return HEADS[name](int(in_dim), int(num_classes), **cfg)
-    return EnsembleHead(
-        [HEADS[name](int(in_dim), int(num_classes), **cfg) for _ in range(int(members))]
-    )
+        raise ValueError(f"{where}.ensemble must be 1 for a forest (it is an ensemble: head.trees)")
+    try:
+        if int(members) == 1:
+            return HEADS[name](int(in_dim), int(num_classes), **cfg)
+        return EnsembleHead(
+            [HEADS[name](int(in_dim), int(num_classes), **cfg) for _ in range(int(members))]
+        )
+    except TypeError as exc:
+        raise ValueError(f"{where}: cannot build the {name} head: {exc}") from None
 
 
 def context_offsets(frames: Sequence[int], stride: int = 1) -> tuple[int, ...]:

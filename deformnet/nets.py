@@ -13,7 +13,8 @@ They predict the deformation offset relative to the mid rigid point (residual) w
 initialised output layer, so an untrained net is the rigid baseline. The mid frame's deformed input
 is masked inside (`deformnet.tokens.token_features`) whatever the caller passes.
 
-Plain `nn.Module`s, built by Hydra `_target_` (conf/net/*.yaml); no Lightning here.
+Plain `nn.Module`s, named by their `_target_` (conf/net/*.yaml, a checkpoint's net_config) and
+built from the allow-list `NETS` (`deformnet.deformation.build_net`); no Lightning here.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from torch import Tensor, nn
 
 from deformnet.tokens import NUM_FEATURES, PRIOR_FEATURES, check_window, token_features
 
-__all__ = ["LSTMPredictor", "TransformerPredictor", "PartHead", "sinusoidal_encoding"]
+__all__ = ["LSTMPredictor", "TransformerPredictor", "PartHead", "sinusoidal_encoding", "NETS"]
 
 
 class PartHead(nn.Module):
@@ -225,3 +226,11 @@ class TransformerPredictor(_Base):
         seq, prior = self.encode(rigid, deformed, observed)
         out = self.head(seq[:, self.half_window], prior)
         return self._finish(out, rigid)
+
+
+#: the nets a config or a checkpoint may name (its ``_target_``): `deformnet.deformation.build_net`
+#: builds only these (a checkpoint is data: nothing else it names is imported or instantiated)
+NETS: dict[str, type[nn.Module]] = {
+    "deformnet.nets.LSTMPredictor": LSTMPredictor,
+    "deformnet.nets.TransformerPredictor": TransformerPredictor,
+}

@@ -38,6 +38,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from deformnet.checkpoint import load_checkpoint
+
 log = logging.getLogger(__name__)
 
 CLAMP = 8.0  # standardised per-frame features are clipped to +-CLAMP
@@ -386,18 +388,15 @@ def export_sequence_encoder(model: SequenceEncoder, signature: Mapping, facts: M
 
 def load_sequence_encoder(path: str, signature: Mapping | None = None) -> SequenceEncoder:
     """A saved sequence encoder (`export_sequence_encoder`); with ``signature``, checked to read
-    the same per-frame features (else a ValueError naming the file and what differs)."""
-    try:
-        obj = torch.load(str(path), map_location="cpu", weights_only=False)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: no such sequence encoder file") from None
-    except Exception as e:  # noqa: BLE001 - any unreadable file is the user's to fix
-        raise ValueError(f"{path}: not a sequence encoder deformnet-classify wrote ({e})") from e
+    the same per-frame features (else a ValueError naming the file and what differs). Read as
+    data (`deformnet.checkpoint.load_checkpoint`, weights only): a missing, truncated or
+    corrupt file, or one holding pickled objects, is a ValueError naming it."""
+    obj = load_checkpoint(path, "sequence encoder")
     if not isinstance(obj, dict) or obj.get("kind") != "mousetrack.sequence_encoder":
         raise ValueError(f"{path}: not a sequence encoder deformnet-classify wrote "
                          "(sequence_encoder.pt)")  # fmt: skip
     if signature is not None:
-        saved = obj.get("signature") or {}
+        saved = obj.get("signature") if isinstance(obj.get("signature"), dict) else {}
         diff = sorted(k for k in set(saved) | set(signature) if saved.get(k) != signature.get(k))
         if diff:
             raise ValueError(
@@ -405,8 +404,14 @@ def load_sequence_encoder(path: str, signature: Mapping | None = None) -> Sequen
                 f"this classifier's (they differ in {', '.join(diff)}): pretrain it again "
                 "(pseudo_labels.sequence.encoder=null)"
             )
-    cfg = obj["config"]
-    model = SequenceEncoder(cfg["dim"], cfg["channels"], cfg["dilations"], cfg["target"])
-    model.load_state_dict(obj["state_dict"])
+    try:
+        cfg = obj["config"]
+        model = SequenceEncoder(cfg["dim"], cfg["channels"], cfg["dilations"], cfg["target"])
+        model.load_state_dict(obj["state_dict"])
+    except (KeyError, TypeError, AttributeError, RuntimeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(
+            f"{path}: a sequence encoder this version cannot read ({first[:200]})"
+        ) from None
     model.eval()
     return model

@@ -359,7 +359,11 @@ def _run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="train", version_base=None)
 def main(cfg: DictConfig) -> None:
-    run(cfg)
+    try:
+        run(cfg)
+    except ValueError as exc:  # bad input or config (a refused checkpoint...): one line, exit 2
+        log.error("%s", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

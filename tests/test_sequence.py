@@ -192,9 +192,12 @@ def test_saved_encoder_round_trip_and_signature(tmp_path):
     with pytest.raises(ValueError, match="differ in measurements"):
         load_sequence_encoder(str(path), {**sig, "measurements": False})
     (tmp_path / "other.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="other.pt is not a PyTorch checkpoint"):
+        load_sequence_encoder(str(tmp_path / "other.pt"))
+    torch.save({"kind": "something else"}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="other.pt: not a sequence encoder"):
         load_sequence_encoder(str(tmp_path / "other.pt"))
-    with pytest.raises(FileNotFoundError, match="missing.pt"):
+    with pytest.raises(ValueError, match="sequence encoder not found: .*missing.pt"):
         load_sequence_encoder(str(tmp_path / "missing.pt"))
 
 
