@@ -20,6 +20,7 @@ from adjust.scene import occlusion
 from adjust.scene._checks import _range
 from adjust.scene.occlusion import Ellipsoid
 from deformnet.confutil import to_plain
+from deformnet.windows import mirror_permutation
 
 __all__ = [
     "DEFAULT_OCCLUDERS",
@@ -248,16 +249,14 @@ def _uniform(rng: np.random.Generator, lo_hi: tuple[float, float], shape) -> np.
 
 
 def _lr_partner(parts: Sequence[str]) -> np.ndarray:
-    """Index of each part's left/right counterpart (-1 if none): left_x <-> right_x."""
-    idx = {p: i for i, p in enumerate(parts)}
+    """Index of each part's left/right counterpart (-1 if none), by
+    `deformnet.windows.mirror_permutation`'s naming rules (left_x / x_l / Ear_L ...)."""
+    perm = mirror_permutation(parts)
     out = np.full(len(parts), -1, dtype=np.int64)
-    for i, p in enumerate(parts):
-        for a, b in (("left", "right"), ("right", "left"), ("Left", "Right"), ("Right", "Left")):
-            if a in p:
-                q = p.replace(a, b, 1)
-                if q in idx and q != p:
-                    out[i] = idx[q]
-                    break
+    if perm is not None:
+        twin = np.asarray(perm, dtype=np.int64)
+        has = twin != np.arange(len(parts))
+        out[has] = twin[has]
     return out
 
 
