@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 PYTHON ?= python3
 
-.PHONY: demo test test-slow lint format install clean bench-env pretrained
+.PHONY: demo test test-slow lint format install clean bench-env pretrained docs
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,11 @@ lint: $(STAMP)
 # Rebuild the shipped default net (deformnet/pretrained/mouse_lstm_small.pt; ~5 min; bit for bit on the same machine).
 pretrained: $(STAMP)
 	$(PY) -m deformnet.pretrained.build
+
+# The documentation site (mkdocs.yml, docs/), built as CI builds it, into runs/site/ (browse it with
+# `.venv/bin/mkdocs serve`); mkdocs and mkdocs-material come with the test extra (or '.[docs]').
+docs: $(STAMP)
+	$(PY) -m mkdocs build --strict   # into runs/site/ (mkdocs.yml)
 
 format: $(STAMP)
 	$(VENV)/bin/ruff format . && $(VENV)/bin/ruff check --fix .
