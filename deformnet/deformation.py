@@ -59,8 +59,9 @@ def build_net(config: Mapping[str, Any], source: str = "") -> nn.Module:
     if not isinstance(config, Mapping):
         raise ValueError(f"{where}: refused: a {type(config).__name__}, not a config mapping")
     target = config.get("_target_")
-    if not target:
-        raise ValueError(f"{where} needs a '_target_' (a net class), got keys {sorted(config)}")
+    if target is None or target == "":
+        keys = sorted(str(k) for k in config)
+        raise ValueError(f"{where} needs a '_target_' (a net class), got keys {keys}")
     if not isinstance(target, str) or target not in NETS:
         raise ValueError(
             f"{where}: refused: '_target_' {str(target)[:200]!r} is not one of this project's "
