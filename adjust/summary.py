@@ -7,7 +7,7 @@ import numpy as np
 
 from adjust.app import stats
 
-__all__ = ["result_summary"]
+__all__ = ["TrackingFailed", "result_summary", "track_health"]
 
 
 def result_summary(res, det, error: np.ndarray, view_err: np.ndarray) -> dict:
@@ -64,4 +64,36 @@ def result_summary(res, det, error: np.ndarray, view_err: np.ndarray) -> dict:
             "downweighted_detections": int(((res.weights < 0.1) & observed).sum()),
             "ncams_histogram": np.bincount(ncams.reshape(-1), minlength=C + 1).tolist(),
         },
+    }
+
+
+class TrackingFailed(ValueError):
+    """The adjustment produced tracks that cannot be trusted (non-finite values, or points
+    whose own detections reproject far off); the message names the frames."""
+
+
+def track_health(
+    points: np.ndarray, view_err: np.ndarray, sigma_det_px: float, max_px: float = 100.0
+) -> dict:
+    """Whether a result can be trusted: ``failed`` when a point is not finite or the median of a
+    frame's accepted detections reprojects more than ``max(max_px, 30 sigma_det_px)`` px from
+    its points (the adjustment left the data: an exploding or diverged solve; one outlier
+    detection does not count), else ``ok``. points (T, K, 3)
+    mm; view_err (T, K, C) px per accepted detection (NaN elsewhere). Returns {status,
+    limit_px, bad_frames (count), frames (the first 20, 0-based)}."""
+    limit = max(float(max_px), 30.0 * float(sigma_det_px))
+    nonfinite = ~np.isfinite(points).all(-1).all(-1)
+    e = np.asarray(view_err, dtype=np.float64).reshape(len(points), -1)
+    e = np.where(np.isnan(e), np.inf, e)  # sorted last; +inf (behind a camera) stays too
+    n = np.isfinite(np.asarray(view_err, dtype=np.float64).reshape(len(points), -1)).sum(-1)
+    n = n + np.isposinf(np.asarray(view_err, dtype=np.float64).reshape(len(points), -1)).sum(-1)
+    med = np.take_along_axis(np.sort(e, -1), np.maximum((n - 1) // 2, 0)[:, None], -1)[:, 0]
+    exploding = (n > 0) & (med > limit)  # most of a frame's detections far off, not one outlier
+    bad = np.flatnonzero(nonfinite | exploding)
+    return {
+        "status": "failed" if bad.size else "ok",
+        "limit_px": limit,
+        "bad_frames": int(bad.size),
+        "nonfinite_frames": int(nonfinite.sum()),
+        "frames": [int(f) for f in bad[:20]],
     }

@@ -48,11 +48,11 @@ from omegaconf import DictConfig
 from adjust.adapt import adapt_net
 from adjust.app import load_kwargs, required, run_or_exit, write_outputs
 from adjust.camera import CameraTensors
-from adjust.io import Detections, InputError, load_scene, write_points3d
+from adjust.io import Detections, InputError, UnknownPartsError, load_scene, write_points3d
 from adjust.lsq.observation import NetObservation
 from adjust.metrics import reprojection_errors
 from adjust.session import expand_session_globs, with_session
-from adjust.summary import result_summary
+from adjust.summary import TrackingFailed, result_summary, track_health
 from deformnet.atomic import write_text
 from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.body import BodyModel
@@ -84,6 +84,34 @@ def _triangulate(det: Detections, cams: CameraTensors, robust: bool, max_error_p
 # --------------------------------------------------------------------------------------------
 def _is_auto(body_cfg) -> bool:
     return body_cfg is not None and bool(body_cfg.get("auto", False))
+
+
+BODY_SHAPES = ("data", "table")
+
+
+def body_shape(body_cfg) -> str:
+    """``body.shape`` of a named body model (``conf/body/mouse.yaml``): ``data`` = its shape
+    estimated from the session (`estimate_body`, then `BodyModel.in_frame_of` the named model),
+    ``table`` = the named model's points, scaled (`scale_body`); a body config without the key
+    is ``table``."""
+    shape = str(body_cfg.get("shape", "table")).lower()
+    if shape not in BODY_SHAPES:
+        raise InputError(f"body.shape must be one of {', '.join(BODY_SHAPES)}, got {shape!r}")
+    return shape
+
+
+def scale_factor(body: BodyModel, body_cfg) -> tuple[BodyModel, dict]:
+    """``body.scale_factor``: the model's size times this (> 0; 1 keeps it)."""
+    f = body_cfg.get("scale_factor", 1.0)
+    try:
+        f = float(f)
+    except (TypeError, ValueError):
+        f = float("nan")
+    if not (math.isfinite(f) and f > 0):
+        raise InputError(
+            f"body.scale_factor must be a number > 0, got {body_cfg.get('scale_factor')!r}"
+        )
+    return (body, {}) if f == 1.0 else (body.scaled(f), {"scale_factor": f})
 
 
 def estimate_body(
@@ -528,6 +556,7 @@ def _run(cfg: DictConfig) -> dict:
             "your own conf/body/<name>.yaml"
         )
     auto = _is_auto(body_cfg)
+    frame_of = None  # a named model whose frame an estimated one is moved into
     model = None
     body_facts: dict = {}
     mode = deformation_mode(deformation)
@@ -562,7 +591,23 @@ def _run(cfg: DictConfig) -> dict:
         cameras, det = load_scene(calibration, detections, None, **kwargs)
     else:
         body = BodyModel.from_config(body_cfg)
-        cameras, det = load_scene(calibration, detections, body, **kwargs)
+        try:
+            cameras, det = load_scene(calibration, detections, body, **kwargs)
+        except UnknownPartsError as exc:
+            if str(body_cfg.get("other_parts", "error")).lower() != "auto":
+                raise
+            log.warning(
+                "the detection files have parts that body '%s' does not know (%s): their own "
+                "body is estimated from the data (as body=auto) and every part is tracked "
+                "(body.other_parts=error stops instead)",
+                body.name,
+                ", ".join(exc.parts),
+            )
+            cameras, det = load_scene(calibration, detections, None, **kwargs)
+            auto = True
+            body_facts["other_parts"] = list(exc.parts)
+        frame_of = body
+    estimated = mode != "net" and (auto or body_shape(body_cfg) == "data")
     from adjust.camera_check import check_from_config  # input.camera_check, exclude_cameras
 
     cameras, det, camera_report = check_from_config(cameras, det, cfg.get("input"))
@@ -586,10 +631,15 @@ def _run(cfg: DictConfig) -> dict:
         solver_cfg = solver_cfg.replace(sigma_det_px=cons.sigma_det_px)
     timings["consensus_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if auto:
-        body, body_facts = estimate_body(
+    if estimated:
+        body, est_facts = estimate_body(
             det, cams, body_cfg, str(body_cfg.get("name", "auto")), cons=cons
         )
+        body_facts.update(est_facts)
+        if frame_of is not None:
+            body, body_facts["frame"] = body.in_frame_of(frame_of)
+            aliases = {k: v for k, v in frame_of.aliases.items() if v in body.parts}
+            body = BodyModel(body.parts, body.points, aliases, body.name)
         sig = body_cfg.get("sigma_def_mm")
         if sig == "auto" and math.isfinite(body_facts["rms_deviation_mm"]):
             value = max(float(body_facts["rms_deviation_mm"]), 0.5)
@@ -599,9 +649,12 @@ def _run(cfg: DictConfig) -> dict:
             solver_cfg = solver_cfg.replace(sigma_def_mm=float(sig))
     if tuple(body.parts) != tuple(det.parts):  # load_scene orders parts as the model does
         raise InputError(f"parts {list(det.parts)} do not match the body model {list(body.parts)}")
-    if not auto and model is None:
+    if not estimated and model is None:
         body, scale_facts = scale_body(body, body_cfg, cons)
         body_facts.update(scale_facts)
+    if model is None:
+        body, factor_facts = scale_factor(body, body_cfg)
+        body_facts.update(factor_facts)
     if mode == "default":
         from deformnet.pretrained import load_default
 
@@ -657,7 +710,7 @@ def _run(cfg: DictConfig) -> dict:
     if mode == "rigid" or staged or bool(deform_cfg.get("rigid_first", True)):
         # the rigid adjustment: the result itself, or the start of a deformable one
         rigid = solve(solver_cfg, rigid_obs)
-        if auto and rigid_obs is not None:  # the model from the detections themselves
+        if estimated and rigid_obs is not None:  # the model from the detections themselves
             refined = refine_body(body, body_cfg, rigid.poses, det, weight, cams, cons, rigid_obs)
             if refined is not None:
                 body, rigid_obs, few_var, body_facts["refined"] = refined
@@ -837,7 +890,9 @@ def _run(cfg: DictConfig) -> dict:
         },
         "body": {
             "name": body.name,
-            "source": "auto" if auto else ("checkpoint" if model is not None else "config"),
+            "source": "auto"
+            if auto
+            else ("checkpoint" if mode == "net" else ("data" if estimated else "config")),
             **body_facts,
         },
         "deformation": {"mode": mode, **(def_facts or {})}
@@ -865,6 +920,7 @@ def _run(cfg: DictConfig) -> dict:
         },
         "rigid_iterations": rigid_iterations,  # of the rigid run that started a deformable one
         **result_summary(res, det, error, view_err),
+        "health": (health := track_health(points, view_err, solver_cfg.sigma_det_px)),
         "time_s": {},
         "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
     }
@@ -897,6 +953,14 @@ def _run(cfg: DictConfig) -> dict:
         nwb = write_nwb(out / "tracks.nwb", points_path, calibration, fps=cfg.output.get("fps"))
         summary["outputs"]["nwb"] = str(nwb)
         write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    if health["status"] == "failed":
+        frames = health["frames"] if fnum is None else [int(fnum[f]) for f in health["frames"]]
+        raise TrackingFailed(
+            f"{detections}: the tracks cannot be trusted: {health['bad_frames']} frames "
+            f"(e.g. {frames}) have non-finite points or points whose own detections reproject "
+            f"beyond {health['limit_px']:.0f} px (summary.json 'health'; outputs kept in {out} "
+            "for inspection)"
+        )
     alone = summary["from_model_only"]["fraction"]
     if alone > 0.25:
         worst = sorted(summary["from_model_only"]["per_part"].items(), key=lambda kv: -kv[1])[:3]

@@ -205,6 +205,35 @@ class BodyModel:
         ratio = np.sqrt(rx[ok] / rb[ok])
         return (float(np.median(ratio)) if ratio.size else float("nan")), int(ratio.size)
 
+    def in_frame_of(self, ref: BodyModel, min_parts: int = 3) -> tuple[BodyModel, dict]:
+        """This model moved rigidly (its size and shape kept) into `ref`'s model frame: the
+        similarity fit ``ref ~ s R self + t`` over the parts `ref` knows (by name or alias,
+        `resolve`), then ``self -> R self + t / s``. An estimated body so keeps a prior model's
+        conventions (the mouse's X right, Y forward, Z up). With fewer than `min_parts` shared
+        parts, or collinear ones, the model is returned as it is. Returns (model, facts: the
+        shared parts, the scale s, the rms distance (mm) of the moved parts from ref / s)."""
+        pairs = [(i, ref.parts.index(r)) for i, p in enumerate(self.parts)
+                 if (r := ref.resolve(p)) is not None]  # fmt: skip
+        facts: dict = {"frame_of": ref.name, "shared_parts": [self.parts[i] for i, _ in pairs]}
+        if len(pairs) < max(3, int(min_parts)):
+            facts["aligned"] = False
+            return self, facts
+        a = torch.as_tensor(self.points[[i for i, _ in pairs]])
+        b = torch.as_tensor(ref.points[[j for _, j in pairs]])
+        R, _, S = kabsch(b, a, spread=True)  # b ~ R a + t
+        if not bool(S[1] > 1e-6 * S[0]):
+            facts["aligned"] = False
+            return self, facts
+        ac, bc = a - a.mean(0), b - b.mean(0)
+        scale = float((bc * (ac @ R.T)).sum() / (ac * ac).sum())
+        Rn = R.numpy()
+        t = b.mean(0).numpy() / scale - Rn @ a.mean(0).numpy()
+        moved = self.points @ Rn.T + t
+        idx = [i for i, _ in pairs]
+        rms = float(np.sqrt(np.mean(np.sum((moved[idx] - b.numpy() / scale) ** 2, -1))))
+        facts.update(aligned=True, scale=scale, rms_mm=rms)
+        return BodyModel(self.parts, moved, self.aliases, self.name), facts
+
     # --- estimation ---------------------------------------------------------------------
     @classmethod
     def from_observations(

@@ -156,12 +156,24 @@ def test_body_auto_on_real_hand_data(tmp_path):
     )
 
 
-def test_body_mouse_on_hand_data_is_an_input_error(tmp_path):
+def test_default_body_on_hand_data_tracks_the_files_parts(tmp_path):
+    """Files whose parts are not the mouse's: the default body is estimated from them and every
+    part is tracked; body.other_parts=error stops, naming the unknown parts and body=auto."""
     assert REAL.exists(), f"shared data missing: {REAL}"
     cfg = _track_cfg(
-        REAL / "calibration.toml", REAL / "trial_000", [f"output.dir={tmp_path}", *FAST]
+        REAL / "calibration.toml", REAL / "trial_000", [f"output.dir={tmp_path / 'a'}", *FAST]
     )
-    with pytest.raises(InputError, match="elbow"):
+    summary = run(cfg)
+    assert "elbow" in summary["parts"] and len(summary["parts"]) > 8
+    assert summary["body"]["source"] == "auto"
+    assert "elbow" in summary["body"]["other_parts"]
+    assert summary["completeness"] == 1.0
+    cfg = _track_cfg(
+        REAL / "calibration.toml",
+        REAL / "trial_000",
+        [f"output.dir={tmp_path / 'b'}", "body.other_parts=error", *FAST],
+    )
+    with pytest.raises(InputError, match="elbow.*body=auto"):
         run(cfg)
 
 

@@ -17,7 +17,7 @@ from adjust.io.calibration import (
     save_calibration,
 )
 from adjust.io.dlc import DLCTable, read_dlc, write_dlc_csv
-from adjust.io.errors import InputError
+from adjust.io.errors import InputError, UnknownPartsError
 from adjust.io.points3d import read_points3d, write_points3d
 from adjust.io.scene import Detections, load_detections, load_scene, match_files
 
@@ -25,6 +25,7 @@ __all__ = [
     "DLCTable",
     "Detections",
     "InputError",
+    "UnknownPartsError",
     "load_calibration",
     "load_calibration_metadata",
     "recording_fps",

@@ -43,7 +43,7 @@ import numpy as np
 from adjust.camera import Camera
 from adjust.io.calibration import load_calibration
 from adjust.io.dlc import DLCTable, read_dlc
-from adjust.io.errors import InputError
+from adjust.io.errors import InputError, UnknownPartsError
 from adjust.io.sleap import is_sleap_file, read_sleap
 from deformnet.body import BodyModel
 
@@ -206,7 +206,9 @@ def _map_parts(
                 f"{list(body.parts)}; aliases: {sorted(body.aliases)})"
             )
             if not ignore_unknown_parts:
-                raise InputError(msg + "; add aliases or use the files' own parts")
+                raise UnknownPartsError(
+                    msg + "; add aliases, or use the files' own parts (body=auto)", unknown
+                )
             log.warning("%s; ignored", msg)
         target_parts = body.parts
     else:
