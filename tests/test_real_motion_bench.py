@@ -1,0 +1,63 @@
+"""benchmarks/real_motion.py end to end on a tiny configuration (150 frames, one 3-camera
+8-part scene, dlt and rigid, no stability table)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "benchmarks" / "real_motion.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("real_motion_bench", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)  # puts benchmarks/ on sys.path for its own imports
+    return mod
+
+
+def test_tiny_run(tmp_path, one_thread):
+    rm = _load()
+    if not rm.DATA.is_file():
+        pytest.skip(f"{rm.DATA} not present")
+    out = tmp_path / "x.json"
+    rm.main(
+        ["--frames", "150", "--cameras", "3", "--parts", "8", "--seeds", "0",
+         "--methods", "dlt,rigid", "--no-stability", "--work", str(tmp_path / "work"),
+         "--out", str(out)]
+    )  # fmt: skip
+    res = json.loads(out.read_text())
+    assert res["split"] == "test" and res["frames"] == [2400, 2550]
+    rows = {r["method"]: r for r in res["rows"]}
+    assert set(rows) == {"dlt", "rigid"}
+    for r in rows.values():
+        assert r["cameras"] == 3 and r["parts"] == 8 and r["seed"] == 0
+        assert "error" not in r
+        for k in ("rmse_all", "rmse_seen2", "rmse_occluded"):
+            assert r[k] is not None and math.isfinite(r[k]) and r[k] > 0
+    assert rows["dlt"]["completeness"] < 1.0
+    assert rows["rigid"]["completeness"] == 1.0
+    assert rows["rigid"]["diverged"] is False
+    assert "c3_p8" in res["aggregate"]
+    assert res["stability"] is None
+
+
+def test_part_sets_and_constraints():
+    rm = _load()
+    parts = tuple(f"p{i}" for i in range(34))
+    src, names = rm.part_set(8, parts)
+    assert names == list(rm.MOTION_PAPER8) and src == list(rm.MOTION_PAPER8.values())
+    assert rm.part_set(22, parts)[0] == list(rm.MOTION_PARTS22)
+    assert rm.part_set(34, parts)[1] == list(parts)
+    skeleton = Path(rm.DATA).parent / "skeleton.csv"
+    strong, weak = rm.skeleton_constraints(skeleton, list(rm.MOTION_PARTS22))
+    assert set(strong) == set(rm.HEAD_TRIANGLE)
+    assert ("Neck", "Trunk") in weak or not skeleton.is_file()
+    assert all(a in rm.MOTION_PARTS22 and b in rm.MOTION_PARTS22 for a, b in strong + weak)
+    assert rm.target_ratio(2, 8) == 0.6 and rm.target_ratio(4, 8) == 0.8
+    assert rm.target_ratio(3, 22) == 0.8
