@@ -41,6 +41,11 @@ def real_mouse_poses_dir() -> Path:
     return shared_dir() / "data" / "real-mouse-poses-3d"
 
 
+def real_mouse_motion_dir() -> Path:
+    """The real mouse's 3D motion (3600 frames, 34 keypoints, ``poses3d.csv``)."""
+    return shared_dir() / "data" / "real-mouse-motion-3d"
+
+
 def output_dir(cfg) -> Path:
     """The folder a Hydra app writes into.
 

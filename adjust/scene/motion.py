@@ -16,7 +16,7 @@ Shapes: T frames, K parts, C cameras.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -26,6 +26,7 @@ import torch
 
 from adjust.camera import Camera
 from adjust.scene.detector import DetectorConfig, SceneDetections, detector_config, simulate_scene
+from adjust.scene.folder import write_scene
 from adjust.scene.occlusion import Ellipsoid
 from adjust.scene.rig import camera_look_at
 from deformnet.body import default_mouse
@@ -39,6 +40,7 @@ __all__ = [
     "floor_frame",
     "load_motion",
     "motion_rig",
+    "write_motion_scene",
 ]
 
 #: the paper's 8 parts (the default mouse's names) in the real-mouse-motion-3d recording
@@ -179,7 +181,7 @@ def film_motion(
     anchors = dict(MOTION_PAPER8 if anchors is None else anchors)
     mouse = default_mouse()
     idx = [parts.index(anchors[p]) for p in mouse.parts]
-    B = np.asarray(mouse.points, dtype=np.float64)
+    B = np.array(mouse.points, dtype=np.float64)  # writable (torch.as_tensor)
     P = X[:, idx]
     # similarity scale (Umeyama) of the model to each frame's anchors; its median over frames
     R, _ = kabsch(torch.as_tensor(P), torch.as_tensor(B))
@@ -201,3 +203,36 @@ def film_motion(
     sim = SimpleNamespace(deformed=X, poses=poses, parts=parts, model=model)
     det = simulate_scene(sim, cameras, cfg, seed=seed)
     return FilmedMotion(X, poses, parts, model, scale, det, tuple(cameras), float(fps))
+
+
+def write_motion_scene(
+    out: str | Path,
+    points: np.ndarray,
+    parts: Sequence[str],
+    cameras: Sequence[Camera],
+    keep: Sequence[str] | None = None,
+    rename: Mapping[str, str] | None = None,
+    detector: DetectorConfig | Mapping | None = None,
+    seed: int | Sequence[int] = 0,
+    fps: float = 100.0,
+) -> dict:
+    """`film_motion`, then the scene folder (`write_scene`: calibration.toml, detections/ as
+    DeepLabCut CSVs, truth.npz) of the parts `keep` (default all; the whole body is filmed, so
+    occlusion is the same whichever parts are kept), named by `rename` (recording name -> file
+    name; e.g. the paper's 8 as the default mouse's names: ``{v: k for k, v in
+    MOTION_PAPER8.items()}``). Returns `write_scene`'s paths and the detections' fractions."""
+    parts = tuple(str(p) for p in parts)
+    fm = film_motion(points, parts, cameras, detector=detector, seed=seed, fps=fps)
+    keep = parts if keep is None else tuple(keep)
+    idx = [parts.index(p) for p in keep]
+    names = tuple((rename or {}).get(p, p) for p in keep)
+    det = fm.detections
+    arrays = {
+        f.name: getattr(det, f.name)[:, idx]
+        for f in fields(det)
+        if isinstance(getattr(det, f.name), np.ndarray)
+    }
+    det = replace(det, **arrays, parts=names)
+    sim = SimpleNamespace(deformed=fm.deformed[:, idx], poses=fm.poses, parts=names, fps=fps)
+    res = write_scene(out, sim, cameras, det, metadata={"fps": float(fps), "seed": str(seed)})
+    return {**res, "fractions": det.fractions(), "scale": fm.scale}

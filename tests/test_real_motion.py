@@ -1,0 +1,117 @@
+"""Real mouse motion with 3D truth (shared/data/real-mouse-motion-3d) filmed by simulated rigs:
+the tracker's defaults are stable under small changes, estimate the body's size on 2 cameras,
+and a run whose tracks leave the data does not exit 0."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import numpy as np
+import pytest
+
+from adjust.metrics import point_errors
+from adjust.scene.motion import (
+    MOTION_PAPER8,
+    floor_frame,
+    load_motion,
+    motion_rig,
+    write_motion_scene,
+)
+from adjust.summary import TrackingFailed, track_health
+from adjust.track import run
+from deformnet.body import BodyModel
+from deformnet.paths import CONF_DIR, real_mouse_motion_dir
+
+DATA = real_mouse_motion_dir() / "poses3d.csv"
+FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")
+START, FRAMES = 1200, 400  # the benchmark's validation segment (benchmarks/real_motion.py)
+
+
+def _scene(out: Path, cameras: int, seed: int = 0) -> Path:
+    X, parts = load_motion(DATA)
+    rig = motion_rig(floor_frame(X, parts, FEET), cameras)
+    rename = {v: k for k, v in MOTION_PAPER8.items()}
+    write_motion_scene(
+        out, X[START : START + FRAMES], parts, rig, list(MOTION_PAPER8.values()), rename, seed=seed
+    )
+    return out
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> dict[int, Path]:
+    assert DATA.exists(), f"shared data missing: {DATA}"
+    base = tmp_path_factory.mktemp("real_motion")
+    return {c: _scene(base / f"cams{c}", c) for c in (2, 3)}
+
+
+def _track(scene: Path, out: Path, extra=()) -> tuple[dict, float]:
+    ov = [
+        f"input.calibration={scene / 'calibration.toml'}",
+        f"input.detections={scene / 'detections'}",
+        f"output.dir={out}",
+        "progress=false",
+        *extra,
+    ]
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        summary = run(hydra.compose("track", overrides=ov))
+    from adjust.io import read_points3d
+
+    tr = np.load(scene / "truth.npz")
+    est = read_points3d(out / "points3d.csv")["points"]
+    return summary, point_errors(est, tr["points"], tr["nviews"])["rmse_all"]
+
+
+def test_defaults_are_stable_under_a_small_change_of_the_body_size(scenes, tmp_path):
+    """body.scale_factor 0.95 / 1 / 1.05 moves the RMSE by < 10% (a Table 1 model scaled to
+    this mouse, body.shape=table, flipped a third of the poses at a 1% change)."""
+    rmse = [_track(scenes[3], tmp_path / f"f{f}", [f"body.scale_factor={f}"])[1]
+            for f in (0.95, 1.0, 1.05)]  # fmt: skip
+    assert np.isfinite(rmse).all()
+    assert (max(rmse) - min(rmse)) / np.median(rmse) < 0.10, rmse
+
+
+def test_two_cameras_estimate_the_body_size(scenes, tmp_path):
+    """On 2 cameras the default body's size is the mouse's (its rms radius within 10% of the
+    truth's Procrustes shape), whatever size it starts from, and the track is complete."""
+    summary, rmse = _track(scenes[2], tmp_path / "two")
+    assert summary["body"]["source"] == "data" and summary["completeness"] == 1.0
+    est = np.array(list(summary["body"]["points"].values()))
+    tr = np.load(scenes[2] / "truth.npz")
+    truth = BodyModel.from_observations(tr["points"]).points
+
+    def radius(p):
+        return np.sqrt(np.mean(np.sum((p - p.mean(0)) ** 2, -1)))
+
+    assert abs(radius(est) / radius(truth) - 1) < 0.10
+    assert summary["health"]["status"] == "ok"
+    assert rmse < 15.0
+
+
+def test_track_health():
+    pts = np.zeros((4, 2, 3))
+    err = np.full((4, 2, 3), 1.0)
+    err[1, 0, 0] = 500.0  # one outlier detection: fine
+    assert track_health(pts, err, 1.5)["status"] == "ok"
+    err[2] = 1e6  # a frame whose detections all reproject far off
+    pts[3, 1, 2] = np.nan
+    h = track_health(pts, err, 1.5)
+    assert h["status"] == "failed" and h["frames"] == [2, 3]
+
+
+def test_a_run_that_leaves_the_data_does_not_exit_0(scenes, tmp_path, monkeypatch):
+    """The outputs are kept for inspection, summary.json says failed, and the app raises (exit
+    status 2 through run_or_exit)."""
+    import adjust.track as track
+
+    def exploding(points, view_err, sigma_det_px):
+        return track_health(points, view_err * 1e6 + 1e3, sigma_det_px)
+
+    monkeypatch.setattr(track, "track_health", exploding)
+    with pytest.raises(TrackingFailed, match="cannot be trusted"):
+        _track(scenes[3], tmp_path / "bad")
+    import json
+
+    assert json.loads((tmp_path / "bad" / "summary.json").read_text())["health"]["status"] == (
+        "failed"
+    )
