@@ -562,6 +562,14 @@ def _run(cfg: DictConfig) -> dict:
     mode = deformation_mode(deformation)
     est_cfg = cfg.get("stochastic") or {}
     estimate = bool(est_cfg.get("estimate", True))
+    if cfg.output.get("nwb", False):  # before any computing: the NWB times need a frame rate
+        from adjust.io import load_calibration_metadata, recording_fps
+
+        if recording_fps(cfg.output.get("fps"), load_calibration_metadata(calibration)) is None:
+            raise InputError(
+                f"output.nwb=true needs the recording's frame rate: set output.fps=... (Hz), or "
+                f"give a calibration whose [metadata] has fps ({calibration} has none)"
+            )
     if mode in ("interp", "self", "default") and not estimate:
         raise ValueError(f"deformation={mode} needs stochastic.estimate=true (its 3D observations)")
 
@@ -632,9 +640,21 @@ def _run(cfg: DictConfig) -> dict:
     timings["consensus_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if estimated:
-        body, est_facts = estimate_body(
-            det, cams, body_cfg, str(body_cfg.get("name", "auto")), cons=cons
-        )
+        try:
+            est = estimate_body(det, cams, body_cfg, str(body_cfg.get("name", "auto")), cons)
+        except InputError as exc:
+            if auto:
+                raise
+            log.warning(  # too little data for a shape: the named model's, scaled
+                "body.shape=data: %s; body '%s' is used at its configured shape, scaled "
+                "(body.shape=table)",
+                exc,
+                body.name,
+            )
+            estimated = False
+            body_facts["shape_fallback"] = str(exc)
+    if estimated:
+        body, est_facts = est
         body_facts.update(est_facts)
         if frame_of is not None:
             body, body_facts["frame"] = body.in_frame_of(frame_of)

@@ -309,3 +309,11 @@ def test_measured_deformation_matches_autograd(tmp_path):
     torch.testing.assert_close(fwd.points(poses)[1], Jr, atol=1e-4, rtol=1e-4)
     sub = obs.window(5, 15)
     assert sub.data.shape[0] == 10 and type(sub) is type(obs)
+
+
+def test_nwb_without_a_frame_rate_stops_before_tracking(scene, tmp_path):
+    """output.nwb=true with no output.fps and no fps in the calibration: one error naming
+    output.fps, before any tracking (nothing written)."""
+    with pytest.raises(InputError, match=r"output\.fps"):
+        _track(scene, tmp_path / "nwb", ["output.nwb=true"])
+    assert not (tmp_path / "nwb" / "points3d.csv").exists()
