@@ -22,6 +22,7 @@ from __future__ import annotations
 import ast
 import builtins
 import copy
+import functools
 import io
 import logging
 from pathlib import Path
@@ -34,6 +35,7 @@ from helpers import tiny_deformation_model, tiny_lstm_config
 import adjust.track
 import deformnet.classify
 import deformnet.train
+from adjust.app import run_or_exit
 from deformnet.body import default_mouse
 from deformnet.checkpoint import load_checkpoint, plain_kwargs
 from deformnet.classify import _build, export_classifier, load_classifier
@@ -297,7 +299,9 @@ def _compose(name: str, overrides: list[str]):
 
 
 def _app_error(caplog, main, cfg) -> str:
-    """Run an app's Hydra main on a composed config: it must exit 2 after one error line."""
+    """Run an app's entry point on a composed config (deformnet's Hydra mains; adjust-track's
+    `run_or_exit`, what its main calls outside a multirun): it must exit 2 after one error
+    line."""
     caplog.clear()
     with caplog.at_level(logging.INFO), pytest.raises(SystemExit) as exc:
         main(cfg)
@@ -315,8 +319,9 @@ def _apps(tmp_path: Path, ckpt: Path, kind: str):
         return [("deformnet-classify mode=predict", deformnet.classify.main, _compose(
             "classify", ["mode=predict", f"checkpoint={ckpt}", f"tracks={tracks}",
                          f"output.dir={out}"]))]  # fmt: skip
+    track = functools.partial(run_or_exit, adjust.track.run)  # adjust-track's single run
     return [
-        ("adjust-track", adjust.track._main, _compose("track", [
+        ("adjust-track", track, _compose("track", [
             f"input.calibration={tmp_path / 'calibration.toml'}",
             f"input.detections={tmp_path / 'detections'}", f"deformation={ckpt}",
             f"output.dir={out}", "progress=false"])),
