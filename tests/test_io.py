@@ -224,7 +224,9 @@ def test_points3d_round_trip_with_nan(tmp_path):
     assert header == [
         "a_x", "a_y", "a_z", "a_error", "a_ncams", "a_score",
         "b_x", "b_y", "b_z", "b_error", "b_ncams", "b_score",
-        "pose_rx", "a_sigma", "b_sigma", "fnum",
+        "pose_rx", "a_sigma", "b_sigma",
+        "M_00", "M_01", "M_02", "M_10", "M_11", "M_12", "M_20", "M_21", "M_22",
+        "center_0", "center_1", "center_2", "fnum",
     ]  # fmt: skip
     d = read_points3d(path)
     assert d["parts"] == ("a", "b")
@@ -235,5 +237,9 @@ def test_points3d_round_trip_with_nan(tmp_path):
     assert np.array_equal(d["extra"]["pose_rx"], pose)
     assert np.array_equal(d["extra"]["b_sigma"], sigma[:, 1])
     assert d["fnum"].tolist() == list(range(T))
+    assert np.array_equal(d["M"], np.eye(3)) and np.array_equal(d["center"], np.zeros(3))
+    assert set(d["extra"]) == {"pose_rx", "a_sigma", "b_sigma"}  # the axes columns are M, center
     with pytest.raises(ValueError, match="clashes"):
         write_points3d(tmp_path / "p.csv", parts, pts, err, ncams, score, {"a_x": pose})
+    with pytest.raises(ValueError, match="clashes"):
+        write_points3d(tmp_path / "p.csv", parts, pts, err, ncams, score, {"M_00": pose})

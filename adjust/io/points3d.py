@@ -4,8 +4,16 @@ One row per frame; for each part, in order, the columns ``{part}_x``, ``{part}_y
 (mm), ``{part}_error`` (mean reprojection error over the views used, px), ``{part}_ncams``
 (number of views used) and ``{part}_score`` (lowest likelihood among those views); then any
 extra columns (e.g. ``pose_rx`` .. ``pose_tz``, ``{part}_sigma``) in the order given; then
-``fnum`` (frame number). Values not estimated are NaN (empty cells, as pandas and anipose write
-them); floats are written exactly.
+anipose's axes columns ``M_00`` .. ``M_22`` and ``center_0`` .. ``center_2`` (the same value in
+every row); then ``fnum`` (frame number). Values not estimated are NaN (empty cells, as pandas
+and anipose write them); floats are written exactly.
+
+The axes columns say how the points' frame relates to the calibration's world frame, as anipose's
+``triangulation.axes`` writes them: ``X_out = M X_world - center`` (M a (3, 3) rotation, center
+(3,) mm in the output frame), so ``X_world = M^T (X_out + center)``. Without an axes alignment
+(`adjust.kinematics.align_axes`) M is the identity and center 0: the points are in the
+calibration's world frame. anipose's own files, and tools that read them (movement's
+``from_anipose_file``), expect these columns.
 """
 
 from __future__ import annotations
@@ -25,6 +33,10 @@ from deformnet.tables import read_csv, xyz_parts
 log = logging.getLogger(__name__)
 
 FIELDS = ("x", "y", "z", "error", "ncams", "score")
+#: anipose's axes columns, in the order anipose writes them: M (row-major), then center
+AXES_COLUMNS = tuple(f"M_{i}{j}" for i in range(3) for j in range(3)) + tuple(
+    f"center_{i}" for i in range(3)
+)
 ROWS_PER_BLOCK = 50_000  # write_points3d: rows formatted at a time
 
 
@@ -37,13 +49,16 @@ def write_points3d(
     score: np.ndarray,
     extra: Mapping[str, np.ndarray] | None = None,
     fnum: Sequence[int] | None = None,
+    M: np.ndarray | None = None,
+    center: np.ndarray | None = None,
 ) -> Path:
     """Write 3D tracks atomically.
 
     points: (T, K, 3) mm, NaN where not estimated; error, score: (T, K) float; ncams: (T, K)
     (written as integers when all finite). extra: column name -> (T,) array; a name containing
     ``{part}`` with a (T, K) array gives one column per part (``"{part}_sigma"``). fnum: (T,)
-    frame numbers (default 0..T-1).
+    frame numbers (default 0..T-1). M: (3, 3), center: (3,) mm: the axes columns (see the
+    module doc; default identity and 0, the calibration's world frame).
     """
     parts = [str(p) for p in parts]
     pts = np.asarray(points, dtype=np.float64)
@@ -81,6 +96,14 @@ def write_points3d(
             if n in cols or n == "fnum":
                 raise ValueError(f"extra column '{n}' clashes with another column")
             cols[n] = v
+    rot = np.eye(3) if M is None else np.asarray(M, dtype=np.float64)
+    ctr = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
+    if rot.shape != (3, 3) or ctr.shape != (3,):
+        raise ValueError(f"M must be (3, 3) and center (3,), got {rot.shape} and {ctr.shape}")
+    for n, v in zip(AXES_COLUMNS, np.concatenate([rot.ravel(), ctr])):
+        if n in cols:
+            raise ValueError(f"extra column '{n}' clashes with anipose's axes columns")
+        cols[n] = np.full(T, float(v))
     f = np.arange(T) if fnum is None else np.asarray(fnum)
     if f.shape != (T,):
         raise ValueError(f"fnum must have shape ({T},), got {f.shape}")
@@ -99,8 +122,9 @@ def read_points3d(path: str | os.PathLike) -> dict:
 
     Returns a dict: ``parts`` (tuple), ``points`` (T, K, 3), ``error``, ``ncams``, ``score``
     (T, K) float64 (NaN where a column is absent), ``fnum`` (T,) (the detection files' frame
-    numbers; strings for labelled images), ``extra`` {column: (T,)} for
-    every other column (anipose's ``M_00``.., ``center_0``.. included), in file order.
+    numbers; strings for labelled images), ``M`` (3, 3) and ``center`` (3,) (anipose's axes
+    columns; identity and 0 when the file has none), ``extra`` {column: (T,)} for every other
+    column, in file order.
     """
     path = Path(path)
     df = read_csv(path, "points3d file", InputError)
@@ -134,5 +158,26 @@ def read_points3d(path: str | os.PathLike) -> dict:
                 used.add(f"{p}_{key}")
     out["fnum"] = df["fnum"].to_numpy() if "fnum" in colset else np.arange(T)
     used.add("fnum")
+    out["M"], out["center"] = _axes(path, df, colset)
+    used.update(AXES_COLUMNS)
     out["extra"] = {c: df[c].to_numpy() for c in names if c not in used}
     return out
+
+
+def _axes(path: Path, df: pd.DataFrame, colset: set) -> tuple[np.ndarray, np.ndarray]:
+    """(M (3, 3), center (3,)) from anipose's axes columns (identity and 0 when absent); a file
+    with only some of them, or with values that differ between rows, is an InputError."""
+    have = [c for c in AXES_COLUMNS if c in colset]
+    if not have:
+        return np.eye(3), np.zeros(3)
+    if len(have) != len(AXES_COLUMNS):
+        missing = [c for c in AXES_COLUMNS if c not in colset]
+        raise InputError(f"{path}: incomplete axes columns: {missing} missing")
+    vals = df[list(AXES_COLUMNS)].to_numpy(np.float64)
+    if not len(vals):
+        return np.eye(3), np.zeros(3)
+    if not np.isfinite(vals[0]).all() or np.any(vals != vals[0]):
+        raise InputError(
+            f"{path}: the axes columns (M_.., center_..) must hold one finite value per column"
+        )
+    return vals[0, :9].reshape(3, 3).copy(), vals[0, 9:].copy()
