@@ -1,12 +1,13 @@
 """A calibration plus a folder of per-camera 2D detection files -> one (T, K, C, 2) array.
 
 A camera's file is a DeepLabCut table (``.csv``, ``.h5``; Lightning Pose writes the same CSV
-layout) or a SLEAP analysis file (``*.analysis.h5``, or any HDF5 file with SLEAP's ``tracks``
-and ``node_names``; `adjust.io.sleap`). Files are matched to cameras by name: a file belongs to
-the camera whose name appears in the file name (without suffix, and without SLEAP's
-``.analysis``); when several camera names appear, the longest wins (``cam10`` over
-``cam1``), and two equally long matches are an error. Only ``.csv``, ``.h5`` and ``.hdf5``
-files are considered (hidden files, e.g. half-written temporaries, are skipped). When one camera
+layout), a SLEAP analysis file (``*.analysis.h5``, or any HDF5 file with SLEAP's ``tracks``
+and ``node_names``) or a SLEAP ``.slp`` file (`adjust.io.sleap`). Files are matched to cameras
+by name: a file belongs to the camera whose name appears in the file name (without suffix, and
+without SLEAP's ``.analysis`` / ``.predictions``); when several camera names appear, the longest
+wins (``cam10`` over ``cam1``), and two equally long matches are an error. Only ``.csv``,
+``.h5``, ``.hdf5`` and ``.slp`` files are considered (hidden files, e.g. half-written
+temporaries, are skipped). When one camera
 has both a ``.h5`` and a ``.csv`` with the same stem (DeepLabCut writes the CSV as a copy of the
 H5), the H5 is used; any other second file for a camera is an error (narrow the choice with
 ``pattern``, e.g. ``"*_filtered.h5"``).
@@ -49,19 +50,23 @@ from deformnet.body import BodyModel
 
 log = logging.getLogger(__name__)
 
-SUFFIXES = (".csv", ".h5", ".hdf5")
+SUFFIXES = (".csv", ".h5", ".hdf5", ".slp")
 #: a coordinate beyond this (px) is absurd when the camera's image size is unknown
 MAX_ABS_PX = 1e6
 
 
 def file_stem(f: Path) -> str:
-    """The part of a file name matched against camera names (SLEAP's ``.analysis`` dropped)."""
+    """The part of a file name matched against camera names (SLEAP's ``.analysis`` and
+    ``.predictions`` dropped)."""
     stem = f.stem
-    return stem[: -len(".analysis")] if stem.lower().endswith(".analysis") else stem
+    for tail in (".analysis", ".predictions"):
+        if stem.lower().endswith(tail):
+            return stem[: -len(tail)]
+    return stem
 
 
 def read_table(path: Path, individual: str | None = None) -> DLCTable:
-    """One camera's file: a SLEAP analysis HDF5 or a DeepLabCut CSV/H5 table."""
+    """One camera's file: a SLEAP analysis HDF5 or .slp file, or a DeepLabCut CSV/H5 table."""
     if is_sleap_file(path):
         return read_sleap(path, individual)
     return read_dlc(path, individual)

@@ -1,4 +1,4 @@
-"""SLEAP analysis HDF5 files (``*.analysis.h5``) as 2D detections, read with ``h5py``.
+"""SLEAP files as 2D detections: analysis HDF5 (``*.analysis.h5``, h5py) and ``.slp`` (sleap-io).
 
 SLEAP's analysis export (``sleap-convert --format analysis``, or File > Export Analysis HDF5)
 holds, as read by h5py (SLEAP writes the arrays transposed, MATLAB style):
@@ -17,6 +17,14 @@ not a SLEAP score and is an error naming the file, part and frame. A node presen
 whose score is NaN (a hand-placed, proofread point) gets score 1. The result is a `DLCTable`
 (the files' own node names, in file order), so the rest of `adjust.io` treats SLEAP and
 DeepLabCut files alike.
+
+SLEAP's own project / predictions files (``*.slp``) are read with sleap-io (`read_slp`; ``pip
+install sleap-io``, part of the ``sleap`` and ``test`` extras): one skeleton and one video per
+file; rows 0 .. the last labelled frame, as the analysis export writes them; user (hand-placed)
+instances preferred over predictions of the same track, their points scored 1. Both readers
+choose a track of a multi-animal file by name or by index (``input.individual=mouse2`` or
+``input.individual=1``; a name wins over an index). `sleap_edges` reads either file's skeleton
+edges (by node name).
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ import logging
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from adjust.io.dlc import DLCTable
@@ -33,6 +42,7 @@ from adjust.io.errors import InputError
 log = logging.getLogger(__name__)
 
 SUFFIX = ".analysis.h5"
+SLP_SUFFIX = ".slp"
 #: the largest point score accepted (clipped to 1); SLEAP's peaks stay well below it
 MAX_SCORE = 2.0
 
@@ -45,14 +55,13 @@ def _strings(arr) -> list[str]:
 
 
 def is_sleap_file(path: str | os.PathLike) -> bool:
-    """True if `path` is an HDF5 file with SLEAP's ``tracks`` and ``node_names`` datasets."""
+    """True if `path` is a SLEAP ``.slp`` file or an HDF5 file with SLEAP's ``tracks`` and
+    ``node_names`` datasets."""
     path = Path(path)
-    if path.name.lower().endswith(SUFFIX):
+    if path.name.lower().endswith(SUFFIX) or path.suffix.lower() == SLP_SUFFIX:
         return True
     if path.suffix.lower() not in (".h5", ".hdf5") or not path.is_file():
         return False
-    import h5py
-
     try:
         with h5py.File(path, "r") as f:
             return "tracks" in f and "node_names" in f
@@ -63,12 +72,13 @@ def is_sleap_file(path: str | os.PathLike) -> bool:
 def read_sleap(path: str | os.PathLike, individual: str | None = None) -> DLCTable:
     """Read a SLEAP analysis HDF5 file into a `DLCTable` (see the module doc).
 
-    individual: the track name to take; required when the file has several tracks (the error
-    lists them), ignored (with a warning) for a single-track file.
+    individual: the track to take, by name or index (`choose_track`); required when the file
+    has several tracks (the error lists them), ignored (with a warning) for a single-track file
+    when it names no track. A ``.slp`` file is read by `read_slp`.
     """
-    import h5py
-
     path = Path(path)
+    if path.suffix.lower() == SLP_SUFFIX:
+        return read_slp(path, individual)
     if not path.is_file():
         raise InputError(f"SLEAP analysis file not found: {path}")
     try:
@@ -113,33 +123,57 @@ def read_sleap(path: str | os.PathLike, individual: str | None = None) -> DLCTab
         )
     if len(names) != n_tracks:
         names = [f"track_{i}" for i in range(n_tracks)]
-    if n_tracks == 0:
+    i = choose_track(path, names, individual)
+    xy = np.ascontiguousarray(tracks[i].transpose(2, 1, 0))  # (T, K, 2)
+    lik = None if scores is None else np.ascontiguousarray(scores[i].T)  # (T, K)
+    return _table(path, nodes, xy, lik, names, i)
+
+
+def choose_track(path: Path, names: list[str], individual) -> int:
+    """The index of the track to read: by name, else by index (an integer or a string of
+    digits); None for a single-track file. A multi-track file without a choice, or an unknown
+    choice, is an InputError listing the tracks."""
+    n = len(names)
+    if n == 0:
         raise InputError(f"{path}: the file has no tracks")
     if individual is None:
-        if n_tracks > 1:
+        if n > 1:
             raise InputError(
-                f"{path}: multi-animal SLEAP file with tracks {names}; choose one "
-                "(input.individual=NAME)"
+                f"{path}: multi-animal SLEAP file with tracks {names}; choose one by name or "
+                "index (input.individual=NAME or input.individual=0)"
             )
-        i = 0
-    else:
-        if n_tracks == 1 and str(individual) not in names:
-            log.warning("%s: single-track file; individual '%s' ignored", path, individual)
-            i = 0
-        elif str(individual) not in names:
-            raise InputError(
-                f"{path}: individual '{individual}' is not in the file; it has {names}"
-            )
-        else:
-            i = names.index(str(individual))
-    xy = np.ascontiguousarray(tracks[i].transpose(2, 1, 0))  # (T, K, 2)
+        return 0
+    key = str(individual)
+    if key in names:
+        return names.index(key)
+    if key.lstrip("-").isdigit() and -n <= int(key) < n:
+        return int(key) % n
+    if n == 1:
+        log.warning("%s: single-track file; individual '%s' ignored", path, individual)
+        return 0
+    raise InputError(
+        f"{path}: individual '{individual}' is not in the file; it has {names} (a name, or an "
+        f"index 0..{n - 1})"
+    )
+
+
+def _table(
+    path: Path,
+    nodes: list[str],
+    xy: np.ndarray,
+    lik: np.ndarray | None,
+    names: list[str],
+    i: int,
+) -> DLCTable:
+    """One track's (T, K, 2) positions and (T, K) scores (None: no scores) -> `DLCTable`,
+    with the module doc's score rules."""
+    T, K = xy.shape[:2]
     present = np.isfinite(xy).all(-1)
     xy[~present] = np.nan
-    if scores is None:
+    if lik is None:
         lik = np.where(present, 1.0, np.nan)
         log.info("%s: no point_scores; score 1 where a node is present", path)
     else:
-        lik = np.ascontiguousarray(scores[i].T)  # (T, K)
         lik = np.where(present & np.isnan(lik), 1.0, lik)  # hand-placed points
         bad = present & np.isfinite(lik) & ((lik < 0) | (lik > MAX_SCORE))
         if bad.any():
@@ -155,5 +189,100 @@ def read_sleap(path: str | os.PathLike, individual: str | None = None) -> DLCTab
             lik = np.where(over, 1.0, lik)
     frames = np.arange(T, dtype=np.int64)
     log.debug("read %s: %d frames, %d nodes, track '%s'", path, T, K, names[i])
-    chosen = names[i] if n_tracks > 1 else None
+    chosen = names[i] if len(names) > 1 else None
     return DLCTable(tuple(nodes), xy, lik, "SLEAP", frames, chosen, path)
+
+
+def _require_sleap_io(path: Path):
+    try:
+        import sleap_io
+    except ImportError:
+        raise InputError(
+            f"{path}: reading SLEAP .slp files needs sleap-io: pip install 'mousetrack[sleap]' "
+            "(or export an analysis file: sleap-convert --format analysis)"
+        ) from None
+    return sleap_io
+
+
+def _load_slp(path: Path):
+    sio = _require_sleap_io(path)
+    if not path.is_file():
+        raise InputError(f"SLEAP file not found: {path}")
+    try:
+        return sio.load_slp(str(path), open_videos=False)
+    except Exception as exc:  # noqa: BLE001 - sleap-io raises many kinds
+        raise InputError(f"{path}: cannot read SLEAP .slp: {type(exc).__name__}: {exc}") from None
+
+
+def read_slp(path: str | os.PathLike, individual: str | int | None = None) -> DLCTable:
+    """Read a SLEAP ``.slp`` file (predictions or a labels project) into a `DLCTable`, with
+    sleap-io: one skeleton, one video; rows 0 .. the last labelled frame; the track chosen by
+    name or index (`choose_track`); without tracks, at most one instance per frame."""
+    path = Path(path)
+    labels = _load_slp(path)
+    if len(labels.skeletons) != 1:
+        raise InputError(
+            f"{path}: {len(labels.skeletons)} skeletons; one is expected (one file per camera, "
+            "one skeleton)"
+        )
+    if len(labels.videos) != 1:
+        raise InputError(
+            f"{path}: labels of {len(labels.videos)} videos {[v.filename for v in labels.videos]}; "
+            "one file per camera is expected (split it: one .slp per video)"
+        )
+    video = labels.videos[0]
+    nodes = [str(n) for n in labels.skeletons[0].node_names]
+    if len(set(nodes)) != len(nodes):
+        raise InputError(f"{path}: duplicate node names {nodes}")
+    frames = [lf.frame_idx for lf in labels.labeled_frames if lf.video is video]
+    if not frames:
+        raise InputError(f"{path}: no labelled frame")
+    T = int(max(frames)) + 1
+    names = [str(t.name) for t in labels.tracks]
+    if names:
+        arr = labels.numpy(video=video, return_confidence=True, user_instances=True)
+    else:  # a single-animal project without tracks
+        arr = labels.numpy(video=video, untracked=True, return_confidence=True)
+        if arr.shape[1] > 1:
+            raise InputError(
+                f"{path}: up to {arr.shape[1]} instances per frame but no tracks; track the "
+                "animals in SLEAP first (one track per animal)"
+            )
+        names = ["untracked"] if arr.shape[1] else []
+    arr = np.asarray(arr, dtype=np.float64)  # (frames, tracks, nodes, 3): x, y, score
+    if arr.shape[0] < T:
+        pad = np.full((T - arr.shape[0],) + arr.shape[1:], np.nan)
+        arr = np.concatenate([arr, pad])
+    arr = arr[:T]
+    i = choose_track(path, names, individual)
+    xy = np.ascontiguousarray(arr[:, i, :, :2])
+    lik = np.ascontiguousarray(arr[:, i, :, 2])
+    return _table(path, nodes, xy, lik, names, i)
+
+
+def sleap_edges(path: str | os.PathLike) -> list[tuple[str, str]]:
+    """The skeleton edges (source node, destination node) of a SLEAP file: ``.slp`` (sleap-io)
+    or an analysis HDF5 (``edge_names``, else ``edge_inds`` with ``node_names``; [] when it has
+    neither)."""
+    path = Path(path)
+    if path.suffix.lower() == SLP_SUFFIX:
+        labels = _load_slp(path)
+        if not labels.skeletons:
+            return []
+        return [(str(a), str(b)) for a, b in labels.skeletons[0].edge_names]
+    try:
+        with h5py.File(path, "r") as f:
+            if "edge_names" in f:
+                names = _strings(f["edge_names"][()])
+                return list(zip(names[0::2], names[1::2]))
+            if "edge_inds" in f and "node_names" in f:
+                nodes = _strings(f["node_names"][()])
+                inds = np.asarray(f["edge_inds"][()], dtype=np.int64).reshape(-1, 2)
+                if inds.size and (inds.min() < 0 or inds.max() >= len(nodes)):
+                    raise InputError(f"{path}: 'edge_inds' outside the {len(nodes)} nodes")
+                return [(nodes[a], nodes[b]) for a, b in inds]
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - h5py raises OSError, KeyError, TypeError, ...
+        raise InputError(f"{path}: cannot read SLEAP HDF5: {type(exc).__name__}: {exc}") from None
+    return []
