@@ -46,6 +46,7 @@ aniposelib's and below interp's. ``self``'s fine-tuning time is reported apart (
     .venv/bin/python benchmarks/domain_gap.py [--frames 1500] [--seed 92000] [--checkpoint CKPT]
         [--train-minutes 3] [--adapt-minutes 3] [--no-net] [--no-self] [--no-anipose]
         [--no-kalman] [--no-disk] [--disk-seconds 180] [--no-sessions] [--self-forecast W]
+        [-o OVERRIDE ...]  (adjust-track overrides for every variant, e.g. -o body.shape=table)
 
 Last line JSON, also written to runs/benchmarks/domain_gap.json.
 """
@@ -203,6 +204,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-sessions", action="store_true", help="skip the sessions variant")
     ap.add_argument("--self-forecast", type=float, default=0.0,
                     help="> 0: also self_forecast, self with adapt.forecast=W")  # fmt: skip
+    ap.add_argument(
+        "-o", "--override", action="append", default=[], help="adjust-track override (repeat)"
+    )
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "domain_gap"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "domain_gap.json"))
     args = ap.parse_args(argv)
@@ -299,7 +303,7 @@ def main(argv: list[str] | None = None) -> dict:
             extra["sessions_training"] = facts
             variants["sessions"] = [f"deformation={ckpt}"]
     for name, ov in variants.items():
-        est, secs, summ = run_track(scene, work / name, ["threads=1", *ov])
+        est, secs, summ = run_track(scene, work / name, ["threads=1", *args.override, *ov])
         results[name] = {
             **evaluate(est, truth, nviews),
             "seconds": round(secs, 2),

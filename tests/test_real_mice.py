@@ -268,7 +268,12 @@ def test_interp_beats_rigid_and_is_calibrated_on_a_deforming_mouse(tmp_path):
             for g, m in (("seen", nv >= 2), ("occ", nv < 2))
         }
         if mode == "interp":
-            assert abs(s["body"]["scale"] - 1.2) < 0.03  # mouse_b is 1.2x Table 1
+            # the shape estimated from the data has the size of the truth's mean shape
+            # (generalized Procrustes of the true points; mouse_b's paws and spine move, so it
+            # is not exactly 1.2x Table 1)
+            mean_shape = BodyModel.from_observations(T, parts=d["parts"])
+            size = 1 / mean_shape.in_frame_of(default_mouse())[1]["scale"]
+            assert abs(1 / s["body"]["frame"]["scale"] / size - 1) < 0.05, (s["body"], size)
     assert res["interp"]["occ"][0] < 0.85 * res["rigid"]["occ"][0], res
     assert res["interp"]["seen"][0] < res["rigid"]["seen"][0], res
     for g in ("seen", "occ"):  # rms error / rms sigma: calibrated within a margin
