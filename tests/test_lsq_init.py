@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from adjust.lsq.init import kalman_smooth, unwrap_rotations
+from adjust.lsq.geometry import so3_exp, so3_log
+from adjust.lsq.init import consistent_fits, kalman_smooth, unwrap_rotations
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
 
 T = 50
@@ -53,3 +54,27 @@ def test_unwrap_rotations_through_pi():
     # continuous input is left as it is; a zero rotation too
     np.testing.assert_allclose(unwrap_rotations(truth[:30]), truth[:30], rtol=0, atol=1e-12)
     assert np.array_equal(unwrap_rotations(np.zeros((3, 3))), np.zeros((3, 3)))
+
+
+def test_consistent_fits_drop_flipped_fits():
+    """Fits that turn by > 45 degrees from their neighbours in time are dropped (strong ones by
+    their strong neighbours' vote, weak ones against the kept strong fits' interpolation); the
+    others, a real turn included, are kept."""
+    T = 200
+    t = torch.arange(T, dtype=torch.float64)
+    poses = torch.zeros(T, 6, dtype=torch.float64)
+    poses[:, 2] = 0.02 * t  # a steady turn about z: 230 degrees over the track
+    poses[:, 3] = t
+    flipped = poses.clone()
+    bad = [20, 21, 90, 151]
+    for f in bad:  # the same frames flipped by 180 degrees about the body's long axis
+        R = so3_exp(poses[f, :3]) @ so3_exp(torch.tensor([0.0, torch.pi, 0.0], dtype=torch.float64))
+        flipped[f, :3] = so3_log(R)
+    ok = torch.ones(T, dtype=torch.bool)
+    strong = torch.ones(T, dtype=torch.bool)
+    strong[1::2] = False  # every other fit weak
+    keep, facts = consistent_fits(flipped, ok, strong)
+    assert sorted(torch.nonzero(~keep).ravel().tolist()) == bad
+    assert facts == {"dropped_strong": 2, "dropped_weak": 2}
+    keep, _ = consistent_fits(poses, ok, strong)
+    assert bool(keep.all())

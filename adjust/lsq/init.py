@@ -161,6 +161,54 @@ def pnp_poses(
     return out
 
 
+def _angle_deg(Ra: Tensor, Rb: Tensor) -> Tensor:
+    """Rotation angle (degrees) of Ra^T Rb, batched over leading dims: (..., 3, 3) -> (...)."""
+    c = ((Ra * Rb).sum((-1, -2)) - 1.0) / 2.0
+    return torch.rad2deg(torch.arccos(c.clamp(-1.0, 1.0)))
+
+
+def consistent_fits(
+    poses: Tensor, ok: Tensor, strong: Tensor, max_deg: float = 45.0, window: int = 15
+) -> tuple[Tensor, dict]:
+    """Per-frame fits that agree with their neighbours in time (a mouse does not turn by tens
+    of degrees between two frames, but a rigid model fitted to three parts of a deforming body,
+    or PnP in one camera, can flip).
+
+    poses (T, 6) model -> global, ok (T,) bool: the fits; strong (T,) bool: the fits to trust
+    first (Kabsch on >= 4 triangulated parts). A strong fit is kept when it is within `max_deg`
+    of at least half of the strong fits within `window` frames on either side (or has none);
+    a weak fit (3 parts, PnP) when it is within `max_deg` of the kept strong fits' rotation
+    slerp-interpolated to its frame (`interpolate_poses`). O(T window). Returns the kept fits
+    (T,) bool and facts (counts of dropped strong and weak fits). Without strong fits nothing
+    is dropped."""
+    T = poses.shape[0]
+    strong = strong & ok
+    facts = {"dropped_strong": 0, "dropped_weak": 0}
+    if T < 2 or not bool(strong.any()):
+        return ok.clone(), facts
+    R = so3_exp(poses[:, :3])
+    agree = torch.zeros(T, dtype=torch.long)
+    near = torch.zeros(T, dtype=torch.long)
+    for d in range(1, min(window, T - 1) + 1):
+        both = strong[:-d] & strong[d:]
+        close = both & (_angle_deg(R[:-d], R[d:]) <= max_deg)
+        near[:-d] += both
+        near[d:] += both
+        agree[:-d] += close
+        agree[d:] += close
+    keep_strong = strong & ((near == 0) | (2 * agree >= near))
+    if not bool(keep_strong.any()):
+        return ok.clone(), facts
+    ref = so3_exp(interpolate_poses(poses, keep_strong)[:, :3])
+    weak = ok & ~strong
+    keep_weak = weak & (_angle_deg(ref, R) <= max_deg)
+    facts = {
+        "dropped_strong": int((strong & ~keep_strong).sum()),
+        "dropped_weak": int((weak & ~keep_weak).sum()),
+    }
+    return keep_strong | keep_weak, facts
+
+
 def interpolate_poses(poses: Tensor, ok: Tensor) -> Tensor:
     """Fill frames that are not ok: slerp of rotations (R = exp(a log(R_b R_a^T)) R_a) and linear
     translations between the nearest ok frames; constant beyond the first/last; zeros if none.
@@ -282,12 +330,13 @@ def initial_poses(
     fits = []
     for a in range(0, T, 10000):  # per-frame fits in blocks of frames (cache-friendly)
         X, mask = triangulated_parts(xy[a : a + 10000], valid[a : a + 10000], cams)
-        fits.append(kabsch_robust(body, X, mask))
+        fits.append((*kabsch_robust(body, X, mask), mask.sum(1) >= 4))
         del X, mask
         if T > 10000:
             _release_freed_memory()
     poses = torch.cat([f[0] for f in fits], 0)
     ok = torch.cat([f[1] for f in fits], 0)
+    strong = ok & torch.cat([f[2] for f in fits], 0)
     need = np.flatnonzero(~ok.cpu().numpy() & (valid.sum(1) >= 4).any(-1).cpu().numpy())
     if need.size:
         fits = pnp_poses(xy.cpu().numpy(), valid.cpu().numpy(), cams, body.cpu().numpy(), need)
@@ -296,6 +345,14 @@ def initial_poses(
             ok[t] = True
         log.debug(
             "PnP initialised %d of %d frames without a triangulated fit", len(fits), need.size
+        )
+    ok, dropped = consistent_fits(poses, ok, strong)
+    if dropped["dropped_strong"] or dropped["dropped_weak"]:
+        log.info(
+            "initial fits: %d of 4+-part fits and %d of 3-part / one-camera fits turn by > 45 "
+            "degrees from their neighbours in time; interpolated instead",
+            dropped["dropped_strong"],
+            dropped["dropped_weak"],
         )
     log.info("initial fits in %d of %d frames", int(ok.sum()), T)
     if method == "fit" or not bool(ok.any()):
