@@ -1,28 +1,39 @@
 """NWB export of 3D tracks (Neurodata Without Borders, the DANDI archive's format), with ndx-pose.
 
 `write_nwb` turns an ``adjust-track`` output (``points3d.csv``, anipose's layout plus our pose and
-uncertainty columns) into one NWB file:
+uncertainty columns) into one NWB file that DANDI accepts (nwbinspector: no CRITICAL, no
+BEST_PRACTICE_VIOLATION when the subject is described):
 
-- ``processing/behavior/PoseEstimation3D``: an ndx-pose ``MultiCameraPoseEstimation`` holding one
-  ``PoseEstimationSeries`` per part (``data`` (T, 3) mm in the calibration's world frame,
+- ``processing/behavior/PoseEstimation``: an ndx-pose ``MultiCameraPoseEstimation`` (named as
+  ndx-pose's readers, e.g. movement's ``from_nwb_file``, look for it) holding one
+  ``PoseEstimationSeries`` per part (``data`` (T, 3) in mm with ``unit="meters"``,
+  ``conversion=0.001``, in the calibration's world frame or the frame of an axes alignment;
   ``confidence`` (T,) = ``{part}_ncams`` / number of cameras: the share of cameras with an
   accepted detection of the part, 0 for a part placed by the body model alone), and one
   ``PoseEstimation`` per camera linking its ``CalibratedCamera`` device (intrinsics, world ->
-  camera rotation and translation, distortion: the calibration as metadata);
-- ``processing/behavior/Skeletons``: the skeleton (nodes = parts; edges given, or the minimum
-  spanning tree of the parts' median distances);
+  camera rotation and translation in the points' frame, distortion: the calibration as
+  metadata);
+- ``processing/behavior/Skeletons``: the skeleton (nodes = parts; edges from the input:
+  `adjust.io.skeleton.resolve_skeleton`: given edges, a ``skeleton.csv`` or SLEAP file, the
+  session's SLEAP files, the minimum spanning tree last);
 - ``processing/behavior``: ``TimeSeries`` with the quality columns, (T, K) one column per part:
   ``reprojection_error_px``, ``ncams``, ``score``, ``sigma_mm`` (the 3D standard error, the
-  ``{part}_sigma`` columns), and ``body_pose`` (T, 6: Rodrigues rad, translation mm),
-  ``body_pose_sigma`` (T, 2: rad, mm), ``frame_number`` (T,), where the CSV has them;
+  ``{part}_sigma`` columns; mm, ``unit="meters"``, ``conversion=0.001``), and ``body_pose``
+  (T, 6: Rodrigues rad, translation mm), ``body_pose_sigma`` (T, 2: rad, mm), ``frame_number``
+  (T,), where the CSV has them;
 - ``intervals/behavior_bouts`` and ``intervals/lockbox_events``: ``TimeIntervals`` from a bouts
   CSV (``start, stop, label[, ...]``) and a lock-box events CSV (``start, stop, part, mechanism,
-  ...``) when given; every further column is kept.
+  ...``) when given; every further column is kept;
+- ``general/subject``: `subject_metadata` (``subject_id``, ``species``, ``sex``, ``age``, ...;
+  what DANDI requires and is missing is logged as a warning; nothing is invented).
 
-Times: frame ``fnum`` is at ``fnum / fps`` s (``starting_time`` offsets them); interval
-``start``/``stop`` are frame numbers (``intervals_unit="frames"``, converted the same way) or
-seconds. The frame rate comes from ``fps`` or the calibration's ``[metadata] fps``; without
-either the export is refused (NWB needs times in seconds).
+Times: frame ``fnum`` is at ``starting_time + fnum / fps`` s after ``session_start_time``;
+consecutive (or evenly spaced) frame numbers are stored as ``starting_time`` + ``rate``, others
+as timestamps. Interval ``start``/``stop`` are frame numbers (``intervals_unit="frames"``,
+converted the same way) or seconds. The frame rate comes from ``fps`` or the calibration's
+``[metadata] fps``; ``session_start_time`` from the argument or the calibration's ``[metadata]
+session_start_time`` (`session_start`); without either the export is refused, naming the setting
+(the export time is never used).
 
 Needs the optional extra ``nwb`` (``pip install mousetrack[nwb]``: pynwb, ndx-pose); this module
 imports them only when called.
@@ -35,23 +46,58 @@ import json
 import logging
 import math
 import os
+import re
 import uuid
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from adjust.io.errors import InputError
+from adjust.io.skeleton import resolve_skeleton, spanning_edges
+from adjust.kinematics import align_tracks
 from deformnet.behavior_labels import POSE_COLUMNS
 
 log = logging.getLogger(__name__)
 
-#: the NWB objects this module writes
-POSE_NAME = "PoseEstimation3D"
+__all__ = [
+    "read_nwb_tracks",
+    "write_anipose",
+    "session_start",
+    "spanning_edges",
+    "subject_metadata",
+    "write_nwb",
+]
+
+#: the NWB objects this module writes; POSE_NAME is what ndx-pose readers (movement) look for
+POSE_NAME = "PoseEstimation"
+LEGACY_POSE_NAMES = ("PoseEstimation3D",)  # earlier exports, still read by read_nwb_tracks
 BOUTS_NAME = "behavior_bouts"
 EVENTS_NAME = "lockbox_events"
 BOUTS_COLUMNS = ("start", "stop", "label")
 EVENTS_COLUMNS = ("start", "stop", "part", "mechanism")
+#: positions and sigmas are written in mm with this conversion to NWB's unit, meters
+MM = 0.001
+#: NWB Subject fields the export takes (``subject.<key>``); DANDI requires the first four
+SUBJECT_KEYS = ("subject_id", "species", "sex", "age", "strain", "genotype", "description")
+DANDI_SUBJECT = ("subject_id", "species", "sex", "age")
+SEXES = ("M", "F", "U", "O")
+#: ISO 8601 durations (DANDI's and nwbinspector's form), and a range of two ("P90D/P120D")
+DURATION = re.compile(
+    r"P(?!$)(\d+(?:\.\d+)?Y)?(\d+(?:\.\d+)?M)?(\d+(?:\.\d+)?W)?(\d+(?:\.\d+)?D)?"
+    r"(T(?=\d)(\d+(?:\.\d+)?H)?(\d+(?:\.\d+)?M)?(\d+(?:\.\d+)?S)?)?"
+)
+#: Latin binomial ("Mus musculus") or an NCBI taxonomy link, as DANDI asks
+SPECIES = re.compile(r"([A-Z][a-z]* [a-z]+)|(http://purl\.obolibrary\.org/obo/NCBITaxon_\d+)")
+#: further NWBFile metadata the export takes (nwbinspector suggests them)
+FILE_KEYS = (
+    "experimenter",
+    "institution",
+    "lab",
+    "experiment_description",
+    "keywords",
+    "session_id",
+)
 
 
 def _require_nwb():
@@ -62,54 +108,6 @@ def _require_nwb():
         raise InputError(
             f"NWB export needs pynwb and ndx-pose: pip install 'mousetrack[nwb]' ({exc})"
         ) from None
-
-
-def spanning_edges(points: np.ndarray) -> list[tuple[int, int]]:
-    """Skeleton edges: the minimum spanning tree of the parts' median distances.
-
-    points: (T, K, 3) mm (NaN allowed). Returns K - 1 index pairs (a < b), or fewer when some
-    part has no finite frame (it stays unconnected)."""
-    X = np.asarray(points, dtype=np.float64)
-    if X.ndim != 3 or X.shape[-1] != 3:
-        raise ValueError(f"points must be (T, K, 3), got {X.shape}")
-    K = X.shape[1]
-    D = np.full((K, K), np.inf)
-    for a in range(K):
-        for b in range(a + 1, K):
-            d = np.linalg.norm(X[:, a] - X[:, b], axis=-1)
-            d = d[np.isfinite(d)]
-            if d.size:
-                D[a, b] = D[b, a] = float(np.median(d))
-    # Prim's algorithm from part 0 over the finite distances
-    inside, edges = {0}, []
-    while len(inside) < K:
-        best = None
-        for a in inside:
-            for b in range(K):
-                if b not in inside and math.isfinite(D[a, b]):
-                    if best is None or D[a, b] < best[0]:
-                        best = (D[a, b], min(a, b), max(a, b), b)
-        if best is None:
-            break
-        edges.append((best[1], best[2]))
-        inside.add(best[3])
-    return sorted(edges)
-
-
-def _edge_indices(edges, parts: Sequence[str]) -> list[tuple[int, int]]:
-    index = {p: k for k, p in enumerate(parts)}
-    out = []
-    for e in edges:
-        pair = list(e)
-        if len(pair) != 2:
-            raise InputError(f"skeleton edge {pair!r}: give two part names")
-        try:
-            out.append((index[str(pair[0])], index[str(pair[1])]))
-        except KeyError as exc:
-            raise InputError(
-                f"skeleton edge {pair!r}: unknown part {exc.args[0]!r} (parts: {list(parts)})"
-            ) from None
-    return out
 
 
 def read_intervals(
@@ -180,6 +178,111 @@ def _fps(fps, calibration_meta: dict) -> float:
     return value
 
 
+def _age_ok(age: str) -> bool:
+    parts = age.split("/")
+    if len(parts) == 1:
+        return DURATION.fullmatch(age) is not None
+    return len(parts) == 2 and all(p == "" or DURATION.fullmatch(p) for p in parts) and any(parts)
+
+
+def subject_metadata(subject: Mapping | None) -> dict | None:
+    """pynwb ``Subject`` keyword arguments from ``subject.<key>`` settings (`SUBJECT_KEYS`), or
+    None when none is set. Checked: ``sex`` one of M, F, U, O; ``age`` an ISO 8601 duration
+    (``P90D``, ``P12W``, ``P3M``; a range ``P90D/P120D``); anything else an InputError naming the
+    setting. Nothing is defaulted: each field DANDI requires (subject_id, species, sex, age)
+    that is missing is logged as a warning, as is a species not in Latin binomial form."""
+    given = {}
+    for key, value in dict(subject or {}).items():
+        if key not in SUBJECT_KEYS:
+            raise InputError(f"subject.{key}: unknown setting (known: {list(SUBJECT_KEYS)})")
+        if value is not None and str(value).strip() != "":
+            given[key] = str(value).strip()
+    if not given:
+        log.warning(
+            "no subject metadata: DANDI needs subject.subject_id, subject.species (e.g. "
+            "'Mus musculus'), subject.sex (M/F/U/O) and subject.age (ISO 8601, e.g. P90D)"
+        )
+        return None
+    if "sex" in given:
+        given["sex"] = given["sex"].upper()
+        if given["sex"] not in SEXES:
+            raise InputError(f"subject.sex must be one of {list(SEXES)}, got {subject['sex']!r}")
+    if "age" in given:
+        given["age"] = given["age"].upper()
+        if not _age_ok(given["age"]):
+            raise InputError(
+                f"subject.age must be an ISO 8601 duration (P90D: 90 days, P12W, P3M, P1Y; a "
+                f"range P90D/P120D), got {subject['age']!r}"
+            )
+    if "species" in given and not SPECIES.fullmatch(given["species"]):
+        log.warning(
+            "subject.species %r: DANDI expects a Latin binomial ('Mus musculus') or an NCBI "
+            "taxonomy link (http://purl.obolibrary.org/obo/NCBITaxon_10090)",
+            given["species"],
+        )
+    missing = [k for k in DANDI_SUBJECT if k not in given]
+    if missing:
+        log.warning(
+            "subject: %s not set; DANDI requires them (subject.species is never assumed)",
+            ", ".join(f"subject.{k}" for k in missing),
+        )
+    return given
+
+
+def _parse_time(value, where: str) -> _dt.datetime:
+    if isinstance(value, _dt.datetime):
+        start = value
+    elif isinstance(value, _dt.date):
+        start = _dt.datetime(value.year, value.month, value.day)
+    else:
+        text = str(value).strip()
+        try:
+            start = _dt.datetime.fromisoformat(text[:-1] + "+00:00" if text.endswith("Z") else text)
+        except ValueError:
+            raise InputError(
+                f"{where} must be ISO 8601 (2026-03-01T09:30:00+01:00), got {value!r}"
+            ) from None
+    if start.tzinfo is None:
+        log.info("%s %s has no time zone: taken as UTC", where, start.isoformat())
+        start = start.replace(tzinfo=_dt.UTC)
+    if start > _dt.datetime.now(_dt.UTC) + _dt.timedelta(days=1):
+        raise InputError(f"{where} {start.isoformat()} is in the future")
+    return start
+
+
+def session_start(
+    value, calibration_meta: Mapping | None = None, calibration=None
+) -> tuple[_dt.datetime, str]:
+    """The recording's start (timezone-aware; a naive time is UTC) and where it came from:
+    `value` (the ``session_start_time`` setting: ISO 8601 or a datetime), else the calibration's
+    ``[metadata] session_start_time``, else an InputError saying how to set it. Never the
+    export's own time."""
+    if value is not None and str(value).strip() != "":
+        return _parse_time(value, "session_start_time"), "setting session_start_time"
+    meta = calibration_meta or {}
+    if meta.get("session_start_time") not in (None, ""):
+        where = f"{calibration}: [metadata] session_start_time"
+        return _parse_time(meta["session_start_time"], where), where
+    raise InputError(
+        "NWB needs the recording's start time: set session_start_time=2026-03-01T09:30:00+01:00 "
+        "(ISO 8601), or give a calibration whose [metadata] has session_start_time"
+        + (f" ({calibration} has none)" if calibration is not None else "")
+    )
+
+
+def _timing(fnum: np.ndarray, fps: float, starting_time: float) -> dict:
+    """TimeSeries timing keywords: ``starting_time`` + ``rate`` when the frame numbers are evenly
+    spaced (consecutive frames: rate = fps), else ``timestamps`` (s)."""
+    f = fnum.astype(np.float64)
+    if len(f) > 1:
+        step = np.diff(f)
+        if np.all(step == step[0]) and step[0] > 0:
+            return {"starting_time": float(starting_time) + f[0] / fps, "rate": fps / step[0]}
+        log.info("frame numbers not evenly spaced: NWB timestamps instead of a rate")
+        return {"timestamps": float(starting_time) + f / fps}
+    return {"starting_time": float(starting_time) + (f[0] / fps if len(f) else 0.0), "rate": fps}
+
+
 def _compressed(data: np.ndarray):
     from hdmf.backends.hdf5.h5_utils import H5DataIO
 
@@ -201,15 +304,28 @@ def write_nwb(
     session_description: str = "3D mouse tracks (mousetrack adjust-track)",
     identifier: str | None = None,
     session_start_time: str | _dt.datetime | None = None,
-    subject_id: str | None = None,
+    subject: Mapping | None = None,
     starting_time: float = 0.0,
+    skeleton: str | os.PathLike | None = None,
+    detections: str | os.PathLike | None = None,
+    axes: Mapping[str, Sequence] | None = None,
+    origin=None,
+    metadata: Mapping | None = None,
 ) -> Path:
     """Write the tracks of ``points3d.csv`` (and the optional calibration, bouts and events) as
     an NWB file at ``path`` (atomically). Returns the path. See the module doc for the layout.
 
-    session_start_time: ISO 8601 (a naive time is taken as UTC) or a datetime; default: now.
-    identifier: default a fresh UUID. Raises `InputError` for unreadable or inconsistent
-    inputs (naming the file)."""
+    session_start_time: ISO 8601 (a naive time is taken as UTC) or a datetime; default: the
+    calibration's ``[metadata] session_start_time``, else an InputError (`session_start`).
+    subject: ``{subject_id, species, sex, age, strain, genotype, description}``
+    (`subject_metadata`).
+    edges / skeleton / detections: the skeleton's sources (`resolve_skeleton`: pairs of part
+    names, a ``skeleton.csv`` or SLEAP file, the session's detection folder).
+    axes, origin: an axes alignment applied to the points, body pose and cameras
+    (`adjust.kinematics.align_tracks`). metadata: further NWBFile fields (`FILE_KEYS`:
+    experimenter, institution, lab, experiment_description, keywords, session_id).
+    identifier: default a fresh UUID. Raises `InputError` for unreadable or inconsistent inputs
+    (naming the file) and missing required metadata (naming the setting)."""
     _require_nwb()
     from ndx_pose import (
         CalibratedCamera,
@@ -229,19 +345,25 @@ def write_nwb(
     tracks = Path(tracks)
     d = read_points3d(tracks)  # a file without part columns is an error there
     parts = list(d["parts"])
-    points = d["points"]
-    T, K = points.shape[:2]
+    T, K = d["points"].shape[:2]
     cameras, meta = [], {}
     if calibration is not None:
         cameras = load_calibration(calibration)
         meta = load_calibration_metadata(calibration)
     rate = _fps(fps, meta)
+    start, start_source = session_start(session_start_time, meta, calibration)
+    subject_kwargs = subject_metadata(subject)
+    file_kwargs = _file_metadata(metadata)
     fnum = np.asarray(d["fnum"])
-    if not np.all(np.isfinite(fnum.astype(np.float64))):
+    try:
+        fnum_s = fnum.astype(np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{tracks}: fnum must be frame numbers, got {fnum[:3].tolist()}") from None
+    if not np.all(np.isfinite(fnum_s)):
         raise InputError(f"{tracks}: non-finite fnum")
-    times = float(starting_time) + fnum.astype(np.float64) / rate
-    if T > 1 and np.any(np.diff(times) <= 0):
+    if T > 1 and np.any(np.diff(fnum_s) <= 0):
         raise InputError(f"{tracks}: fnum must increase from row to row")
+    timing = _timing(fnum_s, rate, starting_time)
     ncams = d["ncams"]
     num_cams = len(cameras) if cameras else int(np.nanmax(ncams, initial=0))
     if cameras and np.nanmax(ncams, initial=0) > len(cameras):
@@ -249,25 +371,19 @@ def write_nwb(
             f"{tracks}: up to {int(np.nanmax(ncams))} cameras per part, but {calibration} has "
             f"{len(cameras)}"
         )
+    pairs, skeleton_source = resolve_skeleton(parts, d["points"], edges, skeleton, detections)
+    d = align_tracks(d, axes, origin)
+    points, M, center = d["points"], d["M"], d["center"]
+    aligned = not (np.array_equal(M, np.eye(3)) and np.array_equal(center, np.zeros(3)))
 
-    if session_start_time is None:
-        start = _dt.datetime.now(_dt.UTC)
-    elif isinstance(session_start_time, _dt.datetime):
-        start = session_start_time
-    else:
-        try:
-            start = _dt.datetime.fromisoformat(str(session_start_time))
-        except ValueError:
-            raise InputError(
-                f"session_start_time must be ISO 8601, got {session_start_time!r}"
-            ) from None
-    if start.tzinfo is None:
-        start = start.replace(tzinfo=_dt.UTC)
     notes = {
         "tracks": str(tracks.resolve()),
         "calibration": None if calibration is None else str(Path(calibration).resolve()),
         "calibration_metadata": meta,
         "fps": rate,
+        "session_start_time_source": start_source,
+        "skeleton_source": skeleton_source,
+        "axes": {"M": M.tolist(), "center_mm": center.tolist()} if aligned else None,
     }
     nwb = NWBFile(
         session_description=session_description,
@@ -276,20 +392,25 @@ def write_nwb(
         notes=json.dumps(notes, default=str),
         source_script="mousetrack adjust.export.write_nwb",
         source_script_file_name=str(Path(__file__).name),
+        **file_kwargs,
     )
-    if subject_id is not None:
-        nwb.subject = Subject(subject_id=str(subject_id), species="Mus musculus")
+    if subject_kwargs is not None:
+        nwb.subject = Subject(**subject_kwargs)
 
-    # --- cameras: the calibration as metadata ------------------------------------------
+    # --- cameras: the calibration as metadata, in the points' frame ---------------------
     devices = []
     for cam in cameras:
+        R, t = np.asarray(cam.R, dtype=np.float64), np.asarray(cam.tvec, dtype=np.float64)
+        if aligned:  # X_world = M^T (X + center): x_cam = (R M^T) X + (t + R M^T center)
+            R, t = R @ M.T, t + R @ M.T @ center
         dev = CalibratedCamera(
             name=cam.name,
             description=f"calibrated camera, image size {cam.size[0]} x {cam.size[1]} px; "
-            "x_cam = R X + t (mm), pinhole with OpenCV distortion k1 k2 p1 p2 k3",
+            "x_cam = R X + t (mm, X in the frame of the pose series), pinhole with OpenCV "
+            "distortion k1 k2 p1 p2 k3",
             intrinsic_matrix=np.asarray(cam.K, dtype=np.float64),
-            rotation_matrix=np.asarray(cam.R, dtype=np.float64),
-            translation_vector=np.asarray(cam.tvec, dtype=np.float64),
+            rotation_matrix=R,
+            translation_vector=t,
             distortion_coefficients=np.asarray(cam.dist, dtype=np.float64),
         )
         nwb.add_device(dev)
@@ -299,14 +420,20 @@ def write_nwb(
     behavior = nwb.create_processing_module(
         name="behavior", description="3D body-part tracks from multi-camera 2D detections"
     )
-    pairs = _edge_indices(edges, parts) if edges is not None else spanning_edges(points)
-    skeleton = Skeleton(
+    skel = Skeleton(
         name="subject",
         nodes=parts,
         edges=np.asarray(pairs, dtype=np.uint8).reshape(-1, 2),
     )
-    behavior.add(Skeletons(skeletons=[skeleton]))
-    frame = "world frame of the camera calibration (x_cam = R X + t), mm"
+    behavior.add(Skeletons(skeletons=[skel]))
+    if aligned:
+        frame = (
+            "axes-aligned frame (anipose's triangulation.axes): X = M X_world - center, with "
+            f"M = {np.round(M, 9).tolist()}, center = {np.round(center, 6).tolist()} mm, "
+            "X_world the camera calibration's world frame (x_cam = R X_world + t)"
+        )
+    else:
+        frame = "world frame of the camera calibration (x_cam = R X + t)"
     series = []
     with np.errstate(invalid="ignore", divide="ignore"):
         conf = np.where(np.isfinite(ncams), ncams / max(num_cams, 1), 0.0)
@@ -314,11 +441,12 @@ def write_nwb(
         series.append(
             PoseEstimationSeries(
                 name=part,
-                description=f"3D position of {part}",
+                description=f"3D position of {part} (x, y, z; data in mm, conversion to meters)",
                 data=_compressed(points[:, k]),
-                unit="mm",
+                unit="meters",
+                conversion=MM,
                 reference_frame=frame,
-                timestamps=_compressed(times) if k == 0 else series[0],
+                **_time_kwargs(timing, series),
                 confidence=_compressed(conf[:, k]),
                 confidence_definition=(
                     f"share of the {num_cams} cameras with an accepted detection of the part "
@@ -332,14 +460,14 @@ def write_nwb(
             name=f"camera_{dev.name}",
             description=f"2D view of camera {dev.name} (its detections were inputs)",
             device=dev,
-            skeleton=skeleton,
+            skeleton=skel,
             source_software="mousetrack",
         )
         for dev in devices
     ]
     pose = MultiCameraPoseEstimation(
         name=POSE_NAME,
-        description="pose-track adjustment of a body model to incomplete multi-camera "
+        description="3D pose: pose-track adjustment of a body model to incomplete multi-camera "
         "detections (mousetrack adjust-track); each part fused from its own detections and the "
         "model",
         pose_estimation_series=series,
@@ -347,16 +475,16 @@ def write_nwb(
         scorer="mousetrack",
         source_software="mousetrack",
         source_software_version=getattr(adjust, "__version__", None) or _version(),
-        skeleton=skeleton,
+        skeleton=skel,
     )
     behavior.add(pose)
 
     # --- quality columns ---------------------------------------------------------------
     cols = ", ".join(parts)
     quality = [
-        ("reprojection_error_px", d["error"], "px", "mean reprojection error of the point"),
-        ("ncams", ncams, "cameras", "cameras with an accepted detection"),
-        ("score", d["score"], "likelihood", "lowest detection likelihood used"),
+        ("reprojection_error_px", d["error"], "pixels", 1.0, "mean reprojection error"),
+        ("ncams", ncams, "cameras", 1.0, "cameras with an accepted detection"),
+        ("score", d["score"], "likelihood", 1.0, "lowest detection likelihood used"),
     ]
     extra = d["extra"]
     sig = [f"{p}_sigma" for p in parts]
@@ -365,29 +493,33 @@ def write_nwb(
             (
                 "sigma_mm",
                 np.stack([extra[s] for s in sig], -1),
-                "mm",
-                "3D standard error (root of the trace of the 3x3 covariance)",
+                "meters",
+                MM,
+                "3D standard error (root of the trace of the 3x3 covariance; data in mm)",
             )
         )
-    for name, data, unit, what in quality:
+    for name, data, unit, conversion, what in quality:
         behavior.add(
             TimeSeries(
                 name=name,
                 description=f"{what}; columns: {cols}",
                 data=_compressed(np.asarray(data, dtype=np.float64)),
                 unit=unit,
-                timestamps=series[0],
+                conversion=conversion,
+                **_time_kwargs(timing, series),
             )
         )
     if all(c in extra for c in POSE_COLUMNS):
         behavior.add(
             TimeSeries(
                 name="body_pose",
-                description="body model pose, model -> world: Rodrigues vector (rad) "
-                "rx, ry, rz and translation (mm) tx, ty, tz",
-                data=_compressed(np.stack([extra[c] for c in POSE_COLUMNS], -1)),
+                description="body model pose, model -> the points' frame: Rodrigues vector "
+                "(rad) rx, ry, rz and translation (mm) tx, ty, tz",
+                data=_compressed(
+                    np.stack([np.asarray(extra[c], np.float64) for c in POSE_COLUMNS], -1)
+                ),
                 unit="rad, mm",
-                timestamps=series[0],
+                **_time_kwargs(timing, series),
             )
         )
     if "pose_sigma_r" in extra and "pose_sigma_t" in extra:
@@ -397,16 +529,16 @@ def write_nwb(
                 description="pose standard errors: rotation (rad), translation (mm)",
                 data=_compressed(np.stack([extra["pose_sigma_r"], extra["pose_sigma_t"]], -1)),
                 unit="rad, mm",
-                timestamps=series[0],
+                **_time_kwargs(timing, series),
             )
         )
     behavior.add(
         TimeSeries(
             name="frame_number",
             description="video frame number (fnum) of each sample",
-            data=_compressed(fnum.astype(np.int64)),
+            data=_compressed(fnum_s.astype(np.int64)),
             unit="frame",
-            timestamps=series[0],
+            **_time_kwargs(timing, series),
         )
     )
 
@@ -419,10 +551,12 @@ def write_nwb(
     for source, name, columns, what, descriptions in tables:
         if source is None:
             continue
-        start_s, stop_s, cols = read_intervals(source, columns, rate, intervals_unit)
+        start_s, stop_s, cols_ = read_intervals(source, columns, rate, intervals_unit)
+        if intervals_unit == "frames":  # frames are on the tracks' clock
+            start_s, stop_s = start_s + float(starting_time), stop_s + float(starting_time)
         nwb.add_time_intervals(
             _intervals(
-                name, f"{what} from {Path(source).name}", start_s, stop_s, cols, descriptions
+                name, f"{what} from {Path(source).name}", start_s, stop_s, cols_, descriptions
             )
         )
 
@@ -430,22 +564,85 @@ def write_nwb(
         with NWBHDF5IO(str(tmp), mode="w") as io:
             io.write(nwb)
     log.info(
-        "wrote %s: %d frames x %d parts, %d cameras%s%s",
+        "wrote %s: %d frames x %d parts, %d cameras, skeleton: %s%s%s",
         path,
         T,
         K,
         len(cameras),
+        skeleton_source,
         ", bouts" if bouts is not None else "",
         ", events" if events is not None else "",
     )
     return Path(path)
 
 
+def _time_kwargs(timing: dict, series: list) -> dict:
+    """The first series' timing; the others link its timestamps (no copies), or repeat the
+    rate."""
+    if "timestamps" not in timing:
+        return dict(timing)
+    return {"timestamps": series[0] if series else _compressed(timing["timestamps"])}
+
+
+def _file_metadata(metadata: Mapping | None) -> dict:
+    """NWBFile keyword arguments from `FILE_KEYS` settings (None or "" skipped); experimenter
+    and keywords may be one string or a list."""
+    out = {}
+    for key, value in dict(metadata or {}).items():
+        if key not in FILE_KEYS:
+            raise InputError(f"unknown NWB metadata setting {key!r} (known: {list(FILE_KEYS)})")
+        if value is None or (isinstance(value, str) and not value.strip()):
+            continue
+        if key in ("experimenter", "keywords"):
+            value = [value] if isinstance(value, str) else [str(v) for v in value]
+            if not value:
+                continue
+        else:
+            value = str(value)
+        out[key] = value
+    return out
+
+
+def write_anipose(
+    path: str | os.PathLike,
+    tracks: str | os.PathLike,
+    axes: Mapping[str, Sequence] | None = None,
+    origin=None,
+    keep_extra: bool = False,
+) -> Path:
+    """points3d.csv as anipose writes it (per part x, y, z, error, ncams, score; the axes
+    columns ``M_..``, ``center_..``; fnum), optionally aligned by `axes` / `origin`
+    (`adjust.kinematics.align_tracks`). Our other columns (body pose, sigmas) are dropped unless
+    `keep_extra` (tools that read anipose's files, e.g. movement, refuse columns they do not
+    know). Returns the path."""
+    from adjust.io import read_points3d, write_points3d
+
+    d = align_tracks(read_points3d(tracks), axes, origin)
+    extra = d["extra"] if keep_extra else {}
+    if d["extra"] and not keep_extra:
+        log.info("%s: columns not in anipose's layout dropped: %s", tracks, list(d["extra"]))
+    out = write_points3d(
+        path,
+        d["parts"],
+        d["points"],
+        d["error"],
+        d["ncams"],
+        d["score"],
+        extra=extra,
+        fnum=d["fnum"],
+        M=d["M"],
+        center=d["center"],
+    )
+    log.info("wrote %s (anipose's layout)", out)
+    return out
+
+
 def read_nwb_tracks(path: str | os.PathLike) -> dict:
     """Read back what `write_nwb` wrote: ``parts``, ``points`` (T, K, 3) mm, ``confidence``
-    (T, K), ``timestamps`` (T,) s, ``skeleton_edges`` [(a, b)], ``cameras`` {name: {K, R, t,
-    dist}}, the quality series present (``reprojection_error_px``, ``ncams``, ``score``,
-    ``sigma_mm``, ``body_pose``, ``body_pose_sigma``, ``frame_number``) and ``intervals``
+    (T, K), ``timestamps`` (T,) s (from the rate where the file has one), ``skeleton_edges``
+    [(a, b)], ``cameras`` {name: {K, R, t, dist}}, the quality series present
+    (``reprojection_error_px``, ``ncams``, ``score``, ``sigma_mm``, ``body_pose``,
+    ``body_pose_sigma``, ``frame_number``), ``subject`` {field: value} and ``intervals``
     {name: {column: values}}."""
     _require_nwb()
     import ndx_pose  # noqa: F401  (registers the extension's classes)
@@ -457,7 +654,10 @@ def read_nwb_tracks(path: str | os.PathLike) -> dict:
     with NWBHDF5IO(str(path), mode="r") as io:
         nwb = io.read()
         behavior = nwb.processing["behavior"]
-        pose = behavior[POSE_NAME]
+        names = [n for n in (POSE_NAME, *LEGACY_POSE_NAMES) if n in behavior.data_interfaces]
+        if not names:
+            raise InputError(f"{path}: no processing/behavior/{POSE_NAME}")
+        pose = behavior[names[0]]
         nodes = [str(n) for n in pose.skeleton.nodes[:]]
         out: dict = {
             "parts": tuple(nodes),
@@ -465,7 +665,7 @@ def read_nwb_tracks(path: str | os.PathLike) -> dict:
             "confidence": np.stack(
                 [pose.pose_estimation_series[p].confidence[:] for p in nodes], 1
             ),
-            "timestamps": np.asarray(pose.pose_estimation_series[nodes[0]].timestamps[:]),
+            "timestamps": np.asarray(pose.pose_estimation_series[nodes[0]].get_timestamps()),
             "skeleton_edges": [tuple(int(i) for i in e) for e in pose.skeleton.edges[:]],
             "cameras": {
                 name: {
@@ -477,6 +677,13 @@ def read_nwb_tracks(path: str | os.PathLike) -> dict:
                 for name, dev in nwb.devices.items()
             },
             "intervals": {},
+            "subject": {}
+            if nwb.subject is None
+            else {
+                k: getattr(nwb.subject, k)
+                for k in SUBJECT_KEYS
+                if getattr(nwb.subject, k, None) is not None
+            },
         }
         for name in (
             "reprojection_error_px",

@@ -1,10 +1,15 @@
-"""`adjust-export`: existing tracks in the formats labs publish (NWB with ndx-pose).
+"""`adjust-export`: existing tracks in the formats labs publish and anipose users expect.
 
     adjust-export nwb tracks=OUT/points3d.csv [calibration=calibration.toml] fps=100 \
-        [bouts=bouts.csv] [events=events.csv] [intervals_unit=frames] output=OUT/session.nwb
+        session_start_time=2026-03-01T09:30:00+01:00 subject.subject_id=m01 \
+        subject.species='Mus musculus' subject.sex=F subject.age=P90D \
+        [bouts=bouts.csv] [events=events.csv] [skeleton=skeleton.csv] output=OUT/session.nwb
+    adjust-export anipose tracks=OUT/points3d.csv axes.x=[a,b] axes.y=[a,c]
+    adjust-export angles tracks=OUT/points3d.csv +angles.knee=[hip,knee,ankle]
 
-The first bare word is the format (``nwb``, also ``format=nwb``). `run(cfg) -> dict` is the
-plain function behind the Hydra app; it returns what was written. Layout: `adjust.export`.
+The first bare word is the format (``nwb``, ``anipose``, ``angles``; also ``format=...``).
+`run(cfg) -> dict` is the plain function behind the Hydra app; it returns what was written.
+Layouts: `adjust.export` (NWB, anipose's points3d.csv), `adjust.kinematics` (angles, axes).
 """
 
 from __future__ import annotations
@@ -16,11 +21,15 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from adjust.app import hydra_app, required
+from adjust.export import FILE_KEYS, SUBJECT_KEYS, write_anipose, write_nwb
 from adjust.io.errors import InputError
+from adjust.kinematics import angles_csv
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("nwb",)
+FORMATS = ("nwb", "anipose", "angles")
+#: the output beside the tracks when ``output`` is null
+DEFAULT_OUTPUT = {"nwb": "{stem}.nwb", "anipose": "{stem}_anipose.csv", "angles": "angles.csv"}
 
 
 def _opt(cfg: DictConfig, key: str):
@@ -28,33 +37,55 @@ def _opt(cfg: DictConfig, key: str):
     return None if v is None or str(v) == "" else v
 
 
+def _plain(value):
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+
+
+def axes_kwargs(cfg: DictConfig) -> dict:
+    """``axes`` and ``origin`` of `adjust.kinematics.align_tracks` from the ``axes`` node
+    (``x``, ``y``, ``z``: [from, to]; ``origin``); {} without one."""
+    node = _plain(cfg.get("axes")) or {}
+    if not isinstance(node, dict):
+        raise ValueError(f"axes must be a mapping (axes.x=[a,b] axes.y=[a,c]), got {node!r}")
+    axes = {k: v for k, v in node.items() if k != "origin" and v is not None}
+    if not axes:
+        if node.get("origin") is not None:
+            raise ValueError("axes.origin needs two axes (axes.x=[a,b] axes.y=[a,c])")
+        return {}
+    return {"axes": axes, "origin": node.get("origin")}
+
+
 def nwb_kwargs(cfg: DictConfig) -> dict:
     """`adjust.export.write_nwb` keyword arguments (all but path and tracks) from a config node
     with the keys of conf/export.yaml (absent keys: the defaults)."""
-    edges = _opt(cfg, "edges")
-    if edges is not None:
-        edges = OmegaConf.to_container(edges) if OmegaConf.is_config(edges) else list(edges)
+    subject = _plain(cfg.get("subject")) or {}
+    metadata = {k: _plain(cfg.get(k)) for k in FILE_KEYS if cfg.get(k) is not None}
+    unknown = [k for k in subject if k not in SUBJECT_KEYS]
+    if unknown:
+        raise ValueError(f"subject: unknown setting(s) {unknown} (known: {list(SUBJECT_KEYS)})")
     return {
         "calibration": _opt(cfg, "calibration"),
         "fps": _opt(cfg, "fps"),
         "bouts": _opt(cfg, "bouts"),
         "events": _opt(cfg, "events"),
         "intervals_unit": str(cfg.get("intervals_unit") or "frames"),
-        "edges": edges,
+        "edges": _plain(_opt(cfg, "edges")),
+        "skeleton": _opt(cfg, "skeleton"),
+        "detections": _opt(cfg, "detections"),
         "session_description": str(
             cfg.get("session_description") or "3D mouse tracks (mousetrack adjust-track)"
         ),
         "identifier": _opt(cfg, "identifier"),
         "session_start_time": _opt(cfg, "session_start_time"),
-        "subject_id": _opt(cfg, "subject_id"),
+        "subject": subject,
         "starting_time": float(cfg.get("starting_time") or 0.0),
+        "metadata": metadata,
+        **axes_kwargs(cfg),
     }
 
 
 def run(cfg: DictConfig) -> dict:
     """Export ``cfg.tracks`` in ``cfg.format``; returns {"format", "tracks", "output"}."""
-    from adjust.export import write_nwb
-
     fmt = str(cfg.get("format") or "nwb")
     if fmt not in FORMATS:
         raise ValueError(f"adjust-export: unknown format {fmt!r} (known: {list(FORMATS)})")
@@ -62,8 +93,19 @@ def run(cfg: DictConfig) -> dict:
     if not tracks.is_file():
         raise InputError(f"tracks file not found: {tracks}")
     out = _opt(cfg, "output")
-    out = Path(str(out)) if out is not None else tracks.with_suffix(".nwb")
-    path = write_nwb(out, tracks, **nwb_kwargs(cfg))
+    out = (
+        Path(str(out))
+        if out is not None
+        else tracks.parent / DEFAULT_OUTPUT[fmt].format(stem=tracks.stem)
+    )
+    if fmt == "nwb":
+        path = write_nwb(out, tracks, **nwb_kwargs(cfg))
+    elif fmt == "anipose":
+        path = write_anipose(
+            out, tracks, keep_extra=bool(cfg.get("keep_extra") or False), **axes_kwargs(cfg)
+        )
+    else:
+        path = angles_csv(out, tracks, _plain(cfg.get("angles")))
     return {"format": fmt, "tracks": str(tracks), "output": str(path)}
 
 
