@@ -4,8 +4,10 @@ reprojection errors, uncertainty and counts (the app adds its inputs and setting
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from adjust.app import stats
+from deformnet.so3 import rodrigues_to_matrix
 
 __all__ = ["TrackingFailed", "result_summary", "track_health"]
 
@@ -73,12 +75,20 @@ class TrackingFailed(ValueError):
 
 
 def track_health(
-    points: np.ndarray, view_err: np.ndarray, sigma_det_px: float, max_px: float = 100.0
+    points: np.ndarray,
+    view_err: np.ndarray,
+    sigma_det_px: float,
+    max_px: float = 100.0,
+    poses: np.ndarray | None = None,
+    max_turn_deg: float = 30.0,
 ) -> dict:
     """Whether a result can be trusted: ``failed`` when a point is not finite or the median of a
     frame's accepted detections reprojects more than ``max(max_px, 30 sigma_det_px)`` px from
     its points (the adjustment left the data: an exploding or diverged solve; one outlier
-    detection does not count), else ``ok``. points (T, K, 3)
+    detection does not count); else ``suspect`` when the body's pose (`poses` (T, 6), Rodrigues
+    + translation) turns by more than `max_turn_deg` between two frames (no body does at a
+    video's frame rate: the track was pulled into another basin there; `turn_frames`), else
+    ``ok``. points (T, K, 3)
     mm; view_err (T, K, C) px per accepted detection (NaN elsewhere). Returns {status,
     limit_px, bad_frames (count), frames (the first 20, 0-based)}."""
     limit = max(float(max_px), 30.0 * float(sigma_det_px))
@@ -90,10 +100,20 @@ def track_health(
     med = np.take_along_axis(np.sort(e, -1), np.maximum((n - 1) // 2, 0)[:, None], -1)[:, 0]
     exploding = (n > 0) & (med > limit)  # most of a frame's detections far off, not one outlier
     bad = np.flatnonzero(nonfinite | exploding)
+    turns = np.zeros(0, dtype=np.int64)
+    if poses is not None and len(poses) > 1:
+        R = rodrigues_to_matrix(torch.as_tensor(np.asarray(poses, dtype=np.float64)[:, :3]))
+        cos = ((R[:-1] * R[1:]).sum((-1, -2)) - 1.0) / 2.0
+        turn = np.degrees(np.arccos(np.clip(cos.numpy(), -1.0, 1.0)))
+        turns = np.flatnonzero(turn > max_turn_deg) + 1
+    status = "failed" if bad.size else ("suspect" if turns.size else "ok")
     return {
-        "status": "failed" if bad.size else "ok",
+        "status": status,
         "limit_px": limit,
         "bad_frames": int(bad.size),
         "nonfinite_frames": int(nonfinite.sum()),
         "frames": [int(f) for f in bad[:20]],
+        "max_turn_deg": float(max_turn_deg),
+        "turn_frames_count": int(turns.size),
+        "turn_frames": [int(f) for f in turns[:20]],
     }

@@ -940,7 +940,9 @@ def _run(cfg: DictConfig) -> dict:
         },
         "rigid_iterations": rigid_iterations,  # of the rigid run that started a deformable one
         **result_summary(res, det, error, view_err),
-        "health": (health := track_health(points, view_err, solver_cfg.sigma_det_px)),
+        "health": (
+            health := track_health(points, view_err, solver_cfg.sigma_det_px, poses=res.poses)
+        ),
         "time_s": {},
         "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
     }
@@ -980,6 +982,15 @@ def _run(cfg: DictConfig) -> dict:
             f"(e.g. {frames}) have non-finite points or points whose own detections reproject "
             f"beyond {health['limit_px']:.0f} px (summary.json 'health'; outputs kept in {out} "
             "for inspection)"
+        )
+    if health["status"] == "suspect":
+        frames = health["turn_frames"]
+        log.warning(
+            "the body's pose turns by more than %.0f degrees between two frames at %d frames "
+            "(e.g. %s): the track may have left the animal there (summary.json 'health')",
+            health["max_turn_deg"],
+            health["turn_frames_count"],
+            frames if fnum is None else [int(fnum[f]) for f in frames],
         )
     alone = summary["from_model_only"]["fraction"]
     if alone > 0.25:

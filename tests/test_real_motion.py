@@ -97,6 +97,13 @@ def test_track_health():
     pts[3, 1, 2] = np.nan
     h = track_health(pts, err, 1.5)
     assert h["status"] == "failed" and h["frames"] == [2, 3]
+    # a pose that turns by 90 degrees between two frames: suspect, the frame named
+    poses = np.zeros((4, 6))
+    poses[1:, 2] = [0.05, 0.1, 0.1 + np.pi / 2]
+    h = track_health(np.zeros((4, 2, 3)), np.ones((4, 2, 3)), 1.5, poses=poses)
+    assert h["status"] == "suspect" and h["turn_frames"] == [3]
+    poses[3, 2] = 0.15
+    assert track_health(np.zeros((4, 2, 3)), np.ones((4, 2, 3)), 1.5, poses=poses)["status"] == "ok"
 
 
 def test_a_run_that_leaves_the_data_does_not_exit_0(scenes, tmp_path, monkeypatch):
@@ -104,8 +111,8 @@ def test_a_run_that_leaves_the_data_does_not_exit_0(scenes, tmp_path, monkeypatc
     status 2 through run_or_exit)."""
     import adjust.track as track
 
-    def exploding(points, view_err, sigma_det_px):
-        return track_health(points, view_err * 1e6 + 1e3, sigma_det_px)
+    def exploding(points, view_err, sigma_det_px, **kwargs):
+        return track_health(points, view_err * 1e6 + 1e3, sigma_det_px, **kwargs)
 
     monkeypatch.setattr(track, "track_health", exploding)
     with pytest.raises(TrackingFailed, match="cannot be trusted"):
