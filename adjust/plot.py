@@ -684,7 +684,7 @@ def tracks_video(
     clip: tuple[int, int] | None = None,
     videos: Mapping[str, str | Path] | None = None,
     video_first_frame: int = 0,
-    edges=None,
+    edges: Sequence[tuple[int, int]] | None = None,
     skeleton=None,
     detections=None,
     trail: int = 10,
@@ -699,14 +699,18 @@ def tracks_video(
     ``M``, ``center``: points in an axes-aligned frame are moved back to the world frame to be
     reprojected); cameras: `adjust.camera.Camera` list (None: the 3D view alone); clip: (start,
     stop) frame numbers, stop exclusive (None: every row); videos: camera name -> video file,
-    whose first frame is frame number `video_first_frame`; edges / skeleton / detections: the
-    skeleton (`skeleton_edges`); fps: the video's rate (default 30); size: (width, height) px.
+    whose first frame is frame number `video_first_frame`; edges: the skeleton as part index
+    pairs (as `body3d_figure` takes it), else from `skeleton` / `detections` (`skeleton_edges`);
+    fps: the video's rate (default 30); size: (width, height) px.
     """
     parts = [str(p) for p in tracks["parts"]]
     X = np.asarray(tracks["points"], dtype=np.float64)
     fnum = np.asarray(tracks["fnum"])
     rows = _video_rows(fnum, clip)
-    pairs = skeleton_edges(parts, X, skeleton, edges, detections) if len(parts) > 1 else []
+    if edges is not None:
+        pairs = [(int(a), int(b)) for a, b in edges]
+    else:
+        pairs = skeleton_edges(parts, X, skeleton, None, detections) if len(parts) > 1 else []
     cams = list(cameras or [])
     M = np.asarray(tracks.get("M", np.eye(3)), dtype=np.float64)
     c = np.asarray(tracks.get("center", np.zeros(3)), dtype=np.float64)
@@ -728,7 +732,8 @@ def tracks_video(
                  0.45 / cols, 0.84 / grid)
             )
         )  # fmt: skip
-    colors = [plt.get_cmap("tab20")(k % 20) for k in range(len(parts))]
+    # tab20's strong colours first, then its pale ones (labels stay readable on white)
+    colors = [plt.get_cmap("tab20")((2 * k) % 20 + (2 * k // 20) % 2) for k in range(len(parts))]
     sel = X[rows]
     _equal_3d(ax3, sel.reshape(-1, 3))
     ax3.set_xlabel("x (mm)", fontsize=7)
