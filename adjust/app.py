@@ -17,6 +17,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from deformnet import project
 from deformnet.atomic import finite_or_none  # noqa: F401  (apps: adjust.app.finite_or_none)
 
 log = logging.getLogger(__name__)
@@ -68,7 +69,9 @@ def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
     """Call an app's `run(cfg)`; bad input or config (ValueError, whose message names the file,
     camera, part or frame, or an OmegaConf error about a setting) is one logged line and exit
     status 2, an unwritable output folder (OSError) too, never a traceback. Settings
-    (`check_settings`) and ``output.dir`` (`prepare_output`) are checked before `run`."""
+    (`check_settings`) and ``output.dir`` (`prepare_output`) are checked before `run`; the
+    per-project settings the console script added are logged first (`deformnet.project`)."""
+    project.announce()
     try:
         with _terminate_as_exit():
             check_settings(cfg)

@@ -20,6 +20,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from adjust.scene import default_rig, simulate_scene, write_scene
+from deformnet import project
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.confutil import int_setting
@@ -96,6 +97,7 @@ def run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="scene", version_base=None)
 def _app(cfg: DictConfig) -> None:
+    project.announce()
     log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
     res = run(cfg)
     f = res["fractions"]

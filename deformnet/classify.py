@@ -44,6 +44,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
+from deformnet import project
 from deformnet.atomic import finite_or_none, write_text
 from deformnet.behavior_labels import (
     Session,
@@ -69,6 +70,7 @@ from deformnet.confutil import to_plain
 from deformnet.deformation import check_track_up
 from deformnet.lockbox import calibration_mechanisms, mechanism_table
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.quiet import quiet_lightning
 from deformnet.sequence import feature_signature
 
 log = logging.getLogger(__name__)
@@ -1476,8 +1478,10 @@ def run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="classify", version_base=None)
 def main(cfg: DictConfig) -> None:
+    project.announce()
     try:
-        run(cfg)
+        with quiet_lightning():  # no Lightning tips or deprecations on the console
+            run(cfg)
     except ValueError as exc:  # bad input or config: one line naming the file / row, exit 2
         log.error("%s", exc)
         raise SystemExit(2) from None

@@ -5,15 +5,21 @@ composing the config and listing every config group with its options, and the ap
 imports torch first: 3-4 s for a page of text. Each page of ours is plain text (no ``$``
 substitutions), so a bare ``--help`` / ``-h`` prints the template as Hydra would, without
 importing the app; any other command line (overrides with ``--help``, ``--cfg``, a run) goes to
-the app's own entry point unchanged. `adjust.entry` and `deformnet.entry` hold the console
-scripts (pyproject.toml's ``[project.scripts]``).
+the app's own entry point, with the per-project settings (``mousetrack.yaml``,
+`deformnet.project`) in front of its overrides. `adjust.entry` and `deformnet.entry` hold the
+console scripts (pyproject.toml's ``[project.scripts]``).
 """
 
 from __future__ import annotations
 
 import importlib
+import logging
 import sys
 from collections.abc import Callable
+
+from deformnet import project
+
+log = logging.getLogger(__name__)
 
 
 def help_page(config_name: str) -> str | None:
@@ -34,7 +40,9 @@ def help_page(config_name: str) -> str | None:
 def console_script(config_name: str, target: str) -> Callable[[], None]:
     """A console script's entry point: a bare ``--help`` / ``-h`` prints `help_page`
     (config_name: the app's primary config); anything else calls `target`
-    ("package.module:function", imported only then)."""
+    ("package.module:function", imported only then) with the project settings
+    (`deformnet.project.apply`) in front of the command line's overrides; a settings file that
+    cannot be used is one logged line and exit status 2."""
 
     def main() -> None:
         if sys.argv[1:] in (["--help"], ["-h"]):
@@ -42,6 +50,13 @@ def console_script(config_name: str, target: str) -> Callable[[], None]:
             if page is not None:
                 print(page)
                 return
+        script = project.script_of(config_name)
+        try:
+            if script is not None:  # one of ours (pyproject.toml): the project settings
+                sys.argv = project.apply(script, sys.argv)
+        except project.SettingsError as exc:
+            log.error("%s", exc)
+            raise SystemExit(2) from None
         module, func = target.split(":")
         getattr(importlib.import_module(module), func)()
 

@@ -23,8 +23,10 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from deformnet import project
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.quiet import quiet_lightning
 
 log = logging.getLogger(__name__)
 
@@ -359,8 +361,10 @@ def _run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="train", version_base=None)
 def main(cfg: DictConfig) -> None:
+    project.announce()
     try:
-        run(cfg)
+        with quiet_lightning():  # no Lightning tips or deprecations on the console
+            run(cfg)
     except ValueError as exc:  # bad input or config (a refused checkpoint...): one line, exit 2
         log.error("%s", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
         raise SystemExit(2) from None

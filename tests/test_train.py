@@ -188,3 +188,24 @@ def test_training_beats_rigid_and_linear_baselines(tmp_path):
     m = run(cfg)["metrics"]
     assert m["val/rmse_mm"] < 0.8 * m["val/rmse_mm_rigid"], m
     assert m["val/rmse_mm"] < 0.95 * m["val/rmse_mm_linear"], m
+
+
+def test_console_shows_no_lightning_tips_or_deprecations(tmp_path):
+    """`deformnet-train` (the console script): Lightning's cloud-logger tip and torch's pytree
+    deprecation inside Lightning are not on the console, and its info lines appear once."""
+    cmd = [
+        str(Path(sys.executable).parent / "deformnet-train"),
+        *_common(tmp_path, "lstm"),
+        "data.steps_per_epoch=2",
+        "trainer.max_epochs=1",
+        "threads=1",
+    ]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env.pop("MOUSETRACK_CONFIG", None)
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    for noise in ("💡 Tip", "litlogger", "LeafSpec"):
+        assert noise not in out, (noise, out[-3000:])
+    assert out.count("GPU available") == 1  # not also through Lightning's own handler
+    assert (tmp_path / "lstm" / "checkpoints" / "last.ckpt").is_file()
