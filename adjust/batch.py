@@ -7,8 +7,11 @@ Each job runs `run_session`, which never raises: it tracks the session into its 
 (``runs/batch/<time>/<session name>/``), or records why it failed, or skips it when an earlier
 batch already tracked the same inputs with the same settings and its outputs are newer than the
 inputs (``force=true`` re-runs), and writes one status row (``batch_status.json``). After the
-last job the `BatchSummary` callback collects the rows into ``runs/batch/<time>/summary.csv``
-(`SUMMARY_COLUMNS`).
+last job the `BatchSummary` callback collects this batch's rows into ``summary.csv`` in the sweep
+folder (`SUMMARY_COLUMNS`): ``runs/batch/<time>/summary.csv``, or ``OUTPUT_DIR/summary.csv`` with
+``output.dir`` set (the sweep folder is then ``output.dir``: each session's outputs, log and
+status row in ``OUTPUT_DIR/<session name>/``). The batch exits with status 1 when a session
+failed or none ran (a glob matching no session folder is exit status 2 before any job).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from adjust.session import SESSION_KEY, session_name, with_session
+from deformnet import project
 from deformnet.atomic import write_text
 
 log = logging.getLogger(__name__)
@@ -192,10 +196,13 @@ def run_session(cfg: DictConfig, job_dir: str | Path | None = None) -> dict:
     return row
 
 
-def collect(sweep_dir: str | Path) -> list[dict]:
-    """The status rows of a batch folder's jobs (sorted by session)."""
+def collect(sweep_dir: str | Path, names: set[str] | None = None) -> list[dict]:
+    """The status rows of a batch folder's jobs (sorted by session); names: only the jobs of
+    these folder names (a sweep folder reused by another batch holds its rows too)."""
     rows = []
     for path in sorted(Path(sweep_dir).glob(f"*/{STATUS_FILE}")):
+        if names is not None and path.parent.name not in names:
+            continue
         try:
             rows.append(json.loads(path.read_text()))
         except (OSError, ValueError) as exc:
@@ -220,15 +227,33 @@ def read_summary(path: str | Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+def batch_sessions(config: DictConfig) -> set[str] | None:
+    """The folder names of a multirun's sessions (its ``input.session`` override, a list or one
+    folder), or None when it sweeps no session (then its jobs are named job<N>)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    task = [str(o) for o in OmegaConf.select(config, "hydra.overrides.task", default=[]) or []]
+    given = [o for o in task if o.split("=", 1)[0].lstrip("+~") == SESSION_KEY and "=" in o]
+    if not given:
+        return None
+    value = OverridesParser.create().parse_override(given[-1]).value()
+    values = getattr(value, "list", [value])
+    return {session_name(str(getattr(v, "text", v))) for v in values}
+
+
 class BatchSummary(Callback):
-    """Hydra callback: after a multirun, ``summary.csv`` in the sweep folder, and one log line
-    per failed session."""
+    """Hydra callback: after a multirun, ``summary.csv`` in the sweep folder, one log line per
+    failed session, and exit status 1 when a session failed or none ran."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        project.announce()  # the per-project settings the console script added
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(str(config.hydra.sweep.dir))
-        rows = collect(sweep_dir)
+        rows = collect(sweep_dir, batch_sessions(config))
         if not rows:
-            return
+            log.error("batch: no session ran (no status row in %s)", sweep_dir)
+            raise SystemExit(1)
         path = write_summary(sweep_dir, rows)
         counts = {s: sum(r.get("status") == s for r in rows) for s in ("ok", "skipped", "failed")}
         for r in rows:
@@ -242,3 +267,11 @@ class BatchSummary(Callback):
             counts["failed"],
             path,
         )
+        if counts["failed"]:
+            log.error(
+                "batch: %d of %d sessions failed (see %s); exit status 1",
+                counts["failed"],
+                len(rows),
+                path,
+            )
+            raise SystemExit(1)

@@ -40,12 +40,17 @@ def sessions(tmp_path_factory) -> Path:
     return root
 
 
-def _multirun(monkeypatch, args: list[str]) -> None:
-    """`adjust-track -m ARGS` in this process (the console script's own entry point)."""
+def _multirun(monkeypatch, args: list[str]) -> int:
+    """`adjust-track -m ARGS` in this process (the console script's own entry point); returns
+    its exit status."""
     from adjust.track import main
 
     monkeypatch.setattr(sys, "argv", ["adjust-track", "-m", *args, *FAST])
-    main()
+    try:
+        main()
+    except SystemExit as exc:
+        return exc.code
+    return 0
 
 
 def _rows(batch: Path) -> dict[str, dict]:
@@ -61,7 +66,7 @@ def first_batch(sessions, tmp_path_factory):
     batch = tmp_path_factory.mktemp("runs") / "batch1"
     mp = pytest.MonkeyPatch()
     try:
-        _multirun(
+        code = _multirun(
             mp,
             [
                 f"input.session=glob({sessions}/*)",
@@ -72,6 +77,7 @@ def first_batch(sessions, tmp_path_factory):
         )
     finally:
         mp.undo()
+    assert code == 1  # b_broken failed
     return batch
 
 
@@ -94,7 +100,10 @@ def test_batch_finishes_the_others_and_reports_the_broken_one(sessions, first_ba
 
 def test_rerun_skips_finished_sessions_unless_forced(sessions, first_batch, monkeypatch):
     runs = first_batch.parent
-    _multirun(monkeypatch, [f"input.session=glob({sessions}/*)", f"hydra.sweep.dir={runs / 'b2'}"])
+    code = _multirun(
+        monkeypatch, [f"input.session=glob({sessions}/*)", f"hydra.sweep.dir={runs / 'b2'}"]
+    )
+    assert code == 1  # b_broken failed again
     rows = _rows(runs / "b2")
     for name in ("a_ok", "c_ok"):
         assert rows[name]["status"] == "skipped"
@@ -105,7 +114,10 @@ def test_rerun_skips_finished_sessions_unless_forced(sessions, first_batch, monk
 
     # force=true, new settings, or inputs newer than the outputs: tracked again
     a = sessions / "a_ok"
-    _multirun(monkeypatch, [f"input.session={a}", f"hydra.sweep.dir={runs / 'b3'}", "force=true"])
+    code = _multirun(
+        monkeypatch, [f"input.session={a}", f"hydra.sweep.dir={runs / 'b3'}", "force=true"]
+    )
+    assert code == 0  # every session ok
     assert _rows(runs / "b3")["a_ok"]["status"] == "ok"
     assert (runs / "b3" / "a_ok" / "points3d.csv").is_file()
     c = sessions / "c_ok"
@@ -117,6 +129,44 @@ def test_rerun_skips_finished_sessions_unless_forced(sessions, first_batch, monk
     os.utime(det, (future, future))
     _multirun(monkeypatch, [*ov, f"hydra.sweep.dir={runs / 'b5'}"])
     assert _rows(runs / "b5")["c_ok"]["status"] == "ok"
+
+
+def test_batch_into_output_dir_and_its_exit_status(sessions, tmp_path, monkeypatch, capfd):
+    """output.dir: every session's outputs and Hydra's files in OUTPUT_DIR/<name>/, summary.csv
+    in OUTPUT_DIR (this batch's sessions only), nothing in the working directory; a batch with
+    a failed session, or whose glob matches none, exits non-zero."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+    ok = f"input.session={sessions / 'a_ok'},{sessions / 'c_ok'}"
+    assert _multirun(monkeypatch, [ok, f"output.dir={out}"]) == 0
+    rows = _rows(out)
+    assert sorted(rows) == ["a_ok", "c_ok"]
+    for name, r in rows.items():
+        assert r["status"] == "ok" and Path(r["output"]) == out / name
+        assert (out / name / "points3d.csv").is_file() and (out / name / ".hydra").is_dir()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no runs/ here
+    # the same output.dir, one session: its summary.csv lists this batch's session only
+    again = [f"input.session={sessions / 'a_ok'}", f"output.dir={out}", "force=true"]
+    assert _multirun(monkeypatch, again) == 0
+    assert sorted(_rows(out)) == ["a_ok"]
+    capfd.readouterr()
+    bad = [f"input.session={sessions / 'b_broken'}", f"output.dir={tmp_path / 'bad'}"]
+    assert _multirun(monkeypatch, bad) == 1
+    text = capfd.readouterr().out
+    assert "batch: 1 of 1 sessions failed" in text and "exit status 1" in text
+    assert _rows(tmp_path / "bad")["b_broken"]["status"] == "failed"
+    none = [f"input.session=glob({tmp_path}/nothing*)", f"output.dir={tmp_path / 'none'}"]
+    assert _multirun(monkeypatch, none) == 2  # before any job
+    assert not (tmp_path / "none").exists()
+
+
+def test_batch_without_status_rows_fails(tmp_path):
+    from adjust.batch import BatchSummary
+
+    cfg = OmegaConf.create({"hydra": {"sweep": {"dir": str(tmp_path)}, "overrides": {"task": []}}})
+    with pytest.raises(SystemExit) as exc:
+        BatchSummary().on_multirun_end(config=cfg)
+    assert exc.value.code == 1
 
 
 def test_session_folders(sessions, tmp_path):
@@ -189,7 +239,7 @@ def test_job_is_picklable_and_runs_after_unpickling(sessions, tmp_path):
     ids=["submitit_local", "joblib"],
 )
 def test_launchers_in_other_processes(sessions, tmp_path, monkeypatch, launcher):
-    _multirun(
+    code = _multirun(
         monkeypatch,
         [
             f"input.session={sessions / 'a_ok'},{sessions / 'b_broken'}",
@@ -199,5 +249,6 @@ def test_launchers_in_other_processes(sessions, tmp_path, monkeypatch, launcher)
         ],
     )
     rows = _rows(tmp_path / "sub")
+    assert code == 1
     assert rows["a_ok"]["status"] == "ok" and rows["b_broken"]["status"] == "failed"
     assert (tmp_path / "sub" / "a_ok" / "points3d.csv").is_file()
