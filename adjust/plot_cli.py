@@ -14,7 +14,8 @@ Writes into ``output.dir``:
   recomputed from the calibration and detections), per camera when both are given;
 - with ``input.calibration`` and ``input.detections``: ``reprojection_frame<F>.png`` per chosen
   frame (the parts reprojected over each camera's accepted / rejected / below-threshold
-  detections);
+  detections; ``input.pattern``, ``input.individual``, ``input.likelihood_threshold`` choose
+  and read the detection files as in adjust-track);
 - with ``video=DIR`` (one video per camera, the camera's name in the file name) and
   ``input.calibration``: ``video_frame<F>.png`` per chosen frame, the cameras' frames side by
   side with the reprojected parts drawn on them (OpenCV), and with ``clip=START:STOP`` (frame
@@ -35,7 +36,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, required, run_or_exit
+from adjust.app import finite_or_none, load_kwargs, required, run_or_exit
 from adjust.io import InputError, load_calibration, load_scene, read_points3d
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
@@ -212,8 +213,8 @@ def run(cfg: DictConfig) -> dict:
     per_camera = None
     error = tr["error"]
     if det_dir:
-        thr = float(inp.get("likelihood_threshold", 0.5))
-        _, det = load_scene(str(calib), str(det_dir), None, thr)
+        # input.likelihood_threshold, input.pattern, input.individual: as in adjust-track
+        _, det = load_scene(str(calib), str(det_dir), None, **load_kwargs(inp))
         missing = [p for p in parts if p not in det.parts]
         if missing:
             raise InputError(f"{det_dir}: the detection files have no part(s) {missing}")

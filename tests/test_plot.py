@@ -223,3 +223,26 @@ def test_accepted_are_the_ncams_nearest_detections():
     assert codes[1].tolist() == [1, 0, 1, 1]
     batched = classify_detections(xy[None], lik[None], 0.5, uv[None], np.array([[2, np.nan]]))
     assert (batched[0] == codes).all()
+
+
+def test_input_pattern_chooses_the_detection_files(scene_with_videos, tmp_path):
+    """input.pattern (as in adjust-track, and as the loader's error suggests): a folder with two
+    files per camera is ambiguous without it, read with it."""
+    import shutil
+
+    from adjust.plot_cli import run
+
+    calib, tracks, _ = scene_with_videos
+    det = tmp_path / "detections"
+    shutil.copytree(calib.parent / "detections", det)
+    for f in sorted(det.iterdir()):
+        shutil.copy(f, det / f"{f.stem}_filtered{f.suffix}")
+    base = [f"tracks={tracks}", f"input.calibration={calib}", f"input.detections={det}"]
+    with pytest.raises(InputError, match="set a pattern"):
+        run(_compose("plot", [*base, f"output.dir={tmp_path / 'a'}"]))
+    cfg = _compose(
+        "plot", [*base, "input.pattern='*_filtered.csv'", f"output.dir={tmp_path / 'b'}"]
+    )
+    res = run(cfg)
+    assert any(k.startswith("reprojection_frame") for k in res["files"])
+    assert _is_png(res["files"]["reprojection_error"])
