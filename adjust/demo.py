@@ -36,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 from adjust.app import run_or_exit
 from deformnet.atomic import write_text
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.quiet import quiet_lightning
 
 log = logging.getLogger(__name__)
 
@@ -164,16 +165,18 @@ class _Steps:
 def run(cfg: DictConfig) -> dict:
     """Run the pipeline and write the report; returns {"output_dir", "report" (paths), the
     tracking table, timings}. ``threads`` (torch's intra-op threads) applies for the call and
-    is restored after it."""
+    is restored after it; so does the quiet console (`deformnet.quiet.quiet_lightning`: the
+    steps' progress and results, not Lightning's, TensorBoard's and numexpr's info lines, tips
+    and deprecations)."""
     from deformnet.threads import torch_threads
 
-    with torch_threads(cfg.get("threads")):
+    with torch_threads(cfg.get("threads")), quiet_lightning(info=False):
         return _run(cfg)
 
 
 def _run(cfg: DictConfig) -> dict:
     from adjust import events_cli, scene_cli, track, triangulate_cli
-    from adjust.report import write_report
+    from adjust.report import notes, write_report
     from adjust.scene import scene_fps
 
     name = str(cfg.preset)
@@ -345,6 +348,8 @@ def _run(cfg: DictConfig) -> dict:
     written = write_report(out, record)
     log.info("report written in %.1f s", time.perf_counter() - t0)
     rep = written["report"]
+    for note in notes(rep):  # also at the top of the report
+        log.warning("%s", note.replace("`", ""))
     return {
         "output_dir": str(out),
         "report": {k: str(v) for k, v in written.items() if k != "report"},

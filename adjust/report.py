@@ -325,6 +325,7 @@ def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
     y_true = y_true[fnum]
     smoothed = evaluate(y_true, y_pred, classes)
     raw = evaluate(y_true, y_raw, classes)
+    predicted = sorted({str(c) for c in pred["label"]})  # the classes it predicts at all
     summary_path = Path(cls["predictions"]).parent / "summary.json"  # mode=predict's summary
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     return {
@@ -355,6 +356,7 @@ def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
             "confusion": smoothed["confusion"],
             "true_bouts": len(bouts(y_true)),
             "predicted_bouts": len(bouts(y_pred)),
+            "predicted_classes": predicted,
         },
         "_labels": {"true": y_true, "predicted (raw)": y_raw, "predicted (smoothed)": y_pred},
     }
@@ -512,13 +514,40 @@ def _f(x, digits: int = 2) -> str:
     return str(x)
 
 
+def notes(rep: Mapping) -> list[str]:
+    """What a reader must know before the numbers: the run is a smaller preset than the full
+    demo (its numbers check that the pipeline runs, they do not measure it), the behavior
+    classifier predicts one class only (it has not learned the behaviors)."""
+    out = []
+    st = rep.get("settings") or {}
+    preset = st.get("preset")
+    if preset is not None and preset != "full":
+        out.append(
+            f"This is the `{preset}` preset ({st.get('frames')} frames, "
+            f"{st.get('train_minutes')} min of training per net, {st.get('classify_minutes')} "
+            "min for the behavior classifier): it checks that the pipeline runs end to end; its "
+            "numbers are not the method's accuracy (run `adjust-demo` for the full preset)."
+        )
+    s = (rep.get("behavior") or {}).get("session") or {}
+    predicted = s.get("predicted_classes")
+    if predicted is not None and len(predicted) <= 1:
+        what = f"`{predicted[0]}`" if predicted else "nothing"
+        out.append(
+            f"The behavior classifier predicts one class only ({what} on all {s.get('frames')} "
+            "frames of the demo session): it has not learned to tell the behaviors apart "
+            "(too little training or labelled data), so its scores below mean little."
+        )
+    return out
+
+
 def blocks(rep: Mapping) -> list[tuple]:
-    """The report as blocks: ("h", level, text), ("p", text), ("table", header, rows),
-    ("img", relative path, caption), ("pre", text)."""
+    """The report as blocks: ("h", level, text), ("p", text), ("note", text: a warning the
+    reader must see), ("table", header, rows), ("img", relative path, caption), ("pre", text)."""
     b: list[tuple] = []
     sc = rep["scene"]
     fig = rep["figures"]
     b.append(("h", 1, rep["title"]))
+    b += [("note", n) for n in notes(rep)]
     b.append(
         (
             "p",
@@ -800,6 +829,8 @@ def to_markdown(bl: Sequence[tuple]) -> str:
             lines += ["#" * blk[1] + " " + blk[2], ""]
         elif kind == "p":
             lines += [blk[1], ""]
+        elif kind == "note":
+            lines += [f"> **Note:** {blk[1]}", ""]
         elif kind == "img":
             lines += [f"![{Path(blk[1]).stem}]({blk[1]})", "", f"*{blk[2]}*", ""]
         elif kind == "table":
@@ -828,6 +859,8 @@ def to_html(bl: Sequence[tuple], base: Path, title: str) -> str:
             body.append(f"<h{blk[1]}>{_inline(blk[2])}</h{blk[1]}>")
         elif kind == "p":
             body.append(f"<p>{_inline(blk[1])}</p>")
+        elif kind == "note":
+            body.append(f'<p class="note"><strong>Note:</strong> {_inline(blk[1])}</p>')
         elif kind == "img":
             data = base64.b64encode((base / blk[1]).read_bytes()).decode("ascii")
             body.append(
@@ -849,6 +882,7 @@ def to_html(bl: Sequence[tuple], base: Path, title: str) -> str:
         "margin:1em 0;font-size:0.9em}td,th{border:1px solid #ccc;padding:3px 8px;"
         "text-align:right}th{background:#f3f3f3}td:first-child{text-align:left}"
         "code{background:#f3f3f3;padding:0 3px}figcaption{font-style:italic;color:#555}"
+        ".note{background:#fff4d6;border-left:4px solid #e0a800;padding:0.5em 0.8em}"
     )
     return (
         f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'

@@ -4,8 +4,11 @@ tracking, behavior, events) and the report, once per test session (~40 s on 2 co
 from __future__ import annotations
 
 import ast
+import copy
 import json
+import logging
 import re
+import warnings
 from pathlib import Path
 
 import hydra
@@ -19,6 +22,17 @@ from adjust.metrics import point_errors
 from deformnet.paths import CONF_DIR, REPO_DIR
 
 PNG = b"\x89PNG\r\n\x1a\n"
+#: what the demo fixture's run logged and warned: {"records": [LogRecord], "warnings": [...]}
+CONSOLE: dict = {}
+
+
+class _Keep(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.NOTSET)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +42,18 @@ def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = hydra.compose("demo", overrides=["preset=quick", f"output.dir={out}"])
-    res = run(cfg)
+    keep, root = _Keep(), logging.getLogger()
+    level = root.level
+    root.addHandler(keep)  # every record that reaches the console's handlers, at INFO as
+    root.setLevel(logging.INFO)  # under Hydra
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = run(cfg)
+    finally:
+        root.removeHandler(keep)
+        root.setLevel(level)
+    CONSOLE.update(records=keep.records, warnings=[str(w.message) for w in caught])
     return out, res, json.loads((out / "report.json").read_text())
 
 
@@ -55,6 +80,46 @@ def test_every_picture_exists_and_is_a_png(demo):
     last = closing_lines(res, 1.0).splitlines()[-2:]
     assert last[0] == f"Report: {out / 'report.md'}"
     assert last[1].strip().startswith(str(out / "report.html"))
+
+
+def test_console_shows_the_steps_not_library_tips(demo):
+    """The demo's console: its steps and results, not Lightning's tips, info lines and
+    deprecations, TensorBoard's or numexpr's info lines."""
+    records, caught = CONSOLE["records"], CONSOLE["warnings"]
+    texts = [r.getMessage() for r in records]
+    assert any(t.startswith("== adjust-simulate") for t in texts)  # the steps are there
+    for noise in ("💡 Tip", "litlogger", "GPU available", "Directory watcher", "NumExpr"):
+        assert not [t for t in texts if noise in t], noise
+    assert not [r for r in records if r.name.startswith("lightning") and r.levelno < 30]
+    for noise in ("LeafSpec", "smaller than the logging interval"):
+        assert not [w for w in caught if noise in w], noise
+
+
+def test_report_flags_the_quick_preset_and_a_one_class_classifier(demo):
+    from adjust.report import blocks, notes, to_markdown
+
+    out, _, rep = demo
+    html = (out / "report.html").read_text()
+    md = (out / "report.md").read_text()
+    flagged = re.findall(r'<p class="note"><strong>Note:</strong> (.*?)</p>', html)
+    assert any("<code>quick</code> preset" in n for n in flagged)
+    assert "> **Note:** This is the `quick` preset" in md
+    assert md.index("quick` preset") < md.index("## Tracking accuracy")  # before the numbers
+    warned = [r.getMessage() for r in CONSOLE["records"] if r.levelno == logging.WARNING]
+    assert any("This is the quick preset" in t for t in warned)
+    pred = pd.read_csv(out / "classify" / "predict" / "predictions.csv")
+    assert rep["behavior"]["session"]["predicted_classes"] == sorted(set(pred["label"]))
+    one = len(set(pred["label"])) == 1
+    assert any("predicts one class only" in n for n in flagged) == one
+    assert any("predicts one class only" in t for t in warned) == one
+    # the notes on their own: one class flagged, two not; the full preset not flagged
+    r = copy.deepcopy(rep)
+    r["behavior"]["session"]["predicted_classes"] = ["walk"]
+    r["settings"]["preset"] = "full"
+    assert len(notes(r)) == 1 and "one class only (`walk` on all 300 frames" in notes(r)[0]
+    assert "> **Note:** The behavior classifier predicts one class only" in to_markdown(blocks(r))
+    r["behavior"]["session"]["predicted_classes"] = ["rear", "walk"]
+    assert notes(r) == []
 
 
 def test_tracking_numbers_equal_the_run_files(demo):
