@@ -535,7 +535,7 @@ def notes(rep: Mapping) -> list[str]:
         out.append(
             f"The behavior classifier predicts one class only ({what} on all {s.get('frames')} "
             "frames of the demo session): it has not learned to tell the behaviors apart "
-            "(too little training or labelled data), so its scores below mean little."
+            "(too little training or labelled data), so its behavior scores mean little."
         )
     return out
 
