@@ -122,3 +122,32 @@ def test_a_run_that_leaves_the_data_does_not_exit_0(scenes, tmp_path, monkeypatc
     assert json.loads((tmp_path / "bad" / "summary.json").read_text())["health"]["status"] == (
         "failed"
     )
+
+
+@pytest.mark.parametrize(
+    ("folder", "extra"),
+    [
+        ("real-fly-3cam", []),
+        (
+            "real-mouse-sleap-4cam",
+            ["input.pattern='*.analysis.h5'", "input.likelihood_threshold=0"],
+        ),
+    ],
+)
+def test_default_body_on_the_shared_real_files(folder, extra, tmp_path):
+    """The defaults on the shared real recordings (parts that are not the mouse's 8): their own
+    body, every part tracked, complete, a trustworthy run (the hand: tests/test_track.py)."""
+    d = real_mouse_motion_dir().parent / folder
+    assert d.exists(), f"shared data missing: {d}"
+    ov = [
+        f"input.calibration={d / 'calibration.toml'}",
+        f"input.detections={d}",
+        f"output.dir={tmp_path}",
+        "progress=false",
+        *extra,
+    ]
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        summary = run(hydra.compose("track", overrides=ov))
+    assert summary["body"]["source"] == "auto" and summary["body"]["other_parts"]
+    assert len(summary["parts"]) > 8 and summary["completeness"] == 1.0
+    assert summary["health"]["status"] == "ok"
