@@ -114,18 +114,31 @@ def scale_factor(body: BodyModel, body_cfg) -> tuple[BodyModel, dict]:
     return (body, {}) if f == 1.0 else (body.scaled(f), {"scale_factor": f})
 
 
+#: a body's shape is estimated from at most this many frames, evenly spaced (a rigid shape is
+#: settled long before; time and memory stay bounded on long sessions)
+SHAPE_FRAMES = 20_000
+
+
+def shape_frames(num_frames: int) -> np.ndarray:
+    """The frames a body's shape is estimated from: all, or `SHAPE_FRAMES` evenly spaced."""
+    if num_frames <= SHAPE_FRAMES:
+        return np.arange(num_frames)
+    return np.unique(np.linspace(0, num_frames - 1, SHAPE_FRAMES).astype(np.int64))
+
+
 def estimate_body(
     det: Detections, cams: CameraTensors, body_cfg, name: str = "auto", cons=None
 ) -> tuple[BodyModel, dict]:
     """``body=auto``: robust triangulation, then a rigid model by generalized Procrustes
     (`BodyModel.from_observations`). Returns the model and facts about the estimate, among them
     ``rms_deviation_mm`` (per-coordinate rms distance of the triangulated parts from the model
-    fitted per frame: how far the data is from rigid)."""
+    fitted per frame: how far the data is from rigid). With the session's 3D observations
+    (`cons`), at most `SHAPE_FRAMES` frames, evenly spaced (`shape_frames`), are used."""
     from adjust.lsq.geometry import rigid_points
     from adjust.lsq.init import kabsch_poses
 
     if cons is not None:  # the session's gated 3D observations
-        X = cons.points
+        X = cons.points[shape_frames(len(cons.points))]
     else:
         tri = _triangulate(
             det, cams, bool(body_cfg.get("robust", True)), float(body_cfg.get("max_error_px", 20.0))
@@ -444,7 +457,8 @@ def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid
     ``body.rays_below`` 3D observations (no two cameras see them together, so the Procrustes
     model could not place them), ``none`` keeps the Procrustes model. Those parts' spread about
     their points comes from their views' residuals (their deformation variance); the others
-    keep the spread of their 3D observations.
+    keep the spread of their 3D observations. On long sessions the rays of `shape_frames`
+    (at most `SHAPE_FRAMES`, evenly spaced) place the parts.
     Returns None (nothing done) or (body, rigid observation, few_var (K, 3) torch, NaN for
     parts with enough 3D observations, facts)."""
     from adjust.estimate import place_from_rays
@@ -462,10 +476,11 @@ def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid
     # the prior's spread: the rms radius of the parts the triangulations placed
     prior_sd = float(np.sqrt(np.mean(np.sum((B[~few] - B[~few].mean(0)) ** 2, -1))))
     var0 = rigid_obs.var.numpy()
+    sel = shape_frames(len(poses))
     pl = place_from_rays(
-        poses,
-        det.xy,
-        weight,
+        np.asarray(poses)[sel],
+        det.xy[sel],
+        np.asarray(weight)[sel],
         cams,
         B,
         var0,
