@@ -48,7 +48,16 @@ from omegaconf import DictConfig
 from adjust.adapt import adapt_net
 from adjust.app import load_kwargs, required, run_or_exit, write_outputs
 from adjust.camera import CameraTensors
-from adjust.io import Detections, InputError, UnknownPartsError, load_scene, write_points3d
+from adjust.export import session_start, write_nwb
+from adjust.io import (
+    Detections,
+    InputError,
+    UnknownPartsError,
+    load_calibration_metadata,
+    load_scene,
+    recording_fps,
+    write_points3d,
+)
 from adjust.lsq.observation import NetObservation
 from adjust.metrics import reprojection_errors
 from adjust.session import expand_session_globs, with_session
@@ -56,6 +65,7 @@ from adjust.summary import TrackingFailed, result_summary, track_health
 from deformnet.atomic import write_text
 from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.body import BodyModel
+from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
 
 log = logging.getLogger(__name__)
@@ -578,13 +588,16 @@ def _run(cfg: DictConfig) -> dict:
     est_cfg = cfg.get("stochastic") or {}
     estimate = bool(est_cfg.get("estimate", True))
     if cfg.output.get("nwb", False):  # before any computing: the NWB times need a frame rate
-        from adjust.io import load_calibration_metadata, recording_fps
-
-        if recording_fps(cfg.output.get("fps"), load_calibration_metadata(calibration)) is None:
+        meta = load_calibration_metadata(calibration)
+        if recording_fps(cfg.output.get("fps"), meta) is None:
             raise InputError(
                 f"output.nwb=true needs the recording's frame rate: set output.fps=... (Hz), or "
                 f"give a calibration whose [metadata] has fps ({calibration} has none)"
             )
+        try:
+            session_start(cfg.output.get("session_start_time"), meta, calibration)
+        except InputError as exc:
+            raise InputError(f"output.nwb=true: {exc} (output.session_start_time=...)") from None
     if mode in ("interp", "self", "default") and not estimate:
         raise ValueError(f"deformation={mode} needs stochastic.estimate=true (its 3D observations)")
 
@@ -985,9 +998,15 @@ def _run(cfg: DictConfig) -> dict:
     # points3d.csv and summary.json as a pair: the summary last, with the points' sha256
     summary = write_outputs(out, write_points, summary)
     if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
-        from adjust.export import write_nwb
-
-        nwb = write_nwb(out / "tracks.nwb", points_path, calibration, fps=cfg.output.get("fps"))
+        nwb = write_nwb(
+            out / "tracks.nwb",
+            points_path,
+            calibration,
+            fps=cfg.output.get("fps"),
+            session_start_time=cfg.output.get("session_start_time"),
+            subject=to_plain(cfg.output.get("subject")) or None,
+            detections=detections,
+        )
         summary["outputs"]["nwb"] = str(nwb)
         write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     if health["status"] == "failed":

@@ -317,3 +317,11 @@ def test_nwb_without_a_frame_rate_stops_before_tracking(scene, tmp_path):
     with pytest.raises(InputError, match=r"output\.fps"):
         _track(scene, tmp_path / "nwb", ["output.nwb=true"])
     assert not (tmp_path / "nwb" / "points3d.csv").exists()
+
+
+def test_nwb_without_a_session_start_stops_before_tracking(scene, tmp_path):
+    """output.nwb=true with a frame rate but no session start (setting or calibration
+    metadata): one error naming output.session_start_time, nothing written."""
+    with pytest.raises(InputError, match=r"output\.session_start_time"):
+        _track(scene, tmp_path / "nwb", ["output.nwb=true", "output.fps=30"])
+    assert not (tmp_path / "nwb" / "points3d.csv").exists()
