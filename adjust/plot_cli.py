@@ -185,8 +185,8 @@ def run(cfg: DictConfig) -> dict:
     video = cfg.get("video")
     if video and not calib:
         raise ValueError("video=DIR needs input.calibration=calibration.toml (to reproject)")
-    if clip and not video:
-        raise ValueError("clip=START:STOP needs video=DIR")
+    if clip and not (video or cfg.get("video3d")):
+        raise ValueError("clip=START:STOP needs video=DIR or video3d=true")
     if det_dir and not calib:
         raise ValueError("input.detections needs input.calibration=calibration.toml too")
     tr = read_points3d(tracks_path)  # a file without part columns is an error there
@@ -202,7 +202,9 @@ def run(cfg: DictConfig) -> dict:
     def keep(name: str, fig) -> None:
         files[name] = str(plot.save(fig, out / f"{name}.png"))
 
-    keep("body3d", plot.body3d_figure(points, parts, fps=fps, title=Path(tracks_path).name))
+    edges = plot.skeleton_edges(parts, points, cfg.get("skeleton"), detections=det_dir)
+    title = Path(tracks_path).name
+    keep("body3d", plot.body3d_figure(points, parts, fps=fps, title=title, edges=edges))
     sigma = None
     if all(f"{p}_sigma" in tr["extra"] for p in parts):
         sigma = np.stack([np.asarray(tr["extra"][f"{p}_sigma"], float) for p in parts], -1)
@@ -266,6 +268,19 @@ def run(cfg: DictConfig) -> dict:
                 out,
                 det_xy if det is not None else None,
                 codes_all if det is not None else None,
+            )
+        )
+    if cfg.get("video3d"):  # the labelled 3D video beside each camera's reprojections
+        files["video3d"] = str(
+            plot.tracks_video(
+                out / "tracks3d.mp4",
+                tr,
+                cameras,
+                fps=fps,
+                clip=clip,
+                videos=match_videos(str(video), cameras) if video else None,
+                video_first_frame=int(cfg.get("video_first_frame") or 0),
+                edges=edges,
             )
         )
     summary = {

@@ -246,3 +246,29 @@ def test_input_pattern_chooses_the_detection_files(scene_with_videos, tmp_path):
     res = run(cfg)
     assert any(k.startswith("reprojection_frame") for k in res["files"])
     assert _is_png(res["files"]["reprojection_error"])
+
+
+def test_video3d_writes_the_labelled_3d_video(scene_with_videos, tmp_path):
+    """adjust-plot video3d=true: tracks3d.mp4, one frame per row of the clip."""
+    from adjust.plot_cli import run
+
+    calib, tracks, videos = scene_with_videos
+    res = run(
+        _compose(
+            "plot",
+            [
+                f"tracks={tracks}",
+                f"input.calibration={calib}",
+                "video3d=true",
+                "clip=1:6",
+                f"output.dir={tmp_path}",
+            ],
+        )
+    )
+    assert res["files"]["video3d"] == str(tmp_path / "tracks3d.mp4")
+    cap = cv2.VideoCapture(res["files"]["video3d"])
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    cap.release()
+    assert n == 5
