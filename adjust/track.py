@@ -127,6 +127,9 @@ def scale_factor(body: BodyModel, body_cfg) -> tuple[BodyModel, dict]:
 #: a body's shape is estimated from at most this many frames, evenly spaced (a rigid shape is
 #: settled long before; time and memory stay bounded on long sessions)
 SHAPE_FRAMES = 20_000
+#: ... and from no fewer than this many frames with >= 3 parts in 3D (a shape from a handful of
+#: frames is not trusted: body.shape=data then falls back to the named model, scaled)
+MIN_SHAPE_FRAMES = 30
 
 
 def shape_frames(num_frames: int) -> np.ndarray:
@@ -137,7 +140,12 @@ def shape_frames(num_frames: int) -> np.ndarray:
 
 
 def estimate_body(
-    det: Detections, cams: CameraTensors, body_cfg, name: str = "auto", cons=None
+    det: Detections,
+    cams: CameraTensors,
+    body_cfg,
+    name: str = "auto",
+    cons=None,
+    min_frames: int = 0,
 ) -> tuple[BodyModel, dict]:
     """``body=auto``: robust triangulation, then a rigid model by generalized Procrustes
     (`BodyModel.from_observations`). Returns the model and facts about the estimate, among them
@@ -167,7 +175,14 @@ def estimate_body(
     B = torch.tensor(body.points)
     poses, ok = kabsch_poses(B, Xt, torch.as_tensor(seen), min_parts=max(3, body.num_parts // 2))
     Xm, _ = rigid_points(poses, B)
-    d = np.linalg.norm(Xm.numpy() - X, axis=-1)[ok.numpy()[:, None] & seen]
+    fit = ok.numpy()[:, None] & seen
+    dist = np.where(fit, np.linalg.norm(Xm.numpy() - np.nan_to_num(X), axis=-1), np.nan)
+    with warnings.catch_warnings():  # a part never fitted: NaN, said as such
+        warnings.simplefilter("ignore", RuntimeWarning)
+        # each model point's standard error: its spread about the frames' fits / sqrt(frames)
+        n = fit.sum(0)
+        se = np.sqrt(np.nanmean(dist**2, 0) / np.maximum(n, 1))
+    d = dist[fit]
     d = np.sort(d[np.isfinite(d)])
     d = d[: max(1, int(math.ceil(0.95 * d.size)))] if d.size else d
     rms = float(np.sqrt(np.mean(d**2) / 3.0)) if d.size else float("nan")
@@ -176,7 +191,17 @@ def estimate_body(
         "triangulated_fraction": float(seen.mean()) if seen.size else 0.0,
         "rms_deviation_mm": rms,
         "points": {p: [float(c) for c in xyz] for p, xyz in zip(body.parts, body.points)},
+        "points_se_mm": {p: float(v) for p, v in zip(body.parts, se)},
+        "frames_per_part": {p: int(v) for p, v in zip(body.parts, n)},
     }
+    if facts["frames_used"] < max(min_frames, MIN_SHAPE_FRAMES):
+        msg = (
+            f"body shape from the data: only {facts['frames_used']} frames have >= 3 parts "
+            f"seen by two cameras (at least {MIN_SHAPE_FRAMES} wanted)"
+        )
+        if facts["frames_used"] < min_frames:
+            raise InputError(msg)
+        log.warning("%s; its points are rough (summary.json body.points_se_mm)", msg)
     log.info(
         "body=auto: rigid model of %d parts from %d frames; the data deviate %.2f mm rms per "
         "coordinate from it",
@@ -669,7 +694,8 @@ def _run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     if estimated:
         try:
-            est = estimate_body(det, cams, body_cfg, str(body_cfg.get("name", "auto")), cons)
+            name = str(body_cfg.get("name", "auto"))
+            est = estimate_body(det, cams, body_cfg, name, cons, 0 if auto else MIN_SHAPE_FRAMES)
         except InputError as exc:
             if auto:
                 raise

@@ -76,6 +76,8 @@ def test_two_cameras_estimate_the_body_size(scenes, tmp_path):
     truth's Procrustes shape), whatever size it starts from, and the track is complete."""
     summary, rmse = _track(scenes[2], tmp_path / "two")
     assert summary["body"]["source"] == "data" and summary["completeness"] == 1.0
+    se = np.array(list(summary["body"]["points_se_mm"].values()))
+    assert np.isfinite(se).all() and (se > 0).all()  # each estimated point's standard error
     est = np.array(list(summary["body"]["points"].values()))
     tr = np.load(scenes[2] / "truth.npz")
     truth = BodyModel.from_observations(tr["points"]).points

@@ -325,3 +325,15 @@ def test_nwb_without_a_session_start_stops_before_tracking(scene, tmp_path):
     with pytest.raises(InputError, match=r"output\.session_start_time"):
         _track(scene, tmp_path / "nwb", ["output.nwb=true", "output.fps=30"])
     assert not (tmp_path / "nwb" / "points3d.csv").exists()
+
+
+def test_body_shape_from_a_handful_of_frames_is_not_trusted(tmp_path):
+    """body.shape=data on a 20-frame session (fewer than MIN_SHAPE_FRAMES frames with 3 parts
+    in 3D): the named model's shape, scaled, said in summary.json."""
+    from adjust.scene_cli import run as simulate
+    from adjust.track import MIN_SHAPE_FRAMES
+
+    simulate(_cfg("scene", [f"output.dir={tmp_path / 's'}", "num_frames=20", "seed=6"]))
+    s = _track(tmp_path / "s", tmp_path / "out")
+    assert s["body"]["source"] == "config" and str(MIN_SHAPE_FRAMES) in s["body"]["shape_fallback"]
+    assert s["completeness"] == 1.0
