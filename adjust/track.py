@@ -168,7 +168,7 @@ def estimate_body(
             X, parts=det.parts, min_parts=None if min_parts is None else int(min_parts), name=name
         )
     except ValueError as exc:
-        raise InputError(f"body=auto: {exc}") from None
+        raise InputError(f"body from the data: {exc}") from None
     # the data's spread around the model (trimmed: the worst 5% are mostly mis-detections)
     seen = np.isfinite(X).all(-1)
     Xt = torch.as_tensor(np.nan_to_num(X))
@@ -203,8 +203,8 @@ def estimate_body(
             raise InputError(msg)
         log.warning("%s; its points are rough (summary.json body.points_se_mm)", msg)
     log.info(
-        "body=auto: rigid model of %d parts from %d frames; the data deviate %.2f mm rms per "
-        "coordinate from it",
+        "body from the data: a rigid model of %d parts from %d frames; the data deviate %.2f mm "
+        "rms per coordinate from it",
         body.num_parts,
         facts["frames_used"],
         rms,
@@ -542,14 +542,14 @@ def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid
         },
     }
     log.info(
-        "body=auto: the rigid model re-estimated from the detections (%d parts; moved by a "
-        "median of %.1f mm from the Procrustes model)",
+        "body from the data: the rigid model re-estimated from the detections (%d parts; moved "
+        "by a median of %.1f mm from the Procrustes model)",
         int(pl.placed.sum()),
         float(np.median(moved[pl.placed])),
     )
     if placed_few.any():
         log.warning(
-            "body=auto: %s seen by fewer than 2 cameras at a time (< %d 3D observations): "
+            "body from the data: %s seen by fewer than 2 cameras at a time (< %d 3D observations): "
             "placed from their single-view rays across frames (%s)",
             ", ".join(facts["from_single_views"]),
             below,
@@ -718,7 +718,10 @@ def _run(cfg: DictConfig) -> dict:
         if sig == "auto" and math.isfinite(body_facts["rms_deviation_mm"]):
             value = max(float(body_facts["rms_deviation_mm"]), 0.5)
             solver_cfg = solver_cfg.replace(sigma_def_mm=value)
-            log.info("body=auto: solver.sigma_def_mm = %.2f mm (the data's rms deviation)", value)
+            log.info(
+                "body from the data: solver.sigma_def_mm = %.2f mm (the data's rms deviation)",
+                value,
+            )
         elif sig not in (None, "auto"):
             solver_cfg = solver_cfg.replace(sigma_def_mm=float(sig))
     if tuple(body.parts) != tuple(det.parts):  # load_scene orders parts as the model does
