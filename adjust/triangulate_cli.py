@@ -32,7 +32,7 @@ from adjust.app import (
 )
 from adjust.camera import CameraTensors
 from adjust.camera_check import check_from_config
-from adjust.io import load_scene, write_points3d
+from adjust.io import check_cameras_usable, load_scene, write_points3d
 from deformnet.body import BodyModel
 
 log = logging.getLogger(__name__)
@@ -60,6 +60,7 @@ def run(cfg: DictConfig) -> dict:
     body = BodyModel.from_config(body_cfg) if body_cfg else None
     cameras, det = load_scene(calibration, detections, body, **kwargs)
     cameras, det, camera_report = check_from_config(cameras, det, inp)
+    check_cameras_usable(det, str(detections))  # one camera cannot triangulate: refused
     weight = det.weight() if weight_mode == "likelihood" else det.observed.astype(np.float64)
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     with torch.no_grad():
@@ -116,9 +117,7 @@ def run(cfg: DictConfig) -> dict:
             "keypoint_frames": int(T * K),
             "triangulated": int(done.sum()),
             "detections": int(observed.sum()),
-            "detections_per_camera": {
-                c: int(observed[..., i].sum()) for i, c in enumerate(det.cameras)
-            },
+            "detections_per_camera": det.usable_per_camera(),
             "views_used": int(used.sum()),
             "views_dropped": int((observed & done[..., None]).sum() - used.sum()),
             "observed_views_histogram": np.bincount(nviews.reshape(-1), minlength=C + 1).tolist(),

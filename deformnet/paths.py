@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 
 REPO_DIR = Path(__file__).resolve().parents[1]
@@ -66,4 +67,33 @@ def output_dir(cfg) -> Path:
             )
         path = Path(HydraConfig.get().runtime.output_dir)
     path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def regular_file(path: str | os.PathLike, what: str, error: type[Exception] = ValueError) -> Path:
+    """`path` when it is a regular file (or a link to one), checked before anything opens it;
+    else ``error`` naming it: not found, a directory, or not a regular file (a FIFO, device or
+    socket, which would block or never end: ``/dev/zero``, ``/dev/stdin``, a named pipe).
+    `what`: how the message names the file (``"calibration file"``); `error`: the caller's error
+    class (adjust's ``InputError``)."""
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise error(f"{what} not found: {path}") from None
+    except OSError as exc:
+        raise error(f"{what} {path}: cannot be read: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(mode):
+        raise error(f"{what} {path} is a directory, not a file")
+    if not stat.S_ISREG(mode):
+        kind = (
+            "a named pipe (FIFO)"
+            if stat.S_ISFIFO(mode)
+            else "a device"
+            if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket"
+            if stat.S_ISSOCK(mode)
+            else "not a regular file"
+        )
+        raise error(f"{what} {path} is {kind}, not a regular file; give a file")
     return path

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
-from pathlib import Path
 
 import pandas as pd
+
+from deformnet.paths import regular_file
 
 
 def read_csv(
@@ -15,10 +16,9 @@ def read_csv(
 ) -> pd.DataFrame:
     """``pd.read_csv(path, **kwargs)``; a missing file is ``error("<what> not found: PATH")``,
     an unreadable one ``error("PATH: cannot read CSV: ...")`` (`what`: e.g. ``"tracks file"``;
-    `error`: the caller's error class, e.g. adjust's ``InputError``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise error(f"{what} not found: {path}")
+    `error`: the caller's error class, e.g. adjust's ``InputError``); a directory, FIFO or device
+    is refused before opening (`deformnet.paths.regular_file`)."""
+    path = regular_file(path, what, error)
     try:
         return pd.read_csv(path, **kwargs)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:

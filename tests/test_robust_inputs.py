@@ -231,27 +231,58 @@ def test_nan_cost_is_never_converged():
         ("solver.max_iterations", 2.5, "an integer >= 0"),
         ("solver.max_iterations", -3, "an integer >= 0"),
         ("solver.chunk_size", "abc", "an integer >= 0"),
-        ("solver.sigma_det_px", "wide", "a number >= 0"),
-        ("threads", "abc", "an integer >= 0"),
+        ("solver.sigma_det_px", "wide", "a number from 0.01 to 1000"),
+        ("threads", "abc", "an integer from 1 to {MAX_THREADS}"),
         ("triangulate.min_views", "abc", "an integer >= 2"),
         ("input.likelihood_threshold", "abc", "a number from 0 to 1"),
         ("input.likelihood_threshold", 2, "a number from 0 to 1"),
         ("progress", "maybe", "true or false"),
+        # physically meaningless values (issue 46): not only the wrong type
+        ("stochastic.sigma_det_px", 1e-9, "a number from 0.01 to 1000"),
+        ("stochastic.sigma_det_px", 0, "a number from 0.01 to 1000"),
+        ("stochastic.sigma_det_px", -2.0, "a number from 0.01 to 1000"),
+        ("solver.sigma_det_px", 1e-9, "a number from 0.01 to 1000"),
+        ("solver.sigma_def_mm", -1.0, "a number >= 0"),
+        ("solver.min_weight", 1.5, "a number from 0 to 1"),
+        ("stochastic.gate_sigmas", 0, "a number >= 0.1"),
+        ("threads", 100000, "an integer from 1 to {MAX_THREADS}"),
+        ("threads", 0, "an integer from 1 to {MAX_THREADS}"),
+        ("threads", -1, "an integer from 1 to {MAX_THREADS}"),
+        ("deform.threads", 0, "an integer from 1 to {MAX_THREADS}"),
+        ("solver.num_threads", 100000, "an integer from 0 to {MAX_THREADS}"),
+        ("adapt.val_fraction", 1.5, "a number from 0.01 to 0.9"),
+        ("adapt.augment.mirror", 2, "a number from 0 to 1"),
+        ("inferred.below", -0.5, "a number from 0 to 1"),
     ],
 )
 def test_settings_of_wrong_type_or_range(key, value, accepts):
     from omegaconf import OmegaConf
 
-    from adjust.app import check_settings
+    from adjust.app import MAX_THREADS, check_settings
 
+    accepts = accepts.format(MAX_THREADS=MAX_THREADS)
     cfg = OmegaConf.create({"solver": {"max_iterations": 30}, "threads": 1})
     OmegaConf.update(cfg, key, value, force_add=True)
     with pytest.raises(ValueError) as exc:
         check_settings(cfg)
     assert str(exc.value) == f"{key}={value!r} is not valid: {key} accepts {accepts}"
-    OmegaConf.update(cfg, key, 3 if "threshold" not in key else 0.5, force_add=True)
+    fractions = ("threshold", "fraction", "mirror", "below", "weight")
+    good = 0.5 if any(w in key for w in fractions) else 3
+    OmegaConf.update(cfg, key, good, force_add=True)
     if key != "progress":
         check_settings(cfg)  # a good value passes
+
+
+def test_absurd_thread_count_refused_before_torch():
+    """threads=100000 segfaulted torch; every app's thread setting goes through check_threads."""
+    from deformnet.threads import MAX_THREADS, set_torch_threads, torch_threads
+
+    accepts = f"threads=100000 is not valid: .* from 1 to {MAX_THREADS}"
+    with pytest.raises(ValueError, match=accepts):
+        set_torch_threads(100000)
+    with pytest.raises(ValueError, match="threads='many' is not valid"):
+        with torch_threads("many"):
+            pass
 
 
 @pytest.mark.parametrize("frames", [list(range(100, 120)), [f"img{i:03d}.png" for i in range(20)]])
@@ -282,3 +313,136 @@ def test_triangulate_fnum_is_the_files_frame_number(tmp_path, frames):
     assert [str(f) for f in d["fnum"]] == [str(f) for f in frames]
     assert summary["frames"] == [frames[0], frames[-1]]
     np.testing.assert_allclose(d["points"], X, atol=1e-6)
+
+
+# --- issue 46: inputs that could fool the tracker, files that are not files ----------------
+
+
+def test_fifo_and_device_as_calibration_refused_unopened(tmp_path):
+    """A FIFO blocked and /dev/zero read until memory ran out: refused before opening."""
+    import os
+
+    fifo = tmp_path / "calibration.toml"
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match=r"calibration.toml is a named pipe \(FIFO\), not a"):
+        load_calibration(fifo)  # would block forever if opened
+    with pytest.raises(InputError, match="/dev/zero is a device, not a regular file"):
+        load_calibration("/dev/zero")
+    from adjust.io import read_points3d
+
+    with pytest.raises(InputError, match="/dev/zero is a device"):
+        read_points3d("/dev/zero")
+
+
+def test_usable_detections_per_camera_and_one_camera_refused(tmp_path, caplog):
+    from adjust.io import check_cameras_usable
+
+    xy, lik = _detections(tmp_path)
+    lik[1] = 0.1  # camera B: every detection below the threshold
+    _write(tmp_path, xy, lik)
+    with caplog.at_level(logging.WARNING):
+        det = load_detections(tmp_path, _rig(), None)
+    assert det.usable_per_camera() == {"A": 60, "B": 0}
+    # B loses all its detections on reading: it says why
+    assert (
+        "camera 'B'" in caplog.text and "60 of its 60 detections (100%) are not used" in caplog.text
+    )
+    assert "60 below input.likelihood_threshold=0.5" in caplog.text
+    with pytest.raises(InputError) as exc:
+        check_cameras_usable(det, "session1")
+    msg = str(exc.value)
+    assert msg.startswith("session1: only 1 of 2 cameras have a usable detection")
+    assert "'A' 60 (A.csv), 'B' 0 (B.csv)" in msg
+    lik[1] = 0.9
+    _write(tmp_path, xy, lik)
+    check_cameras_usable(load_detections(tmp_path, _rig(), None), "session1")  # two: fine
+
+
+def test_triangulate_refuses_a_one_camera_session(tmp_path):
+    """It exited 0 with 0% triangulated; now one error naming the cameras and their counts."""
+    import hydra
+
+    from adjust.triangulate_cli import run
+    from deformnet.paths import CONF_DIR
+
+    det = tmp_path / "det"
+    det.mkdir()
+    xy, lik = _detections(tmp_path)
+    xy[1] = np.nan  # camera B: no detection at all
+    for c, name in enumerate("AB"):
+        write_dlc_csv(det / f"{name}.csv", ["p0", "p1", "p2"], xy[c], lik[c])
+    save_calibration(tmp_path / "calibration.toml", _rig())
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose("triangulate", [f"input.calibration={tmp_path / 'calibration.toml'}",
+                                            f"input.detections={det}",
+                                            f"output.dir={tmp_path / 'out'}"])  # fmt: skip
+    with pytest.raises(InputError, match=r"only 1 of 2 cameras .*'A' 60 \(A.csv\), 'B' 0"):
+        run(cfg)
+    assert not (tmp_path / "out" / "points3d.csv").exists()
+
+
+def test_empty_likelihood_cells_read_as_one_with_a_warning(tmp_path, caplog):
+    xy, lik = _detections(tmp_path)
+    lik[0, :5, 1] = np.nan  # x and y given, likelihood cell empty
+    _write(tmp_path, xy, lik)
+    with caplog.at_level(logging.WARNING):
+        det = load_detections(tmp_path, _rig(), None)
+    assert det.observed[:5, 1, 0].all()  # not dropped
+    np.testing.assert_array_equal(det.likelihood[:5, 1, 0], 1.0)
+    assert (
+        "camera 'A'" in caplog.text
+        and "5 detections have x and y but an empty likelihood cell" in caplog.text
+        and "read as likelihood 1" in caplog.text
+    )
+
+
+def test_missing_likelihood_column_is_stated(tmp_path, caplog):
+    xy, lik = _detections(tmp_path)
+    _write(tmp_path, xy, lik)
+    p = tmp_path / "B.csv"
+    rows = [ln.split(",") for ln in p.read_text().splitlines()]
+    keep = [j for j, c in enumerate(rows[2]) if c != "likelihood"]  # the coords row
+    p.write_text("\n".join(",".join(r[j] for j in keep) for r in rows) + "\n")
+    with caplog.at_level(logging.WARNING):
+        det = load_detections(tmp_path, _rig(), None)
+    assert det.observed[:, :, 1].all()
+    assert (
+        "camera 'B'" in caplog.text and "B.csv): no likelihood column for any part" in caplog.text
+    )
+    assert "taken at likelihood 1" in caplog.text
+
+
+def test_a_file_losing_most_detections_says_why(tmp_path, caplog):
+    xy, lik = _detections(tmp_path)
+    xy[1, :12, :, 0] = np.inf  # 36 of B's 60 detections not finite
+    _write(tmp_path, xy, lik)
+    with caplog.at_level(logging.WARNING):
+        load_detections(tmp_path, _rig(), None)
+    assert (
+        "camera 'B'" in caplog.text and "36 of its 60 detections (60%) are not used" in caplog.text
+    )
+    assert "36 not finite numbers" in caplog.text
+    caplog.clear()
+    xy, lik = _detections(tmp_path)
+    _write(tmp_path, xy, lik)
+    with caplog.at_level(logging.WARNING):
+        load_detections(tmp_path, _rig(), None)
+    assert "are not used" not in caplog.text  # a clean file: no warning
+
+
+def test_frame_numbers_beyond_int64(tmp_path):
+    from adjust.io import read_points3d, write_points3d
+
+    xy, lik = _detections(tmp_path, T=3)
+    _write(tmp_path, xy, lik, frames=([0, 1, 99999999999999999999999], None))
+    with pytest.raises(InputError, match="frame number 99999999999999999999999 is beyond"):
+        load_detections(tmp_path, _rig(), None)
+    p = write_points3d(tmp_path / "p.csv", ["a"], np.zeros((3, 1, 3)), np.zeros((3, 1)),
+                       np.ones((3, 1)), np.ones((3, 1)))  # fmt: skip
+    text = p.read_text().rstrip("\n").rsplit(",", 1)[0] + ",99999999999999999999999\n"
+    p.write_text(text)
+    with pytest.raises(InputError, match="fnum 99999999999999999999999 at row 2 is beyond"):
+        read_points3d(p)
+    p.write_text(p.read_text().splitlines()[0] + "\n")  # the header only
+    with pytest.raises(InputError, match="no rows"):
+        read_points3d(p)

@@ -3,7 +3,8 @@
 - `load_calibration` / `save_calibration`: anipose ``calibration.toml`` <-> list of `Camera`.
 - `read_dlc` / `write_dlc_csv`: one DeepLabCut 2D table (CSV or H5) <-> `DLCTable`.
 - `load_detections` / `load_scene`: a folder with one DeepLabCut file per camera -> `Detections`
-  (T, K, C, 2), matched to the calibration's cameras by name and to a body model by aliases.
+  (T, K, C, 2), matched to the calibration's cameras by name and to a body model by aliases;
+  `check_cameras_usable`: refuse a session where fewer than two cameras have a usable detection.
 - `write_points3d` / `read_points3d`: anipose's 3D CSV layout.
 
 Every error about an input is an `InputError` (a `ValueError`) naming the file and the camera,
@@ -19,13 +20,20 @@ from adjust.io.calibration import (
 from adjust.io.dlc import DLCTable, read_dlc, write_dlc_csv
 from adjust.io.errors import InputError, UnknownPartsError
 from adjust.io.points3d import read_points3d, write_points3d
-from adjust.io.scene import Detections, load_detections, load_scene, match_files
+from adjust.io.scene import (
+    Detections,
+    check_cameras_usable,
+    load_detections,
+    load_scene,
+    match_files,
+)
 
 __all__ = [
     "DLCTable",
     "Detections",
     "InputError",
     "UnknownPartsError",
+    "check_cameras_usable",
     "load_calibration",
     "load_calibration_metadata",
     "recording_fps",

@@ -33,6 +33,7 @@ import numpy as np
 from adjust.camera import Camera
 from adjust.io.errors import InputError
 from deformnet.atomic import write_text
+from deformnet.paths import regular_file
 
 try:  # Python >= 3.11
     import tomllib
@@ -45,16 +46,27 @@ _KNOWN = ("name", "size", "matrix", "distortions", "rotation", "translation")
 _SECTION = re.compile(r"^cam_(\d+)$")
 
 
+#: a calibration larger than this is not one (anipose's are a few kB); refused unread
+MAX_BYTES = 16 << 20
+
+
 def _read_toml(path: Path) -> dict:
+    if path.is_dir():
+        raise InputError(
+            f"calibration {path} is a directory, not a file (give its calibration.toml)"
+        )
+    regular_file(path, "calibration file", InputError)  # a FIFO or /dev/zero: never opened
+    size = path.stat().st_size
+    if size > MAX_BYTES:
+        raise InputError(
+            f"{path}: {size / 2**20:.0f} MB is not a calibration (anipose's calibration.toml "
+            "is a few kB)"
+        )
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise InputError(f"calibration file not found: {path}") from None
-    except IsADirectoryError:
-        raise InputError(
-            f"calibration {path} is a directory, not a file (give its calibration.toml)"
-        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{path}: not valid TOML: {exc}") from None
     except UnicodeDecodeError:

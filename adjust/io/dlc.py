@@ -8,7 +8,8 @@ H5 holds the same DataFrame under the key ``df_with_missing``. Missing values ar
 (NaN).
 
 `read_dlc` returns a `DLCTable` with the file's own part names (in file order); tables without a
-``likelihood`` coordinate (e.g. hand labels) get likelihood 1 where x and y are present.
+``likelihood`` coordinate (e.g. hand labels) get likelihood 1 where x and y are present
+(`adjust.io.scene` says so in a warning naming the file and camera).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import pandas as pd
 
 from adjust.io.errors import InputError
 from deformnet.atomic import atomic_path
+from deformnet.paths import regular_file
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +43,10 @@ class DLCTable:
     parts: K part names in file order; xy: (T, K, 2) float64 px, NaN where absent; likelihood:
     (T, K) float64 as in the file (NaN where the cell is empty); scorer: the network's name;
     frames: (T,) the file's row index (ints for video output, strings for labelled images);
-    individual: the chosen individual of a multi-animal file (None for single-animal files).
+    individual: the chosen individual of a multi-animal file (None for single-animal files);
+    no_likelihood: the parts without a likelihood column (given likelihood 1 where x and y are);
+    unusable: (T, K) bool, x or y given but not a finite number (inf, or only one of the two),
+    read as absent (NaN) in ``xy``; None: none.
     """
 
     parts: tuple[str, ...]
@@ -51,6 +56,8 @@ class DLCTable:
     frames: np.ndarray | None = None
     individual: str | None = None
     path: Path | None = None
+    no_likelihood: tuple[str, ...] = ()
+    unusable: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -66,9 +73,7 @@ def read_dlc(path: str | os.PathLike, individual: str | None = None) -> DLCTable
     individual: which individual of a multi-animal file to take; required when the file has more
     than one (the error lists them), ignored (with a warning) for single-animal files.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"DeepLabCut file not found: {path}")
+    path = regular_file(path, "DeepLabCut file", InputError)
     suffix = path.suffix.lower()
     if suffix == ".csv":
         columns, values, frames = _read_csv(path)
@@ -156,7 +161,7 @@ def _read_csv(path: Path) -> tuple[list[tuple], np.ndarray, np.ndarray]:
             f"column {n_index + c + 1} ({_column_name(columns[c])})"
             + (f"; {int(bad.sum()) - 1} more non-numeric cells" if bad.sum() > 1 else "")
         )
-    return columns, values, _frames(index)
+    return columns, values, _frames(index, path)
 
 
 def _is_number(s: str) -> bool:
@@ -167,12 +172,24 @@ def _is_number(s: str) -> bool:
     return True
 
 
-def _frames(index: Sequence) -> np.ndarray:
+#: frame numbers must fit numpy's int64 (the ``fnum`` column of every output)
+MAX_FRAME = np.iinfo(np.int64).max
+
+
+def _frames(index: Sequence, path: Path | None = None) -> np.ndarray:
+    """The row labels as int64 frame numbers, or as strings (labelled images' names); a frame
+    number beyond int64 is an InputError naming it."""
     try:
-        as_int = np.array([int(str(v).strip()) for v in index], dtype=np.int64)
+        as_int = [int(str(v).strip()) for v in index]
     except ValueError:
         return np.array([str(v) for v in index], dtype=object)
-    return as_int
+    big = [v for v in as_int if abs(v) > MAX_FRAME]
+    if big:
+        raise InputError(
+            f"{path}: frame number {big[0]} is beyond the int64 range (|frame| <= {MAX_FRAME})"
+            + (f"; {len(big) - 1} more" if len(big) > 1 else "")
+        )
+    return np.array(as_int, dtype=np.int64)
 
 
 def _column_name(col: tuple) -> str:
@@ -234,7 +251,7 @@ def _read_h5(path: Path) -> tuple[list[tuple], np.ndarray, np.ndarray]:
     frames = df.index
     if isinstance(frames, pd.MultiIndex):
         frames = ["/".join(map(str, f)) for f in frames]
-    return columns, values, _frames(list(frames))
+    return columns, values, _frames(list(frames), path)
 
 
 def _assemble(
@@ -287,13 +304,25 @@ def _assemble(
         else:
             no_lik.append(part)
             lik[:, k] = np.where(np.isfinite(xy[:, k]).all(-1), 1.0, np.nan)
-    if no_lik:
-        log.info("%s: no likelihood for %s; 1 where x and y are given", path, no_lik)
-    xy[~np.isfinite(xy).all(-1)] = np.nan
+    if no_lik:  # said as a warning naming the camera by adjust.io.scene
+        log.debug("%s: no likelihood for %s; 1 where x and y are given", path, no_lik)
+    finite = np.isfinite(xy).all(-1)
+    unusable = ~finite & ~np.isnan(xy).all(-1)  # inf, or x without y
+    xy[~finite] = np.nan
     scorers = list(dict.fromkeys(columns[j][0] for j in sel))
     if len(scorers) > 1:
         log.warning("%s: several scorers %s; reporting the first", path, scorers)
-    table = DLCTable(tuple(parts), xy, lik, scorers[0] if scorers else "", frames, individual, path)
+    table = DLCTable(
+        tuple(parts),
+        xy,
+        lik,
+        scorers[0] if scorers else "",
+        frames,
+        individual,
+        path,
+        tuple(no_lik),
+        unusable if unusable.any() else None,
+    )
     log.debug("read %s: %d frames, %d parts", path, T, K)
     return table
 

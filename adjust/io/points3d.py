@@ -38,6 +38,7 @@ AXES_COLUMNS = tuple(f"M_{i}{j}" for i in range(3) for j in range(3)) + tuple(
     f"center_{i}" for i in range(3)
 )
 ROWS_PER_BLOCK = 50_000  # write_points3d: rows formatted at a time
+MAX_FRAME = int(np.iinfo(np.int64).max)
 
 
 def write_points3d(
@@ -128,6 +129,8 @@ def read_points3d(path: str | os.PathLike) -> dict:
     """
     path = Path(path)
     df = read_csv(path, "points3d file", InputError)
+    if len(df) == 0:
+        raise InputError(f"{path}: no rows (a header without frames): nothing to read")
     for col in df.columns:
         if col == "fnum":  # a frame number, or a labelled image's name
             continue
@@ -156,12 +159,50 @@ def read_points3d(path: str | os.PathLike) -> dict:
             if f"{p}_{key}" in colset:
                 out[key][:, k] = df[f"{p}_{key}"].to_numpy(np.float64)
                 used.add(f"{p}_{key}")
-    out["fnum"] = df["fnum"].to_numpy() if "fnum" in colset else np.arange(T)
+    out["fnum"] = _fnum(path, df["fnum"]) if "fnum" in colset else np.arange(T)
     used.add("fnum")
     out["M"], out["center"] = _axes(path, df, colset)
     used.update(AXES_COLUMNS)
     out["extra"] = {c: df[c].to_numpy() for c in names if c not in used}
     return out
+
+
+def _fnum(path: Path, col: pd.Series) -> np.ndarray:
+    """The ``fnum`` column: int64 frame numbers, or strings (labelled images' names); an empty
+    cell, a fraction or a number beyond int64 is an InputError naming the row."""
+    missing = np.flatnonzero(col.isna().to_numpy())
+    if missing.size:
+        raise InputError(f"{path}: fnum is empty at row {int(missing[0])}")
+    if col.dtype.kind == "i":
+        return col.to_numpy(np.int64)
+    if col.dtype.kind == "u":  # beyond int64, below 2**64
+        big = np.flatnonzero(col.to_numpy() > MAX_FRAME)
+        if big.size:
+            r = int(big[0])
+            raise InputError(
+                f"{path}: fnum {col.iloc[r]} at row {r} is beyond the int64 range (|frame| <= "
+                f"{MAX_FRAME})"
+            )
+        return col.to_numpy(np.int64)
+    if col.dtype.kind == "f":
+        v = col.to_numpy(np.float64)
+        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)) | (np.abs(v) > MAX_FRAME))
+        if bad.size:
+            r = int(bad[0])
+            raise InputError(
+                f"{path}: fnum {col.iloc[r]!r} at row {r} is not a frame number (an integer "
+                f"up to {MAX_FRAME})"
+            )
+        return v.astype(np.int64)
+    values = col.tolist()
+    big = [i for i, v in enumerate(values) if isinstance(v, int) and abs(v) > MAX_FRAME]
+    if big:  # integers beyond int64 (pandas keeps them as Python ints)
+        r = big[0]
+        raise InputError(
+            f"{path}: fnum {values[r]} at row {r} is beyond the int64 range (|frame| <= "
+            f"{MAX_FRAME})"
+        )
+    return np.array([str(v) for v in values], dtype=object)
 
 
 def _axes(path: Path, df: pd.DataFrame, colset: set) -> tuple[np.ndarray, np.ndarray]:

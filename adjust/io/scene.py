@@ -22,7 +22,13 @@ Validation (each problem names the file, camera, part and frame):
 - a non-finite coordinate, or one absurdly far from the image (more than one image width or
   height outside it; without an image size, beyond 1e6 px), is a missing detection, with one
   warning per camera counting them (one bad cell never spoils the other frames);
-- no usable detection at all (e.g. every likelihood below the threshold) is an error;
+- no usable detection at all (e.g. every likelihood below the threshold) is an error; the
+  apps refuse a session where fewer than two cameras have one (`check_cameras_usable`);
+- a file without a likelihood column (or SLEAP scores), and detections with x and y but an
+  empty likelihood cell, are read at likelihood 1, each with a warning naming the file and
+  camera; a camera file that loses most (> 50%) of its detections on reading says why (how
+  many below the threshold, not finite, far outside the image), and one without any detection
+  says so; the log gives the usable detections per camera;
 - rows are matched by the files' frame numbers, never by position: when the files' integer
   frame indices differ, the output covers their union (sorted), a camera without a row for a
   frame has no detection there (with a warning); a frame number twice in one file, or labelled
@@ -112,6 +118,37 @@ class Detections:
     def weight(self) -> np.ndarray:
         """(T, K, C) float64 weights: the likelihood where observed, 0 where missing."""
         return np.where(self.observed, self.likelihood, 0.0)
+
+    def usable_per_camera(self) -> dict[str, int]:
+        """{camera: number of usable detections} (finite x, y at or above the threshold)."""
+        counts = self.observed.sum(axis=(0, 1))
+        return {c: int(n) for c, n in zip(self.cameras, counts)}
+
+
+#: fewer cameras than this with a usable detection cannot triangulate anything
+MIN_CAMERAS = 2
+
+
+def check_cameras_usable(det: Detections, where: str, min_cameras: int = MIN_CAMERAS) -> None:
+    """An InputError when fewer than `min_cameras` cameras have any usable detection: nothing
+    can be triangulated and a track would rest on one view (depth unobserved) while looking
+    precise. The message names every camera with its count of usable detections (and its
+    file); `where` names the session (e.g. the detections folder). Call it after cameras are
+    excluded (`adjust.camera_check`)."""
+    counts = det.usable_per_camera()
+    have = [c for c, n in counts.items() if n > 0]
+    if len(have) >= min_cameras:
+        return
+    listed = ", ".join(
+        f"'{c}' {n}" + (f" ({Path(f).name})" if f else "")
+        for (c, n), f in zip(counts.items(), list(det.files) + [None] * len(counts))
+    )
+    raise InputError(
+        f"{where}: only {len(have)} of {len(counts)} cameras have a usable detection (usable "
+        f"detections per camera: {listed}); at least {min_cameras} cameras must see the animal "
+        f"(check the files, input.likelihood_threshold={det.threshold:g} and "
+        "input.exclude_cameras)"
+    )
 
 
 def match_files(
@@ -289,14 +326,37 @@ def load_detections(
                 continue
             xy[r, k, c] = t.xy[:, j]
             lik[r, k, c] = t.likelihood[:, j]
+    files = [paths[n] for n in names]
+    unusable = np.zeros((T, K, C), dtype=bool)
+    for c, (t, cols, r) in enumerate(zip(tables, columns, rows)):
+        _state_likelihoods(t, names[c], [t.parts[j] for j in cols if j is not None])
+        if t.unusable is not None:
+            for k, j in enumerate(cols):
+                if j is not None:
+                    unusable[r, k, c] = t.unusable[:, j]
+    no_lik = np.isnan(lik) & np.isfinite(xy).all(-1)  # empty likelihood cells, x and y given
+    for c in np.flatnonzero(no_lik.any(axis=(0, 1))):
+        t_, k_ = np.argwhere(no_lik[:, :, c])[0]
+        log.warning(
+            "camera '%s' (%s): %d detections have x and y but an empty likelihood cell (first: "
+            "part '%s' at frame %s); read as likelihood 1, as a hand-placed label (empty their "
+            "x and y if they are not detections)",
+            names[c],
+            files[c],
+            int(no_lik[:, :, c].sum()),
+            parts[k_],
+            frames[t_],
+        )
+    lik[no_lik] = 1.0
     lik = np.where(np.isfinite(lik), lik, 0.0)
-    absurd = _drop_absurd(xy, lik, cameras, [paths[n] for n in names], parts, frames)
+    given = np.isfinite(xy).all(-1) | unusable  # x and y given in the file
+    absurd = _drop_absurd(xy, lik, cameras, files, parts, frames)
+    below = np.isfinite(xy).all(-1) & (lik < thr)
     xy[(lik < thr) | ~np.isfinite(xy).all(-1)] = np.nan
     notes = {"absurd_or_nonfinite": absurd} if any(absurd.values()) else {}
-    det = Detections(
-        tuple(names), tuple(parts), xy, lik, tuple(paths[n] for n in names), thr, frames, notes
-    )
+    det = Detections(tuple(names), tuple(parts), xy, lik, tuple(files), thr, frames, notes)
     obs = det.observed
+    _state_losses(det, given, below, unusable, absurd)
     if not obs.any():
         present = lik[np.isfinite(lik) & (lik > 0)]
         raise InputError(
@@ -306,15 +366,78 @@ def load_detections(
         )
     _check_in_image(det, cameras)
     log.info(
-        "read %d frames x %d parts x %d cameras from %s; %.1f%% of detections at likelihood >= %g",
+        "read %d frames x %d parts x %d cameras from %s; %.1f%% of detections at likelihood >= %g; "
+        "usable detections per camera: %s",
         T,
         K,
         C,
         folder,
         100.0 * obs.mean() if obs.size else 0.0,
         thr,
+        ", ".join(f"{c} {n}" for c, n in det.usable_per_camera().items()),
     )
     return det
+
+
+def _state_likelihoods(t: DLCTable, camera: str, used: Sequence[str]) -> None:
+    """A warning for a file without likelihoods of the parts used (the file's names): their
+    detections are taken at likelihood 1."""
+    missing = [p for p in t.no_likelihood if p in set(used)]
+    if not missing:
+        return
+    what = "no likelihood column" if t.scorer != "SLEAP" else "no point_scores"
+    log.warning(
+        "camera '%s' (%s): %s for %s; every detection with x and y is taken at likelihood 1 "
+        "(input.likelihood_threshold cannot drop any of them)",
+        camera,
+        t.path,
+        what,
+        "any part" if len(missing) == len(used) else f"parts {missing}",
+    )
+
+
+#: a camera file that loses more than this share of its detections on reading says why
+LOSS_WARNING = 0.5
+
+
+def _state_losses(
+    det: Detections,
+    given: np.ndarray,
+    below: np.ndarray,
+    unusable: np.ndarray,
+    absurd: dict[str, int],
+) -> None:
+    """One warning per camera whose file loses most (> `LOSS_WARNING`) of its detections (x and
+    y given) on reading, with the reasons counted; one for a camera left without any."""
+    obs = det.observed
+    for c, cam in enumerate(det.cameras):
+        n_given = int(given[:, :, c].sum())
+        n_used = int(obs[:, :, c].sum())
+        lost = n_given - n_used
+        if n_given == 0:
+            log.warning(
+                "camera '%s' (%s): no detection at all (every x and y cell is empty); it adds "
+                "nothing to the tracks",
+                cam,
+                det.files[c],
+            )
+            continue
+        if lost <= LOSS_WARNING * n_given:
+            continue
+        reasons = {
+            f"below input.likelihood_threshold={det.threshold:g}": int(below[:, :, c].sum()),
+            "not finite numbers (inf, or x without y)": int(unusable[:, :, c].sum()),
+            "far outside the image": int(absurd.get(cam, 0)),
+        }
+        log.warning(
+            "camera '%s' (%s): %d of its %d detections (%.0f%%) are not used: %s",
+            cam,
+            det.files[c],
+            lost,
+            n_given,
+            100.0 * lost / n_given,
+            ", ".join(f"{n} {why}" for why, n in reasons.items() if n) or "unknown reason",
+        )
 
 
 def _align_frames(folder: Path, tables: Sequence[DLCTable]) -> tuple[np.ndarray, list]:

@@ -169,10 +169,12 @@ def _table(
     with the module doc's score rules."""
     T, K = xy.shape[:2]
     present = np.isfinite(xy).all(-1)
+    unusable = ~present & ~np.isnan(xy).all(-1)  # inf, or x without y
     xy[~present] = np.nan
-    if lik is None:
+    no_scores = lik is None
+    if lik is None:  # said as a warning naming the camera by adjust.io.scene
         lik = np.where(present, 1.0, np.nan)
-        log.info("%s: no point_scores; score 1 where a node is present", path)
+        log.debug("%s: no point_scores; score 1 where a node is present", path)
     else:
         lik = np.where(present & np.isnan(lik), 1.0, lik)  # hand-placed points
         bad = present & np.isfinite(lik) & ((lik < 0) | (lik > MAX_SCORE))
@@ -190,7 +192,17 @@ def _table(
     frames = np.arange(T, dtype=np.int64)
     log.debug("read %s: %d frames, %d nodes, track '%s'", path, T, K, names[i])
     chosen = names[i] if len(names) > 1 else None
-    return DLCTable(tuple(nodes), xy, lik, "SLEAP", frames, chosen, path)
+    return DLCTable(
+        tuple(nodes),
+        xy,
+        lik,
+        "SLEAP",
+        frames,
+        chosen,
+        path,
+        tuple(nodes) if no_scores else (),
+        unusable if unusable.any() else None,
+    )
 
 
 def _require_sleap_io(path: Path):
