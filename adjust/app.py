@@ -2,88 +2,37 @@
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import logging
 import math
 import os
-import signal
-import tempfile
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
-from deformnet import project
-from deformnet.atomic import finite_or_none  # noqa: F401  (apps: adjust.app.finite_or_none)
+from deformnet.apprun import run_app
+from deformnet.atomic import file_digest, finite_or_none  # noqa: F401  (apps: adjust.app.*)
+from deformnet.outputs import (  # noqa: F401  (apps: adjust.app.*; registers ${output_or:...})
+    OutputBusy,
+    OutputSet,
+    output_lock,
+    prepare_output,
+    recover_outputs,
+)
 
 log = logging.getLogger(__name__)
 
 
-def _output_or(given, default: str) -> str:
-    """Hydra run folder: ``output.dir`` when it is set and usable (an existing folder, or one
-    that can be created, writable); else `default` (under runs/) when it is not set, or, when it
-    is set but unusable, `default` under the system's temporary folder, so that the app itself
-    reports the unusable folder in one line (`prepare_output`) instead of Hydra failing with a
-    traceback, and nothing lands in the working directory. Used as
-    ``hydra.run.dir: ${output_or:${oc.select:output.dir,null},runs/...}``."""
-    if given is None or str(given) in ("", "None", "null"):
-        return default
-    p = Path(str(given))
-    try:  # Hydra creates it next anyway; a real write test (access() is always true for root)
-        p.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".write-test.", dir=p)
-        os.close(fd)
-        os.unlink(tmp)
-    except OSError:  # Hydra's files go to a scratch folder, not the working directory
-        return str(Path(tempfile.gettempdir()) / "mousetrack" / default)
-    return str(p)
-
-
-if not OmegaConf.has_resolver("output_or"):
-    OmegaConf.register_new_resolver("output_or", _output_or)
-
-
-@contextlib.contextmanager
-def _terminate_as_exit() -> Iterator[None]:
-    """SIGTERM (a `kill`, a job scheduler's time limit) raises SystemExit in the main thread,
-    so atomic writers remove their temporary files on the way out (SIGKILL cannot be caught)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):  # noqa: ARG001
-        raise SystemExit(128 + signum)
-
-    before = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, before)
-
-
 def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
-    """Call an app's `run(cfg)`; bad input or config (ValueError, whose message names the file,
+    """Call an app's `run(cfg)` through the one error handler of every app
+    (`deformnet.apprun.run_app`): bad input or config (ValueError, whose message names the file,
     camera, part or frame, or an OmegaConf error about a setting) is one logged line and exit
-    status 2, an unwritable output folder (OSError) too, never a traceback. Settings
-    (`check_settings`) and ``output.dir`` (`prepare_output`) are checked before `run`; the
-    per-project settings the console script added are logged first (`deformnet.project`)."""
-    project.announce()
-    try:
-        with _terminate_as_exit():
-            check_settings(cfg)
-            if OmegaConf.select(cfg, "output.dir", default=None):
-                prepare_output(cfg)  # an unusable output folder before any computing
-            return run(cfg)
-    except (ValueError, OmegaConfBaseException) as exc:
-        log.error("%s", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
-        raise SystemExit(2) from None
-    except OSError as exc:
-        log.error("cannot write the outputs: %s", exc)
-        raise SystemExit(2) from None
+    status 2, an unusable or busy output folder (OSError, `OutputBusy`) too, Ctrl-C exit status
+    130, never a traceback. Settings (`check_settings`) and ``output.dir`` (`prepare_output`,
+    which locks it) are checked before `run`; the per-project settings the console script added
+    are logged first (`deformnet.project`)."""
+    return run_app(run, cfg, check_settings)
 
 
 def hydra_app(run: Callable[[DictConfig], dict], config_name: str) -> Callable[[], None]:
@@ -165,9 +114,15 @@ def setting(
     return out
 
 
+#: the most torch threads a setting may ask for (as `deformnet.threads.MAX_THREADS`, which
+#: imports torch): more is no speed-up, and torch crashes on absurd counts (threads=100000)
+MAX_THREADS = 4 * (os.cpu_count() or 1)
+#: the least detector noise a setting may give, px (keypoint detectors are not this exact; a
+#: smaller sigma gates every detection out: stochastic.sigma_det_px=1e-9 left part-frames empty)
+MIN_SIGMA_PX = 0.01
 #: typed settings of the apps, checked before any work: key -> (kind, lo, hi, may be null)
 SETTINGS = {
-    "threads": ("int", 0, None, True),
+    "threads": ("int", 1, MAX_THREADS, True),
     "progress": ("bool", None, None, False),
     "input.likelihood_threshold": ("float", 0.0, 1.0, False),
     "input.ignore_unknown_parts": ("bool", None, None, False),
@@ -175,20 +130,40 @@ SETTINGS = {
     "triangulate.robust": ("bool", None, None, False),
     "triangulate.max_error_px": ("float", 0.0, None, False),
     "triangulate.min_views": ("int", 2, None, False),
+    "stochastic.estimate": ("bool", None, None, False),
+    "stochastic.max_error_px": ("float", MIN_SIGMA_PX, None, False),
+    "stochastic.gate_sigmas": ("float", 0.1, None, False),
+    "stochastic.sigma_det_px": ("float", MIN_SIGMA_PX, 1000.0, True),
     "deform.max_error_px": ("float", 0.0, None, False),
     "deform.gate_mm": ("float", 0.0, None, False),
     "deform.batch_size": ("int", 1, None, False),
     "deform.max_iterations": ("int", 0, None, True),
     "deform.rigid_first": ("bool", None, None, False),
+    "deform.threads": ("int", 1, MAX_THREADS, True),
+    "deform.sigma_def_mm": ("float", 0.0, None, True),
+    "adapt.threads": ("int", 1, MAX_THREADS, True),
+    "adapt.val_fraction": ("float", 0.01, 0.9, False),
+    "adapt.augment.mirror": ("float", 0.0, 1.0, False),
+    "adapt.augment.reverse": ("float", 0.0, 1.0, False),
+    "inferred.below": ("float", 0.0, 1.0, False),
+    "inferred.max_sigma_mm": ("float", 0.0, None, True),
+    "contact.on_mm": ("float", 0.0, None, False),
+    "contact.off_mm": ("float", 0.0, None, False),
 }
-#: lower bounds of solver settings beyond ">= 0" (SolverConfig checks the rest)
-_SOLVER_LO = {"grid_size": 3}
+#: bounds of solver settings beyond ">= 0" (SolverConfig checks the rest): key -> (lo, hi)
+_SOLVER_BOUNDS = {
+    "grid_size": (3, None),
+    "sigma_det_px": (MIN_SIGMA_PX, 1000.0),
+    "num_threads": (0, MAX_THREADS),
+    "min_weight": (0.0, 1.0),
+}
 
 
 def check_settings(cfg) -> None:
     """Settings of the wrong type or range (``solver.max_iterations=abc``, ``=2.5``, ``=-3``,
-    ``threads=abc``) are a ValueError naming the setting and what it accepts. Checks the keys of
-    `SETTINGS` and every number of the ``solver`` node (typed by `adjust.lsq.SolverConfig`)."""
+    ``threads=abc``, ``threads=100000``, ``stochastic.sigma_det_px=1e-9``) are a ValueError
+    naming the setting and what it accepts. Checks the keys of `SETTINGS` (those the app has)
+    and every number of the ``solver`` node (typed by `adjust.lsq.SolverConfig`)."""
     if not isinstance(cfg, DictConfig):
         return
     for key, (kind, lo, hi, nullable) in SETTINGS.items():
@@ -214,72 +189,32 @@ def check_settings(cfg) -> None:
         )
         if kind is None:
             continue
-        lo = _SOLVER_LO.get(f.name, 0) if kind != "bool" else None
-        setting(solver, f.name, kind, lo=lo, allow_none=True, prefix="solver.")
+        lo, hi = _SOLVER_BOUNDS.get(f.name, (0, None)) if kind != "bool" else (None, None)
+        setting(solver, f.name, kind, lo=lo, hi=hi, allow_none=True, prefix="solver.")
 
 
-def prepare_output(cfg) -> Path:
-    """The app's output folder (`deformnet.paths.output_dir`), checked before any computing:
-    a file in its place, a folder that cannot be created or written is a ValueError naming it."""
-    from deformnet.paths import output_dir
-
-    given = (
-        OmegaConf.select(cfg, "output.dir", default=None) if isinstance(cfg, DictConfig) else None
-    )
-    if given:
-        p = Path(str(given))
-        probe = p
-        while not probe.exists() and probe != probe.parent:
-            probe = probe.parent
-        if probe.exists() and not probe.is_dir():
-            raise ValueError(f"output.dir={p}: {probe} is a file, not a folder")
-    try:
-        out = output_dir(cfg)
-    except OSError as exc:
-        raise ValueError(f"output folder cannot be created: {exc}") from None
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=".write-test.", dir=out)
-        os.close(fd)
-        os.unlink(tmp)
-    except OSError as exc:
-        raise ValueError(f"output folder {out} is not writable: {exc.strerror or exc}") from None
-    return out
-
-
-def file_digest(path: str | os.PathLike) -> str:
-    """sha256 of a file's bytes (hex): how a summary names the exact outputs it describes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def write_outputs(out: Path, write_points: Callable[[Path], Path], summary: dict) -> dict:
-    """Write ``points3d.csv`` and ``summary.json`` into `out` so that a reader never sees a new
-    one beside an old other: the old summary is removed first, the points written (atomically),
-    then the summary (atomically, last), which records the points file's sha256 and size
-    (``outputs.points3d_sha256``). A summary present is therefore always the one of the points
-    beside it. Returns the summary as written."""
-    import json
-
-    from deformnet.atomic import write_text
-
-    summary_path = out / "summary.json"
-    summary_path.unlink(missing_ok=True)
-    points_path = write_points(out / "points3d.csv")
+def write_outputs(
+    out: Path,
+    write_points: Callable[[Path], Path],
+    summary: dict,
+    outputs: OutputSet | None = None,
+) -> dict:
+    """Write ``points3d.csv`` and ``summary.json`` into `out` as one set (`OutputSet`): a
+    reader never sees a new one beside an old other, and a run stopped at any moment (SIGKILL
+    included) leaves the previous pair. The summary, written last, records every file's sha256
+    and size (``outputs.files``; ``outputs.points3d_sha256``). With `outputs` (an open
+    `OutputSet` of `out` holding the run's other files) the points join that set and it is
+    committed here. Returns the summary as written."""
+    if outputs is None:
+        with OutputSet(out) as staged:
+            return write_outputs(out, write_points, summary, staged)
+    write_points(outputs.path("points3d.csv"))
     summary = dict(summary)
-    outputs = dict(summary.get("outputs") or {})
-    outputs.update(
-        points3d=str(points_path),
-        summary=str(summary_path),
-        points3d_sha256=file_digest(points_path),
-        points3d_bytes=points_path.stat().st_size,
-    )
-    summary["outputs"] = outputs
-    summary = finite_or_none(summary)
-    write_text(summary_path, json.dumps(summary, indent=2) + "\n")
-    return summary
+    summary["outputs"] = {
+        **dict(summary.get("outputs") or {}),
+        "points3d": str(outputs.final("points3d.csv")),
+    }
+    return outputs.commit(summary)
 
 
 def required(cfg: DictConfig, key: str, config_name: str) -> str:

@@ -19,8 +19,8 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from adjust.app import run_or_exit
 from adjust.scene import default_rig, simulate_scene, write_scene
-from deformnet import project
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.confutil import int_setting
@@ -97,9 +97,8 @@ def run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="scene", version_base=None)
 def _app(cfg: DictConfig) -> None:
-    project.announce()
     log.debug("config:\n%s", OmegaConf.to_yaml(cfg))
-    res = run(cfg)
+    res = run_or_exit(run, cfg)  # bad input or config: one line, exit 2
     f = res["fractions"]
     print(
         f"scene written to {Path(res['dir']).resolve()}\n"

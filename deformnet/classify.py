@@ -44,7 +44,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
-from deformnet import project
+from deformnet.apprun import run_app
 from deformnet.atomic import finite_or_none, write_text
 from deformnet.behavior_labels import (
     Session,
@@ -1476,15 +1476,16 @@ def run(cfg: DictConfig) -> dict:
     return _train(cfg, out) if mode == "train" else _predict(cfg, out)
 
 
+def _quiet_run(cfg: DictConfig) -> dict:
+    with quiet_lightning():  # no Lightning tips or deprecations on the console
+        return run(cfg)
+
+
 @hydra.main(config_path=str(CONF_DIR), config_name="classify", version_base=None)
 def main(cfg: DictConfig) -> None:
-    project.announce()
-    try:
-        with quiet_lightning():  # no Lightning tips or deprecations on the console
-            run(cfg)
-    except ValueError as exc:  # bad input or config: one line naming the file / row, exit 2
-        log.error("%s", exc)
-        raise SystemExit(2) from None
+    # one error handler (deformnet.apprun): bad input or config (one line naming the file or
+    # row), an unusable or busy output.dir: exit 2; Ctrl-C: exit 130
+    run_app(_quiet_run, cfg)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from deformnet import project
+from deformnet.apprun import run_app
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
 from deformnet.quiet import quiet_lightning
@@ -359,15 +359,16 @@ def _run(cfg: DictConfig) -> dict:
     return result
 
 
+def _quiet_run(cfg: DictConfig) -> dict:
+    with quiet_lightning():  # no Lightning tips or deprecations on the console
+        return run(cfg)
+
+
 @hydra.main(config_path=str(CONF_DIR), config_name="train", version_base=None)
 def main(cfg: DictConfig) -> None:
-    project.announce()
-    try:
-        with quiet_lightning():  # no Lightning tips or deprecations on the console
-            run(cfg)
-    except ValueError as exc:  # bad input or config (a refused checkpoint...): one line, exit 2
-        log.error("%s", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
-        raise SystemExit(2) from None
+    # one error handler (deformnet.apprun): bad input or config (a refused checkpoint...), an
+    # unusable or busy output.dir: one line, exit 2; Ctrl-C: exit 130
+    run_app(_quiet_run, cfg)
 
 
 if __name__ == "__main__":

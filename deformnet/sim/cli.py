@@ -14,7 +14,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from deformnet import project
+from deformnet.apprun import run_app
 from deformnet.body import BodyModel
 from deformnet.confutil import int_setting
 from deformnet.paths import CONF_DIR, output_dir
@@ -57,8 +57,7 @@ def run(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="simulate", version_base=None)
 def _app(cfg: DictConfig) -> None:
-    project.announce()
-    print(json.dumps(run(cfg), indent=2))
+    print(json.dumps(run_app(run, cfg), indent=2))  # one error handler: bad input is exit 2
 
 
 def main() -> None:
