@@ -4,9 +4,12 @@ Hydra's multirun gives one job per session, through the launcher chosen on the c
 the basic one (sequential), ``hydra/launcher=joblib`` (local processes in parallel) or
 ``hydra/launcher=slurm`` (SLURM array jobs through submitit, ``conf/hydra/launcher/slurm.yaml``).
 Each job runs `run_session`, which never raises: it tracks the session into its own folder
-(``runs/batch/<time>/<session name>/``), or records why it failed, or skips it when an earlier
-batch already tracked the same inputs with the same settings and its outputs are newer than the
-inputs (``force=true`` re-runs), and writes one status row (``batch_status.json``). After the
+(``runs/batch/<time>/<session name>/``, locked while it runs: `deformnet.outputs`), or records
+why it failed, or skips it when an earlier batch already tracked the same inputs with the same
+settings: the sha256 of the calibration's and the detection files' contents (`inputs_digest`)
+and of the settings (`settings_hash`) match those its status row recorded; file times are not
+consulted (``rsync -a`` and ``cp -p`` keep an old time on a changed file). ``force=true``
+re-runs. Each job writes one status row (``batch_status.json``). After the
 last job the `BatchSummary` callback collects this batch's rows into ``summary.csv`` in the sweep
 folder (`SUMMARY_COLUMNS`): ``runs/batch/<time>/summary.csv``, or ``OUTPUT_DIR/summary.csv`` with
 ``output.dir`` set (the sweep folder is then ``output.dir``: each session's outputs, log and
@@ -28,9 +31,11 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from adjust.io.scene import SUFFIXES
 from adjust.session import SESSION_KEY, session_name, with_session
 from deformnet import project
 from deformnet.atomic import write_text
+from deformnet.outputs import output_lock, recover_outputs
 
 log = logging.getLogger(__name__)
 
@@ -73,18 +78,40 @@ def settings_hash(cfg: DictConfig) -> str:
     return hashlib.sha256(json.dumps(c, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def _input_mtime(calibration: Path, detections: Path) -> float:
-    times = [calibration.stat().st_mtime] if calibration.is_file() else []
+def inputs_digest(calibration: Path, detections: Path) -> str:
+    """sha256 (hex) of a session's inputs: the calibration file's bytes and every detection
+    file's name and bytes (the files `adjust.io.scene` may read: ``.csv``, ``.h5``, ``.hdf5``,
+    ``.slp``, not hidden; a detections path that is a file: that file). A missing input hashes
+    as missing (the run reports it)."""
+    h = hashlib.sha256()
+    files = [("calibration", calibration)]
     if detections.is_dir():
-        times += [p.stat().st_mtime for p in detections.iterdir() if p.is_file()]
-    elif detections.is_file():
-        times.append(detections.stat().st_mtime)
-    return max(times) if times else float("inf")
+        files += sorted(
+            (p.name, p)
+            for p in detections.iterdir()
+            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in SUFFIXES
+        )
+    else:
+        files.append((detections.name, detections))
+    for name, path in files:
+        h.update(name.encode() + b"\0")
+        try:
+            with open(path, "rb") as fh:
+                for block in iter(lambda fh=fh: fh.read(1 << 20), b""):
+                    h.update(block)
+        except OSError:
+            h.update(b"<missing>")
+        h.update(b"\0")
+    return h.hexdigest()
 
 
-def _done(folder: Path, calibration: Path, detections: Path, settings: str) -> dict | None:
-    """The summary of a finished run of these inputs and settings in ``folder`` whose outputs
-    are newer than the inputs, else None."""
+def _done(folder: Path, calibration: Path, detections: Path, settings: str, inputs: str):
+    """The summary of a finished run in ``folder`` of inputs with this content digest
+    (`inputs_digest`) and these settings whose outputs are whole (the summary's sha256 of
+    ``points3d.csv`` matches the file), else None."""
+    from deformnet.atomic import file_digest
+
+    recover_outputs(folder)  # a commit interrupted by a kill: completed first
     outputs = [folder / "points3d.csv", folder / "summary.json"]
     status_path = folder / STATUS_FILE
     if not all(p.is_file() for p in outputs) or not status_path.is_file():
@@ -94,23 +121,29 @@ def _done(folder: Path, calibration: Path, detections: Path, settings: str) -> d
         summary = json.loads(outputs[1].read_text())
     except (OSError, ValueError):
         return None
-    inputs = summary.get("inputs", {})
+    given = summary.get("inputs", {})
     if status.get("status") not in ("ok", "skipped") or status.get("settings") != settings:
         return None
-    if inputs.get("calibration") != str(calibration.resolve()) or inputs.get("detections") != str(
+    if status.get("inputs_sha256") != inputs:  # contents, not file times
+        return None
+    if given.get("calibration") != str(calibration.resolve()) or given.get("detections") != str(
         detections.resolve()
     ):
         return None
-    if min(p.stat().st_mtime for p in outputs) <= _input_mtime(calibration, detections):
+    recorded = (summary.get("outputs") or {}).get("points3d_sha256")
+    if recorded is not None and recorded != file_digest(outputs[0]):
         return None
     return summary
 
 
 def previous_run(
-    out: Path, calibration: Path, detections: Path, settings: str
+    out: Path, calibration: Path, detections: Path, settings: str, inputs: str | None = None
 ) -> tuple[Path, dict] | None:
     """An earlier finished run of this session: in its own output folder, or in the folder of
-    the same name of a sibling batch (``runs/batch/*/<name>``), newest first."""
+    the same name of a sibling batch (``runs/batch/*/<name>``), newest first. inputs: the
+    inputs' `inputs_digest` (default: computed)."""
+    if inputs is None:
+        inputs = inputs_digest(calibration, detections)
     candidates = [out]
     batches = out.parent.parent
     if batches.is_dir():
@@ -119,7 +152,7 @@ def previous_run(
             (p for p in sib if p.is_dir()), key=lambda p: p.stat().st_mtime, reverse=True
         )
     for folder in candidates:
-        summary = _done(folder, calibration, detections, settings)
+        summary = _done(folder, calibration, detections, settings, inputs)
         if summary is not None:
             return folder, summary
     return None
@@ -167,20 +200,22 @@ def run_session(cfg: DictConfig, job_dir: str | Path | None = None) -> dict:
         cfg = with_session(cfg)
         calibration = Path(str(OmegaConf.select(cfg, "input.calibration")))
         detections = Path(str(OmegaConf.select(cfg, "input.detections")))
+        row["inputs_sha256"] = inputs_digest(calibration, detections)
         prev = None
         if not bool(cfg.get("force", False)):
-            prev = previous_run(out, calibration, detections, row["settings"])
+            prev = previous_run(out, calibration, detections, row["settings"], row["inputs_sha256"])
         if prev is not None:
             folder, summary = prev
             row.update(status="skipped", output=str(folder))
-            row["error"] = "outputs newer than the inputs (force=true re-runs)"
+            row["error"] = "done with the same inputs (sha256) and settings (force=true re-runs)"
             _row_from_summary(row, summary)
             log.info("session %s: skipped, done in %s", name, folder)
         else:
             cfg = cfg.copy()
             with open_dict(cfg):
                 cfg.output.dir = str(out)
-            summary = run(cfg)
+            with output_lock(out):  # another run in this session's folder: this one fails
+                summary = run(cfg)
             row["status"] = "ok"
             _row_from_summary(row, summary)
     except Exception as exc:  # noqa: BLE001 - one failed session must not stop the batch

@@ -112,7 +112,7 @@ def test_rerun_skips_finished_sessions_unless_forced(sessions, first_batch, monk
         assert not (runs / "b2" / name / "points3d.csv").exists()
     assert rows["b_broken"]["status"] == "failed"  # no outputs: tried again
 
-    # force=true, new settings, or inputs newer than the outputs: tracked again
+    # force=true, new settings, or inputs whose contents changed: tracked again
     a = sessions / "a_ok"
     code = _multirun(
         monkeypatch, [f"input.session={a}", f"hydra.sweep.dir={runs / 'b3'}", "force=true"]
@@ -124,11 +124,21 @@ def test_rerun_skips_finished_sessions_unless_forced(sessions, first_batch, monk
     ov = [f"input.session={c}", "input.likelihood_threshold=0.6"]
     _multirun(monkeypatch, [*ov, f"hydra.sweep.dir={runs / 'b4'}"])
     assert _rows(runs / "b4")["c_ok"]["status"] == "ok"
-    det = next((c / "detections").iterdir())
+    # decided by contents, not file times: a newer time alone skips; a changed file with an
+    # older time (rsync -a, cp -p) is tracked again
+    det = sorted((c / "detections").iterdir())[0]
     future = time.time() + 60
     os.utime(det, (future, future))
     _multirun(monkeypatch, [*ov, f"hydra.sweep.dir={runs / 'b5'}"])
-    assert _rows(runs / "b5")["c_ok"]["status"] == "ok"
+    assert _rows(runs / "b5")["c_ok"]["status"] == "skipped"
+    old = det.stat().st_mtime - 3600
+    lines = det.read_text().splitlines()
+    cells = lines[-1].split(",")
+    cells[1] = repr(float(cells[1]) + 0.5) if cells[1] else cells[1]  # one x moved half a pixel
+    det.write_text("\n".join([*lines[:-1], ",".join(cells)]) + "\n")
+    os.utime(det, (old, old))
+    _multirun(monkeypatch, [*ov, f"hydra.sweep.dir={runs / 'b6'}"])
+    assert _rows(runs / "b6")["c_ok"]["status"] == "ok"
 
 
 def test_batch_into_output_dir_and_its_exit_status(sessions, tmp_path, monkeypatch, capfd):
