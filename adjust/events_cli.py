@@ -106,6 +106,11 @@ def run(cfg: DictConfig) -> dict:
     fps = track_fps(cfg)
     min_frames, merge_gap = contact_frames(cfg, fps)
     tr = read_points3d(tracks)
+    if tr["fnum"].dtype.kind not in "iu":
+        raise InputError(
+            f"{tracks}: fnum holds labelled images' names ({', '.join(map(str, tr['fnum'][:2]))}"
+            ", ...), not a video's frame numbers: events need tracks of a recording"
+        )
     parts = list(tr["parts"])
     use = [str(p) for p in (cfg.get("parts") or parts)]
     missing = [p for p in use if p not in parts]

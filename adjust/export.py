@@ -72,6 +72,8 @@ __all__ = [
 #: the NWB objects this module writes; POSE_NAME is what ndx-pose readers (movement) look for
 POSE_NAME = "PoseEstimation"
 LEGACY_POSE_NAMES = ("PoseEstimation3D",)  # earlier exports, still read by read_nwb_tracks
+#: ndx-pose's Skeleton stores edges as uint8 node indices: edges only up to this many parts
+MAX_SKELETON_NODES = 256
 BOUTS_NAME = "behavior_bouts"
 EVENTS_NAME = "lockbox_events"
 BOUTS_COLUMNS = ("start", "stop", "label")
@@ -141,7 +143,15 @@ def read_intervals(
     if back.size:
         r = int(back[0])
         raise InputError(f"{path}: stop before start at row {r}")
-    extra = {c: df[c].to_numpy() for c in df.columns if c not in ("start", "stop")}
+    extra = {}
+    for c in df.columns:
+        if c in ("start", "stop"):
+            continue
+        values = df[c]
+        if pd.api.types.is_numeric_dtype(values) or pd.api.types.is_bool_dtype(values):
+            extra[c] = values.to_numpy()
+        else:  # text, or text mixed with numbers and empty cells: one column of text
+            extra[c] = np.array(["" if pd.isna(v) else str(v) for v in values], dtype=object)
     return times["start"], times["stop"], extra
 
 
@@ -372,6 +382,15 @@ def write_nwb(
             f"{len(cameras)}"
         )
     pairs, skeleton_source = resolve_skeleton(parts, d["points"], edges, skeleton, detections)
+    if len(parts) > MAX_SKELETON_NODES and len(pairs):  # ndx-pose: edges are uint8 indices
+        log.warning(
+            "%s: %d parts; ndx-pose stores a skeleton's edges as node indices 0..%d, so the "
+            "NWB skeleton lists the parts without edges (the tracks are all written)",
+            tracks,
+            len(parts),
+            MAX_SKELETON_NODES - 1,
+        )
+        pairs, skeleton_source = [], f"{skeleton_source} (edges left out: > 256 parts)"
     d = align_tracks(d, axes, origin)
     points, M, center = d["points"], d["M"], d["center"]
     aligned = not (np.array_equal(M, np.eye(3)) and np.array_equal(center, np.zeros(3)))
@@ -423,7 +442,7 @@ def write_nwb(
     skel = Skeleton(
         name="subject",
         nodes=parts,
-        edges=np.asarray(pairs, dtype=np.uint8).reshape(-1, 2),
+        edges=np.asarray(pairs, dtype=np.uint8).reshape(-1, 2) if len(pairs) else None,
     )
     behavior.add(Skeletons(skeletons=[skel]))
     if aligned:
@@ -666,7 +685,10 @@ def read_nwb_tracks(path: str | os.PathLike) -> dict:
                 [pose.pose_estimation_series[p].confidence[:] for p in nodes], 1
             ),
             "timestamps": np.asarray(pose.pose_estimation_series[nodes[0]].get_timestamps()),
-            "skeleton_edges": [tuple(int(i) for i in e) for e in pose.skeleton.edges[:]],
+            "skeleton_edges": [
+                tuple(int(i) for i in e)
+                for e in (pose.skeleton.edges[:] if pose.skeleton.edges is not None else [])
+            ],
             "cameras": {
                 name: {
                     "K": np.asarray(dev.intrinsic_matrix[:]),

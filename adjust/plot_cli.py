@@ -97,18 +97,27 @@ def parse_clip(clip) -> tuple[int, int] | None:
     return a, b
 
 
-def _rows(fnum: np.ndarray, frames, T: int) -> list[tuple[int, int]]:
-    """[(frame number, row)] for the chosen frame numbers (default: 3 evenly spaced rows)."""
+def _frame_label(value) -> int | str:
+    """A frame number (int) or a labelled image's name (str, e.g. ``img001``, without its
+    suffix, for file names)."""
+    if isinstance(value, int | np.integer):
+        return int(value)
+    return Path(str(value)).stem or str(value)
+
+
+def _rows(fnum: np.ndarray, frames, T: int) -> list[tuple[int | str, int]]:
+    """[(frame number or labelled image, row)] for the chosen frames (fnum values; default:
+    3 evenly spaced rows)."""
     fn = np.asarray(fnum)
     if not frames:
         rows = np.unique(np.linspace(0, T - 1, min(3, T)).round().astype(int))
-        return [(int(fn[r]) if np.issubdtype(fn.dtype, np.number) else r, int(r)) for r in rows]
+        return [(_frame_label(fn[r]), int(r)) for r in rows]
     out = []
     for f in frames:
         hit = np.flatnonzero(fn.astype(str) == str(f))
         if not hit.size:
             raise InputError(f"frames: frame {f} is not in the tracks (fnum {fn[0]}..{fn[-1]})")
-        out.append((int(f), int(hit[0])))
+        out.append((_frame_label(fn[hit[0]]), int(hit[0])))
     return out
 
 
