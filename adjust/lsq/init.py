@@ -175,8 +175,10 @@ def consistent_fits(
     or PnP in one camera, can flip).
 
     poses (T, 6) model -> global, ok (T,) bool: the fits; strong (T,) bool: the fits to trust
-    first (Kabsch on >= 4 triangulated parts). A strong fit is kept when it is within `max_deg`
-    of at least half of the strong fits within `window` frames on either side (or has none);
+    first (Kabsch on >= 4 triangulated parts). A strong fit is kept when it is within
+    `max_deg` (``max_deg * d / 2`` for a fit d > 2 frames away: a steady turn of 17 degrees a
+    frame is kept) of at least half of the strong fits within `window` frames on either side
+    (or has none);
     a weak fit (3 parts, PnP) when it is within `max_deg` of the kept strong fits' rotation
     slerp-interpolated to its frame (`interpolate_poses`). O(T window). The window is short (5
     frames: 0.17 s at 30 fps) so that a fast real turn is not taken for a flip (15 frames cost
@@ -193,7 +195,8 @@ def consistent_fits(
     near = torch.zeros(T, dtype=torch.long)
     for d in range(1, min(window, T - 1) + 1):
         both = strong[:-d] & strong[d:]
-        close = both & (_angle_deg(R[:-d], R[d:]) <= max_deg)
+        # a body turning steadily moves away from its neighbours: more leeway farther out
+        close = both & (_angle_deg(R[:-d], R[d:]) <= max_deg * max(1.0, d / 2))
         near[:-d] += both
         near[d:] += both
         agree[:-d] += close
