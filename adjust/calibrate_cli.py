@@ -33,6 +33,7 @@ from adjust.app import finite_or_none, hydra_app, prepare_output, required, sett
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import InputError, load_calibration, read_dlc, save_calibration
 from deformnet.atomic import write_text
+from deformnet.paths import regular_file
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +42,7 @@ def read_points_csv(path: str | Path, coords: tuple[str, ...]) -> dict[str, np.n
     """A CSV with a header ``name`` plus `coords` (e.g. x,y,z or u,v; case-insensitive; for
     2D also x,y) -> {name: (len(coords),) float64}. Empty coordinate cells: the point is not
     visible (left out)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"points file not found: {path}")
+    path = regular_file(path, "points file", InputError)  # a FIFO or device: never opened
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]

@@ -24,6 +24,7 @@ from adjust.app import hydra_app, required
 from adjust.export import FILE_KEYS, SUBJECT_KEYS, write_anipose, write_nwb
 from adjust.io.errors import InputError
 from adjust.kinematics import angles_csv
+from deformnet.paths import regular_file
 
 log = logging.getLogger(__name__)
 
@@ -89,9 +90,7 @@ def run(cfg: DictConfig) -> dict:
     fmt = str(cfg.get("format") or "nwb")
     if fmt not in FORMATS:
         raise ValueError(f"adjust-export: unknown format {fmt!r} (known: {list(FORMATS)})")
-    tracks = Path(required(cfg, "tracks", "export"))
-    if not tracks.is_file():
-        raise InputError(f"tracks file not found: {tracks}")
+    tracks = regular_file(required(cfg, "tracks", "export"), "tracks file", InputError)
     out = _opt(cfg, "output")
     out = (
         Path(str(out))

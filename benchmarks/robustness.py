@@ -1,31 +1,53 @@
-"""Robustness: defective inputs through adjust-triangulate and adjust-track, as a user runs them.
+"""Robustness: defective inputs through every console script, as a user runs them.
 
 A small simulated scene (default rig: 3 cameras; `adjust-simulate`, with ground truth) is
 copied and spoilt in a fixed list of ways (detections, calibration, settings, outputs,
-checkpoints), plus the shared real SLEAP mouse whose `side` camera has a wrong pose. Every case
-runs through the console scripts as subprocesses; per case and app the table shows the exit
-code, whether a traceback appeared, whether ``points3d.csv`` was written, whether it holds
-empty or absurd values (no finite point at all; a coordinate beyond 10 m; RMSE against the
-ground truth, matched by ``fnum``, above 25 mm or 3x the clean run's), and whether a hidden
-temporary file was left. A *silent wrong result* is exit 0 with empty or absurd output.
-Target: zero silent wrong results, zero tracebacks. Last line JSON (counts), also written to
+checkpoints), plus the shared real SLEAP mouse whose `side` camera has a wrong pose, and run
+through adjust-triangulate and adjust-track; the other console scripts (adjust-simulate,
+adjust-calibrate, adjust-events, adjust-export, adjust-plot, adjust-demo, deformnet-simulate,
+deformnet-train, deformnet-classify) get their own defective inputs and settings (issue 46's
+among them: tracks without rows, more than 255 parts, bouts mixing text and numbers, labelled
+images, frame numbers beyond int64, unusable output folders, FIFOs and devices, absurd thread
+counts and noise levels). Every case runs as a subprocess. Per case the table shows the exit
+code, whether a traceback appeared, and the result: for adjust-triangulate and adjust-track
+whether ``points3d.csv`` was written and whether it holds empty or absurd values (no finite
+point at all; a coordinate beyond 10 m; RMSE against the ground truth, matched by ``fnum``,
+above 25 mm or 3x the clean run's); for a case that must be refused, that it was; for one that
+must work, that its output is there.
+
+*Silent wrong result*: exit 0 with empty or absurd output, or exit 0 where the input must be
+refused (a one-camera session, ``stochastic.sigma_det_px=1e-9``), or exit 0 without the output.
+*Lost data*: a run killed (SIGKILL at a random moment), interrupted (Ctrl-C) or refused (a
+second run into a busy ``output.dir``) after a complete earlier run, whose folder then holds
+neither the earlier run whole nor the new one (a summary that does not describe the files
+beside it, files of two runs, no summary); an interrupted run must exit 130, a refused one 2.
+Targets: zero tracebacks, zero silent wrong results, zero lost data, no code run from a data
+file, nothing in the working directory. Last line JSON (counts), also written to
 runs/benchmarks/robustness.json.
 
-    .venv/bin/python benchmarks/robustness.py [--jobs 2] [--frames 100] [--only NAME,...]
+    .venv/bin/python benchmarks/robustness.py [--jobs 2] [--frames 100] [--only 'NAME;...']
+        [--groups inputs,scripts,lost]
+
+``--groups``: ``inputs`` (the defective sessions through adjust-triangulate and adjust-track),
+``scripts`` (the other console scripts), ``lost`` (killed, interrupted and concurrent runs).
 """
 
 from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import json
 import logging
 import os
+import random
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +58,26 @@ from deformnet.paths import CONF_DIR, shared_dir
 log = logging.getLogger("benchmarks.robustness")
 BIN = Path(sys.executable).parent
 APPS = ("adjust-triangulate", "adjust-track")
+#: every console script (pyproject.toml's [project.scripts])
+SCRIPTS = (
+    "adjust-simulate",
+    "adjust-triangulate",
+    "adjust-track",
+    "adjust-calibrate",
+    "adjust-events",
+    "adjust-export",
+    "adjust-plot",
+    "adjust-demo",
+    "deformnet-simulate",
+    "deformnet-train",
+    "deformnet-classify",
+)
+GROUPS = ("inputs", "scripts", "lost")
 TRACK_FAST = ["progress=false", "solver.max_iterations=8"]
 CAMERAS = ("top", "side", "front")  # the default rig's
+ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+#: the outputs of adjust-triangulate / adjust-track that must belong to one run
+OUTPUT_NAMES = ("points3d.csv", "summary.json", "accepted.npz", "tokens.npz", "tracks.nwb")
 
 
 # --- the scene and its spoilt copies -------------------------------------------------------
@@ -183,25 +223,27 @@ def _payload_checkpoint(folder: Path) -> Path:
     return p
 
 
-def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str, ...]]]:
-    """(name, spoil(folder) -> extra overrides, apps). The folder is a fresh copy of `base`."""
+def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str, ...], str]]:
+    """(name, spoil(folder) -> extra overrides, apps, expect). The folder is a fresh copy of
+    `base`; expect: "judge" (exit 0 must come with sound tracks; a refusal is fine) or "error"
+    (the input must be refused: exit 0 is a silent wrong result)."""
     both = APPS
     track = ("adjust-track",)
     tri = ("adjust-triangulate",)
     out = []
 
-    def case(name, apps=both):
+    def case(name, apps=both, expect="judge"):
         """A case whose function spoils the folder and returns its overrides (None: none)."""
 
         def deco(fn):
-            out.append((name, lambda f: fn(f) or [], apps))
+            out.append((name, lambda f: fn(f) or [], apps, expect))
             return fn
 
         return deco
 
-    def setting(name, override=None, apps=both):
+    def setting(name, override=None, apps=both, expect="judge"):
         """A case that only gives an override (`name` itself by default)."""
-        out.append((name, lambda f: [override or name], apps))
+        out.append((name, lambda f: [override or name], apps, expect))
 
     @case("clean")
     def _(f):
@@ -418,7 +460,295 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
     def _(f):
         return [f"deformation={_payload_checkpoint(f)}"]
 
+    # --- issue 46 ---------------------------------------------------------------------------
+    @case("only one camera has detections", expect="error")
+    def _(f):
+        _rewrite(f, "side", _no_detections)
+        _rewrite(f, "front", _no_detections)
+
+    @case("one camera's likelihoods all below the threshold")
+    def _(f):
+        _likelihoods(f, lambda v: 0.1, cams=("front",))
+
+    @case("empty likelihood cells (x, y given) in one camera")
+    def _(f):
+        _column(f, "top", 2, lambda v: "")
+        _column(f, "top", 5, lambda v: "")
+
+    @case("no likelihood column in one camera")
+    def _(f):
+        def drop(rows):
+            keep = [j for j, c in enumerate(rows[2]) if c != "likelihood"]
+            return [[r[j] for j in keep] for r in rows]
+
+        _rewrite(f, "side", drop)
+
+    @case("frame number beyond int64", expect="error")
+    def _(f):
+        _renumber(f, "top", lambda i: i if i < 50 else i + 10**23)
+
+    @case("a FIFO as the calibration", expect="error")
+    def _(f):
+        os.mkfifo(f / "fifo.toml")
+        return [f"input.calibration={f / 'fifo.toml'}"]
+
+    setting("/dev/zero as the calibration", "input.calibration=/dev/zero", expect="error")
+    for name in (
+        "stochastic.sigma_det_px=1e-9",
+        "stochastic.sigma_det_px=-2",
+        "solver.sigma_det_px=0",
+        "threads=100000",
+        "threads=0",
+        "deform.threads=-1",
+    ):
+        setting(name, apps=track, expect="error")
     return out
+
+
+# --- the other console scripts -----------------------------------------------------------------
+
+
+@dataclass
+class Job:
+    """One subprocess run. expect: "judge" (adjust-triangulate / adjust-track: the tracks in
+    `out` judged), "error" (must be refused: exit 2), "ok" (must work: exit 0 and `check()`);
+    mode: "run"; "session" (args: calibration, detections, overrides: `run_case`); for lost
+    data "kill" / "sigint" / "busy" (after a clean run into `out`)."""
+
+    name: str
+    app: str
+    args: list[str]
+    expect: str = "judge"
+    out: Path | None = None
+    truth: dict | None = None
+    check: Callable[[], bool] | None = None
+    mode: str = "run"
+    again: list[str] = field(default_factory=list)  # lost data: the second run's overrides
+
+
+def _tracks_file(path: Path, parts: int, T: int = 30, fnum=None, names=None) -> Path:
+    from adjust.io import write_points3d
+
+    rng = np.random.default_rng(parts)
+    names = names or [f"p{k}" for k in range(parts)]
+    return write_points3d(path, names, rng.normal(0, 20, (T, parts, 3)), np.zeros((T, parts)),
+                          np.full((T, parts), 2), np.ones((T, parts)), fnum=fnum)  # fmt: skip
+
+
+def _calibrate_inputs(base: Path, folder: Path, points: int = 10, plane: bool = False) -> None:
+    """Known 3D points and their images in each camera of `base`'s calibration (name,x,y,z and
+    one name,u,v CSV per camera)."""
+    import torch
+
+    from adjust.camera import CameraTensors, project_cameras
+
+    cams = _cams(base)
+    rng = np.random.default_rng(points)
+    X = rng.uniform(-150, 150, (points, 3)) + np.array([0.0, 0.0, 40.0])
+    if plane:
+        X[:, 2] = 0.0
+    uv = project_cameras(torch.as_tensor(X), CameraTensors.from_cameras(cams, torch.float64))
+    uv = uv.numpy()  # (N, C, 2)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "points3d.csv").write_text(
+        "name,x,y,z\n" + "".join(f"q{i},{a},{b},{c}\n" for i, (a, b, c) in enumerate(X.tolist()))
+    )
+    (folder / "2d").mkdir(exist_ok=True)
+    for c, cam in enumerate(cams):
+        (folder / "2d" / f"{cam.name}.csv").write_text(
+            "name,u,v\n" + "".join(f"q{i},{u},{v}\n" for i, (u, v) in enumerate(uv[:, c].tolist()))
+        )
+
+
+def script_jobs(work: Path, base: Path) -> list[Job]:
+    """Defective inputs and settings of the console scripts other than adjust-triangulate and
+    adjust-track (and their issue-46 cases that need no session copy)."""
+    jobs: list[Job] = []
+    d = work / "scripts"
+    d.mkdir()
+    (d / "afile").write_text("x")
+    tracks = _tracks_file(
+        d / "tracks.csv", 8, T=60, names=list(np.load(base / "truth.npz")["parts"])
+    )
+    empty = d / "empty.csv"
+    empty.write_text(tracks.read_text().splitlines()[0] + "\n")
+    big = _tracks_file(d / "big.csv", 300)
+    labelled = _tracks_file(d / "labelled.csv", 3, fnum=[f"img{i:03d}.png" for i in range(30)])
+    huge = d / "huge.csv"
+    lines = tracks.read_text().splitlines()
+    lines[-1] = lines[-1].rsplit(",", 1)[0] + ",99999999999999999999999"
+    huge.write_text("\n".join(lines) + "\n")
+    bouts = d / "bouts.csv"
+    bouts.write_text("start,stop,label,score\n0,5,walk,0.5\n6,9,,high\n10,12,3,\n")
+    ckpt = _payload_checkpoint(d)
+    nwb = ["fps=100", "session_start_time=2026-01-01T00:00:00", "subject.subject_id=m1",
+           "subject.species=Mus musculus", "subject.sex=F", "subject.age=P90D"]  # fmt: skip
+    mech = "mechanisms={lever: [0.0, 0.0, 0.0]}"
+    o = d / "out"
+
+    def job(name, app, args, expect="error", check=None):
+        jobs.append(Job(name, app, [str(a) for a in args], expect, check=check))
+
+    def exists(*paths):
+        return lambda: all(Path(p).is_file() for p in paths)
+
+    # adjust-simulate
+    job(
+        "simulate: a small scene",
+        "adjust-simulate",
+        [f"output.dir={o}/sim", "num_frames=20"],
+        "ok",
+        exists(o / "sim" / "calibration.toml", o / "sim" / "detections" / "top.csv"),
+    )
+    job("simulate: num_frames=-5", "adjust-simulate", [f"output.dir={o}/sim2", "num_frames=-5"])
+    job("simulate: output.dir is a file", "adjust-simulate", [f"output.dir={d}/afile"])
+    # adjust-calibrate
+    _calibrate_inputs(base, d / "cal")
+    _calibrate_inputs(base, d / "plane", plane=True)
+    cal = [f"input.points3d={d}/cal/points3d.csv", f"input.points2d={d}/cal/2d",
+           "input.size=[1280,1024]"]  # fmt: skip
+    job(
+        "calibrate: known points",
+        "adjust-calibrate",
+        [*cal, f"output.dir={o}/cal"],
+        "ok",
+        exists(o / "cal" / "calibration.toml"),
+    )
+    job("calibrate: points in one plane", "adjust-calibrate",
+        [f"input.points3d={d}/plane/points3d.csv", f"input.points2d={d}/plane/2d",
+         "input.size=[1280,1024]", f"output.dir={o}/cal2"])  # fmt: skip
+    job("calibrate: /dev/zero as the 3D points", "adjust-calibrate",
+        ["input.points3d=/dev/zero", f"input.points2d={d}/cal/2d", "input.size=[1280,1024]",
+         f"output.dir={o}/cal3"])  # fmt: skip
+    # adjust-events
+    job(
+        "events: tracks",
+        "adjust-events",
+        [f"tracks={tracks}", mech, f"output.dir={o}/ev"],
+        "ok",
+        exists(o / "ev" / "events.csv"),
+    )
+    ev = f"output.dir={o}/ev2"
+    job("events: tracks without rows", "adjust-events", [f"tracks={empty}", mech, ev])
+    job("events: labelled images", "adjust-events", [f"tracks={labelled}", "parts=[p0]", mech, ev])
+    job("events: frame number beyond int64", "adjust-events", [f"tracks={huge}", mech, ev])
+    job("events: no mechanisms", "adjust-events", [f"tracks={tracks}", ev])
+    job("events: /dev/zero as tracks", "adjust-events", ["tracks=/dev/zero", mech, ev])
+    job("events: inferred.below=2", "adjust-events", [f"tracks={tracks}", mech, "inferred.below=2",
+        ev])  # fmt: skip
+    # adjust-export
+    job(
+        "export: nwb",
+        "adjust-export",
+        ["nwb", f"tracks={tracks}", *nwb, f"output={o}/t.nwb"],
+        "ok",
+        exists(o / "t.nwb"),
+    )
+    job(
+        "export: more than 255 parts (nwb)",
+        "adjust-export",
+        ["nwb", f"tracks={big}", *nwb, f"output={o}/big.nwb"],
+        "ok",
+        exists(o / "big.nwb"),
+    )
+    job("export: bouts mixing text and numbers", "adjust-export",
+        ["nwb", f"tracks={tracks}", *nwb, f"bouts={bouts}", f"output={o}/b.nwb"], "ok",
+        exists(o / "b.nwb"))  # fmt: skip
+    job("export: tracks without rows", "adjust-export", ["anipose", f"tracks={empty}",
+        f"output={o}/e.csv"])  # fmt: skip
+    job("export: frame number beyond int64", "adjust-export", ["nwb", f"tracks={huge}", *nwb,
+        f"output={o}/h.nwb"])  # fmt: skip
+    job("export: unknown format", "adjust-export", ["xlsx", f"tracks={tracks}"])
+    job("export: no fps", "adjust-export", ["nwb", f"tracks={tracks}", f"output={o}/n.nwb"])
+    job("export: /dev/zero as tracks", "adjust-export", ["anipose", "tracks=/dev/zero",
+        f"output={o}/z.csv"])  # fmt: skip
+    job(
+        "export: output in an unwritable place",
+        "adjust-export",
+        ["anipose", f"tracks={tracks}", "output=/proc/mousetrack/x.csv"],
+    )
+    # adjust-plot
+    job(
+        "plot: tracks",
+        "adjust-plot",
+        [f"tracks={tracks}", f"output.dir={o}/pl"],
+        "ok",
+        exists(o / "pl" / "body3d.png"),
+    )
+    job(
+        "plot: labelled images",
+        "adjust-plot",
+        [f"tracks={labelled}", f"output.dir={o}/pl2"],
+        "ok",
+        exists(o / "pl2" / "body3d.png"),
+    )
+    job("plot: tracks without rows", "adjust-plot", [f"tracks={empty}", f"output.dir={o}/pl3"])
+    job("plot: frame number beyond int64", "adjust-plot", [f"tracks={huge}",
+        f"output.dir={o}/pl4"])  # fmt: skip
+    job("plot: output.dir is a file", "adjust-plot", [f"tracks={tracks}", f"output.dir={d}/afile"])
+    # adjust-demo (its failures only: a demo run takes minutes)
+    job("demo: threads=100000", "adjust-demo", [f"output.dir={o}/demo", "threads=100000"])
+    job("demo: output.dir is a file", "adjust-demo", [f"output.dir={d}/afile"])
+    # deformnet-simulate
+    job(
+        "deformnet-simulate: a short run",
+        "deformnet-simulate",
+        [f"output.dir={o}/dsim", "num_frames=50"],
+        "ok",
+        exists(o / "dsim" / "sim.npz"),
+    )
+    job(
+        "deformnet-simulate: num_frames=abc",
+        "deformnet-simulate",
+        [f"output.dir={o}/dsim2", "num_frames=abc"],
+    )
+    job(
+        "deformnet-simulate: output.dir unusable",
+        "deformnet-simulate",
+        ["output.dir=/proc/mousetrack/x"],
+    )
+    # deformnet-train
+    job("train: output.dir unusable", "deformnet-train", ["output.dir=/proc/mousetrack/x"])
+    job("train: output.dir is a file", "deformnet-train", [f"output.dir={d}/afile/x"])
+    job(
+        "train: pretrained with a pickle payload",
+        "deformnet-train",
+        [f"pretrained={ckpt}", f"output.dir={o}/tr"],
+    )
+    job("train: pretrained=/dev/zero", "deformnet-train", ["pretrained=/dev/zero",
+        f"output.dir={o}/tr2"])  # fmt: skip
+    job("train: threads=100000", "deformnet-train", ["threads=100000", f"output.dir={o}/tr3"])
+    # deformnet-classify
+    job("classify: output.dir is a file", "deformnet-classify", [f"output.dir={d}/afile/x"])
+    job("classify: output.dir unusable", "deformnet-classify", ["output.dir=/proc/mousetrack/x"])
+    job("classify: mode=bogus", "deformnet-classify", ["mode=bogus", f"output.dir={o}/cl"])
+    job(
+        "classify: predict with a pickle payload",
+        "deformnet-classify",
+        ["mode=predict", f"checkpoint={ckpt}", f"tracks={tracks}", f"output.dir={o}/cl2"],
+    )
+    job("classify: threads=100000", "deformnet-classify", ["threads=100000",
+        f"output.dir={o}/cl3"])  # fmt: skip
+    return jobs
+
+
+def lost_jobs(work: Path, base: Path) -> list[Job]:
+    """Killed, interrupted and concurrent re-runs of adjust-triangulate and adjust-track into
+    a folder holding a complete earlier run."""
+    jobs = []
+    session = [f"input.calibration={base / 'calibration.toml'}",
+               f"input.detections={base / 'detections'}"]  # fmt: skip
+    again = {"adjust-triangulate": ["input.likelihood_threshold=0.6"],
+             "adjust-track": ["solver.max_iterations=5"]}  # fmt: skip
+    for app in APPS:
+        fast = TRACK_FAST if app == "adjust-track" else []
+        for mode, n in (("kill", 3), ("sigint", 1), ("busy", 1)):
+            for i in range(n):
+                out = work / "lost" / f"{app}-{mode}-{i}"
+                jobs.append(Job(f"re-run {mode}{' ' + str(i) if n > 1 else ''}", app,
+                                [*session, f"output.dir={out}", *fast], "lost", out=out,
+                                mode=mode, again=again[app]))  # fmt: skip
+    return jobs
 
 
 # --- running and judging ---------------------------------------------------------------------
@@ -451,121 +781,262 @@ def _judge(out: Path, truth: dict | None, clean_rmse: float | None) -> dict:
     return r
 
 
+def _digests(out: Path) -> dict[str, str]:
+    from deformnet.atomic import file_digest
+
+    return {n: file_digest(out / n) for n in OUTPUT_NAMES if (out / n).is_file()}
+
+
+def folder_state(out: Path, before: dict[str, str]) -> str:
+    """After a killed / interrupted / refused re-run (and the recovery the next run does first):
+    "old" (the earlier run whole), "new" (the new run whole: its summary's files all match),
+    or "lost" (a mix, or no summary)."""
+    from deformnet.outputs import recover_outputs
+
+    recover_outputs(out)
+    now = _digests(out)
+    if now == before:
+        return "old"
+    if "summary.json" not in now:
+        return "lost"
+    if now["summary.json"] == before.get("summary.json"):
+        return "lost"  # the earlier summary beside files it does not describe
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+        files = summary["outputs"]["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return "lost"
+    for name, facts in files.items():
+        if now.get(name) != facts.get("sha256"):
+            return "lost"
+    return "new"
+
+
+def _run(app: str, args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([str(BIN / app), *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=600, env=ENV)  # fmt: skip
+
+
+def _result(p_rc: int, text: str, t0: float) -> dict:
+    errors = [ln for ln in text.splitlines() if "[ERROR]" in ln]
+    return {
+        "rc": p_rc,
+        "traceback": "Traceback" in text,
+        "error": errors[-1].split(" - ", 1)[-1][:160] if errors else None,
+        "errors": len(errors),
+        "warnings": sum("[WARNING]" in ln for ln in text.splitlines()),
+        "time_s": round(time.perf_counter() - t0, 1),
+    }
+
+
 def run_case(app: str, calib: Path, dets: Path, extra: list[str], out: Path, cwd: Path) -> dict:
     args = [f"input.calibration={calib}", f"input.detections={dets}", f"output.dir={out}"]
     if app == "adjust-track":
         args += TRACK_FAST
     args += extra  # later overrides win
     t0 = time.perf_counter()
-    p = subprocess.run(
-        [str(BIN / app), *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, "HYDRA_FULL_ERROR": "0"},
-    )
-    text = p.stdout + p.stderr
-    errors = [ln for ln in text.splitlines() if "[ERROR]" in ln]
-    return {
-        "rc": p.returncode,
-        "traceback": "Traceback" in text,
-        "error": errors[-1].split(" - ", 1)[-1][:160] if errors else None,
-        "warnings": sum("[WARNING]" in ln for ln in text.splitlines()),
-        "time_s": round(time.perf_counter() - t0, 1),
-    }
+    p = _run(app, args, cwd)
+    return _result(p.returncode, p.stdout + p.stderr, t0)
+
+
+def run_lost(job: Job, cwd: Path, rng: random.Random) -> dict:
+    """A clean run into job.out, then the second one (job.again) killed, interrupted or
+    refused; the folder judged (`folder_state`)."""
+    t0 = time.perf_counter()
+    first = _run(job.app, job.args, cwd)
+    if first.returncode != 0:
+        r = _result(first.returncode, first.stdout + first.stderr, t0)
+        return {**r, "state": "first run failed"}
+    clean_s = time.perf_counter() - t0
+    before = _digests(job.out)
+    second = [job.app, *job.args, *job.again]
+    if job.mode == "busy":  # a run holds the folder (its lock) while the second one starts
+        holder = subprocess.Popen(
+            [sys.executable, "-c", "import sys, time\nfrom deformnet.outputs import hold_output\n"
+             "hold_output(sys.argv[1]); print('held', flush=True); time.sleep(120)",
+             str(job.out)], stdout=subprocess.PIPE, text=True)  # fmt: skip
+        holder.stdout.readline()
+        t1 = time.perf_counter()
+        try:
+            p = _run(job.app, [*job.args, *job.again], cwd)
+        finally:
+            holder.kill()
+            holder.wait()
+        r = _result(p.returncode, p.stdout + p.stderr, t1)
+        r["expected_rc"] = 2
+    else:
+        t1 = time.perf_counter()
+        pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT, "text": True}
+        p = subprocess.Popen([str(BIN / second[0]), *second[1:]], cwd=cwd, env=ENV, **pipes)
+        time.sleep(rng.uniform(0.3, 1.0) * clean_s)
+        p.send_signal(signal.SIGKILL if job.mode == "kill" else signal.SIGINT)
+        text = p.communicate(timeout=600)[0]
+        r = _result(p.returncode, text, t1)
+        r["expected_rc"] = (-9, 0) if job.mode == "kill" else (130, 0)  # 0: it had finished
+    r["state"] = folder_state(job.out, before)
+    return r
+
+
+def _note(r: dict) -> str:
+    return r["error"] or (f"{r['warnings']} warnings" if r["warnings"] else "")
 
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--only", default="", help="comma-separated case names (default: all)")
+    ap.add_argument("--only", default="", help="case names separated by ';' (default: all)")
+    ap.add_argument("--groups", default=",".join(GROUPS), help=f"of {', '.join(GROUPS)}")
     ap.add_argument(
         "--out", default=str(CONF_DIR.parent / "runs" / "benchmarks" / "robustness.json")
     )
     args = ap.parse_args(argv)
+    groups = [g.strip() for g in args.groups.split(",") if g.strip()]
+    if set(groups) - set(GROUPS):
+        ap.error(f"--groups: unknown {sorted(set(groups) - set(GROUPS))}")
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    t_start = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix="mousetrack-robustness-"))
     cwd = work / "cwd"
     cwd.mkdir()
     base = simulate(work / "base", args.frames)
     truth = dict(np.load(base / "truth.npz"))
-    todo = []  # (case, app, calib, dets, extra, out, truth)
-    for name, spoil, apps in cases(base):
-        if args.only and name not in args.only.split(","):
-            continue
-        folder = work / f"case{len(todo):03d}"
-        shutil.copytree(base, folder)
-        extra = spoil(folder)
-        for app in apps:
-            out = folder / f"out-{app}"
-            todo.append((name, app, folder / "calibration.toml", folder / "detections", extra,
-                         out, truth))  # fmt: skip
-    sleap = shared_dir() / "data" / "real-mouse-sleap-4cam"
-    if not args.only or "real SLEAP mouse (side: wrong pose)" in args.only:
-        for app in APPS:
-            extra = ["input.pattern=*.analysis.h5", "input.likelihood_threshold=0"]
-            extra += ["body=auto"] if app == "adjust-track" else []
-            todo.append(("real SLEAP mouse (side: wrong pose)", app, sleap / "calibration.toml",
-                         sleap, extra, work / f"sleap-{app}", None))  # fmt: skip
+    only = [n for n in args.only.split(";") if n]
+    todo: list[Job] = []
+    if "inputs" in groups:
+        for name, spoil, apps, expect in cases(base):
+            if only and name not in only:
+                continue
+            folder = work / f"case{len(todo):03d}"
+            shutil.copytree(base, folder)
+            extra = spoil(folder)
+            for app in apps:
+                out = folder / f"out-{app}"
+                calib, dets = folder / "calibration.toml", folder / "detections"
+                given = [str(calib), str(dets), *extra]
+                todo.append(Job(name, app, given, expect, out, truth, mode="session"))
+        sleap = shared_dir() / "data" / "real-mouse-sleap-4cam"
+        if not only or "real SLEAP mouse (side: wrong pose)" in only:
+            for app in APPS:
+                extra = ["input.pattern=*.analysis.h5", "input.likelihood_threshold=0"]
+                extra += ["body=auto"] if app == "adjust-track" else []
+                todo.append(Job("real SLEAP mouse (side: wrong pose)", app,
+                                [str(sleap / "calibration.toml"), str(sleap), *extra], "judge",
+                                work / f"sleap-{app}", mode="session"))  # fmt: skip
+    if "scripts" in groups:
+        todo += [j for j in script_jobs(work, base) if not only or j.name in only]
+    if "lost" in groups:
+        todo += [j for j in lost_jobs(work, base) if not only or j.name in only]
     marker = Path("/tmp/mousetrack-robustness-pwned")
     marker.unlink(missing_ok=True)
+    rng = random.Random(46)
+    seeds = {id(j): rng.random() for j in todo}
 
-    def one(item):
-        name, app, calib, dets, extra, out, tr = item
-        return item, run_case(app, calib, dets, extra, out, cwd)
+    def one(job: Job):
+        if job.expect == "lost":
+            return job, run_lost(job, cwd, random.Random(seeds[id(job)]))
+        if job.mode == "session":  # a session folder through adjust-triangulate / -track
+            calib, dets, *extra = job.args
+            return job, run_case(job.app, Path(calib), Path(dets), extra, job.out, cwd)
+        t0 = time.perf_counter()
+        p = _run(job.app, job.args, cwd)
+        return job, _result(p.returncode, p.stdout + p.stderr, t0)
 
     with cf.ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         done = list(pool.map(one, todo))
     clean = {}
-    for (name, app, *_, out, tr), _res in done:
-        if name == "clean" and (out / "points3d.csv").is_file():
-            clean[app] = _judge(out, tr, None)["rmse_mm"]
+    for job, _res in done:
+        if job.name == "clean" and job.out and (job.out / "points3d.csv").is_file():
+            clean[job.app] = _judge(job.out, job.truth, None)["rmse_mm"]
     rows = []
-    for (name, app, *_, out, tr), res in done:
-        j = _judge(out, tr, clean.get(app)) if out.is_dir() else {
-            "written": False, "empty": None, "absurd": None, "rmse_mm": None, "temp_left": False
-        }  # fmt: skip
-        silent = res["rc"] == 0 and bool(j["empty"] or j["absurd"] or not j["written"])
-        rows.append({"case": name, "app": app, **res, **j, "silent_wrong": silent})
-    print(f"{'case':52s} {'app':18s} {'rc':>3s} {'tb':>3s} {'out':>4s} {'bad':>4s} "
-          f"{'rmse':>7s}  error / note")  # fmt: skip
+    for job, res in done:
+        row = {"case": job.name, "app": job.app, "expect": job.expect, **res}
+        row.update(written=None, empty=None, absurd=None, rmse_mm=None, temp_left=False)
+        row["lost"] = False
+        if job.expect == "judge":
+            if job.out.is_dir():
+                row.update(_judge(job.out, job.truth, clean.get(job.app)))
+            bad = row["empty"] or row["absurd"] or not row["written"]
+            row["silent_wrong"] = res["rc"] == 0 and bool(bad)
+            verdict = "EMPTY" if row["empty"] else ("ABSURD" if row["absurd"] else "ok")
+            row["result"] = verdict if row["written"] else "-"
+        elif job.expect == "error":
+            if job.mode == "session" and job.out.is_dir():
+                row["temp_left"] = any(
+                    p.name.startswith(".") and p.name != ".hydra" for p in job.out.iterdir()
+                )
+            row["silent_wrong"] = res["rc"] == 0
+            row["result"] = "ACCEPTED" if res["rc"] == 0 else "refused"
+        elif job.expect == "ok":
+            good = res["rc"] == 0 and job.check()
+            row["silent_wrong"] = res["rc"] == 0 and not good
+            row["result"] = "ok" if good else ("NO OUTPUT" if res["rc"] == 0 else "REFUSED")
+        else:  # lost data
+            expected = res.get("expected_rc")
+            ok_rc = res["rc"] in (expected if isinstance(expected, tuple) else (expected,))
+            row["lost"] = res["state"] not in ("old", "new")
+            row["silent_wrong"] = False
+            row["result"] = res["state"] + ("" if ok_rc else f" (rc {res['rc']}, not {expected})")
+            row["bad_exit"] = not ok_rc
+        rows.append(row)
+    print(f"{'case':48s} {'app':19s} {'rc':>3s} {'tb':>3s} {'result':>10s} {'rmse':>6s}  "
+          "error / note")  # fmt: skip
     for r in rows:
-        bad = (
-            "-"
-            if not r["written"]
-            else ("EMPT" if r["empty"] else ("ABS" if r["absurd"] else "ok"))
-        )
         rmse = f"{r['rmse_mm']:.1f}" if r["rmse_mm"] is not None else "-"
-        note = r["error"] or (f"{r['warnings']} warnings" if r["warnings"] else "")
-        print(f"{r['case'][:52]:52s} {r['app']:18s} {r['rc']:3d} "
-              f"{'YES' if r['traceback'] else 'no':>3s} {'yes' if r['written'] else 'no':>4s} "
-              f"{bad:>4s} {rmse:>7s}  {note[:90]}")  # fmt: skip
+        print(f"{r['case'][:48]:48s} {r['app']:19s} {r['rc']:3d} "
+              f"{'YES' if r['traceback'] else 'no':>3s} {r['result'][:10]:>10s} {rmse:>6s}  "
+              f"{_note(r)[:90]}")  # fmt: skip
+    expected_exit = {"judge": (0, 2), "error": (2,), "ok": (0,)}
     summary = {
         "benchmark": "robustness",
-        "cases": len({r["case"] for r in rows}),
+        "groups": groups,
+        "scripts": sorted({r["app"] for r in rows}),
+        "cases": len({(r["case"], r["app"]) for r in rows}),
         "runs": len(rows),
         "exit_0": sum(r["rc"] == 0 for r in rows),
         "exit_2": sum(r["rc"] == 2 for r in rows),
-        "other_exit": sum(r["rc"] not in (0, 2) for r in rows),
         "tracebacks": sum(r["traceback"] for r in rows),
         "silent_wrong_results": sum(r["silent_wrong"] for r in rows),
+        "lost_data": sum(r["lost"] for r in rows),
+        "unexpected_exit": sum(
+            (r["rc"] not in expected_exit[r["expect"]])
+            if r["expect"] in expected_exit
+            else bool(r.get("bad_exit"))
+            for r in rows
+        ),  # fmt: skip
+        "multi_line_errors": sum(r["errors"] > 1 for r in rows),
         "temp_files_left": sum(bool(r["temp_left"]) for r in rows),
-        "cwd_written": bool(list(cwd.iterdir())),
+        "cwd_written": sorted(str(p.relative_to(cwd)) for p in [*cwd.glob("*"), *cwd.glob("*/*")])
+        or False,
         "payload_executed": marker.exists(),
         "clean_rmse_mm": clean,
         "silent_wrong": [f"{r['case']} / {r['app']}" for r in rows if r["silent_wrong"]],
         "with_traceback": [f"{r['case']} / {r['app']}" for r in rows if r["traceback"]],
-        "target": "zero silent wrong results, zero tracebacks",
+        "lost": [f"{r['case']} / {r['app']}: {r['result']}" for r in rows if r["lost"]],
+        "unexpected": [
+            f"{r['case']} / {r['app']}: rc {r['rc']}"
+            for r in rows
+            if (
+                r["rc"] not in expected_exit[r["expect"]]
+                if r["expect"] in expected_exit
+                else r.get("bad_exit")
+            )
+        ],  # fmt: skip
+        "minutes": round((time.perf_counter() - t_start) / 60, 1),
+        "target": "0 tracebacks, 0 silent wrong results, 0 lost data, no payload run, cwd clean",
     }
     summary["passed"] = bool(
         summary["silent_wrong_results"] == 0
         and summary["tracebacks"] == 0
-        and summary["other_exit"] == 0
+        and summary["lost_data"] == 0
+        and summary["unexpected_exit"] == 0
         and not summary["payload_executed"]
         and not summary["cwd_written"]
     )
+    print(f"tracebacks {summary['tracebacks']}, silent wrong results "
+          f"{summary['silent_wrong_results']}, lost data {summary['lost_data']}; "
+          f"{summary['runs']} runs of {len(summary['scripts'])} console scripts, "
+          f"{summary['minutes']} min")  # fmt: skip
     shutil.rmtree(work, ignore_errors=True)
     return emit(summary, args.out)
 

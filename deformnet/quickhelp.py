@@ -42,7 +42,8 @@ def console_script(config_name: str, target: str) -> Callable[[], None]:
     (config_name: the app's primary config); anything else calls `target`
     ("package.module:function", imported only then) with the project settings
     (`deformnet.project.apply`) in front of the command line's overrides; a settings file that
-    cannot be used is one logged line and exit status 2."""
+    cannot be used is one logged line and exit status 2, Ctrl-C before the app's own handler
+    (`deformnet.apprun`) runs one line and exit status 130."""
 
     def main() -> None:
         if sys.argv[1:] in (["--help"], ["-h"]):
@@ -54,11 +55,15 @@ def console_script(config_name: str, target: str) -> Callable[[], None]:
         try:
             if script is not None:  # one of ours (pyproject.toml): the project settings
                 sys.argv = project.apply(script, sys.argv)
+            module, func = target.split(":")
+            getattr(importlib.import_module(module), func)()
         except project.SettingsError as exc:
             log.error("%s", exc)
             raise SystemExit(2) from None
-        module, func = target.split(":")
-        getattr(importlib.import_module(module), func)()
+        except KeyboardInterrupt:  # Ctrl-C while importing or composing (the app's own
+            # handler, deformnet.apprun, says it once the run started)
+            log.error("interrupted (Ctrl-C) before the run started; exit status 130")
+            raise SystemExit(130) from None
 
     main.__doc__ = f"Console script: {target} (bare --help: conf/hydra/help/{config_name}.yaml)."
     return main

@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from deformnet.apprun import run_app
 from deformnet.confutil import to_plain
-from deformnet.paths import CONF_DIR, output_dir
+from deformnet.paths import CONF_DIR, output_dir, regular_file
 from deformnet.quiet import quiet_lightning
 
 log = logging.getLogger(__name__)
@@ -80,8 +80,9 @@ def load_pretrained(spec) -> Any:
 
         return load_default()
     p = Path(str(spec))
-    if not p.is_file():
+    if not p.exists():
         raise ValueError(f"pretrained={spec}: no such checkpoint")
+    regular_file(p, f"pretrained={spec}: the checkpoint")  # a folder, FIFO or device: refused
     return DeformationModel.from_checkpoint(p)
 
 

@@ -329,3 +329,20 @@ def test_events_and_export_write_nothing_into_the_working_directory(scene, tmp_p
     assert (tmp_path / "exp" / "a.csv").is_file()
     assert (tracks.parent / "points3d_anipose.csv").is_file()
     assert (tracks.parent / ".hydra" / "config.yaml").read_text() == "the track's\n"
+
+
+def test_ctrl_c_while_importing_is_one_line_and_130(monkeypatch, caplog):
+    """Ctrl-C in the seconds a console script spends importing torch: no traceback either."""
+    import importlib
+
+    from deformnet.quickhelp import console_script
+
+    def interrupted(name):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(importlib, "import_module", interrupted)
+    monkeypatch.setattr(sys, "argv", ["adjust-track", "input.session=x"])
+    with pytest.raises(SystemExit) as exc:
+        console_script("track", "adjust.track:main")()
+    assert exc.value.code == 130
+    assert "interrupted (Ctrl-C) before the run started" in caplog.text
