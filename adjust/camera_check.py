@@ -334,11 +334,20 @@ def check_cameras(
     cams, det = drop_cameras(cams, det, excluded)
     kept = [c.name for c in cams]
     report["cameras_used"] = kept
-    if not excluded:
+    loo_px = report["leave_one_out_px"]
+    unjudged = [k for k, v in loo_px.items() if not np.isfinite(v)]
+    if not excluded and loo_px and not unjudged:
         log.info(
             "camera check: all %d cameras agree (leave-one-out median %s px)",
             len(kept),
-            ", ".join(f"{k} {v:.1f}" for k, v in report["leave_one_out_px"].items()),
+            ", ".join(f"{k} {v:.1f}" for k, v in loo_px.items()),
+        )
+    elif not excluded and unjudged:  # e.g. a camera without detections: not "agreeing"
+        log.info(
+            "camera check: cameras %s not judged (too few of their detections seen by the "
+            "others); the others agree (leave-one-out median %s px)",
+            unjudged,
+            ", ".join(f"{k} {v:.1f}" for k, v in loo_px.items() if k not in unjudged) or "-",
         )
     return cams, det, report
 
