@@ -32,7 +32,6 @@ compose API); it returns the summary.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -46,13 +45,14 @@ import torch
 from omegaconf import DictConfig
 
 from adjust.adapt import adapt_net
-from adjust.app import load_kwargs, required, run_or_exit, write_outputs
+from adjust.app import OutputSet, load_kwargs, required, run_or_exit
 from adjust.camera import CameraTensors
 from adjust.export import session_start, write_nwb
 from adjust.io import (
     Detections,
     InputError,
     UnknownPartsError,
+    check_cameras_usable,
     load_calibration_metadata,
     load_scene,
     recording_fps,
@@ -62,7 +62,6 @@ from adjust.lsq.observation import NetObservation
 from adjust.metrics import reprojection_errors
 from adjust.session import expand_session_globs, with_session
 from adjust.summary import TrackingFailed, result_summary, track_health
-from deformnet.atomic import write_text
 from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.body import BodyModel
 from deformnet.confutil import to_plain
@@ -672,6 +671,7 @@ def _run(cfg: DictConfig) -> dict:
     from adjust.camera_check import check_from_config  # input.camera_check, exclude_cameras
 
     cameras, det, camera_report = check_from_config(cameras, det, cfg.get("input"))
+    check_cameras_usable(det, str(detections))  # one camera: depth unobserved, refused
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     timings["load_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -1006,38 +1006,39 @@ def _run(cfg: DictConfig) -> dict:
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
-    # which detections every point rests on (for figures: adjust-plot, the demo report)
-    from deformnet.atomic import atomic_path
-
-    with atomic_path(out / "accepted.npz") as tmp:
+    # every output as one set (adjust.app.OutputSet): a run stopped at any moment (SIGKILL
+    # included) leaves the previous run's outputs whole; summary.json last, with every file's
+    # sha256 (outputs.files)
+    with OutputSet(out) as staged:
+        # which detections every point rests on (for figures: adjust-plot, the demo report)
         np.savez_compressed(
-            tmp,
+            staged.path("accepted.npz"),
             accepted=observed,
             parts=np.asarray(det.parts),
             cameras=np.asarray(det.cameras),
         )
-    summary["outputs"]["accepted"] = str(out / "accepted.npz")
-    if cons is not None:  # self-supervised tokens for deformnet-train data=sessions
-        from adjust.tokens import session_tokens
+        summary["outputs"]["accepted"] = str(out / "accepted.npz")
+        if cons is not None:  # self-supervised tokens for deformnet-train data=sessions
+            from adjust.tokens import session_tokens
 
-        session_tokens(res.poses, body.points, cons, body.parts, body.name, source=str(out)).save(
-            out / "tokens.npz"
-        )
-        summary["outputs"]["tokens"] = str(out / "tokens.npz")
-    # points3d.csv and summary.json as a pair: the summary last, with the points' sha256
-    summary = write_outputs(out, write_points, summary)
-    if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
-        nwb = write_nwb(
-            out / "tracks.nwb",
-            points_path,
-            calibration,
-            fps=cfg.output.get("fps"),
-            session_start_time=cfg.output.get("session_start_time"),
-            subject=to_plain(cfg.output.get("subject")) or None,
-            detections=detections,
-        )
-        summary["outputs"]["nwb"] = str(nwb)
-        write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+            tokens = session_tokens(
+                res.poses, body.points, cons, body.parts, body.name, source=str(out)
+            )
+            tokens.save(staged.path("tokens.npz"))
+            summary["outputs"]["tokens"] = str(out / "tokens.npz")
+        write_points(staged.path("points3d.csv"))
+        if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
+            write_nwb(
+                staged.path("tracks.nwb"),
+                staged.path("points3d.csv"),
+                calibration,
+                fps=cfg.output.get("fps"),
+                session_start_time=cfg.output.get("session_start_time"),
+                subject=to_plain(cfg.output.get("subject")) or None,
+                detections=detections,
+            )
+            summary["outputs"]["nwb"] = str(out / "tracks.nwb")
+        summary = staged.commit(summary)
     if health["status"] == "failed":
         frames = health["frames"] if fnum is None else [int(fnum[f]) for f in health["frames"]]
         raise TrackingFailed(

@@ -228,11 +228,6 @@ def _track_args(scene: Path, out: Path, *extra: str) -> list[str]:
 TRACK_SET = ["accepted.npz", "points3d.csv", "tokens.npz"]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="adjust/track.py writes accepted.npz and tokens.npz outside the set (issue 46: its "
-    "owner applies the OutputSet changes; then remove this marker)",
-)
 def test_track_killed_at_any_moment_leaves_one_whole_run(scene, tmp_path):
     """SIGKILL at random moments of a re-run: the folder holds the earlier run whole (its
     summary lists and matches every output) or the new one, never a mix."""
