@@ -10,6 +10,7 @@ import hydra
 import numpy as np
 import pytest
 
+from adjust.io import read_points3d
 from adjust.metrics import point_errors
 from adjust.scene.motion import (
     MOTION_PAPER8,
@@ -45,17 +46,21 @@ def scenes(tmp_path_factory) -> dict[int, Path]:
     return {c: _scene(base / f"cams{c}", c) for c in (2, 3)}
 
 
-def _track(scene: Path, out: Path, extra=()) -> tuple[dict, float]:
+def _run(calibration: Path, detections: Path, out: Path, extra=()) -> dict:
+    """adjust-track's `run` on a calibration and a detections folder (its summary)."""
     ov = [
-        f"input.calibration={scene / 'calibration.toml'}",
-        f"input.detections={scene / 'detections'}",
+        f"input.calibration={calibration}",
+        f"input.detections={detections}",
         f"output.dir={out}",
         "progress=false",
         *extra,
     ]
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        summary = run(hydra.compose("track", overrides=ov))
-    from adjust.io import read_points3d
+        return run(hydra.compose("track", overrides=ov))
+
+
+def _track(scene: Path, out: Path, extra=()) -> tuple[dict, float]:
+    summary = _run(scene / "calibration.toml", scene / "detections", out, extra)
 
     tr = np.load(scene / "truth.npz")
     est = read_points3d(out / "points3d.csv")["points"]
@@ -141,15 +146,7 @@ def test_default_body_on_the_shared_real_files(folder, extra, tmp_path):
     body, every part tracked, complete, a trustworthy run (the hand: tests/test_track.py)."""
     d = real_mouse_motion_dir().parent / folder
     assert d.exists(), f"shared data missing: {d}"
-    ov = [
-        f"input.calibration={d / 'calibration.toml'}",
-        f"input.detections={d}",
-        f"output.dir={tmp_path}",
-        "progress=false",
-        *extra,
-    ]
-    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        summary = run(hydra.compose("track", overrides=ov))
+    summary = _run(d / "calibration.toml", d, tmp_path, extra)
     assert summary["body"]["source"] == "auto" and summary["body"]["other_parts"]
     assert len(summary["parts"]) > 8 and summary["completeness"] == 1.0
     assert summary["health"]["status"] == "ok"
