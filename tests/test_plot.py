@@ -19,6 +19,16 @@ def _compose(name, overrides):
         return hydra.compose(name, overrides=overrides)
 
 
+def _frames(path) -> int:
+    """The number of frames OpenCV reads from a video file."""
+    cap = cv2.VideoCapture(str(path))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    cap.release()
+    return n
+
+
 def _is_png(path) -> bool:
     with open(path, "rb") as fh:
         return fh.read(8) == PNG
@@ -176,12 +186,7 @@ def test_video_overlay_and_clip(scene_with_videos, tmp_path):
     assert np.abs(patch - np.array(COLORS["model"])).sum(-1).min() < 60  # (mp4 colours shift)
     assert img[5:15, -15:-5].mean() < 60  # the grey background elsewhere
     clip = tmp_path / "clip_2_9.mp4"
-    cap = cv2.VideoCapture(str(clip))
-    n = 0
-    while cap.read()[0]:
-        n += 1
-    cap.release()
-    assert n == 7
+    assert _frames(clip) == 7
 
 
 def test_missing_video_frame_is_a_clear_error(scene_with_videos, tmp_path):
@@ -266,9 +271,4 @@ def test_video3d_writes_the_labelled_3d_video(scene_with_videos, tmp_path):
         )
     )
     assert res["files"]["video3d"] == str(tmp_path / "tracks3d.mp4")
-    cap = cv2.VideoCapture(res["files"]["video3d"])
-    n = 0
-    while cap.read()[0]:
-        n += 1
-    cap.release()
-    assert n == 5
+    assert _frames(res["files"]["video3d"]) == 5
