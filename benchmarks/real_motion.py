@@ -76,6 +76,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit, start, subset  # noqa: E402
+from domain_gap import evaluate  # noqa: E402
 from peers.anipose import (  # noqa: E402
     MOUSE_CONSTRAINTS,
     MOUSE_CONSTRAINTS_WEAK,
@@ -86,7 +87,6 @@ from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from tracking import run_track, scene_inputs, view_fractions  # noqa: E402
 
 from adjust.io import load_scene, read_points3d  # noqa: E402
-from adjust.metrics import point_errors  # noqa: E402
 from adjust.scene.motion import (  # noqa: E402
     MOTION_PAPER8,
     MOTION_PARTS22,
@@ -229,17 +229,6 @@ def align(est: np.ndarray, parts, truth_parts) -> np.ndarray:
     if missing:
         raise ValueError(f"output lacks the parts {missing}")
     return est[:, [parts.index(p) for p in truth_parts]]
-
-
-def evaluate(est: np.ndarray, truth: np.ndarray, nviews: np.ndarray) -> dict:
-    m = point_errors(est, truth, nviews)
-    return {
-        "rmse_all": m["rmse_all"],
-        "rmse_seen2": m["rmse_seen"],
-        "rmse_occluded": m["rmse_occluded"],
-        "within5": m["within5_strict_all"],
-        "completeness": m["completeness"],
-    }
 
 
 def calibration(points_csv: Path, est, truth, nviews, parts) -> dict:
