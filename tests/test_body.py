@@ -30,12 +30,12 @@ def test_from_observations_recovers_rigid_model_up_to_rigid_transform():
     est = BodyModel.from_observations(X, parts=truth.parts, name="est")
     assert est.parts == truth.parts and est.name == "est"
     err = np.abs(_pairwise(est.points) - _pairwise(truth.points))
-    assert err.max() < 0.5, err.max()
+    assert err.max() < 0.15, err.max()  # measured 0.103 (0.074-0.103 over seeds 0-5)
     # a proper rigid transform maps the estimate onto the truth (not a mirror image)
     a, b = est.points - est.points.mean(0), truth.points - truth.points.mean(0)
     R = kabsch(torch.as_tensor(b), torch.as_tensor(a))[0].numpy()  # b ~ a R^T, det R = +1
     rms = np.sqrt(np.mean(np.sum((a @ R.T - b) ** 2, -1)))
-    assert rms < 0.3, rms
+    assert rms < 0.08, rms  # measured 0.055 (0.036-0.055 over seeds 0-5)
     # model frame conventions: centroid at the origin, largest spread along Y
     np.testing.assert_allclose(est.points.mean(0), 0.0, atol=1e-9)
     assert np.ptp(est.points[:, 1]) >= np.ptp(est.points[:, 0]) >= np.ptp(est.points[:, 2])

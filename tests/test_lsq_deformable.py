@@ -54,8 +54,9 @@ def test_deformable_observation_jacobian_and_noiseless_recovery(one_thread):
         xy, None, cams, body, cfg, observation=DeformableObservation(model, body, W), progress=False
     )
     d = pose_difference(torch.as_tensor(res.poses), truth)
-    assert float(d[:, 3:].abs().max()) < 1e-3 and float(d[:, :3].abs().max()) < 1e-5
-    torch.testing.assert_close(torch.as_tensor(res.model_points), X, atol=1e-3, rtol=0)
+    # measured: 2.7e-6 mm, 4.1e-8 rad, model points 3.0e-6 mm (the solver's stopping rules)
+    assert float(d[:, 3:].abs().max()) < 1e-5 and float(d[:, :3].abs().max()) < 2e-7
+    torch.testing.assert_close(torch.as_tensor(res.model_points), X, atol=1e-5, rtol=0)
     # the rigid model alone cannot explain these detections as well
     rigid = adjust_poses(xy, None, cams, body, cfg, progress=False)
     assert abs(rigid.residuals).max() > 10 * abs(res.residuals).max()

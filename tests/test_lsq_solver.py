@@ -57,7 +57,7 @@ def test_noiseless_scene_gives_exact_poses(scene, constraint):
         progress=False,
     )
     rot, tr = _errors(res.poses, truth)
-    assert rot < 1e-8 and tr < 1e-6, (rot, tr)
+    assert rot < 1e-12 and tr < 1e-10, (rot, tr)  # measured 1.5e-15 rad, 3.3e-14 mm
     assert res.converged
     assert np.all(np.isfinite(res.pose_cov))
 
@@ -72,9 +72,10 @@ def test_frames_without_observations_are_filled_by_the_track_constraint(scene):
     res = adjust_poses(xy, w, cams, body, _cfg(track_sigma_mm=0.05), progress=False)
     d = pose_difference(torch.as_tensor(res.poses), truth)
     gap = [30, 50, 51, 52, 53, 54]
-    assert float(d[gap, 3:].norm(dim=-1).max()) < 0.5  # mm
+    # measured 0.26 mm, 0.021 rad; the one-frame gap 0.0019 rad
+    assert float(d[gap, 3:].norm(dim=-1).max()) < 0.4  # mm
     assert float(d[gap, :3].norm(dim=-1).max()) < 0.03  # rad
-    assert float(d[30, :3].norm()) < 0.01
+    assert float(d[30, :3].norm()) < 0.005
     assert not res.observed[gap].any() and res.observed[[29, 31, 49, 55]].all()
     # the gap frames' uncertainty is larger than their observed neighbours'
     assert res.pose_sigma[52, 3:].max() > res.pose_sigma[45, 3:].max()
@@ -134,10 +135,10 @@ def test_no_nan_for_degenerate_inputs(scene, case):
     if case == "one_camera":  # PnP initialisation; depth is weakly determined by one camera
         assert res.fitted.all()
         rot, tr = _errors(res.poses, truth)
-        assert rot < 0.15 and tr < 30.0
+        assert rot < 0.08 and tr < 15.0, (rot, tr)  # measured 0.042 rad, 9.0 mm
     if case in ("one_frame", "T4"):
         rot, tr = _errors(res.poses, truth[:T])
-        assert rot < 0.05 and tr < 2.0
+        assert rot < 0.05 and tr < 0.7, (rot, tr)  # measured <= 0.032 rad, 0.35 mm
 
 
 def test_chunked_equals_unchunked(scene):
@@ -152,15 +153,16 @@ def test_chunked_equals_unchunked(scene):
     )
     assert chunked.chunks == 4 and full.chunks == 1
     d = pose_difference(torch.as_tensor(chunked.poses), torch.as_tensor(full.poses))
-    assert float(d[:, 3:].abs().max()) < 1e-3  # mm
-    assert float(d[:, :3].abs().max()) < 1e-5  # rad
-    np.testing.assert_allclose(chunked.pose_sigma, full.pose_sigma, rtol=1e-3)
-    np.testing.assert_allclose(chunked.points, full.points, atol=2e-3)
+    # the same minimum (measured 3e-10 mm, 3e-11 rad, sigma 2e-7 relative, points 3e-9 mm)
+    assert float(d[:, 3:].abs().max()) < 1e-7  # mm
+    assert float(d[:, :3].abs().max()) < 1e-8  # rad
+    np.testing.assert_allclose(chunked.pose_sigma, full.pose_sigma, rtol=1e-5)
+    np.testing.assert_allclose(chunked.points, full.points, atol=1e-6)
     # with the default (looser) stopping rules the seams stay far below the uncertainty
     a = adjust_poses(xy, w, cams, body, _cfg(chunk_size=0), progress=False)
     b = adjust_poses(xy, w, cams, body, _cfg(chunk_size=90, overlap=40), progress=False)
     d = pose_difference(torch.as_tensor(b.poses), torch.as_tensor(a.poses)).abs().numpy()
-    assert np.all(d < 0.1 * a.pose_sigma)
+    assert np.all(d < 0.1 * a.pose_sigma)  # measured 0.035 sigma at most
 
 
 def test_fused_points_at_least_as_accurate_as_triangulation(scene):
@@ -180,9 +182,9 @@ def test_fused_points_at_least_as_accurate_as_triangulation(scene):
     err_tri = ((Xt - X)[sel] ** 2).sum(-1).mean().sqrt()
     err_fused = ((torch.as_tensor(res.points) - X)[sel] ** 2).sum(-1).mean().sqrt()
     assert err_fused <= err_tri, (float(err_fused), float(err_tri))
-    # the reported sigma is of the right size (within a factor 2 of the actual error)
+    # the reported sigma is of the right size (measured: 2.26 vs triangulation's 2.81 mm)
     sig = torch.as_tensor(res.point_sigma)[sel].pow(2).sum(-1).mean().sqrt()
-    assert 0.5 < float(sig / err_fused) < 2.0
+    assert 0.8 < float(sig / err_fused) < 1.3  # measured 1.06
     # occluded parts fall back to the model
     xy2 = xy.clone()
     xy2[:, 0] = float("nan")
@@ -199,11 +201,12 @@ def test_initialisations_and_robustness(scene, init):
     xy[40:46] = float("nan")
     res = adjust_poses(xy, w, cams, body, _cfg(init=init), progress=False)
     rot, tr = _errors(res.init_poses, truth)
-    assert rot < 0.5 and tr < 30.0  # a usable start
+    assert rot < 0.35 and tr < 20.0, (rot, tr)  # a usable start (measured <= 0.21, 12.9)
     rot, tr = _errors(res.poses, truth)
-    assert rot < 0.1 and tr < 2.5, (rot, tr)  # worst frame: inside the 6-frame gap
+    # worst frame: inside the 6-frame gap (measured 0.076 rad, 1.55 mm with either start)
+    assert rot < 0.1 and tr < 2.0, (rot, tr)
     d = pose_difference(torch.as_tensor(res.poses), truth)
-    assert float(d[:, :3].norm(dim=-1).median()) < 0.03
+    assert float(d[:, :3].norm(dim=-1).median()) < 0.02  # measured 0.015
     assert res.converged
     # mis-detections are down-weighted
     bad = np.nan_to_num(np.linalg.norm(res.residuals, axis=-1)) > 30

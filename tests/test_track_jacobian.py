@@ -51,11 +51,6 @@ def test_frozen_jacobian_is_exact_for_the_frozen_prediction():
     Xc, Jc = central.points(poses)
     torch.testing.assert_close(X, Xc)  # same observation function value
     # the prediction in body coordinates, held fixed, moved by perturbed poses
-    R = (
-        torch.stack([torch.linalg.matrix_exp(torch.zeros(3, 3, dtype=X.dtype))] * 0)
-        if False
-        else None
-    )
     R = rodrigues_to_matrix(poses[:, :3])
     c = torch.einsum("tji,tkj->tki", R, X - poses[:, None, 3:])
     h = 1e-6
