@@ -9,13 +9,13 @@ from pathlib import Path
 
 import hydra
 import numpy as np
+import nwbinspector
+import pynwb
 import pytest
+from movement.io import load_poses
 
 from adjust.io import InputError, load_calibration, read_points3d
 from deformnet.paths import CONF_DIR
-
-pynwb = pytest.importorskip("pynwb")
-ndx_pose = pytest.importorskip("ndx_pose")
 
 FPS = 30.0
 START = "2026-03-01T09:30:00+00:00"
@@ -231,9 +231,6 @@ def test_export_bad_inputs(tracked, tmp_path):
 
 # --- DANDI-ready: nwbinspector ----------------------------------------------------------------
 def _inspect(path: Path) -> list:
-    nwbinspector = pytest.importorskip(
-        "nwbinspector", reason="nwbinspector is not installed (pip install nwbinspector)"
-    )
     config = nwbinspector.load_config("dandi")  # DANDI's own importance levels
     return list(nwbinspector.inspect_nwbfile(nwbfile_path=str(path), config=config))
 
@@ -287,14 +284,7 @@ def test_export_passes_nwbinspector(tracked, tmp_path, caplog):
 
 
 # --- movement (the neuroinformatics toolbox) reads our files with its default arguments --------
-def _movement():
-    return pytest.importorskip(
-        "movement.io.load_poses", reason="movement is not installed (pip install movement)"
-    )
-
-
 def test_movement_reads_the_nwb(tracked):
-    load_poses = _movement()
     scene, out, summary = tracked
     ds = load_poses.from_nwb_file(summary["outputs"]["nwb"])  # default arguments
     d = read_points3d(out / "points3d.csv")
@@ -312,7 +302,6 @@ def test_movement_reads_points3d(tracked, tmp_path):
     from adjust.export_cli import run as export
     from adjust.triangulate_cli import run as triangulate
 
-    load_poses = _movement()
     scene, out, _ = tracked
     # adjust-triangulate's points3d.csv as it is: anipose's columns, axes columns included
     tri = tmp_path / "tri"

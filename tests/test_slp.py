@@ -8,13 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import sleap_io as sio
 
 from adjust.io import InputError, load_scene
 from adjust.io.skeleton import detection_edges, resolve_skeleton
 from adjust.io.sleap import read_sleap, read_slp, sleap_edges
 from deformnet.paths import shared_dir
-
-sio = pytest.importorskip("sleap_io", reason="sleap-io is not installed (pip install sleap-io)")
 
 SLEAP_MOUSE = shared_dir() / "data" / "real-mouse-sleap-4cam"
 FRAMES = 12
