@@ -13,7 +13,8 @@ import torch
 
 from adjust.camera import CameraTensors
 from adjust.io import InputError, load_scene, read_points3d
-from adjust.track import POSE_COLUMNS, run
+from adjust.track import run
+from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR, real_hand_dir
 
@@ -278,15 +279,47 @@ def test_deformable_run_with_trained_tiny_checkpoint(scene, tmp_path):
     assert summary["completeness"] == 1.0
 
 
-def test_measured_deformation_matches_autograd(tmp_path):
-    """The finite-difference Jacobian of the deformable observation equals the solver's
-    reverse-mode one, and measured inputs reach the net (gated by distance)."""
-    from adjust.lsq.observation import DeformableObservation, NetObservation
-    from deformnet.deformation import DeformationModel
+def _deforming_model(scale: float = 0.1):
+    """The tiny net (float64, frozen) with its weights perturbed: an untrained one predicts
+    the rigid model; this one moves the parts (measured on the problem below: 3.8 mm median,
+    14 mm at most where its prediction is used)."""
+    from helpers import tiny_deformation_model
 
-    model = DeformationModel.from_checkpoint(_tiny_checkpoint(tmp_path / "t.ckpt")).double()
-    for p in model.parameters():
-        p.requires_grad_(False)
+    model = tiny_deformation_model()
+    gen = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.requires_grad_(False)
+            p.add_(scale * torch.randn(p.shape, generator=gen))
+    return model.double().eval()
+
+
+def _central_difference(obs, poses: torch.Tensor) -> torch.Tensor:
+    """dX/d(delta) (T, K, 3, 6) of ``obs.points`` by central differences of the pose
+    increment (1e-5 rad, 1e-3 mm)."""
+    from adjust.lsq.geometry import retract
+
+    cols = []
+    for j in range(6):
+        h = 1e-5 if j < 3 else 1e-3
+        d = torch.zeros_like(poses)
+        d[:, j] = h
+        plus, minus = (
+            obs.points(retract(poses, d), False)[0],
+            obs.points(retract(poses, -d), False)[0],
+        )
+        cols.append((plus - minus) / (2 * h))
+    return torch.stack(cols, -1)
+
+
+def test_deformable_jacobians_are_the_derivatives_of_their_observations():
+    """With a net that deforms, each deformable observation's Jacobian is the derivative of its
+    own points: NetObservation's by central and forward differences through the net,
+    DeformableObservation's by reverse mode (both to rounding; forward to its truncation);
+    measured inputs reach the net, gated by distance."""
+    from adjust.lsq.observation import DeformableObservation, NetObservation
+
+    model = _deforming_model()
     gen = torch.Generator().manual_seed(1)
     T, body = 20, torch.tensor(default_mouse().points)
     rand = lambda *shape: torch.randn(*shape, generator=gen, dtype=torch.float64)  # noqa: E731
@@ -294,21 +327,47 @@ def test_measured_deformation_matches_autograd(tmp_path):
     data = body[None] + poses[:, None, 3:] + 2 * rand(T, 8, 3)
     data[3, 2] += 100.0  # a mis-detection: gated out
     observed = torch.rand(T, 8, generator=gen) > 0.3
-    obs = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "central")
+
+    def net_obs(jacobian, d=data):
+        obs = NetObservation(model, body, model.window, d, observed, 30.0, 4096, jacobian)
+        obs.prepare(poses)
+        return obs
+
+    central, forward = net_obs("central"), net_obs("forward")
+    assert not central._observed_win[3, model.half_window, 2]  # gated
     ref = DeformableObservation(model, body, model.window, observed)
-    obs.prepare(poses)
     ref.prepare(poses)
-    assert not obs._observed_win[3, model.half_window, 2]  # gated
-    ref._deformed_win, ref._observed_win = obs._deformed_win, obs._observed_win
-    X, J = obs.points(poses)
-    Xr, Jr = ref.points(poses)
-    torch.testing.assert_close(X, Xr)
-    torch.testing.assert_close(J, Jr, atol=1e-6, rtol=1e-5)
-    fwd = NetObservation(model, body, model.window, data, observed, 30.0, 4096, "forward")
-    fwd.prepare(poses)
-    torch.testing.assert_close(fwd.points(poses)[1], Jr, atol=1e-4, rtol=1e-4)
-    sub = obs.window(5, 15)
-    assert sub.data.shape[0] == 10 and type(sub) is type(obs)
+    ref._deformed_win, ref._observed_win = central._deformed_win, central._observed_win
+    rigid_X, rigid_J = central.rigid_points(poses)[0], central.rigid.points(poses)[1]
+    use = central.use_net
+    assert use.sum() > 20  # the net predicts the unmeasured part-frames its window reaches
+    for obs, atol in ((central, 2e-8), (ref, 2e-8), (forward, 1e-4)):
+        X, J = obs.points(poses)
+        # measured: central 1.4e-9, reverse mode 3.9e-9, forward 2.1e-5 (its O(h) error)
+        torch.testing.assert_close(J, _central_difference(obs, poses), atol=atol, rtol=0)
+        # the net deforms: neither its points nor its Jacobian are the rigid model's
+        assert (X - rigid_X).norm(dim=-1)[use].median() > 1.0
+        assert (J - rigid_J)[use].abs().max() > 1.0
+    # the same net on the same inputs where NetObservation uses it
+    torch.testing.assert_close(
+        central.points(poses, False)[0][use], ref.points(poses, False)[0][use]
+    )
+    # an accepted measurement moved by 5 mm moves the net's predictions in its window; the
+    # gated mis-detection moved does not change anything
+    t, k = 10, int(observed[10].nonzero()[0])
+    near = torch.zeros_like(use)
+    near[t - model.half_window : t + model.half_window + 1] = True
+    assert (use & near).any()
+    for frame, part, changes in ((t, k, True), (3, 2, False)):
+        moved = data.clone()
+        moved[frame, part] += 5.0
+        diff = net_obs("central", moved).points(poses, False)[0] - central.points(poses, False)[0]
+        if changes:
+            assert diff.norm(dim=-1)[use & near].max() > 1e-3
+        else:
+            assert diff.abs().max() == 0
+    sub = central.window(5, 15)
+    assert sub.data.shape[0] == 10 and type(sub) is type(central)
 
 
 def test_nwb_without_a_frame_rate_stops_before_tracking(scene, tmp_path):
@@ -330,8 +389,8 @@ def test_nwb_without_a_session_start_stops_before_tracking(scene, tmp_path):
 def test_body_shape_from_a_handful_of_frames_is_not_trusted(tmp_path):
     """body.shape=data on a 20-frame session (fewer than MIN_SHAPE_FRAMES frames with 3 parts
     in 3D): the named model's shape, scaled, said in summary.json."""
+    from adjust.body_fit import MIN_SHAPE_FRAMES
     from adjust.scene_cli import run as simulate
-    from adjust.track import MIN_SHAPE_FRAMES
 
     simulate(_cfg("scene", [f"output.dir={tmp_path / 's'}", "num_frames=20", "seed=6"]))
     s = _track(tmp_path / "s", tmp_path / "out")
