@@ -3,13 +3,28 @@ reprojection errors, uncertainty and counts (the app adds its inputs and setting
 
 from __future__ import annotations
 
+import logging
+import warnings
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
 from adjust.app import stats
+from adjust.metrics import reprojection_errors
+from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.so3 import rodrigues_to_matrix
 
-__all__ = ["TrackingFailed", "result_summary", "track_health"]
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "TrackColumns",
+    "TrackingFailed",
+    "report_result",
+    "result_summary",
+    "track_columns",
+    "track_health",
+]
 
 
 def result_summary(res, det, error: np.ndarray, view_err: np.ndarray) -> dict:
@@ -117,3 +132,88 @@ def track_health(
         "turn_frames_count": int(turns.size),
         "turn_frames": [int(f) for f in turns[:20]],
     }
+
+
+@dataclass
+class TrackColumns:
+    """points3d.csv's columns of one result (`track_columns`): points (T, K, 3) mm, observed
+    (T, K, C) the detections each point rests on, ncams (T, K), view_err (T, K, C) px per
+    accepted detection (NaN elsewhere), error (T, K) px their mean, score (T, K) the lowest
+    likelihood among them (NaN with none), extra: the pose and uncertainty columns."""
+
+    points: np.ndarray
+    observed: np.ndarray
+    ncams: np.ndarray
+    view_err: np.ndarray
+    error: np.ndarray
+    score: np.ndarray
+    extra: dict
+
+
+def track_columns(res, det, cams) -> TrackColumns:
+    """points3d.csv's columns of the adjustment result `res` on the detections `det` seen by
+    `cams` (`adjust.camera.CameraTensors`)."""
+    T, K, C = det.num_frames, det.num_parts, det.num_cameras
+    points = res.points
+    observed = res.weights > 0  # the detections the fused points rest on
+    ncams = observed.sum(-1)
+    view_err = reprojection_errors(points, det.xy, cams, observed)
+    with warnings.catch_warnings():  # all-NaN rows (no detection) are expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        error = np.nanmean(view_err, axis=-1) if C else np.full((T, K), np.nan)
+    score = np.where(observed, det.likelihood, np.inf).min(-1)
+    score = np.where((ncams > 0) & np.isfinite(score), score, np.nan)
+    pc = res.pose_cov
+    extra: dict[str, np.ndarray] = {n: res.poses[:, i] for i, n in enumerate(POSE_COLUMNS)}
+    extra["pose_sigma_r"] = np.sqrt(np.clip(np.trace(pc[:, :3, :3], axis1=-2, axis2=-1), 0, None))
+    extra["pose_sigma_t"] = np.sqrt(np.clip(np.trace(pc[:, 3:, 3:], axis1=-2, axis2=-1), 0, None))
+    # root of the trace of each point's covariance (mm)
+    extra["{part}_sigma"] = res.point_sd
+    return TrackColumns(points, observed, ncams, view_err, error, score, extra)
+
+
+def report_result(summary: dict, where: str, out, fnum) -> None:
+    """Judge and log a written result: `TrackingFailed` when its health is ``failed`` (the
+    outputs are kept for inspection), a warning when it is ``suspect`` or when much of it rests
+    on the model alone, then one line of figures. fnum: the detections' frame numbers (None:
+    0-based)."""
+    health = summary["health"]
+    if health["status"] == "failed":
+        frames = health["frames"] if fnum is None else [int(fnum[f]) for f in health["frames"]]
+        raise TrackingFailed(
+            f"{where}: the tracks cannot be trusted: {health['bad_frames']} frames "
+            f"(e.g. {frames}) have non-finite points or points whose own detections reproject "
+            f"beyond {health['limit_px']:.0f} px (summary.json 'health'; outputs kept in {out} "
+            "for inspection)"
+        )
+    if health["status"] == "suspect":
+        frames = health["turn_frames"]
+        log.warning(
+            "the body's pose turns by more than %.0f degrees between two frames at %d frames "
+            "(e.g. %s): the track may have left the animal there (summary.json 'health')",
+            health["max_turn_deg"],
+            health["turn_frames_count"],
+            frames if fnum is None else [int(fnum[f]) for f in frames],
+        )
+    alone = summary["from_model_only"]["fraction"]
+    if alone > 0.25:
+        worst = sorted(summary["from_model_only"]["per_part"].items(), key=lambda kv: -kv[1])[:3]
+        log.warning(
+            "%.0f%% of the part-frames rest on no accepted detection (tracked from the model "
+            "alone; their _ncams is 0 and their _sigma large): most for %s",
+            100 * alone,
+            ", ".join(f"{p} {100 * v:.0f}%" for p, v in worst),
+        )
+    err = summary["reprojection_error_px"]
+    log.info(
+        "tracked %d frames x %d parts (completeness %.1f%%) in %d iterations (%.1f s); "
+        "reprojection error median %s px, p90 %s px; wrote %s",
+        summary["num_frames"],
+        len(summary["parts"]),
+        100 * summary["completeness"],
+        summary["iterations"],
+        summary["time_s"]["total_s"],
+        f"{err['median']:.2f}" if err["median"] is not None else "n/a",
+        f"{err['p90']:.2f}" if err["p90"] is not None else "n/a",
+        out,
+    )

@@ -116,7 +116,7 @@ def test_track_health():
 def test_a_run_that_leaves_the_data_does_not_exit_0(scenes, tmp_path, monkeypatch):
     """The outputs are kept for inspection, summary.json says failed, and the app raises (exit
     status 2 through run_or_exit)."""
-    import adjust.track as track
+    import adjust.pipeline as track
 
     def exploding(points, view_err, sigma_det_px, **kwargs):
         return track_health(points, view_err * 1e6 + 1e3, sigma_det_px, **kwargs)

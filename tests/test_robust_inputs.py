@@ -184,7 +184,7 @@ def test_checkpoint_with_pickle_payload_refused_unexecuted(tmp_path):
 def test_garbage_checkpoint_is_one_clear_error(tmp_path, content):
     import pickle
 
-    from adjust.track import load_deformation
+    from adjust.deformation_modes import load_deformation
 
     path = tmp_path / "model.ckpt"
     if content == "passwd":

@@ -235,8 +235,8 @@ def test_far_steps_reach_across_long_gaps():
 
 
 def test_track_step_settings_are_checked():
+    from adjust.deformation_modes import deform_step, far_steps
     from adjust.io import InputError
-    from adjust.track import deform_step, far_steps
 
     class M:
         step, steps = 1, (1, 2, 3)

@@ -1,0 +1,562 @@
+"""``adjust-track deformation=``: how the body deforms, one object per choice.
+
+- `RigidMode` (``rigid``): the rigid body model only.
+- `InterpMode` (``interp``, the default): each part's body-frame offset interpolated (kriged)
+  from its own 3D observations across its gaps (`adjust.lsq.observation.InterpObservation`).
+- `NetMode`: a deformation net (`adjust.lsq.observation.NetObservation`) after rigid ->
+  interp; its three sources are `CheckpointNet` (a deformnet-train checkpoint, ``net``),
+  `DefaultNet` (the shipped pretrained net, ``default``) and `SelfNet` (that net fine-tuned on
+  this recording's own tokens, ``self``, `adjust.adapt`). A net that does not beat the
+  interpolation on the recording's held-out parts (`adjust.net_gate`) leaves the tracks to
+  the interpolation, and summary.json says ``mode: interp`` with the reason.
+
+`mode_from_config` picks the object once from ``deformation=``; `adjust.pipeline` then asks it
+what it needs (`needs_consensus`, `checkpoint_body`, `prepare`) and lets it adjust the session
+after the rigid adjustment (`adjust`, on an `Adjusting`): it returns the result and its facts,
+summary.json's ``deformation`` block.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from adjust.body_fit import check_world_up, triangulate_points
+from adjust.camera import CameraTensors
+from adjust.io import Detections, InputError
+from adjust.lsq.observation import InterpObservation, NetObservation
+from adjust.net_gate import heldout_check
+from adjust.tokens import session_tokens
+from adjust.validate import choose_measured_prior
+from deformnet import pretrained
+from deformnet.body import BodyModel
+from deformnet.deformation import DeformationModel
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "MEASURED",
+    "Adjusting",
+    "CheckpointNet",
+    "DefaultNet",
+    "DeformationMode",
+    "InterpMode",
+    "NetMode",
+    "RigidMode",
+    "SelfNet",
+    "deform_step",
+    "far_steps",
+    "interp_facts",
+    "load_deformation",
+    "make_deformable_observation",
+    "mode_from_config",
+]
+
+#: ``deform.measured``: a measured part-frame's prior in the net modes
+MEASURED = ("cv", "interp", "rigid", "net")
+
+
+def load_deformation(path: str):
+    """`DeformationModel.from_checkpoint`, with a clear error for a missing/unreadable file."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"deformation checkpoint not found: {p}")
+    try:
+        return DeformationModel.from_checkpoint(p)
+    except InputError:
+        raise
+    except (ValueError, KeyError, RuntimeError, OSError, EOFError) as exc:
+        raise InputError(f"{p}: cannot load a deformation model: {exc}") from None
+
+
+def make_deformable_observation(
+    model,
+    body_points: np.ndarray,
+    det: Detections,
+    cams,
+    cfg_def,
+    cons=None,
+    few_var=None,
+    net_parts=None,
+):
+    """The solver's deformable observation for this data: the net's ``deformed`` inputs for
+    observed tokens are the parts triangulated (robustly) from the detections (the session's
+    gated 3D observations `cons` when given), gated by their distance from the rigid model
+    (`deform.gate_mm`). few_var: (K, 3) torch, the spread of parts with too few 3D observations
+    (`refine_body`; NaN: unknown). net_parts: (K,) bool, the parts that take the net's
+    prediction (`heldout_check`; None: all)."""
+    cfg_def = cfg_def if cfg_def is not None else {}
+    if cons is not None:
+        X = torch.as_tensor(cons.points, dtype=torch.float64)
+    else:
+        tri = triangulate_points(det, cams, True, float(cfg_def.get("max_error_px", 20.0)))
+        X = tri.points.to(torch.float64)
+    observed = torch.isfinite(X).all(-1)
+    jac = str(cfg_def.get("jacobian", "frozen"))
+    # finite differences need float64 through the net; the frozen Jacobian does not
+    net = (model.float() if jac == "frozen" else model.double()).eval()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    noise = None if cons is None else torch.as_tensor(cons.noise_var)
+    obs = NetObservation(
+        net,
+        torch.tensor(np.asarray(body_points), dtype=torch.float64),
+        int(model.window),
+        torch.nan_to_num(X),
+        observed,
+        float(cfg_def.get("gate_mm", 30.0)),
+        int(cfg_def.get("batch_size", 4096)),
+        jac,
+        noise_var=noise,
+        refresh=int(cfg_def.get("refresh", 2)),
+        beyond_window=str(cfg_def.get("beyond_window", "interp")),
+        measured="net" if str(cfg_def.get("measured", "cv")) == "net" else "interp",
+        threads=cfg_def.get("threads"),
+        few_var=few_var,
+        step=deform_step(model, cfg_def),
+        far_steps=far_steps(model, cfg_def),
+        net_parts=None if net_parts is None else torch.as_tensor(net_parts, dtype=torch.bool),
+    )
+    return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
+
+
+def deform_step(model, cfg_def) -> int:
+    """Frames between the net's window tokens: ``deform.step`` (null: the step the net was
+    trained with, `DeformationModel.step`)."""
+    step = (cfg_def or {}).get("step")
+    if step is None:
+        return int(getattr(model, "step", 1))
+    if int(step) < 1:
+        raise InputError(f"deform.step must be an integer >= 1, got {step}")
+    return int(step)
+
+
+def far_steps(model, cfg_def) -> tuple[int, ...]:
+    """``deform.far_steps``: wider token steps for part-frames the window does not reach
+    (``auto``: the larger steps the net was trained with, `DeformationModel.steps`; a list;
+    ``[]``: none)."""
+    spec = (cfg_def or {}).get("far_steps", "auto")
+    if spec is None or str(spec) == "auto":
+        base = deform_step(model, cfg_def)
+        return tuple(s for s in getattr(model, "steps", ()) if s > base)
+    try:
+        steps = tuple(int(s) for s in spec)
+    except (TypeError, ValueError):
+        msg = f"deform.far_steps must be auto or a list of integers, got {spec}"
+        raise InputError(msg) from None
+    if any(s < 1 for s in steps):
+        raise InputError(f"deform.far_steps must be integers >= 1, got {list(steps)}")
+    return steps
+
+
+def interp_facts(observation, body: BodyModel) -> dict:
+    """The estimated offset covariance of ``deformation=interp`` for the summary."""
+    cov = observation.cov
+    if cov is None:
+        return {}
+    return {
+        "deformation_sigma_mm_per_part": {p: float(v) for p, v in zip(body.parts, cov.sigma_mm)},
+        "mean_offset_mm_per_part": {p: [float(c) for c in m] for p, m in zip(body.parts, cov.mean)},
+        "nugget_mm_per_part": {
+            p: float(math.sqrt(v)) for p, v in zip(body.parts, cov.nugget.sum(-1))
+        },
+    }
+
+
+@dataclass
+class Adjusting:
+    """A session after its body model and (when it ran) its rigid adjustment: what a
+    deformation mode adjusts.
+
+    solve(config, observation, init_poses) -> an `adjust.lsq.AdjustmentResult` of this
+    session; rigid: the rigid adjustment's (None when none ran); cons: the session's 3D
+    observations (`adjust.estimate.Consensus`, None with ``stochastic.estimate=false``);
+    rigid_obs: the rigid observation with the parts' deformation moments (None without cons);
+    few_var: (K, 3) torch, the spread of parts placed from their single views (else NaN);
+    deform_cfg / adapt_cfg: the ``deform`` / ``adapt`` blocks; consensus_cfg: the top-level
+    consensus block (its max_error_px, gate_sigmas); timings: summary.json's time_s, added to."""
+
+    det: Detections
+    weight: np.ndarray
+    cams: CameraTensors
+    body: BodyModel
+    cons: Any
+    rigid_obs: Any
+    few_var: Any
+    solver_cfg: Any
+    solve: Callable
+    rigid: Any
+    deform_cfg: Any
+    adapt_cfg: Any
+    consensus_cfg: Any
+    where: str
+    out: Path
+    progress: bool
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def deform_solver_cfg(self):
+        """The solver settings of the deformable adjustment (``deform.max_iterations``,
+        ``deform.sigma_def_mm`` where set)."""
+        cfg, d = self.solver_cfg, self.deform_cfg
+        if d.get("max_iterations") is not None:
+            cfg = cfg.replace(max_iterations=int(d["max_iterations"]))
+        if d.get("sigma_def_mm") is not None:
+            cfg = cfg.replace(sigma_def_mm=float(d["sigma_def_mm"]))
+        return cfg
+
+    def interp_observation(self) -> InterpObservation:
+        """``deformation=interp``'s observation of this session."""
+        c = self.cons
+        return InterpObservation(
+            torch.tensor(np.array(self.body.points)),
+            torch.as_tensor(c.points),
+            torch.as_tensor(c.observed),
+            torch.as_tensor(c.noise_var),
+            few_var=self.few_var,
+        )
+
+
+class DeformationMode:
+    """One choice of ``deformation=``. name: its summary.json ``mode``."""
+
+    name = "rigid"
+    #: needs the session's 3D observations (``stochastic.estimate=true``)
+    needs_consensus = False
+
+    def checkpoint_body(self, body_cfg) -> BodyModel | None:
+        """The body model the mode brings (a checkpoint's), else None (the ``body`` group's)."""
+        return None
+
+    def prepare(self, body: BodyModel) -> None:
+        """Anything the mode needs once the session's body model is final."""
+
+    def rigid_first(self, deform_cfg, cons) -> bool:
+        """Whether the rigid adjustment runs before `adjust`."""
+        return True
+
+    def adjust(self, a: Adjusting) -> tuple[Any, dict]:
+        """(the session's result, summary.json's ``deformation`` block)."""
+        raise NotImplementedError
+
+
+class RigidMode(DeformationMode):
+    """``deformation=rigid``: the rigid adjustment is the result."""
+
+    name = "rigid"
+
+    def adjust(self, a: Adjusting) -> tuple[Any, dict]:
+        return a.rigid, {"mode": self.name}
+
+
+class InterpMode(DeformationMode):
+    """``deformation=interp``: interpolated body-frame offsets, from the rigid poses."""
+
+    name = "interp"
+    needs_consensus = True
+
+    def adjust(self, a: Adjusting) -> tuple[Any, dict]:
+        obs = a.interp_observation()
+        res = a.solve(a.deform_solver_cfg, obs, a.rigid.poses)
+        return res, {"mode": self.name, **interp_facts(obs, a.body)}
+
+
+class NetMode(DeformationMode):
+    """A deformation net: rigid -> interp (with the session's 3D observations) -> the net.
+    Subclasses say where the net comes from (`net`) and how it is checked (`check`)."""
+
+    needs_consensus = True
+
+    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
+        """(the net, facts about it) for this session; poses (T, 6): the interp poses."""
+        raise NotImplementedError
+
+    def check(self, a: Adjusting, model, poses) -> tuple[Any, dict | None, str | None]:
+        """(net_parts (K,) bool or None for all, summary facts under ``heldout``, the reason
+        the net is not used or None)."""
+        return None, None, None
+
+    def checkpoint(self, a: Adjusting) -> str:
+        """summary.json's ``deformation.checkpoint``."""
+        raise NotImplementedError
+
+    def rigid_first(self, deform_cfg, cons) -> bool:
+        return cons is not None or bool(deform_cfg.get("rigid_first", True))
+
+    def adjust(self, a: Adjusting) -> tuple[Any, dict]:
+        res, interp_obs = a.rigid, None
+        init = None if res is None else res.poses
+        if a.cons is not None:  # the net starts from the interp poses
+            interp_obs = a.interp_observation()
+            t1 = time.perf_counter()
+            res = a.solve(a.solver_cfg, interp_obs, init)
+            init = res.poses
+            a.timings["interp_s"] = time.perf_counter() - t1
+        model, net_facts = self.net(a, init)
+        up_deg = None
+        if model is not None and init is not None:
+            up_deg = check_world_up(model, init, a.where)
+        net_parts, heldout, reason = None, None, None
+        if model is not None and init is not None:
+            net_parts, heldout, reason = self.check(a, model, init)
+            if reason is not None:
+                model = None  # `res`: the interp adjustment's, outputs complete
+        observation, def_facts, dcfg = None, {}, a.solver_cfg
+        if model is not None:
+            observation, def_facts = make_deformable_observation(
+                model,
+                a.body.points,
+                a.det,
+                a.cams,
+                a.deform_cfg,
+                cons=a.cons,
+                few_var=a.few_var,
+                net_parts=net_parts,
+            )
+            def_facts.update(net_facts)
+            if up_deg is not None:  # a heading-frame net: how far the mouse's up is from its up
+                def_facts["world_up"] = {
+                    "up": list(model.up),
+                    "median_body_up_deg": round(up_deg, 1),
+                }
+            t_net = time.perf_counter()
+            dcfg = a.deform_solver_cfg
+            res = a.solve(dcfg, observation, init)
+        measured_facts = None
+        if a.rigid_obs is not None and (observation is not None or self.prior_without_net):
+            res, measured_facts = self.measured_prior(
+                a, res, observation if observation is not None else interp_obs, dcfg
+            )
+        if model is None:  # the interpolation's tracks
+            facts = {"mode": "interp", **interp_facts(interp_obs, a.body), **net_facts}
+            if reason is not None:
+                facts.update({"requested": self.name, "reason": reason})
+        else:
+            a.timings["net_s"] = time.perf_counter() - t_net
+            facts = {
+                "mode": self.name,
+                "checkpoint": self.checkpoint(a),
+                "window": int(model.window),
+                "step": int(observation.step),
+                **def_facts,
+                **net_use_facts(observation, a.body),
+            }
+        if measured_facts is not None:
+            facts["measured_prior"] = measured_facts
+        if heldout is not None:
+            facts["heldout"] = heldout
+        return res, facts
+
+    #: the measured prior is chosen also when the net is not used
+    prior_without_net = False
+
+    def measured_prior(self, a: Adjusting, res, target, dcfg) -> tuple[Any, dict | None]:
+        """``deform.measured`` (cv, rigid): a measured part-frame's prior, the rigid model
+        point where it predicts held-out cameras better (``cv``, `adjust.validate`) or always
+        (``rigid``); interp and net: no change here (the observation's own)."""
+        measured = str(a.deform_cfg.get("measured", "cv"))
+        if measured not in ("cv", "rigid"):
+            return res, None
+        t1 = time.perf_counter()
+        choice, facts = measured, {"choice": measured, "reason": "deform.measured"}
+        if measured == "cv":
+            choice, facts = choose_measured_prior(
+                res.poses,
+                a.det.xy,
+                a.weight,
+                res.weights > 0,
+                a.cams,
+                np.array(a.body.points),
+                a.rigid_obs.var.numpy(),
+                a.solver_cfg.sigma_det_px,
+                consensus_kwargs={
+                    "max_error_px": float(a.consensus_cfg.get("max_error_px", 20.0)),
+                    "gate_sigmas": float(a.consensus_cfg.get("gate_sigmas", 4.0)),
+                },
+                few_var=a.few_var,
+            )
+        if choice == "rigid":  # the shape prior where a part has its own 3D observation
+            target.set_measured_var(a.rigid_obs.var)
+            res = a.solve(dcfg, target, res.poses)
+        a.timings["measured_prior_s"] = time.perf_counter() - t1
+        return res, facts
+
+
+class CheckpointNet(NetMode):
+    """``deformation=PATH``: a deformnet-train checkpoint; its body model replaces the
+    ``body`` group's points (the config's aliases still apply)."""
+
+    name = "net"
+    needs_consensus = False  # without them: the rigid start (deform.rigid_first), no check
+
+    def __init__(self, path: str) -> None:
+        self.path = str(path)
+        self.model = None
+
+    def checkpoint_body(self, body_cfg) -> BodyModel:
+        self.model = model = load_deformation(self.path)
+        given = BodyModel.from_config(body_cfg)
+        body = model.body
+        if given.parts != body.parts or not np.allclose(given.points, body.points):
+            log.warning(
+                "deformation: using the checkpoint's body model '%s' (the net was trained with "
+                "it), not body=%s",
+                body.name,
+                given.name,
+            )
+        # the checkpoint's model may lack the config's aliases: merge them
+        aliases = {k: v for k, v in given.aliases.items() if v in body.parts}
+        return BodyModel(body.parts, body.points, {**aliases, **body.aliases}, body.name)
+
+    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
+        return self.model, {}
+
+    def check(self, a: Adjusting, model, poses):
+        return _require_better(a, model, poses, "net")
+
+    def checkpoint(self, a: Adjusting) -> str:
+        return str(Path(self.path).resolve())
+
+
+class DefaultNet(NetMode):
+    """``deformation=default``: the pretrained net shipped with the package, on this session's
+    (scaled) body; checked part by part against the interpolation (``deform.require_better``)."""
+
+    name = "default"
+
+    def __init__(self) -> None:
+        self.model = None
+
+    def prepare(self, body: BodyModel) -> None:
+        model = pretrained.load_default()  # (the module's: tests replace it)
+        if tuple(model.body.parts) != tuple(body.parts):
+            raise InputError(
+                f"deformation=default: the shipped net knows the parts {list(model.body.parts)}, "
+                f"this recording has {list(body.parts)}; use deformation=self (it trains a net "
+                "for this skeleton)"
+            )
+        # the net predicts in canonical coordinates; it runs on this session's (scaled) body
+        model.body = body
+        model.body_points = torch.tensor(np.array(body.points), dtype=torch.float32)
+        self.model = model
+
+    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
+        return self.model, {}
+
+    def check(self, a: Adjusting, model, poses):
+        return _require_better(a, model, poses, "default")
+
+    def checkpoint(self, a: Adjusting) -> str:
+        return "default"
+
+
+class SelfNet(NetMode):
+    """``deformation=self``: the shipped net fine-tuned on this recording's own tokens
+    (`adjust.adapt.adapt_net`, ``adapt.*``), used if it beats the interpolation on held-out
+    tokens (``adapt.require_better``)."""
+
+    name = "self"
+    prior_without_net = True
+
+    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
+        # deformation=self only: the fine-tuning's data module loads Lightning, which the
+        # library does not import otherwise (tests/test_layering.py)
+        from adjust.adapt import adapt_net
+
+        t1 = time.perf_counter()
+        tokens = session_tokens(
+            poses, a.body.points, a.cons, a.body.parts, a.body.name, source=a.where
+        )
+        model, facts = adapt_net(tokens, a.out, a.adapt_cfg, a.progress)
+        a.timings["adapt_s"] = time.perf_counter() - t1
+        self.adapt_facts = facts
+        return model, {"adapt": facts}
+
+    def check(self, a: Adjusting, model, poses):
+        facts = self.adapt_facts
+        net_mm, lin_mm = facts.get("val_rmse_mm"), facts.get("val_rmse_mm_linear")
+        if bool((a.adapt_cfg or {}).get("require_better", True)) and not (
+            net_mm is not None and lin_mm is not None and net_mm < lin_mm
+        ):
+            log.warning(
+                "deformation=self: the adapted net does not predict held-out parts better "
+                "than linear interpolation (val RMSE %s vs %s mm; too little data or time?): "
+                "the tracks are interpolated (deformation=interp's model, adjusted to "
+                "convergence; adapt.require_better=false uses the net "
+                "anyway; its checkpoint is %s)",
+                f"{net_mm:.2f}" if net_mm is not None else "n/a",
+                f"{lin_mm:.2f}" if lin_mm is not None else "n/a",
+                facts["checkpoint"],
+            )
+            facts["used"] = False
+            return None, None, "no better than linear interpolation"
+        facts["used"] = True
+        return None, None, None
+
+    def checkpoint(self, a: Adjusting) -> str:
+        return str(a.out / "deformation.ckpt")
+
+
+def _require_better(a: Adjusting, model, poses, mode: str):
+    """``deform.require_better`` (`adjust.net_gate.heldout_check`) as `NetMode.check`."""
+    t1 = time.perf_counter()
+    net_parts, facts = heldout_check(
+        model,
+        poses,
+        a.body,
+        a.cons,
+        a.deform_cfg,
+        a.where,
+        mode,
+        step=deform_step(model, a.deform_cfg),
+    )
+    a.timings["heldout_check_s"] = time.perf_counter() - t1
+    reason = None
+    if net_parts is not None and not bool(net_parts.any()):
+        reason = (
+            f"the net predicts the recording's held-out parts no better than interpolation "
+            f"(RMSE {facts['net_all_mm']:.2f} vs {facts['interp_all_mm']:.2f} mm)"
+        )
+    return net_parts, facts, reason
+
+
+def net_use_facts(observation: NetObservation, body: BodyModel) -> dict:
+    """How much of the tracks the net made (summary.json ``deformation``)."""
+    used = observation.step_used[observation.use_net.to(observation.step_used.device)]
+    return {
+        "net_passes": int(observation.evaluations),
+        "held_out_ratio_net_over_interp": {
+            p: float(v) for p, v in zip(body.parts, observation.factor)
+        },
+        "net_reach_fraction": float(observation.reach.double().mean()),
+        "net_used_fraction": float(observation.use_net.double().mean()),
+        "net_used_by_step": {
+            int(s): float((used == s).double().sum() / max(used.numel(), 1))
+            for s in (observation.step, *observation.far_steps)
+        },
+    }
+
+
+def mode_from_config(deformation) -> DeformationMode:
+    """``deformation=``: null / ``rigid`` (the rigid model), ``interp`` (each part's body-frame
+    offset interpolated from its own observations, `InterpObservation`), ``default`` (the
+    shipped pretrained net, `deformnet.pretrained`), ``self`` (that net fine-tuned on this
+    recording's own tokens, `adapt_net`), else a checkpoint (``net``)."""
+    key = "" if deformation is None else str(deformation).lower()
+    if key in ("", "none", "null", "rigid"):
+        return RigidMode()
+    if key == "interp":
+        return InterpMode()
+    if key == "default":
+        return DefaultNet()
+    if key == "self":
+        return SelfNet()
+    return CheckpointNet(str(deformation))

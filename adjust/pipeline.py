@@ -1,0 +1,320 @@
+"""`adjust-track`'s recipe: detections and a calibration in, points3d.csv and summary.json out.
+
+Load the calibration and one detection file per camera (`adjust.io`), check the cameras
+(`adjust.camera_check`), the consensus triangulation (`adjust.estimate.consensus`: the
+session's 3D observations and detector noise), the body model (`adjust.body_fit`), the rigid
+pose-track adjustment (`adjust.lsq.adjust_poses`), then the deformation mode
+(`adjust.deformation_modes`, chosen once from ``deformation=``), then the outputs, written as
+one set (`adjust.app.OutputSet`) with the summary (`adjust.summary`).
+
+`track(cfg)` is the plain function; `adjust.track.run` (the app) calls it within the
+configured torch threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from adjust.app import OutputSet, load_kwargs, required
+from adjust.body_fit import body_shape, fit_body, is_auto, refine_body, rigid_observation
+from adjust.camera import CameraTensors
+from adjust.camera_check import check_from_config
+from adjust.deformation_modes import MEASURED, Adjusting, mode_from_config
+from adjust.estimate import consensus
+from adjust.export import session_start, write_nwb
+from adjust.io import (
+    InputError,
+    UnknownPartsError,
+    check_cameras_usable,
+    load_calibration_metadata,
+    load_scene,
+    recording_fps,
+    write_points3d,
+)
+from adjust.lsq.config import SolverConfig
+from adjust.lsq.solver import TRACK_OUTPUTS, adjust_poses
+from adjust.session import with_session
+from adjust.summary import report_result, result_summary, track_columns, track_health
+from adjust.tokens import session_tokens
+from deformnet.body import BodyModel
+from deformnet.confutil import to_plain
+from deformnet.paths import output_dir
+
+log = logging.getLogger(__name__)
+
+__all__ = ["track"]
+
+
+def check_nwb_output(cfg: DictConfig, calibration: str) -> None:
+    """``output.nwb=true`` needs the recording's frame rate and start time: checked before
+    any computing."""
+    if not cfg.output.get("nwb", False):
+        return
+    meta = load_calibration_metadata(calibration)
+    if recording_fps(cfg.output.get("fps"), meta) is None:
+        raise InputError(
+            f"output.nwb=true needs the recording's frame rate: set output.fps=... (Hz), or "
+            f"give a calibration whose [metadata] has fps ({calibration} has none)"
+        )
+    try:
+        session_start(cfg.output.get("session_start_time"), meta, calibration)
+    except InputError as exc:
+        raise InputError(f"output.nwb=true: {exc} (output.session_start_time=...)") from None
+
+
+def track(cfg: DictConfig) -> dict:
+    """Load, adjust, write points3d.csv and summary.json; returns the summary."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    cfg = with_session(cfg)  # input.session=DIR: DIR/calibration.toml, DIR[/detections]
+    calibration = required(cfg, "input.calibration", "track")
+    detections = required(cfg, "input.detections", "track")
+    where = str(detections)
+    kwargs = load_kwargs(cfg.input)
+    body_cfg = cfg.get("body")
+    solver_cfg = SolverConfig.from_config(cfg.get("solver"))
+    if body_cfg is None:
+        raise ValueError(
+            "adjust-track needs a body model: body=mouse, body=auto (estimated from the data) or "
+            "your own conf/body/<name>.yaml"
+        )
+    auto = is_auto(body_cfg)
+    mode = mode_from_config(cfg.get("deformation"))
+    est_cfg = cfg.get("stochastic") or {}
+    deform_cfg = cfg.get("deform") or {}
+    estimate = bool(est_cfg.get("estimate", True))
+    check_nwb_output(cfg, calibration)
+    if mode.needs_consensus and not estimate:
+        raise ValueError(
+            f"deformation={mode.name} needs stochastic.estimate=true (its 3D observations)"
+        )
+    measured = str(deform_cfg.get("measured", "cv"))
+    if measured not in MEASURED:
+        raise ValueError(f"deform.measured must be cv, interp, rigid or net, got {measured!r}")
+
+    # --- inputs and body model ----------------------------------------------------------
+    t0 = time.perf_counter()
+    body_facts: dict = {}
+    frame_of = None  # a named model whose frame an estimated one is moved into
+    body = mode.checkpoint_body(body_cfg)
+    from_checkpoint = body is not None
+    if from_checkpoint:
+        if auto:
+            raise ValueError(
+                "deformation= needs the body model the net was trained with; drop body=auto "
+                f"(the checkpoint's model: '{body.name}', parts {list(body.parts)})"
+            )
+        cameras, det = load_scene(calibration, detections, body, **kwargs)
+    elif auto:
+        cameras, det = load_scene(calibration, detections, None, **kwargs)
+    else:
+        body = BodyModel.from_config(body_cfg)
+        try:
+            cameras, det = load_scene(calibration, detections, body, **kwargs)
+        except UnknownPartsError as exc:
+            if str(body_cfg.get("other_parts", "error")).lower() != "auto":
+                raise
+            log.warning(
+                "the detection files have parts that body '%s' does not know (%s): their own "
+                "body is estimated from the data (as body=auto) and every part is tracked "
+                "(body.other_parts=error stops instead)",
+                body.name,
+                ", ".join(exc.parts),
+            )
+            cameras, det = load_scene(calibration, detections, None, **kwargs)
+            auto = True
+            body_facts["other_parts"] = list(exc.parts)
+        frame_of = body
+    estimated = not from_checkpoint and (auto or body_shape(body_cfg) == "data")
+    cameras, det, camera_report = check_from_config(cameras, det, cfg.get("input"))
+    check_cameras_usable(det, where)  # one camera: depth unobserved, refused
+    cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
+    timings["load_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    weight = det.weight()
+    cons = None
+    if estimate:
+        cons = consensus(
+            det.xy,
+            weight,
+            cams,
+            max_error_px=float(est_cfg.get("max_error_px", 20.0)),
+            gate_sigmas=float(est_cfg.get("gate_sigmas", 4.0)),
+            sigma_det_px=est_cfg.get("sigma_det_px"),
+        )
+        weight = np.where(cons.dropped, 0.0, weight)
+        solver_cfg = solver_cfg.replace(sigma_det_px=cons.sigma_det_px)
+    timings["consensus_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    body, solver_cfg, estimated = fit_body(
+        det,
+        cams,
+        body,
+        body_cfg,
+        cons,
+        solver_cfg,
+        auto=auto,
+        estimated=estimated,
+        frame_of=frame_of,
+        from_checkpoint=from_checkpoint,
+        facts=body_facts,
+    )
+    mode.prepare(body)
+    rigid_obs = None
+    if cons is not None:
+        rigid_obs, moment_facts = rigid_observation(body, cons)
+        body_facts.update(moment_facts)
+    timings["body_s"] = time.perf_counter() - t0
+
+    # --- adjustment ---------------------------------------------------------------------
+    t0 = time.perf_counter()
+    progress = bool(cfg.get("progress", True))
+    # views of a unanimous camera consensus are fused without a gate; where the consensus had
+    # to outvote a camera, the track decides which views to believe (a consistent wrong pair,
+    # e.g. a left/right swap seen alike by two cameras, can outvote the right one)
+    trusted = None
+    if cons is not None:
+        trusted = cons.used & (cons.observed & ~cons.dropped.any(-1))[..., None]
+
+    def solve(config, obs, init=None):
+        """One pose-track adjustment of this session (only the outputs that are written:
+        long sessions in bounded memory)."""
+        return adjust_poses(
+            det.xy,
+            weight,
+            cams,
+            np.array(body.points),  # a writable copy
+            config,
+            init_poses=init,
+            observation=obs,
+            progress=progress,
+            trusted=trusted,
+            outputs=TRACK_OUTPUTS,
+        )
+
+    few_var = None  # (K, 3) the spread of parts placed from their single views (else NaN)
+    rigid, rigid_iterations = None, 0
+    if mode.rigid_first(deform_cfg, cons):
+        # the rigid adjustment: the result itself, or the start of a deformable one
+        rigid = solve(solver_cfg, rigid_obs)
+        if estimated and rigid_obs is not None:  # the model from the detections themselves
+            refined = refine_body(body, body_cfg, rigid.poses, det, weight, cams, cons, rigid_obs)
+            if refined is not None:
+                body, rigid_obs, few_var, body_facts["refined"] = refined
+                rigid = solve(solver_cfg, rigid_obs, rigid.poses)
+        rigid_iterations = int(rigid.iterations)
+        timings["rigid_s"] = time.perf_counter() - t0
+    out = output_dir(cfg)
+    res, deformation_facts = mode.adjust(
+        Adjusting(
+            det=det,
+            weight=weight,
+            cams=cams,
+            body=body,
+            cons=cons,
+            rigid_obs=rigid_obs,
+            few_var=few_var,
+            solver_cfg=solver_cfg,
+            solve=solve,
+            rigid=rigid,
+            deform_cfg=deform_cfg,
+            adapt_cfg=cfg.get("adapt"),
+            consensus_cfg=est_cfg,
+            where=where,
+            out=out,
+            progress=progress,
+            timings=timings,
+        )
+    )
+    timings["adjust_s"] = time.perf_counter() - t0 - timings.get("adapt_s", 0.0)
+
+    # --- outputs ------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    cols = track_columns(res, det, cams)
+    fnum = det.frames if det.frames is not None else None
+    points_path = out / "points3d.csv"
+    source = "config"
+    if auto:
+        source = "auto"
+    elif from_checkpoint:
+        source = "checkpoint"
+    elif estimated:
+        source = "data"
+    summary = {
+        "inputs": {
+            "calibration": str(Path(calibration).resolve()),
+            "detections": str(Path(detections).resolve()),
+            "files": {c: str(f) for c, f in zip(det.cameras, det.files)},
+        },
+        "body": {"name": body.name, "source": source, **body_facts},
+        "deformation": deformation_facts,
+        "stochastic": None if cons is None else cons.facts(det.cameras),
+        "cameras": list(det.cameras),
+        "camera_check": camera_report,
+        "parts": list(det.parts),
+        "num_frames": det.num_frames,
+        "settings": {
+            "likelihood_threshold": det.threshold,
+            "individual": kwargs["individual"],
+            "solver": asdict(solver_cfg),
+        },
+        "rigid_iterations": rigid_iterations,  # of the rigid run that started a deformable one
+        **result_summary(res, det, cols.error, cols.view_err),
+        "health": track_health(
+            cols.points, cols.view_err, solver_cfg.sigma_det_px, poses=res.poses
+        ),
+        "time_s": {},
+        "outputs": {"points3d": str(points_path), "summary": str(out / "summary.json")},
+    }
+    timings["write_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
+    # every output as one set (adjust.app.OutputSet): a run stopped at any moment (SIGKILL
+    # included) leaves the previous run's outputs whole; summary.json last, with every file's
+    # sha256 (outputs.files)
+    with OutputSet(out) as staged:
+        # which detections every point rests on (for figures: adjust-plot, the demo report)
+        np.savez_compressed(
+            staged.path("accepted.npz"),
+            accepted=cols.observed,
+            parts=np.asarray(det.parts),
+            cameras=np.asarray(det.cameras),
+        )
+        summary["outputs"]["accepted"] = str(out / "accepted.npz")
+        if cons is not None:  # self-supervised tokens for deformnet-train data=sessions
+            tokens = session_tokens(
+                res.poses, body.points, cons, body.parts, body.name, source=str(out)
+            )
+            tokens.save(staged.path("tokens.npz"))
+            summary["outputs"]["tokens"] = str(out / "tokens.npz")
+        write_points3d(
+            staged.path("points3d.csv"),
+            det.parts,
+            cols.points,
+            cols.error,
+            cols.ncams,
+            cols.score,
+            extra=cols.extra,
+            fnum=fnum,
+        )
+        if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
+            write_nwb(
+                staged.path("tracks.nwb"),
+                staged.path("points3d.csv"),
+                calibration,
+                fps=cfg.output.get("fps"),
+                session_start_time=cfg.output.get("session_start_time"),
+                subject=to_plain(cfg.output.get("subject")) or None,
+                detections=detections,
+            )
+            summary["outputs"]["nwb"] = str(out / "tracks.nwb")
+        summary = staged.commit(summary)
+    report_result(summary, where, out, fnum)
+    return summary
