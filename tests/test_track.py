@@ -64,13 +64,21 @@ def _dlt(scene: Path) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def rigid_run(scene, tmp_path_factory):
+def default_run(scene, tmp_path_factory):
+    """adjust-track with its defaults (deformation=interp): (output folder, summary)."""
     out = tmp_path_factory.mktemp("track")
     return out, _track(scene, out)
 
 
-def test_rigid_track_complete_and_better_than_dlt(scene, rigid_run):
-    out, summary = rigid_run
+@pytest.fixture(scope="module")
+def rigid_run(scene, tmp_path_factory):
+    """adjust-track deformation=rigid (the rigid body model only): (output folder, summary)."""
+    out = tmp_path_factory.mktemp("rigid")
+    return out, _track(scene, out, ["deformation=rigid"])
+
+
+def test_default_track_complete_and_better_than_dlt(scene, default_run):
+    out, summary = default_run
     parts = default_mouse().parts
     cols = _columns(out / "points3d.csv")
     want = [f"{p}_{f}" for p in parts for f in FIELDS]
@@ -115,12 +123,42 @@ def test_rigid_track_complete_and_better_than_dlt(scene, rigid_run):
     assert np.sqrt(np.mean(err_adj[~can] ** 2)) < 6.0
 
 
-def test_grid_and_spline_constraints(scene, rigid_run, tmp_path):
-    _, grid = rigid_run
+def test_rigid_track_accuracy(scene, rigid_run, default_run):
+    """deformation=rigid: complete, reported as rigid, accurate where the
+    parts are seen; interp's deformation model beats it on the occluded parts."""
+    out, summary = rigid_run
+    assert summary["deformation"]["mode"] == "rigid" and summary["completeness"] == 1.0
+    truth = np.load(scene / "truth.npz")
+    seen = truth["nviews"] >= 2
+    P = read_points3d(out / "points3d.csv")["points"]
+    assert np.isfinite(P).all()
+    err = np.linalg.norm(P - truth["points"], axis=-1)
+    rms = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    # measured: 4.50 mm overall, 0.85 seen by >= 2 cameras, 6.50 occluded
+    assert rms(err) < 5.5 and rms(err[seen]) < 1.1 and rms(err[~seen]) < 8.0, (
+        rms(err),
+        rms(err[seen]),
+        rms(err[~seen]),
+    )
+    # better than DLT triangulation where DLT can triangulate
+    dlt = _dlt(scene)
+    can = np.isfinite(dlt).all(-1)
+    assert rms(err[can]) < rms(np.linalg.norm(dlt - truth["points"], axis=-1)[can])
+    # the default (interp) run: 4.62 mm occluded, 0.71x rigid's
+    P_interp = read_points3d(default_run[0] / "points3d.csv")["points"]
+    err_interp = np.linalg.norm(P_interp - truth["points"], axis=-1)
+    assert rms(err_interp[~seen]) < 0.85 * rms(err[~seen]), (
+        rms(err_interp[~seen]),
+        rms(err[~seen]),
+    )
+
+
+def test_grid_and_spline_constraints(scene, default_run, tmp_path):
+    _, grid = default_run
     spline = _track(scene, tmp_path, ["solver.constraint=spline"])
     assert spline["settings"]["solver"]["constraint"] == "spline"
     assert spline["completeness"] == 1.0
-    a = read_points3d(rigid_run[0] / "points3d.csv")["points"]
+    a = read_points3d(default_run[0] / "points3d.csv")["points"]
     b = read_points3d(tmp_path / "points3d.csv")["points"]
     # two forms of the same constraint: close, not identical (measured 0.056 mm rms)
     assert 0 < np.sqrt(np.mean(np.sum((a - b) ** 2, -1))) < 0.5
@@ -150,8 +188,9 @@ def test_body_auto_on_real_hand_data(tmp_path):
     d = read_points3d(out / "points3d.csv")
     assert d["parts"][:2] == ("elbow", "wrist") and d["points"].shape == (60, 21, 3)
     assert np.isfinite(d["points"]).all()
-    # the reported points agree with the detections (DLT's median is ~3.3-3.9 px)
-    assert summary["reprojection_error_px"]["median"] < 6.0
+    # the reported points agree with the detections as well as DLT's (median ~3.3-3.9 px;
+    # measured 3.15)
+    assert summary["reprojection_error_px"]["median"] < 3.5, summary["reprojection_error_px"]
     assert summary["settings"]["solver"]["sigma_def_mm"] == pytest.approx(
         max(summary["body"]["rms_deviation_mm"], 0.5)
     )
@@ -222,12 +261,14 @@ def test_deformable_run_with_tiny_checkpoint(scene, rigid_run, tmp_path):
     assert summary["completeness"] == 1.0
     d = read_points3d(out / "points3d.csv")
     assert np.isfinite(d["points"]).all()
-    # an untrained net moves parts by little: the result stays near the rigid track
+    # an untrained net predicts the rigid model where it is used (4% of the part-frames), the
+    # rest is interp's (the net modes run rigid -> interp -> net): better than the rigid track
+    # (measured 3.51 vs 4.50 mm; interp 3.20)
     rigid = read_points3d(rigid_run[0] / "points3d.csv")["points"]
     truth = np.load(scene / "truth.npz")["points"]
     rmse = np.sqrt(np.mean(np.sum((d["points"] - truth) ** 2, -1)))
     rmse_rigid = np.sqrt(np.mean(np.sum((rigid - truth) ** 2, -1)))
-    assert rmse < rmse_rigid + 2.0  # measured 4.66 vs 3.36 mm
+    assert rmse < rmse_rigid, (rmse, rmse_rigid)
 
 
 def test_heading_frame_net_needs_the_worlds_up(scene, tmp_path):
