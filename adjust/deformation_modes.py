@@ -33,7 +33,7 @@ from adjust.body_fit import check_world_up, triangulate_points
 from adjust.camera import CameraTensors
 from adjust.io import Detections, InputError
 from adjust.lsq.observation import InterpObservation, NetObservation
-from adjust.net_gate import heldout_check
+from adjust.net_gate import heldout_check, net_vs_kriging
 from adjust.tokens import session_tokens
 from adjust.validate import choose_measured_prior
 from deformnet import pretrained
@@ -279,9 +279,10 @@ class NetMode(DeformationMode):
         """(the net, facts about it) for this session; poses (T, 6): the interp poses."""
         raise NotImplementedError
 
-    def check(self, a: Adjusting, model, poses) -> tuple[Any, dict | None, str | None]:
+    def check(self, a: Adjusting, model, poses, interp_obs) -> tuple[Any, dict | None, str | None]:
         """(net_parts (K,) bool or None for all, summary facts under ``heldout``, the reason
-        the net is not used or None)."""
+        the net is not used or None); interp_obs: the interp stage's observation (its
+        offset covariance), None without the session's 3D observations."""
         return None, None, None
 
     def checkpoint(self, a: Adjusting) -> str:
@@ -306,7 +307,7 @@ class NetMode(DeformationMode):
             up_deg = check_world_up(model, init, a.where)
         net_parts, heldout, reason = None, None, None
         if model is not None and init is not None:
-            net_parts, heldout, reason = self.check(a, model, init)
+            net_parts, heldout, reason = self.check(a, model, init, interp_obs)
             if reason is not None:
                 model = None  # `res`: the interp adjustment's, outputs complete
         observation, def_facts, dcfg = None, {}, a.solver_cfg
@@ -419,7 +420,7 @@ class CheckpointNet(NetMode):
     def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
         return self.model, {}
 
-    def check(self, a: Adjusting, model, poses):
+    def check(self, a: Adjusting, model, poses, interp_obs):
         return _require_better(a, model, poses, "net")
 
     def checkpoint(self, a: Adjusting) -> str:
@@ -451,7 +452,7 @@ class DefaultNet(NetMode):
     def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
         return self.model, {}
 
-    def check(self, a: Adjusting, model, poses):
+    def check(self, a: Adjusting, model, poses, interp_obs):
         return _require_better(a, model, poses, "default")
 
     def checkpoint(self, a: Adjusting) -> str:
@@ -477,29 +478,51 @@ class SelfNet(NetMode):
         )
         model, facts = adapt_net(tokens, a.out, a.adapt_cfg, a.progress)
         a.timings["adapt_s"] = time.perf_counter() - t1
-        self.adapt_facts = facts
+        self.tokens, self.adapt_facts = tokens, facts
         return model, {"adapt": facts}
 
-    def check(self, a: Adjusting, model, poses):
+    def check(self, a: Adjusting, model, poses, interp_obs):
+        """``adapt.require_better``: the adapted net against the interpolation the tracks would
+        otherwise get (`InterpMode`'s kriging, with this session's offset covariance) on the
+        same masked windows of the fine-tuning's held-out blocks (`net_vs_kriging`)."""
         facts = self.adapt_facts
-        net_mm, lin_mm = facts.get("val_rmse_mm"), facts.get("val_rmse_mm_linear")
-        if bool((a.adapt_cfg or {}).get("require_better", True)) and not (
-            net_mm is not None and lin_mm is not None and net_mm < lin_mm
-        ):
-            log.warning(
-                "deformation=self: the adapted net does not predict held-out parts better "
-                "than linear interpolation (val RMSE %s vs %s mm; too little data or time?): "
-                "the tracks are interpolated (deformation=interp's model, adjusted to "
-                "convergence; adapt.require_better=false uses the net "
-                "anyway; its checkpoint is %s)",
-                f"{net_mm:.2f}" if net_mm is not None else "n/a",
-                f"{lin_mm:.2f}" if lin_mm is not None else "n/a",
-                facts["checkpoint"],
+        if not bool((a.adapt_cfg or {}).get("require_better", True)):
+            facts["used"] = True
+            return None, {"require_better": False, "checked": False}, None
+        blocks = (facts.get("data") or {}).get("val_blocks")
+        step = deform_step(model, a.deform_cfg)
+        try:
+            h = net_vs_kriging(model, self.tokens, interp_obs.cov, blocks, step)
+        except ValueError as exc:  # held-out blocks shorter than a window
+            log.warning("adapt.require_better: the held-out blocks hold no window (%s)", exc)
+            h = net_vs_kriging(model, self.tokens, interp_obs.cov, None, step)
+            blocks = None
+        h = {"require_better": True, "checked": True, "blocks": blocks or "all frames", **h}
+        h["net_mm"] = dict(zip(a.body.parts, h["net_mm"]))
+        h["interp_mm"] = dict(zip(a.body.parts, h["interp_mm"]))
+        figures = (h["net_all_mm"], h["interp_all_mm"], h["windows"])
+        if h["net_all_mm"] < h["interp_all_mm"]:
+            log.info(
+                "deformation=self: the adapted net beats interp's kriging on held-out tokens "
+                "(RMSE %.2f vs %.2f mm over %d windows)",
+                *figures,
             )
-            facts["used"] = False
-            return None, None, "no better than linear interpolation"
-        facts["used"] = True
-        return None, None, None
+            facts["used"] = True
+            return None, h, None
+        reason = (
+            "the adapted net predicts held-out tokens no better than interp's kriging (RMSE "
+            f"{h['net_all_mm']:.2f} vs {h['interp_all_mm']:.2f} mm over {h['windows']} windows)"
+        )
+        log.warning(
+            "deformation=self: %s; too little data or time? The tracks are interpolated "
+            "(deformation=interp's model, adjusted to convergence; summary.json says "
+            "deformation.mode: interp; adapt.require_better=false uses the net anyway; its "
+            "checkpoint is %s)",
+            reason,
+            facts["checkpoint"],
+        )
+        facts["used"] = False
+        return None, h, reason
 
     def checkpoint(self, a: Adjusting) -> str:
         return str(a.out / "deformation.ckpt")

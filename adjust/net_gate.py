@@ -8,14 +8,19 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import torch
+from torch import Tensor
 
 from adjust.io import InputError
+from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 from adjust.tokens import session_tokens
-from deformnet.heldout import MIN_TARGETS, heldout_errors
+from deformnet.heldout import MIN_TARGETS, heldout_errors, window_sums
+from deformnet.so3 import kabsch
+from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REQUIRE_BETTER", "heldout_check"]
+__all__ = ["REQUIRE_BETTER", "heldout_check", "kriged_mid", "net_vs_kriging"]
 
 
 REQUIRE_BETTER = ("auto", "parts", "all", "report", "false")
@@ -107,3 +112,90 @@ def heldout_check(
             *figures,
         )
     return (None if spec == "report" else keep), facts
+
+
+def kriged_mid(batch: dict, body_points, cov: OffsetCovariance, mid: int, step: int = 1) -> Tensor:
+    """``deformation=interp``'s prediction of each window's mid frame: every part's offset from
+    the rigid model, in body axes, kriged from the window's observed frames
+    (`adjust.lsq.stochastic.krige_offsets` with the session's `OffsetCovariance`, as
+    `InterpObservation` does over the whole session), the mid frame itself not used.
+
+    batch: rigid, deformed (B, W, K, 3) mm, observed (B, W, K) (a `deformnet.windows` batch);
+    body_points (K, 3) mm, the model whose points ``rigid`` moves; step: frames between the
+    window's tokens (the covariance's lags are in frames). Returns (B, K, 3) mm, global."""
+    rigid = batch["rigid"].double()
+    deformed = batch["deformed"].double()
+    observed = batch["observed"].bool()
+    Bw, W, K, _ = rigid.shape
+    R, _ = kabsch(rigid, torch.tensor(np.asarray(body_points), dtype=torch.float64))
+    # o = R^T (X - t) - B = R^T (X - rigid): (B, W, K, 3) in body axes
+    off = torch.einsum("bwji,bwkj->bwki", R, deformed - rigid)
+    # windows side by side along the parts axis: each (window, part) one kriged series
+    o = off.permute(1, 0, 2, 3).reshape(W, Bw * K, 3).numpy()
+    m = observed.permute(1, 0, 2).reshape(W, Bw * K).numpy()
+    tiled = OffsetCovariance(
+        mean=np.tile(cov.mean, (Bw, 1)),
+        sill=np.tile(cov.sill, (Bw, 1)),
+        nugget=np.tile(cov.nugget, (Bw, 1)),
+        lags=np.asarray(cov.lags, dtype=np.float64) / float(step),  # in tokens
+        gamma=np.tile(cov.gamma, (Bw, 1, 1)),
+        counts=np.tile(cov.counts, Bw),
+    )
+    pred, _ = krige_offsets(o, m, tiled, skip_self=True)
+    p = torch.as_tensor(pred[mid]).reshape(Bw, K, 3)
+    return rigid[:, mid] + torch.einsum("bij,bkj->bki", R[:, mid], p)
+
+
+def net_vs_kriging(
+    model,
+    tokens,
+    cov: OffsetCovariance,
+    blocks=None,
+    step: int | None = None,
+    windows: int = 1024,
+    batch_size: int = 256,
+    seed: int = 0,
+) -> dict:
+    """RMSE (mm) of the net and of `kriged_mid` (what ``deformation=interp`` predicts) on the
+    same masked windows (`deformnet.windows`, training-like masks) of the recording's tokens
+    (`deformnet.sessions.SessionTokens`), over all parts and per part.
+
+    blocks: [[start, stop], ...] frames to draw the windows from (the fine-tuning's held-out
+    blocks; None: the whole recording); step: frames between tokens (None: the net's).
+    Returns {"net_mm", "interp_mm" (per part lists), "targets", "net_all_mm",
+    "interp_all_mm", "windows"}. ValueError when no block holds a window."""
+    step = int(model.step if step is None else step)
+    spans = [(0, tokens.num_frames)] if blocks is None else [(int(a), int(b)) for a, b in blocks]
+    bank = WindowBank([tokens.to_sequence(a, b) for a, b in spans], model.half_window, step)
+    data = FixedWindowBatches.build(bank, int(windows), int(batch_size), int(seed), MaskConfig())
+    net = krig = count = None
+    n = 0
+    was_training = model.training
+    model.eval()
+    try:
+        with torch.no_grad():
+            for b in data.batches:
+                sums = window_sums(model, b, model.half_window)
+                pred = kriged_mid(b, tokens.body_points, cov, model.half_window, step)
+                m = b["target_mask"].double()
+                k = (((pred - b["target"].double()) ** 2).sum(-1) * m).sum(0)
+                net = sums["net"] if net is None else net + sums["net"]
+                krig = k if krig is None else krig + k
+                count = sums["count"] if count is None else count + sums["count"]
+                n += int(b["rigid"].shape[0])
+    finally:
+        model.train(was_training)
+
+    def per_part(x: Tensor) -> list[float]:
+        r = (x / count.clamp_min(1.0)).sqrt()
+        return [float(v) if c > 0 else float("nan") for v, c in zip(r, count)]
+
+    total = float(count.sum())
+    return {
+        "net_mm": per_part(net),
+        "interp_mm": per_part(krig),
+        "targets": [int(c) for c in count],
+        "net_all_mm": float(np.sqrt(float(net.sum()) / total)) if total else float("nan"),
+        "interp_all_mm": float(np.sqrt(float(krig.sum()) / total)) if total else float("nan"),
+        "windows": n,
+    }

@@ -1,0 +1,150 @@
+"""``deformation=self``'s gate (``adapt.require_better``): the adapted net is checked against
+the interpolation the tracks would otherwise get (``deformation=interp``'s kriging,
+`adjust.net_gate.kriged_mid`) on held-out windows of the recording's tokens; a net no better
+leaves the tracks to the interpolation and summary.json says ``deformation.mode: interp`` with
+the reason. The fine-tuning itself is replaced by a given net (`adjust.adapt.adapt_net`)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
+from adjust.net_gate import kriged_mid
+from deformnet.body import default_mouse
+from deformnet.confutil import compose
+from deformnet.deformation import DeformationModel
+from deformnet.so3 import transform_points
+
+torch.set_num_threads(1)
+
+
+def _cov(K: int, sill: float = 100.0) -> OffsetCovariance:
+    """A covariance under which two neighbours' kriging is their linear interpolation."""
+    lags = np.array([1.0, 2.0, 4.0, 8.0])
+    gamma = np.broadcast_to(0.01 * lags, (K, 3, 4)).copy()
+    return OffsetCovariance(
+        np.zeros((K, 3)), np.full((K, 3), sill), np.full((K, 3), 1e-4), lags, gamma, np.ones(K)
+    )
+
+
+def test_kriged_mid_krieges_body_frame_offsets_of_each_window():
+    """Offsets linear in time in body axes on a turning body: kriging is exact across a gap
+    (positions interpolated linearly are not); with nothing on one side the offset is held;
+    the result is `krige_offsets` on each window's body-frame offsets."""
+    body = default_mouse()
+    K, W, mid = body.num_parts, 9, 4
+    t = torch.arange(W, dtype=torch.float64)
+    poses = torch.zeros(2, W, 6, dtype=torch.float64)
+    poses[..., 2] = 0.3 * t  # turning 17 degrees a frame
+    poses[..., 3] = 40.0 * t
+    B = torch.tensor(np.array(body.points))
+    rigid = transform_points(poses, B.expand(2, W, K, 3))
+    off = torch.stack((t, -2 * t, 0.5 * t), -1)[None, :, None, :].expand(2, W, K, 3)
+    rot = torch.cat((poses[..., :3], torch.zeros_like(poses[..., 3:])), -1)
+    deformed = rigid + transform_points(rot, off.contiguous())
+    observed = torch.ones(2, W, K, dtype=torch.bool)
+    observed[:, 2:7, 0] = False  # part 0: neighbours 1 and 7
+    observed[0, mid:, 1] = False  # window 0, part 1: nothing after mid -> frame 3 held
+    observed[:, mid] = False
+    batch = {"rigid": rigid, "deformed": deformed, "observed": observed}
+    cov = _cov(K)
+    pred = kriged_mid(batch, body.points, cov, mid)
+    torch.testing.assert_close(pred[:, 0], deformed[:, mid, 0])
+    torch.testing.assert_close(pred[1, 2:], deformed[1, mid, 2:])
+    held = rigid[0, mid, 1] + transform_points(rot[0, mid], off[0, 3, 1][None])[0]
+    torch.testing.assert_close(pred[0, 1], held)
+    # the same as krige_offsets on window 0's body-frame offsets
+    o = off[0].numpy()
+    k, _ = krige_offsets(o, observed[0].numpy(), cov)
+    expect = rigid[0, mid] + transform_points(rot[0, mid], torch.as_tensor(k[mid]))
+    torch.testing.assert_close(pred[0], expect)
+    # token steps: the covariance's lags are in frames
+    far = _cov(K, sill=0.02)  # var > sill beyond a lag of 1 frame: the mean (0)
+    assert torch.allclose(kriged_mid(batch, body.points, far, mid, step=8)[:, 0], rigid[:, mid, 0])
+
+
+class _ShiftNet(nn.Module):
+    """The rigid mid point moved by 10 mm: far worse than interpolation."""
+
+    def __init__(self, half_window: int) -> None:
+        super().__init__()
+        self.mid = half_window
+
+    def forward(self, rigid_c, deformed_c, observed):
+        out = rigid_c[:, self.mid].clone()
+        out[..., 0] += 10.0
+        return out
+
+
+class _Oracle(DeformationModel):
+    """A net that knows the recording: the mid frame's measured points (found by the rigid
+    mid points' centroid), the rigid mid point where none was measured. Beats any
+    interpolation on held-out tokens."""
+
+    def __init__(self, body, tokens) -> None:
+        super().__init__(_ShiftNet(4), body, 4)
+        self.centroids = torch.as_tensor(tokens.rigid, dtype=torch.float64).mean(-2)
+        self.measured = torch.as_tensor(tokens.deformed, dtype=torch.float64)
+
+    def forward(self, rigid, deformed, observed):
+        mid = rigid[..., self.half_window, :, :]
+        c = mid.double().mean(-2).reshape(-1, 3)
+        f = torch.cdist(c, self.centroids).argmin(-1)
+        X = self.measured[f].reshape(mid.shape)
+        return torch.where(torch.isfinite(X), X, mid.double()).to(rigid.dtype)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """A default-mouse scene: the shipped net's own kind of mouse."""
+    from adjust.scene_cli import run
+
+    out = tmp_path_factory.mktemp("selfgate") / "scene"
+    run(compose("scene", [f"output.dir={out}", "num_frames=600", "seed=7"]))
+    return out
+
+
+def _self_run(scene: Path, out: Path, monkeypatch, net: str) -> dict:
+    """adjust-track deformation=self with the fine-tuning replaced by `net`: ``shift`` (10 mm
+    off) or ``oracle`` (`_Oracle`); the second half of the recording held out."""
+    from helpers import track_session
+
+    import adjust.adapt
+
+    def adapt_net(tokens, where, adapt_cfg, progress):
+        body = default_mouse()
+        body = body.__class__(body.parts, tokens.body_points, body.aliases, body.name)
+        model = DeformationModel(_ShiftNet(4), body, 4) if net == "shift" else _Oracle(body, tokens)
+        T = tokens.num_frames
+        return model, {"checkpoint": str(where / "deformation.ckpt"), "data": {
+            "split": "by time blocks", "val_blocks": [[T // 2, T]]}}  # fmt: skip
+
+    monkeypatch.setattr(adjust.adapt, "adapt_net", adapt_net)
+    return track_session(scene, out, ["deformation=self"])
+
+
+def test_a_net_no_better_than_kriging_is_reported_as_interp(scene, tmp_path, monkeypatch, caplog):
+    with caplog.at_level(logging.WARNING):
+        s = _self_run(scene, tmp_path / "bad", monkeypatch, "shift")
+    d = s["deformation"]
+    assert d["mode"] == "interp" and d["requested"] == "self"
+    assert "no better than interp's kriging" in d["reason"]
+    h = d["heldout"]
+    assert h["checked"] and h["net_all_mm"] > h["interp_all_mm"] and h["blocks"] == [[300, 600]]
+    assert "net_passes" not in d and d["adapt"]["used"] is False
+    assert "summary.json says deformation.mode: interp" in caplog.text
+
+
+def test_a_net_that_beats_kriging_is_kept(scene, tmp_path, monkeypatch):
+    s = _self_run(scene, tmp_path / "good", monkeypatch, "oracle")
+    d = s["deformation"]
+    h = d["heldout"]
+    assert h["checked"] and h["net_all_mm"] < h["interp_all_mm"], h
+    assert d["mode"] == "self" and "reason" not in d and d["adapt"]["used"] is True
+    assert d["net_passes"] >= 1 and d["net_used_fraction"] > 0
