@@ -165,14 +165,32 @@ def test_net_parts_keep_the_other_parts_on_interp():
         NetObservation(model, B, 9, data, obs, 0.0, 256, "frozen", net_parts=keep[:3])
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    """A default-mouse scene: the shipped net's own kind of mouse."""
+#: a simulator seed the shipped net never saw: deformnet.pretrained.build trains on seeds 0-15
+#: (data.train_sequences=16) and validates on 10000 (conf/data/sim.yaml)
+HELDOUT_SEED = 100
+
+
+def _scene(tmp_path_factory, frames: int) -> Path:
+    """A default-mouse scene (the shipped net's own kind of mouse) of the held-out seed."""
     from adjust.scene_cli import run
 
     out = tmp_path_factory.mktemp("heldout") / "scene"
-    run(compose("scene", [f"output.dir={out}", "num_frames=600", "seed=7"]))
+    run(compose("scene", [f"output.dir={out}", f"num_frames={frames}", f"seed={HELDOUT_SEED}"]))
     return out
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """600 frames (the tests whose net is a stand-in)."""
+    return _scene(tmp_path_factory, 600)
+
+
+@pytest.fixture(scope="module")
+def long_scene(tmp_path_factory) -> Path:
+    """1800 frames: on 600-frame held-out scenes the net's margin over interpolation varies
+    from scene to scene (measured over seeds 100-107 and 200-202: net/interp 0.88-1.04, median
+    0.93, 3 of 11 above 0.95); on 1800 frames 0.87-0.93 (seeds 100, 101, 103, 200)."""
+    return _scene(tmp_path_factory, 1800)
 
 
 def _track(scene: Path, out: Path, overrides: list[str]) -> dict:
@@ -181,12 +199,12 @@ def _track(scene: Path, out: Path, overrides: list[str]) -> dict:
     return track_session(scene, out, overrides)
 
 
-def test_the_shipped_net_passes_on_its_own_kind_of_mouse(scene, tmp_path):
-    s = _track(scene, tmp_path / "d", ["deformation=default"])
+def test_the_shipped_net_passes_on_its_own_kind_of_mouse(long_scene, tmp_path):
+    s = _track(long_scene, tmp_path / "d", ["deformation=default"])
     h = s["deformation"]["heldout"]
     assert h["checked"] and h["require_better"] == "parts"
-    # measured: 5.27 vs 5.76 mm over all parts; the paws and the tail base pass, the head's
-    # three parts (which deform least) do not
+    # measured: 3.84 vs 4.36 mm over all parts (0.88x); the four paws pass, the head's three
+    # parts and the tail base do not
     assert h["net_all_mm"] < 0.95 * h["interp_all_mm"]
     assert len(h["net_parts"]) >= 4
     assert {"left_front_paw", "right_front_paw"} <= set(h["net_parts"])
