@@ -49,11 +49,15 @@ Targets (``default`` against aniposelib, ratios of the seed means): RMSE all and
 ``default`` re-run with ``body.scale_factor`` x0.95 / x0.99 / x1.01 / x1.05, with 1% of the
 accepted detections of every camera dropped (likelihood 0, fixed seed), and on another detector
 seed (100) of the same frames; target: spread (max - min) / median of RMSE all < 10%.
+Beside each perturbation: the share of frames whose body orientation is more than 0.2 rad from
+the base run's (a pose in another basin); and aniposelib on the two detector seeds (its RMSE's
+change between them, the part of a seed's change that is the data's).
 
     .venv/bin/python benchmarks/real_motion.py [--split test] [--frames 1000] \\
         [--cameras 2,3,4] [--parts 8,22,34] [--seeds 0,1] \\
         [--methods dlt,aniposelib,default,rigid[,self,net]] [--adapt-minutes 3] \\
-        [--no-stability] [--threads 1] [--data poses3d.csv] [--work DIR] [--out FILE]
+        [--no-stability] [--no-peer-stability] [--threads 1] [--data poses3d.csv] \\
+        [--work DIR] [--out FILE]
 
 Prints the tables; the last line is JSON, also written to runs/benchmarks/real_motion.json.
 """
@@ -72,6 +76,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -249,7 +254,7 @@ def calibration(points_csv: Path, est, truth, nviews, parts) -> dict:
 
 def run_dlt(scene: Path, out: Path, mouse: bool) -> tuple[np.ndarray, tuple, float]:
     """`adjust-triangulate` on the scene (``body=mouse`` if `mouse`, else the files' parts)."""
-    from adjust.triangulate_cli import run
+    from adjust.apps.triangulate import run
 
     t0 = time.perf_counter()
     run(compose("triangulate", [*scene_inputs(scene), f"output.dir={out}",
@@ -537,10 +542,11 @@ def stability(args, motion: Motion, start: int, work: Path, base_rows: dict) -> 
                 scene = drop_detections(scene, out, DROP_FRACTION, DROP_SEED)
             return scene
 
-        rows = {}
+        rows, outs = {}, {}
         for name, (which, ov) in variants.items():
             if name == "base" and "default" in base_rows.get((cams, nparts), {}):
                 rows[name] = base_rows[(cams, nparts)]["default"]
+                outs[name] = work / "runs" / key / "default"
                 continue
             slug = name.replace(" ", "_").replace("%", "pct")
             out = work / "runs" / key / f"stability_{slug}"
@@ -552,10 +558,64 @@ def stability(args, motion: Motion, start: int, work: Path, base_rows: dict) -> 
                 return track_row(scene, out, [*threads, *ov], tr["points"], tr["nviews"], parts)
 
             rows[name] = guarded(f"stability {key} {name}", fn)
+            outs[name] = out
+        base_poses = read_poses(outs["base"] / "points3d.csv")
+        for name, out in outs.items():
+            if name != "base" and "error" not in rows[name]:
+                rows[name]["pose_flips"] = pose_flips(base_poses, read_poses(out / "points3d.csv"))
         v = [r["rmse_all"] for r in rows.values() if _finite(r.get("rmse_all"))]
         spread = (max(v) - min(v)) / float(np.median(v)) if len(v) >= 2 else float("nan")
-        res[f"c{cams}_p{nparts}"] = {"scene": key, "rows": rows, "spread": spread}
+        # the peer on the same two detector seeds: how much of a seed's change is the data's
+        peer = {}
+        if not args.no_peer_stability:
+            for which in ("base", "other"):
+                scene = scene_of(which)
+                tr = np.load(scene / "truth.npz")
+                parts = [str(p) for p in tr["parts"]]
+
+                def pfn(scene=scene, tr=tr, parts=parts, nparts=nparts):
+                    est, eparts, secs = run_aniposelib(
+                        scene, nparts, Path(args.data).parent / "skeleton.csv"
+                    )
+                    return evaluate(align(est, eparts, parts), tr["points"], tr["nviews"])
+
+                peer[which] = guarded(f"stability {key} aniposelib {which}", pfn)
+        pv = [r["rmse_all"] for r in peer.values() if _finite(r.get("rmse_all"))]
+        peer_seed = abs(pv[1] - pv[0]) / float(np.mean(pv)) if len(pv) == 2 else float("nan")
+        base_v, other_v = rows["base"].get("rmse_all"), rows[other].get("rmse_all")
+        own_seed = (
+            abs(other_v - base_v) / float(np.mean([base_v, other_v]))
+            if _finite(base_v) and _finite(other_v)
+            else float("nan")
+        )
+        res[f"c{cams}_p{nparts}"] = {
+            "scene": key,
+            "rows": rows,
+            "spread": spread,
+            "seed_change": own_seed,
+            "aniposelib_seed_change": peer_seed,
+            "aniposelib": peer,
+        }
     return res
+
+
+POSE_FLIP_RAD = 0.2  # "a different basin": the body's orientation more than this apart
+
+
+def read_poses(points_csv: Path) -> np.ndarray:
+    """(T, 3) rotation vectors (rad) of `points3d.csv`'s ``pose_r*`` columns."""
+    df = pd.read_csv(points_csv, usecols=["pose_rx", "pose_ry", "pose_rz"])
+    return df.to_numpy(float)
+
+
+def pose_flips(a: np.ndarray, b: np.ndarray) -> float:
+    """Fraction of frames whose body orientations (rotation vectors (T, 3)) differ by more than
+    `POSE_FLIP_RAD` (the angle of R_a^T R_b)."""
+    ok = np.isfinite(a).all(1) & np.isfinite(b).all(1)
+    if not ok.any():
+        return float("nan")
+    ang = (Rotation.from_rotvec(a[ok]).inv() * Rotation.from_rotvec(b[ok])).magnitude()
+    return float(np.mean(ang > POSE_FLIP_RAD))
 
 
 # --- output ---------------------------------------------------------------------------------
@@ -643,8 +703,18 @@ def print_stability(stab: dict) -> None:
                 else f"{_fmt(r.get('rmse_all'), 0)}  (occl {_fmt(r.get('rmse_occluded'), 0)}, "
                 f"body scale {_fmt(r.get('body_scale'), 0)} x {r.get('scale_factor') or 1:g})"
             )
-            print(f"  {name:<12} {val}")
+            flips = r.get("pose_flips")
+            flips = (
+                f", poses > {POSE_FLIP_RAD:g} rad from base {100 * flips:.1f}%"
+                if _finite(flips)
+                else ""
+            )
+            print(f"  {name:<12} {val}{flips}")
         print(f"  spread (max-min)/median {_fmt(s['spread'], 0)} (target < {SPREAD_TARGET:g})")
+        print(
+            f"  another detector seed changes RMSE all by {_fmt(s.get('seed_change'), 0)} "
+            f"(aniposelib on the same two seeds: {_fmt(s.get('aniposelib_seed_change'), 0)})"
+        )
 
 
 def _ints(ap, text: str, allowed, flag: str) -> list[int]:
@@ -665,6 +735,8 @@ def main(argv: list[str] | None = None) -> dict:
                     help=f"comma list of {','.join(METHODS)}")  # fmt: skip
     ap.add_argument("--adapt-minutes", type=float, default=3.0, help="self's fine-tuning")
     ap.add_argument("--no-stability", action="store_true", help="skip the stability table")
+    ap.add_argument("--no-peer-stability", action="store_true",
+                    help="stability without aniposelib on the two detector seeds")  # fmt: skip
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--data", default=str(DATA), help="the recording (poses3d.csv)")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_motion"),
