@@ -55,7 +55,7 @@ import numpy as np
 
 from adjust.io.errors import InputError
 from adjust.io.skeleton import resolve_skeleton, spanning_edges
-from adjust.kinematics import align_tracks
+from adjust.kinematics import BoardFrame, align_tracks
 from deformnet.behavior_labels import POSE_COLUMNS
 
 log = logging.getLogger(__name__)
@@ -318,7 +318,7 @@ def write_nwb(
     starting_time: float = 0.0,
     skeleton: str | os.PathLike | None = None,
     detections: str | os.PathLike | None = None,
-    axes: Mapping[str, Sequence] | None = None,
+    axes: Mapping[str, Sequence] | BoardFrame | None = None,
     origin=None,
     metadata: Mapping | None = None,
 ) -> Path:
@@ -332,7 +332,8 @@ def write_nwb(
     edges / skeleton / detections: the skeleton's sources (`resolve_skeleton`: pairs of part
     names, a ``skeleton.csv`` or SLEAP file, the session's detection folder).
     axes, origin: an axes alignment applied to the points, body pose and cameras
-    (`adjust.kinematics.align_tracks`). metadata: further NWBFile fields (`FILE_KEYS`:
+    (`adjust.kinematics.align_tracks`: named points, or a calibration board's `BoardFrame`,
+    whose fit is recorded in the file's notes). metadata: further NWBFile fields (`FILE_KEYS`:
     experimenter, institution, lab, experiment_description, keywords, session_id).
     identifier: default a fresh UUID. Raises `InputError` for unreadable or inconsistent inputs
     (naming the file) and missing required metadata (naming the setting)."""
@@ -402,7 +403,13 @@ def write_nwb(
         "fps": rate,
         "session_start_time_source": start_source,
         "skeleton_source": skeleton_source,
-        "axes": {"M": M.tolist(), "center_mm": center.tolist()} if aligned else None,
+        "axes": {
+            "M": M.tolist(),
+            "center_mm": center.tolist(),
+            **({"board": axes.summary()} if isinstance(axes, BoardFrame) else {}),
+        }
+        if aligned
+        else None,
     }
     nwb = NWBFile(
         session_description=session_description,
@@ -625,15 +632,16 @@ def _file_metadata(metadata: Mapping | None) -> dict:
 def write_anipose(
     path: str | os.PathLike,
     tracks: str | os.PathLike,
-    axes: Mapping[str, Sequence] | None = None,
+    axes: Mapping[str, Sequence] | BoardFrame | None = None,
     origin=None,
     keep_extra: bool = False,
 ) -> Path:
     """points3d.csv as anipose writes it (per part x, y, z, error, ncams, score; the axes
     columns ``M_..``, ``center_..``; fnum), optionally aligned by `axes` / `origin`
     (`adjust.kinematics.align_tracks`). Our other columns (body pose, sigmas) are dropped unless
-    `keep_extra` (tools that read anipose's files, e.g. movement, refuse columns they do not
-    know). Returns the path."""
+    `keep_extra`, which writes them to the sidecar ``<stem>.extra.csv`` beside `path`
+    (`adjust.io.points3d`): the CSV itself keeps anipose's columns only, which tools that read
+    anipose's files (movement's ``from_anipose_file``) require. Returns the path."""
     from adjust.io import read_points3d, write_points3d
 
     d = align_tracks(read_points3d(tracks), axes, origin)
