@@ -1,94 +1,421 @@
-"""``adjust-track deformation=self``: fine-tune the shipped net on the recording's own tokens."""
+"""``adjust-track deformation=self``: fine-tune the shipped net on the recording's own tokens.
+
+A plain torch loop, no Lightning trainer: one recording's fine-tune is a few hundred small
+steps, and a trainer's start-up, checkpoint files and per-epoch machinery cost as much as the
+steps themselves. The objective is deformnet-train's (``data=sessions``): the masked mid
+token of the recording's windows (`deformnet.windows`, cut and augmented by
+`deformnet.data.DeformDataModule` exactly as ``deformnet-train data=sessions``), split by time
+blocks (`deformnet.sessions.split_sessions`); the held-out blocks' windows are scored every
+``adapt.eval_every`` steps (`deformnet.heldout.window_sums`: the net, rigid, linear and offset
+interpolation on the same windows), the best weights are kept, and training stops after
+``adapt.max_steps`` steps, after ``adapt.patience`` scores without improvement, or at
+``adapt.max_time``, whichever comes first. ``adapt.accelerator=auto`` trains on a GPU when
+torch sees one (`select_device`).
+
+The starting net is whatever `deformnet.pretrained.load_default` returns (`starting_model`):
+the same parts, or a part-agnostic net (one that identifies parts by their rest coordinates,
+``net.part_agnostic``), fine-tune it on this recording's body; another skeleton gets a net of
+its architecture built for its parts and trained from scratch.
+"""
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import json
 import logging
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+import torch
+
+from deformnet.atomic import write_text
+from deformnet.body import BodyModel
+from deformnet.data import Augment, DeformDataModule
+from deformnet.deformation import DeformationModel, build_net, check_track_up
+from deformnet.heldout import window_sums
+from deformnet.threads import torch_threads
+from deformnet.tokens import masked_mse
 
 log = logging.getLogger("adjust.track")
 
-__all__ = ["adapt_net"]
+__all__ = ["AdaptConfig", "adapt_net", "select_device", "starting_model", "fine_tune"]
+
+ACCELERATORS = ("auto", "cpu", "cuda", "gpu")
+#: adapt.forecast's targets: token steps before / after the mid frame (deformnet-train's
+#: forecast.min_shift / max_shift defaults, conf/train.yaml)
+FORECAST_SHIFTS = (10, 45)
 
 
-def augment_overrides(augment) -> list[str]:
-    """``adapt.augment`` -> deformnet-train's ``data.augment.*`` overrides."""
-    out = []
-    for key, value in dict(augment or {}).items():
-        if key == "steps" and value is not None:
-            value = "[" + ",".join(str(int(v)) for v in value) + "]"
-        out.append(f"data.augment.{key}={'null' if value is None else value}")
-    return out
+def _seconds(max_time: Any) -> float | None:
+    """Seconds of ``DD:HH:MM:SS`` (or a number of seconds); None or "" for no limit."""
+    if max_time is None or max_time == "":
+        return None
+    if isinstance(max_time, (int, float)):
+        return float(max_time)
+    try:
+        d, h, m, s = (float(x) for x in str(max_time).split(":"))
+    except ValueError:
+        raise ValueError(
+            f"adapt.max_time must be DD:HH:MM:SS (e.g. 00:00:03:00), got {max_time!r}"
+        ) from None
+    return ((d * 24 + h) * 60 + m) * 60 + s
+
+
+@dataclass(frozen=True)
+class AdaptConfig:
+    """The ``adapt:`` block of adjust-track's config (conf/track.yaml documents each key)."""
+
+    pretrained: str | None = "default"
+    max_steps: int = 300
+    eval_every: int = 25
+    patience: int = 3
+    min_improvement: float = 0.002
+    max_time: float | None = 180.0  # seconds (the config's DD:HH:MM:SS)
+    accelerator: str = "auto"
+    val_fraction: float = 0.2
+    block_frames: int = 500
+    val_windows: int = 1024
+    batch_size: int = 128
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    warmup_steps: int = 20
+    seed: int = 0
+    forecast: float = 0.0
+    step: int = 1
+    augment: Augment = dataclasses.field(default_factory=Augment)
+    threads: int | None = None
+    tensorboard: bool = False
+    require_better: bool = True
+
+    @classmethod
+    def from_any(cls, cfg: Mapping[str, Any] | AdaptConfig | None) -> AdaptConfig:
+        """From the config's mapping (unknown keys: a ValueError naming them)."""
+        if isinstance(cfg, AdaptConfig):
+            return cfg
+        d = dict(cfg or {})
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown adapt options {sorted(unknown)}; known: {sorted(names)}")
+        if "max_time" in d:
+            d["max_time"] = _seconds(d["max_time"])
+        if "augment" in d:
+            d["augment"] = Augment.from_any(d["augment"])
+        p = d.get("pretrained", "default")
+        d["pretrained"] = None if p is None or str(p).lower() in ("", "none", "null") else str(p)
+        out = cls(**d)
+        for key in ("max_steps", "eval_every", "batch_size", "val_windows", "step"):
+            if int(getattr(out, key)) < 1:
+                raise ValueError(f"adapt.{key} must be >= 1, got {getattr(out, key)}")
+        if int(out.patience) < 1:
+            raise ValueError(f"adapt.patience must be >= 1 evaluation, got {out.patience}")
+        if str(out.accelerator) not in ACCELERATORS:
+            raise ValueError(
+                f"adapt.accelerator must be one of {', '.join(ACCELERATORS)}, "
+                f"got {out.accelerator!r}"
+            )
+        return out
+
+
+def select_device(accelerator: str) -> torch.device:
+    """``adapt.accelerator`` -> the torch device to train on: auto = CUDA when
+    `torch.cuda.is_available()`, else the CPU; cuda / gpu = CUDA (a ValueError when there is
+    none); cpu = the CPU."""
+    acc = str(accelerator).lower()
+    if acc not in ACCELERATORS:
+        raise ValueError(
+            f"adapt.accelerator must be one of {', '.join(ACCELERATORS)}, got {accelerator!r}"
+        )
+    if acc == "cpu":
+        return torch.device("cpu")
+    if torch.cuda.is_available():
+        return torch.device("cuda")
+    if acc == "auto":
+        return torch.device("cpu")
+    raise ValueError(f"adapt.accelerator={accelerator}: torch sees no CUDA device on this machine")
+
+
+def _body_of(tokens) -> BodyModel:
+    return BodyModel.from_mapping(
+        {p: [float(c) for c in xyz] for p, xyz in zip(tokens.parts, tokens.body_points)},
+        name=tokens.body_name,
+    )
+
+
+def starting_model(
+    pretrained: DeformationModel | None, body: BodyModel
+) -> tuple[DeformationModel, str]:
+    """The model fine-tuning starts from, on the recording's ``body`` (its body model: the
+    canonical frames are the recording's), and how it was made: "fine-tune" (a copy of
+    ``pretrained``'s net when it has ``body``'s parts, or when it is part-agnostic,
+    ``net.part_agnostic``: it identifies parts by their rest coordinates) or "scratch"
+    (``pretrained``'s architecture built for ``body``'s parts, starting from the interpolation
+    prior: ``prior_residual``; with no pretrained net, the shipped net's architecture)."""
+    if pretrained is not None and (
+        tuple(pretrained.body.parts) == tuple(body.parts)
+        or bool(getattr(pretrained.net, "part_agnostic", False))
+    ):
+        p = pretrained
+        net = copy.deepcopy(p.net)
+        return DeformationModel(net, body, p.half_window, p.net_config, p.step, p.steps, p.up), (
+            "fine-tune"
+        )
+    if pretrained is None:
+        from deformnet.pretrained import load_default  # (only for its architecture)
+
+        pretrained = load_default()
+    arch = pretrained
+    if arch.net_config is None:
+        raise ValueError("deformation=self: the starting net has no net_config to rebuild it")
+    ncfg = dict(arch.net_config, num_parts=body.num_parts, prior_residual=True)
+    net = build_net(ncfg)
+    return DeformationModel(net, body, arch.half_window, ncfg, arch.step, arch.steps, arch.up), (
+        "scratch"
+    )
+
+
+def _forever(batches):
+    """The batches of an iterable, passed over again and again (a random window sampler draws
+    fresh windows on every pass)."""
+    while True:
+        yield from batches
+
+
+def _to(batch: Mapping[str, Any], device: torch.device) -> dict:
+    return {
+        k: (_to(v, device) if isinstance(v, Mapping) else v.to(device, non_blocking=True))
+        for k, v in batch.items()
+    }
+
+
+@torch.no_grad()
+def evaluate(model: DeformationModel, batches, device: torch.device) -> dict[str, float]:
+    """RMSE (mm) of the net and of the rigid, linear and offset (interp) baselines over
+    held-out windows (the mid frame's measured parts)."""
+    was = model.training
+    model.eval()
+    sums: dict[str, torch.Tensor] = {}
+    for b in batches:
+        for k, v in window_sums(model, _to(b, device), model.half_window).items():
+            sums[k] = sums[k] + v if k in sums else v
+    model.train(was)
+    total = sums["count"].sum().clamp_min(1.0)
+    return {
+        name: float((sums[key].sum() / total).sqrt())
+        for name, key in (("net", "net"), ("rigid", "rigid"), ("linear", "linear"),
+                          ("interp", "offset"))
+    }  # fmt: skip
+
+
+def fine_tune(
+    model: DeformationModel,
+    train_batches,
+    val_batches,
+    cfg: AdaptConfig,
+    device: torch.device,
+    forecast_head=None,
+    on_eval=None,
+) -> dict:
+    """Train ``model`` in place on ``train_batches`` (an iterable of window batches, passed
+    over again as often as needed) and keep its best weights on ``val_batches``: AdamW, linear
+    warm-up then cosine decay over ``cfg.max_steps`` (or ``cfg.max_time``, when that comes
+    first); scored before the first step and every ``cfg.eval_every`` steps; stops at
+    ``max_steps``, ``max_time`` or after ``patience`` scores that improve the best by less
+    than ``min_improvement`` (relative). forecast_head: a `deformnet.lit.DeformLit` whose
+    forecast term is added (weight ``cfg.forecast``). on_eval(step, scores): called after each
+    score. Returns the facts: steps, evaluations, stop reason, best step and scores, history."""
+    model.to(device).train()
+    params = [p for p in model.parameters() if p.requires_grad]
+    extra = [] if forecast_head is None else list(forecast_head.forecast_head.parameters())
+    decay = [p for p in params + extra if p.ndim >= 2]
+    no_decay = [p for p in params + extra if p.ndim < 2]
+    opt = torch.optim.AdamW(
+        [{"params": decay, "weight_decay": float(cfg.weight_decay)},
+         {"params": no_decay, "weight_decay": 0.0}],
+        lr=float(cfg.lr),
+    )  # fmt: skip
+    total = int(cfg.max_steps)
+    warm = max(1, min(int(cfg.warmup_steps), total // 5))
+    budget = cfg.max_time
+    t0 = time.monotonic()
+
+    def factor(step: int) -> float:
+        if step < warm:
+            return (step + 1) / warm
+        p = (step - warm) / max(1, total - warm)
+        if budget:
+            p = max(p, (time.monotonic() - t0) / budget)
+        return 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, p)))
+
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+    scores = evaluate(model, val_batches, device)
+    history = [{"step": 0, **scores}]
+    if on_eval is not None:
+        on_eval(0, scores)
+    best = {"step": 0, **scores}
+    best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    stale, step, reason = 0, 0, "max_steps"
+    for batch in _forever(train_batches):
+        b = _to(batch, device)
+        pred_c, R, t = model.canonical(b["rigid"], b["deformed"], b["observed"])
+        loss = masked_mse(pred_c, (b["target"] - t[:, None, :]) @ R, b["target_mask"])
+        if forecast_head is not None:
+            loss = loss + float(cfg.forecast) * forecast_head.forecast_loss(b)[0]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        step += 1
+        out_of_time = budget is not None and time.monotonic() - t0 >= budget
+        if step % int(cfg.eval_every) == 0 or step >= total or out_of_time:
+            scores = evaluate(model, val_batches, device)
+            history.append({"step": step, "loss": float(loss.detach()), **scores})
+            if on_eval is not None:
+                on_eval(step, scores)
+            if scores["net"] < best["net"]:
+                improved = scores["net"] < best["net"] * (1.0 - float(cfg.min_improvement))
+                best = {"step": step, **scores}
+                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+                stale = 0 if improved else stale + 1
+            else:
+                stale += 1
+            if stale >= int(cfg.patience):
+                reason = "no improvement"
+                break
+        if out_of_time:
+            reason = "max_time"
+            break
+        if step >= total:
+            break
+    model.load_state_dict(best_state)
+    model.eval()
+    return {
+        "steps": step,
+        "evaluations": len(history),
+        "stopped": reason,
+        "best_step": best["step"],
+        "best": {k: v for k, v in best.items() if k != "step"},
+        "seconds": round(time.monotonic() - t0, 2),
+        "history": history,
+    }
+
+
+def _tensorboard(path: Path):
+    """A SummaryWriter at ``path`` (imported here: tensorboard is optional and slow to load)."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(path))
 
 
 def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
-    """``deformation=self``: fine-tune the default pretrained net on this recording's tokens
-    (`deformnet-train data=sessions pretrained=default`, split by time blocks) for
-    ``adapt.max_time``; a skeleton the shipped net does not know gets a net of the same
-    architecture trained from scratch. Writes ``out/adapt/`` (deformnet-train's folder) and
-    the adapted model ``out/deformation.ckpt``; returns (model, facts)."""
-    from deformnet.confutil import compose
-    from deformnet.deformation import DeformationModel
+    """``deformation=self``: fine-tune the starting net (`starting_model`: the shipped one by
+    default) on this recording's tokens (`fine_tune`, split by time blocks). Writes the adapted
+    model ``out/deformation.ckpt`` and the fine-tuning's record ``out/adapt/metrics.json``
+    (``adapt.tensorboard``: scalars in ``out/adapt/tb``); returns (model on the CPU, facts)."""
     from deformnet.pretrained import load_default
-    from deformnet.train import run as train
+    from deformnet.sessions import split_sessions
+    from deformnet.train import load_pretrained
 
-    a = dict(adapt_cfg or {})
-    work = out / "adapt"
+    cfg = AdaptConfig.from_any(adapt_cfg)
+    device = select_device(cfg.accelerator)
+    work = Path(out) / "adapt"
     work.mkdir(parents=True, exist_ok=True)
-    for old in (work / "checkpoints").glob("*.ckpt"):  # a previous run's, not this one's
-        old.unlink()
-    tok_path = tokens.save(work / "tokens.npz")
-    default = load_default()
-    same = tuple(default.body.parts) == tuple(tokens.parts)
-    pretrained = str(a.get("pretrained", "default")) if same else "null"
-    if not same:
+    pre = load_default() if cfg.pretrained == "default" else load_pretrained(cfg.pretrained)
+    body = _body_of(tokens)
+    model, how = starting_model(pre, body)
+    if how == "scratch" and pre is not None:
         log.warning(
-            "deformation=self: the shipped net knows the parts %s, this recording has %s: "
-            "training a net of its architecture from scratch (%s)",
-            list(default.body.parts),
+            "deformation=self: the starting net knows the parts %s, this recording has %s: "
+            "training a net of its architecture from scratch",
+            list(pre.body.parts),
             list(tokens.parts),
-            a.get("max_time"),
         )
-    ov = [
-        "data=sessions",
-        f"data.sessions=[{tok_path}]",
-        f"data.val_fraction={float(a.get('val_fraction', 0.2))}",
-        f"data.block_frames={int(a.get('block_frames', 500))}",
-        f"data.batch_size={int(a.get('batch_size', 128))}",
-        f"data.steps_per_epoch={int(a.get('steps_per_epoch', 50))}",
-        f"pretrained={pretrained}",
-        "net=lstm_small",
-        # from scratch on one recording: start from the interpolation, not the rigid model
-        f"net.prior_residual={'true' if pretrained == 'null' else 'false'}",
-        f"half_window={int(default.half_window)}",
-        f"data.step={int(a.get('step') or 1)}",
-        *augment_overrides(a.get("augment")),
-        f"optim.lr={float(a.get('lr', 1e-3))}",
-        f"optim.warmup_steps={int(a.get('warmup_steps', 20))}",
-        f"seed={int(a.get('seed', 0))}",
-        f"forecast.weight={float(a.get('forecast') or 0.0)}",
-        f"trainer.max_time={a.get('max_time', '00:00:03:00')}",
-        f"trainer.accelerator={a.get('accelerator', 'auto')}",
-        "trainer.enable_model_summary=false",
-        "trainer.num_sanity_val_steps=0",
-        f"threads={a['threads']}" if a.get("threads") is not None else "threads=null",
-        f"progress_bar={'rich' if progress else 'none'}",
-        "logger=tensorboard" if a.get("tensorboard", True) else "logger=none",
-        f"logger.save_dir={work / 'tb'}" if a.get("tensorboard", True) else "",
-        f"output.dir={work}",
-    ]
-    res = train(compose("train", [o for o in ov if o]))
-    ckpt = res.get("best_checkpoint") or res.get("last_checkpoint")
-    if not ckpt:
-        raise ValueError(f"deformation=self: training wrote no checkpoint into {work}")
-    model = DeformationModel.from_checkpoint(ckpt)
-    model.save(out / "deformation.ckpt")
-    m = res.get("metrics", {})
-    facts = {
-        "pretrained": pretrained if pretrained != "null" else None,
-        "checkpoint": str(out / "deformation.ckpt"),
-        "val_rmse_mm": m.get("best/val_rmse_mm", m.get("val/rmse_mm")),
-        "val_rmse_mm_rigid": m.get("val/rmse_mm_rigid"),
-        "val_rmse_mm_linear": m.get("val/rmse_mm_linear"),
-        "data": res.get("data"),
+    if model.up is not None:
+        check_track_up(tokens.rigid, tokens.body_points, model.up, tokens.source or "recording")
+    with torch_threads(cfg.threads):
+        torch.manual_seed(int(cfg.seed))
+        step = int(cfg.step)
+        window = 2 * model.half_window * step + 1
+        train, val, data_facts = split_sessions(
+            [tokens], float(cfg.val_fraction), int(cfg.block_frames), min_frames=window
+        )
+        fc = {}
+        if float(cfg.forecast) > 0:
+            lo, hi = FORECAST_SHIFTS
+            fc = {"weight": float(cfg.forecast), "min_shift": lo, "max_shift": hi}
+        dm = DeformDataModule(
+            body=model.body, half_window=model.half_window, step=step, source="arrays",
+            train_data=train, val_data=val, seed=int(cfg.seed), batch_size=int(cfg.batch_size),
+            steps_per_epoch=int(cfg.eval_every), val_windows=int(cfg.val_windows),
+            augment=cfg.augment, ahead_shift=(fc["min_shift"], fc["max_shift"]) if fc else None,
+        )  # fmt: skip
+        dm.setup("fit")
+        model.steps = tuple(sorted({step, *(cfg.augment.steps or (step,))}))
+        model.step = step
+        head = None
+        if fc:
+            from deformnet.lit import (
+                DeformLit,
+            )  # (its forecasting head; Lightning otherwise unused)
+
+            head = DeformLit(model, forecast=fc).to(device)
+        writer = _tensorboard(work / "tb") if cfg.tensorboard else None
+        bar = None
+        if progress:
+            from rich.progress import Progress  # (the console bar only when asked for)
+
+            bar = Progress(transient=True)
+            task = bar.add_task("fine-tuning (deformation=self)", total=int(cfg.max_steps))
+            bar.start()
+
+        def on_eval(s: int, scores: dict) -> None:
+            if writer is not None:
+                for k, v in scores.items():
+                    writer.add_scalar(f"val/rmse_mm_{k}" if k != "net" else "val/rmse_mm", v, s)
+            if bar is not None:
+                bar.update(task, completed=s)
+            log.debug("adapt step %d: %s", s, scores)
+
+        try:
+            facts = fine_tune(model, dm.train_set, dm.val_set, cfg, device, head, on_eval)
+        finally:
+            if bar is not None:
+                bar.stop()
+            if writer is not None:
+                writer.close()
+    model = model.cpu().eval()
+    ckpt = Path(out) / "deformation.ckpt"
+    model.save(ckpt)
+    best = facts["best"]
+    log.info(
+        "deformation=self: %s, %d steps on %s (%s; best at step %d, %.1f s): held-out tokens "
+        "%.2f mm (linear %.2f, interp %.2f, rigid %.2f)",
+        how, facts["steps"], device.type, facts["stopped"], facts["best_step"], facts["seconds"],
+        best["net"], best["linear"], best["interp"], best["rigid"],
+    )  # fmt: skip
+    write_text(
+        work / "metrics.json",
+        json.dumps({"start": how, "device": device.type, **facts, "data": data_facts}, indent=2)
+        + "\n",
+    )
+    result = {
+        "pretrained": cfg.pretrained if how == "fine-tune" else None,
+        "start": how,
+        "checkpoint": str(ckpt),
+        "device": device.type,
+        "steps": facts["steps"],
+        "best_step": facts["best_step"],
+        "stopped": facts["stopped"],
+        "train_s": facts["seconds"],
+        "val_rmse_mm": best["net"],
+        "val_rmse_mm_rigid": best["rigid"],
+        "val_rmse_mm_linear": best["linear"],
+        "val_rmse_mm_interp": best["interp"],
+        "data": data_facts,
     }
-    return model, facts
+    return model, result

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from deformnet.body import BodyModel
 from deformnet.checkpoint import load_checkpoint, plain_kwargs
-from deformnet.nets import NETS
+from deformnet.nets import NETS, is_part_agnostic
 from deformnet.tokens import canonicalize, check_window, uncanonicalize
 
 log = logging.getLogger(__name__)
@@ -205,6 +205,29 @@ class DeformationModel(nn.Module):
     @property
     def num_parts(self) -> int:
         return self.body.num_parts
+
+    @property
+    def part_agnostic(self) -> bool:
+        """Whether the net identifies parts by their rest coordinates (`deformnet.nets.
+        PartTransformer`): it runs on any skeleton (`for_body`)."""
+        return is_part_agnostic(self.net)
+
+    def for_body(self, body: BodyModel, where: str = "") -> DeformationModel:
+        """This model on another body model (its parts, points and scale): the same net and
+        weights (shared, not copied), window, steps and frame. A part-agnostic net takes any
+        skeleton; a net that knows its parts by index only a body with the same parts in the
+        same order (ValueError naming `where` otherwise)."""
+        if not self.part_agnostic and tuple(body.parts) != tuple(self.body.parts):
+            raise ValueError(
+                f"{where + ': ' if where else ''}the net knows the parts "
+                f"{list(self.body.parts)} by index, this body has {list(body.parts)}; use a "
+                "part-agnostic net (net=parts, e.g. the shipped default) or train one for "
+                "this skeleton"
+            )
+        model = DeformationModel(
+            self.net, body, self.half_window, self.net_config, self.step, self.steps, self.up
+        )
+        return model.to(self.body_points.device).train(self.training)
 
     def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
         check_window(rigid, deformed, observed, self.window, self.num_parts, lead="...",

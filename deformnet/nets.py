@@ -26,7 +26,16 @@ from torch import Tensor, nn
 
 from deformnet.tokens import NUM_FEATURES, PRIOR_FEATURES, check_window, token_features
 
-__all__ = ["LSTMPredictor", "TransformerPredictor", "PartHead", "sinusoidal_encoding", "NETS"]
+__all__ = [
+    "LSTMPredictor",
+    "TransformerPredictor",
+    "PartTransformer",
+    "PartHead",
+    "rest_features",
+    "is_part_agnostic",
+    "sinusoidal_encoding",
+    "NETS",
+]
 
 
 class PartHead(nn.Module):
@@ -228,9 +237,141 @@ class TransformerPredictor(_Base):
         return self._finish(out, rigid)
 
 
+REST_FREQS = (1.0, 2.0, 4.0)  # Fourier frequencies of the rest-coordinate features
+REST_FEATURES = 5 + 6 * len(REST_FREQS)  # r (3), |r_x|, side, sin/cos of r at each frequency
+SIDE_WIDTH = 0.1  # |r_x| (in body radii) over which the side feature goes from 0 to +-0.76
+
+
+def rest_features(rest: Tensor) -> Tensor:
+    """Where each part sits on the body, independent of its index or name.
+
+    rest: (B, K, 3) the parts' rest-shape points in the body model's frame (X right, Y
+    forward, Z up: the canonical mid frame's rigid points). Normalised by the body's size
+    (centred on the parts' centroid, divided by their rms radius, so a small and a large body,
+    or 8 and 34 parts of one, give comparable values), then: r (3); |r_x|, the distance from
+    the mid-sagittal plane; side = tanh(r_x / SIDE_WIDTH) (-1 left, 0 on the midline, +1 right:
+    the left/right symmetry feature, a mirror pair differing only in its sign); and sin, cos
+    of r at the frequencies REST_FREQS (pi units). Returns (B, K, REST_FEATURES).
+    """
+    c = rest - rest.mean(-2, keepdim=True)
+    radius = c.square().sum(-1).mean(-1).sqrt().clamp_min(1e-6)  # (B,)
+    r = c / radius[:, None, None]
+    side = torch.tanh(r[..., :1] / SIDE_WIDTH)
+    ang = torch.cat([math.pi * f * r for f in REST_FREQS], -1)
+    return torch.cat((r, r[..., :1].abs(), side, torch.sin(ang), torch.cos(ang)), -1)
+
+
+class PartTransformer(nn.Module):
+    """One net for any keypoint set: parts are identified by where they sit on the body.
+
+    Each part's identity is an embedding of its rest-shape coordinates (`rest_features`: the
+    canonical mid frame's rigid points, which in the body frame are the body model's points,
+    normalised by the body's size, with a left/right symmetry feature), never a fixed index,
+    so one set of weights runs on 8, 22, 34 parts or a skeleton it has never seen, and the
+    output is equivariant to the order of the parts (permuting the inputs' parts permutes
+    the outputs alike).
+
+    Per part (shared weights): an MLP reads its whole window of token features
+    (`deformnet.tokens.token_features`: rigid position, the observed offset in that frame's
+    body frame, the observed flag; W x 7), its interpolation prior and its rest features, and
+    adds the rest embedding: one token per part (B, K, d). ``layers`` transformer layers then
+    attend across the parts (a part borrows from the parts near it on the body and from its
+    mirror partner: their motion in the same window), and a per-part MLP of the result and the
+    prior predicts the mid frame's offset (zero-initialised last layer: an untrained net is the
+    rigid baseline, or with ``prior_residual`` the linear interpolation of the prior). Cheap:
+    the attention is over K tokens, not K x W.
+
+    num_parts: accepted for the config contract (every net is built with it) and ignored.
+    """
+
+    part_agnostic = True
+
+    def __init__(
+        self,
+        num_parts: int | None = None,
+        half_window: int = 12,
+        d_model: int = 64,
+        heads: int = 4,
+        layers: int = 2,
+        ff: int = 128,
+        hidden: int = 128,
+        dropout: float = 0.0,
+        pos_scale: float = 30.0,
+        offset_scale: float = 10.0,
+        prior_residual: bool = False,
+    ) -> None:
+        super().__init__()
+        if half_window < 0 or layers < 0:
+            raise ValueError(f"need half_window, layers >= 0, got {half_window}, {layers}")
+        self.num_parts = None if num_parts is None else int(num_parts)  # (not used)
+        self.half_window = int(half_window)
+        self.window = 2 * self.half_window + 1
+        self.pos_scale = float(pos_scale)
+        self.offset_scale = float(offset_scale)
+        self.prior_residual = bool(prior_residual)
+        d, h = int(d_model), int(hidden)
+        self.window_mlp = nn.Sequential(
+            nn.Linear(self.window * NUM_FEATURES + PRIOR_FEATURES + REST_FEATURES, h),
+            nn.GELU(),
+            nn.Linear(h, h),
+            nn.GELU(),
+            nn.Linear(h, d),
+        )
+        self.rest_embed = nn.Sequential(nn.Linear(REST_FEATURES, d), nn.GELU(), nn.Linear(d, d))
+        self.token_embed = nn.Linear(NUM_FEATURES, d)  # per-frame tokens for `encode` only
+        if layers:
+            layer = nn.TransformerEncoderLayer(
+                d, heads, ff, dropout=dropout, batch_first=True, norm_first=True,
+                activation="gelu",
+            )  # fmt: skip
+            self.part_encoder: nn.Module = nn.TransformerEncoder(
+                layer, layers, enable_nested_tensor=False
+            )
+        else:
+            self.part_encoder = nn.Identity()
+        self.norm = nn.LayerNorm(d)
+        self.head = nn.Sequential(nn.Linear(d + PRIOR_FEATURES, h), nn.GELU())
+        self.out = nn.Linear(h, 3)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+        self.encode_dim = d  # per-frame outputs of `encode`
+
+    def _features(self, rigid: Tensor, deformed: Tensor, observed: Tensor):
+        """Token features (B, W, K, F), the prior (B, K, P), rest features (B, K, R)."""
+        check_window(rigid, deformed, observed, self.window, rigid.shape[-2])
+        feats, prior, _ = token_features(
+            rigid, deformed, observed, self.half_window, self.pos_scale, self.offset_scale
+        )
+        return feats, prior, rest_features(rigid[:, self.half_window])
+
+    def encode(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
+        """Per-frame outputs (B, W, d_model) (the tokens' embeddings plus their parts' rest
+        embeddings, averaged over the parts, normalised) and the interpolation prior (B, K, P)."""
+        feats, prior, rest = self._features(rigid, deformed, observed)
+        x = self.token_embed(feats) + self.rest_embed(rest)[:, None]  # (B, W, K, d)
+        return self.norm(x.mean(2)), prior
+
+    def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
+        feats, prior, rest = self._features(rigid, deformed, observed)
+        B, W, K, F = feats.shape
+        win = feats.permute(0, 2, 1, 3).reshape(B, K, W * F)
+        x = self.window_mlp(torch.cat((win, prior, rest), -1)) + self.rest_embed(rest)
+        h = self.norm(self.part_encoder(x))  # (B, K, d)
+        out = self.out(self.head(torch.cat((h, prior), -1)))
+        if self.prior_residual:  # on top of the interpolation prior's offset (its first 3)
+            out = out + prior[..., :3]
+        return rigid[:, self.half_window] + out * self.offset_scale
+
+
+def is_part_agnostic(net: nn.Module) -> bool:
+    """Whether a net identifies parts by their rest coordinates (runs on any skeleton)."""
+    return bool(getattr(net, "part_agnostic", False))
+
+
 #: the nets a config or a checkpoint may name (its ``_target_``): `deformnet.deformation.build_net`
 #: builds only these (a checkpoint is data: nothing else it names is imported or instantiated)
 NETS: dict[str, type[nn.Module]] = {
     "deformnet.nets.LSTMPredictor": LSTMPredictor,
     "deformnet.nets.TransformerPredictor": TransformerPredictor,
+    "deformnet.nets.PartTransformer": PartTransformer,
 }

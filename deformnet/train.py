@@ -100,11 +100,12 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
     half_window = int(cfg.half_window)
     up = frame_up(to_plain(cfg.get("up")), pretrained, str(cfg.get("pretrained") or ""))
     if pretrained is not None:
-        if pretrained.num_parts != body.num_parts:
+        if not pretrained.part_agnostic and pretrained.num_parts != body.num_parts:
             raise ValueError(
                 f"pretrained net has {pretrained.num_parts} parts "
                 f"({', '.join(pretrained.body.parts)}), the data {body.num_parts} "
-                f"({', '.join(body.parts)}): train from scratch (pretrained=null)"
+                f"({', '.join(body.parts)}): train from scratch (pretrained=null), or start "
+                "from a part-agnostic net (net=parts, e.g. the shipped default)"
             )
         ncfg = dict(pretrained.net_config)
         half_window = int(pretrained.half_window)

@@ -1,0 +1,173 @@
+"""Train one part-agnostic net on sessions of several skeletons (a plain, seeded torch loop).
+
+    model = fit_sessions(sessions, FitConfig(steps=3000), seed=0)
+
+sessions: `deformnet.sessions.SessionTokens` (tokens.npz of tracked recordings: the rigid
+model's points, the measured deformed points, observed flags), any mix of skeletons (8, 22, 34
+parts...). The objective is `deformation=self`'s and `deformnet-train data=sessions`'s: the
+mid frame's measured parts, hidden from the net, predicted from the window (masked MSE in the
+mid frame's canonical coordinates, `deformnet.tokens.masked_mse`), with the same masking
+(`deformnet.windows.MaskConfig`) and augmentation (`Augment`: mirror, reverse, token steps).
+Sessions with the same parts share a window bank; each optimiser step draws its batch from one
+bank, in a fixed round-robin weighted by the banks' sizes, so the run is reproducible from its
+seed (one thread: bit for bit on the same CPU). No Lightning (no trainer state to strip).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from deformnet.body import BodyModel
+from deformnet.deformation import DeformationModel, build_net
+from deformnet.tokens import masked_mse
+from deformnet.windows import (
+    Augment,
+    MaskConfig,
+    RandomWindowBatches,
+    SequenceArrays,
+    WindowBank,
+    mirror_permutation,
+)
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FitConfig", "fit_sessions", "session_body"]
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """The training recipe. net: the net's config (`_target_` one of `deformnet.nets.NETS`,
+    part-agnostic for several skeletons); steps: optimiser steps (fixed: no time budget);
+    batch_size; lr, weight_decay, warmup_steps: AdamW, linear warm-up then cosine decay to
+    2% of lr; masking, augment: as `deformnet.windows`; noise_mm: Gaussian noise on the
+    observed deformed inputs; log_every: steps between progress lines."""
+
+    net: dict = field(
+        default_factory=lambda: {"_target_": "deformnet.nets.PartTransformer", "half_window": 12}
+    )
+    steps: int = 3000
+    batch_size: int = 128
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    warmup_steps: int = 100
+    masking: MaskConfig = MaskConfig()
+    augment: Augment = Augment(mirror=0.5, reverse=0.5, steps=(1, 1, 2, 3))
+    noise_mm: float = 0.0
+    log_every: int = 250
+
+
+def session_body(tokens) -> BodyModel:
+    """A session's rigid body model (its tokens' parts and body points)."""
+    return BodyModel.from_mapping(
+        {p: [float(c) for c in xyz] for p, xyz in zip(tokens.parts, tokens.body_points)},
+        name=tokens.body_name,
+    )
+
+
+def _banks(sessions, half_window: int, cfg: FitConfig, seed: int) -> list[dict]:
+    """One window bank per skeleton (sessions with the same parts), with its batch stream."""
+    groups: dict[tuple[str, ...], list] = {}
+    for t in sessions:
+        groups.setdefault(tuple(t.parts), []).append(t)
+    out = []
+    for g, (parts, toks) in enumerate(sorted(groups.items(), key=lambda kv: (len(kv[0]), kv[0]))):
+        bank = WindowBank([t.to_sequence() for t in toks], half_window)
+        stream = RandomWindowBatches(
+            bank, cfg.batch_size, cfg.steps, cfg.masking, seed + 101 * g, cfg.noise_mm,
+            cfg.augment, mirror_permutation(parts),
+        )  # fmt: skip
+        out.append({"parts": parts, "body": session_body(toks[0]), "bank": bank,
+                    "iter": iter(stream), "windows": len(bank)})  # fmt: skip
+    return out
+
+
+def _schedule(steps: int, weights: Sequence[float]) -> list[int]:
+    """Which bank each step draws from: a deterministic interleaving with each bank's share
+    of the steps proportional to its weight (largest remainder first)."""
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    order, credit = [], np.zeros(len(w))
+    for _ in range(int(steps)):
+        credit += w
+        i = int(np.argmax(credit))
+        credit[i] -= 1.0
+        order.append(i)
+    return order
+
+
+def fit_sessions(
+    sessions: Sequence, cfg: FitConfig = FitConfig(), seed: int = 0, extra: Sequence = ()
+) -> tuple[DeformationModel, dict]:
+    """Train `cfg.net` on the sessions' tokens (and `extra`: (body, [SequenceArrays]) pairs,
+    e.g. simulated mice with their truth as measurements); returns (the model on the largest
+    skeleton's body, facts: windows per skeleton, the final training losses)."""
+    torch.manual_seed(int(seed))
+    net_cfg = dict(cfg.net)
+    half_window = int(net_cfg.get("half_window", 12))
+    net_cfg.setdefault("num_parts", None)
+    net = build_net(net_cfg)
+    if not getattr(net, "part_agnostic", False) and len({tuple(t.parts) for t in sessions}) > 1:
+        raise ValueError(f"{net_cfg['_target_']} knows parts by index: one skeleton only")
+    banks = _banks(sessions, half_window, cfg, int(seed))
+    for g, (body, seqs) in enumerate(extra):
+        bank = WindowBank([SequenceArrays.of(s) for s in seqs], half_window)
+        stream = RandomWindowBatches(
+            bank, cfg.batch_size, cfg.steps, cfg.masking, int(seed) + 7919 + g, cfg.noise_mm,
+            cfg.augment, mirror_permutation(body.parts),
+        )  # fmt: skip
+        banks.append({"parts": tuple(body.parts), "body": body, "bank": bank,
+                      "iter": iter(stream), "windows": len(bank)})  # fmt: skip
+    if not banks:
+        raise ValueError("fit_sessions: no sessions to train on")
+    ref = max(banks, key=lambda b: (len(b["parts"]), b["windows"]))
+    models = [DeformationModel(net, b["body"], half_window, net_cfg) for b in banks]
+    decay = [p for n, p in net.named_parameters() if p.ndim >= 2]
+    no_decay = [p for n, p in net.named_parameters() if p.ndim < 2]
+    opt = torch.optim.AdamW(
+        [{"params": decay, "weight_decay": cfg.weight_decay},
+         {"params": no_decay, "weight_decay": 0.0}],
+        lr=cfg.lr,
+    )  # fmt: skip
+    warm = max(1, min(int(cfg.warmup_steps), cfg.steps // 5))
+
+    def factor(step: int) -> float:
+        if step < warm:
+            return (step + 1) / warm
+        p = min(1.0, (step - warm) / max(1, cfg.steps - warm))
+        return 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * p))
+
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+    order = _schedule(cfg.steps, [math.sqrt(b["windows"]) * len(b["parts"]) for b in banks])
+    net.train()
+    recent: list[float] = []
+    for step, g in enumerate(order):
+        batch = next(banks[g]["iter"])
+        pred_c, R, t = models[g].canonical(batch["rigid"], batch["deformed"], batch["observed"])
+        target_c = (batch["target"] - t[:, None, :]) @ R
+        loss = masked_mse(pred_c, target_c, batch["target_mask"])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        recent.append(float(loss.detach()))
+        if cfg.log_every and (step + 1) % cfg.log_every == 0:
+            log.info("step %d/%d: rms %.3f mm (last %d steps)", step + 1, cfg.steps,
+                     math.sqrt(np.mean(recent)), len(recent))  # fmt: skip
+            recent = []
+    net.eval()
+    model = DeformationModel(net, ref["body"], half_window, net_cfg).eval()
+    facts = {
+        "skeletons": [
+            {"parts": len(b["parts"]), "windows": b["windows"], "steps": order.count(i)}
+            for i, b in enumerate(banks)
+        ],  # fmt: skip
+        "steps": cfg.steps,
+    }
+    return model, facts
