@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m adjust.demo
+	$(PY) -m adjust.apps.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"

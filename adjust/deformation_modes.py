@@ -34,7 +34,7 @@ from adjust.camera import CameraTensors
 from adjust.io import Detections, InputError
 from adjust.lsq.observation import InterpObservation, NetObservation
 from adjust.net_gate import heldout_check, net_vs_kriging
-from adjust.tokens import session_tokens
+from adjust.tokenize import session_tokens
 from adjust.validate import choose_measured_prior
 from deformnet import pretrained
 from deformnet.body import BodyModel
@@ -438,16 +438,12 @@ class DefaultNet(NetMode):
 
     def prepare(self, body: BodyModel) -> None:
         model = pretrained.load_default()  # (the module's: tests replace it)
-        if tuple(model.body.parts) != tuple(body.parts):
-            raise InputError(
-                f"deformation=default: the shipped net knows the parts {list(model.body.parts)}, "
-                f"this recording has {list(body.parts)}; use deformation=self (it trains a net "
-                "for this skeleton)"
-            )
         # the net predicts in canonical coordinates; it runs on this session's (scaled) body
-        model.body = body
-        model.body_points = torch.tensor(np.array(body.points), dtype=torch.float32)
-        self.model = model
+        # (a part-agnostic net on any skeleton; a net that knows parts by index on its own)
+        try:
+            self.model = model.for_body(body, "deformation=default")
+        except ValueError as exc:
+            raise InputError(f"{exc}; or use deformation=self") from None
 
     def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
         return self.model, {}

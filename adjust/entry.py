@@ -3,11 +3,11 @@
 
 from deformnet.quickhelp import console_script
 
-simulate = console_script("scene", "adjust.scene_cli:main")
-triangulate = console_script("triangulate", "adjust.triangulate_cli:main")
-track = console_script("track", "adjust.track:main")
-calibrate = console_script("calibrate", "adjust.calibrate_cli:main")
-events = console_script("events", "adjust.events_cli:main")
-export = console_script("export", "adjust.export_cli:main")
-demo = console_script("demo", "adjust.demo:main")
-plot = console_script("plot", "adjust.plot_cli:main")
+simulate = console_script("scene", "adjust.apps.simulate:main")
+triangulate = console_script("triangulate", "adjust.apps.triangulate:main")
+track = console_script("track", "adjust.apps.track:main")
+calibrate = console_script("calibrate", "adjust.apps.calibrate:main")
+events = console_script("events", "adjust.apps.events:main")
+export = console_script("export", "adjust.apps.export:main")
+demo = console_script("demo", "adjust.apps.demo:main")
+plot = console_script("plot", "adjust.apps.plot:main")

@@ -1,6 +1,6 @@
 """Lock-box interaction events from 3D tracks: contacts of body parts with mechanisms.
 
-Pure NumPy functions (no I/O; `adjust.events_cli` is the app):
+Pure NumPy functions (no I/O; `adjust.apps.events` is the app):
 
 - `contact_intervals(distance, on_mm, off_mm, min_frames, merge_gap)`: frames in contact with
   hysteresis (contact starts when the distance falls to `on_mm` or below and lasts until it rises

@@ -174,3 +174,12 @@ def reprojection_stats(
         "per_camera": {name: error_summary(errors[:, :, c]) for c, name in enumerate(cn)},
         "per_part": {name: error_summary(errors[:, k]) for k, name in enumerate(pn)},
     }
+
+
+def stats(values: np.ndarray) -> dict:
+    """count, median, mean, p90 and max of the finite values (None when there are none): the
+    summary.json view of `adjust.metrics.error_summary`, the one statistics summary."""
+    s = error_summary(values)
+    if s["n"] == 0:
+        return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
+    return {"count": s["n"], **{k: s[k] for k in ("median", "mean", "p90", "max")}}

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from adjust.io import InputError
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
-from adjust.tokens import session_tokens
+from adjust.tokenize import session_tokens
 from deformnet.heldout import MIN_TARGETS, heldout_errors, window_sums
 from deformnet.so3 import kabsch
 from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank

@@ -5,10 +5,10 @@ Load the calibration and one detection file per camera (`adjust.io`), check the 
 session's 3D observations and detector noise), the body model (`adjust.body_fit`), the rigid
 pose-track adjustment (`adjust.lsq.adjust_poses`), then the deformation mode
 (`adjust.deformation_modes`, chosen once from ``deformation=``), then the outputs, written as
-one set (`adjust.app.OutputSet`) with the summary (`adjust.summary`).
+one set (`deformnet.outputs.OutputSet`) with the summary (`adjust.summary`).
 
-`track(cfg)` is the plain function; `adjust.track.run` (the app) calls it within the
-configured torch threads.
+`track(cfg)` is the plain function; `run(cfg)` is it within the configured torch threads
+(``threads``), the function behind `adjust-track` (`adjust.apps.track`) and its batches.
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import OutputSet, load_kwargs, required
 from adjust.body_fit import body_shape, fit_body, is_auto, refine_body, rigid_observation
 from adjust.camera import CameraTensors
 from adjust.camera_check import check_from_config
@@ -41,15 +40,19 @@ from adjust.io import (
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.solver import TRACK_OUTPUTS, adjust_poses
 from adjust.session import with_session
+from adjust.settings import load_kwargs, required
 from adjust.summary import report_result, result_summary, track_columns, track_health
-from adjust.tokens import session_tokens
+from adjust.tokenize import session_tokens
 from deformnet.body import BodyModel
 from deformnet.confutil import to_plain
+from deformnet.outputs import OutputSet
 from deformnet.paths import output_dir
+from deformnet.tables import extra_path
+from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
-__all__ = ["track"]
+__all__ = ["run", "track"]
 
 
 def check_nwb_output(cfg: DictConfig, calibration: str) -> None:
@@ -67,6 +70,13 @@ def check_nwb_output(cfg: DictConfig, calibration: str) -> None:
         session_start(cfg.output.get("session_start_time"), meta, calibration)
     except InputError as exc:
         raise InputError(f"output.nwb=true: {exc} (output.session_start_time=...)") from None
+
+
+def run(cfg: DictConfig) -> dict:
+    """`track` with ``threads`` (torch's intra-op threads) set for the call and restored after
+    it; returns the summary."""
+    with torch_threads(cfg.get("threads")):
+        return track(cfg)
 
 
 def track(cfg: DictConfig) -> dict:
@@ -276,7 +286,7 @@ def track(cfg: DictConfig) -> dict:
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
-    # every output as one set (adjust.app.OutputSet): a run stopped at any moment (SIGKILL
+    # every output as one set (deformnet.outputs.OutputSet): a run stopped at any moment (SIGKILL
     # included) leaves the previous run's outputs whole; summary.json last, with every file's
     # sha256 (outputs.files)
     with OutputSet(out) as staged:
@@ -304,6 +314,8 @@ def track(cfg: DictConfig) -> dict:
             extra=cols.extra,
             fnum=fnum,
         )
+        staged.path(extra_path(points_path).name)  # its sidecar (pose, sigmas) joins the set
+        summary["outputs"]["extra"] = str(extra_path(points_path))
         if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
             write_nwb(
                 staged.path("tracks.nwb"),

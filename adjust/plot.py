@@ -4,9 +4,9 @@ Every function returns a matplotlib Figure (`save` writes it atomically as PNG a
 except `tracks_video`, which writes a labelled MP4 of the tracks in 3D beside their 2D
 reprojections. Shapes: T frames, K parts, C cameras; points in mm (global frame), pixels with
 the origin at the top-left pixel centre. Skeletons: `skeleton_edges` (a user's skeleton.csv, a
-SLEAP file's edges, else the minimum spanning tree). Used by `adjust.report` (the demo's report)
-and `adjust-plot` (`adjust.plot_cli`, a user's own data). numpy and OpenCV in; no torch, no
-Lightning.
+SLEAP file's edges, else the minimum spanning tree). Used by `adjust.apps.report` (the demo's
+report) and `adjust-plot` (`adjust.apps.plot`, a user's own data). numpy and OpenCV in; no
+torch, no Lightning.
 """
 
 from __future__ import annotations

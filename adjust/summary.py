@@ -10,8 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from adjust.app import stats
-from adjust.metrics import reprojection_errors
+from adjust.metrics import reprojection_errors, stats
 from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.so3 import rodrigues_to_matrix
 

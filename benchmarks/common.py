@@ -35,7 +35,7 @@ def subset(ap: argparse.ArgumentParser, text: str, allowed, flag: str) -> list[s
 def emit(summary: dict, out: str | Path) -> dict:
     """The benchmarks' last line: the summary as JSON (non-finite -> null), printed and written
     atomically to `out`."""
-    from adjust.app import finite_or_none
+    from adjust.apps.common import finite_or_none
     from deformnet.atomic import write_text
 
     line = json.dumps(finite_or_none(summary))

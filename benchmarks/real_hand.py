@@ -63,8 +63,8 @@ def main(argv: list[str] | None = None) -> dict:
     calib, dets = data / "calibration.toml", data / args.trial
     inputs = [f"input.calibration={calib}", f"input.detections={dets}"]
 
-    from adjust.track import run as track
-    from adjust.triangulate_cli import run as triangulate
+    from adjust.apps.track import run as track
+    from adjust.apps.triangulate import run as triangulate
 
     t0 = time.perf_counter()
     s_dlt = triangulate(compose("triangulate", [*inputs, f"output.dir={work / 'dlt'}"]))

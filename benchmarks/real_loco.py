@@ -115,9 +115,9 @@ def subset_session(src_cal: Path, det, keep: list[str], frames: int, out: Path) 
 
 def _run(app: str, session: Path, out: Path, overrides: list[str]):
     if app == "track":
-        from adjust.track import run
+        from adjust.apps.track import run
     else:
-        from adjust.triangulate_cli import run
+        from adjust.apps.triangulate import run
     cfg = compose(
         app,
         [

@@ -70,7 +70,7 @@ SLEAP_ANIPOSE = {
 def track(calibration: Path, detections: Path, out: Path, pattern: str | None = None):
     """`adjust-track body=auto` (the README's SLEAP command) -> (parts, points (T, K, 3),
     seconds, summary)."""
-    from adjust.track import run
+    from adjust.apps.track import run
 
     over = [
         f"input.calibration={calibration}",

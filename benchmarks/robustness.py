@@ -86,7 +86,7 @@ OUTPUT_NAMES = ("points3d.csv", "summary.json", "accepted.npz", "tokens.npz", "t
 def simulate(folder: Path, frames: int) -> Path:
     import hydra
 
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
 
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = hydra.compose("scene", [f"output.dir={folder}", f"num_frames={frames}", "seed=5"])

@@ -52,7 +52,7 @@ SCENE_SEED = 91_000  # held out: deformnet-train uses seeds 0.. and 10_000..
 
 
 def simulate(out: Path, frames: int, seed: int, overrides: list[str] = ()) -> dict:
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
 
     t0 = time.perf_counter()
     ov = [f"output.dir={out}", f"num_frames={frames}", f"seed={seed}", *overrides]
@@ -99,7 +99,7 @@ def train_net(out: Path, overrides: list[str]) -> tuple[str, float, dict]:
 
 
 def run_dlt(scene: Path, out: Path) -> tuple[np.ndarray, float]:
-    from adjust.triangulate_cli import run
+    from adjust.apps.triangulate import run
 
     t0 = time.perf_counter()
     run(compose("triangulate", [*scene_inputs(scene), f"output.dir={out}", "body=mouse"]))
@@ -107,7 +107,7 @@ def run_dlt(scene: Path, out: Path) -> tuple[np.ndarray, float]:
 
 
 def run_track(scene: Path, out: Path, overrides: list[str]) -> tuple[np.ndarray, float, dict]:
-    from adjust.track import run
+    from adjust.apps.track import run
 
     t0 = time.perf_counter()
     summary = run(

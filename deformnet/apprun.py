@@ -1,7 +1,7 @@
 """One error handler for every app: bad input is one log line and exit status 2.
 
 `run_app(run, cfg)` calls an app's plain ``run(cfg)`` (the console scripts of both halves:
-`adjust.app.run_or_exit` adds adjust's settings checks):
+`adjust.apps.common.run_or_exit` adds adjust's settings checks):
 
 - bad input or config (a ValueError, whose message names the file, camera, part or frame, or an
   OmegaConf error about a setting): one ERROR line, exit status 2, never a traceback;

@@ -62,7 +62,7 @@ def write_bout_labels(path, labels, classes, first: int = 0):
 def track_session(scene, out, overrides) -> dict:
     """`adjust-track` (its `run` through the compose API) on a session folder `scene` into
     `out`, without a progress bar; returns its summary."""
-    from adjust.track import run
+    from adjust.apps.track import run
     from deformnet.confutil import compose
 
     return run(

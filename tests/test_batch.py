@@ -1,4 +1,4 @@
-"""Batch runs (adjust.batch, adjust.session): ``adjust-track -m input.session=glob(...)`` over
+"""Batch runs (adjust.apps.batch, adjust.session): ``adjust-track -m input.session=glob(...)`` over
 three session folders, one broken; re-runs skip finished sessions; the SLURM launcher config
 composes and the job survives pickling."""
 
@@ -14,7 +14,7 @@ import hydra
 import pytest
 from omegaconf import OmegaConf
 
-from adjust.batch import SUMMARY_COLUMNS, read_summary, run_session
+from adjust.apps.batch import SUMMARY_COLUMNS, read_summary, run_session
 from adjust.io import InputError
 from adjust.session import expand_session_globs, resolve_session, session_name, with_session
 from deformnet.paths import CONF_DIR
@@ -30,7 +30,7 @@ def _cfg(name: str, overrides: list[str], hydra_config: bool = False):
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory) -> Path:
     """sessions/{a_ok, b_broken, c_ok}: 60-frame simulated scenes; b's calibration is broken."""
-    from adjust.scene_cli import run as simulate
+    from adjust.apps.simulate import run as simulate
 
     root = tmp_path_factory.mktemp("sessions")
     for seed, name in enumerate(("a_ok", "b_broken", "c_ok")):
@@ -43,7 +43,7 @@ def sessions(tmp_path_factory) -> Path:
 def _multirun(monkeypatch, args: list[str]) -> int:
     """`adjust-track -m ARGS` in this process (the console script's own entry point); returns
     its exit status."""
-    from adjust.track import main
+    from adjust.apps.track import main
 
     monkeypatch.setattr(sys, "argv", ["adjust-track", "-m", *args, *FAST])
     try:
@@ -171,7 +171,7 @@ def test_batch_into_output_dir_and_its_exit_status(sessions, tmp_path, monkeypat
 
 
 def test_batch_without_status_rows_fails(tmp_path):
-    from adjust.batch import BatchSummary
+    from adjust.apps.batch import BatchSummary
 
     cfg = OmegaConf.create({"hydra": {"sweep": {"dir": str(tmp_path)}, "overrides": {"task": []}}})
     with pytest.raises(SystemExit) as exc:
@@ -216,17 +216,17 @@ def test_slurm_launcher_config_composes():
     subdir = OmegaConf.to_container(cfg.hydra.sweep)["subdir"]  # resolved per job
     assert subdir == "${session_name:${input.session},${hydra.job.num}}"
     assert session_name(cfg.input.session, 0) == "s1"  # the session's own folder
-    assert cfg.hydra.callbacks.batch_summary._target_ == "adjust.batch.BatchSummary"
+    assert cfg.hydra.callbacks.batch_summary._target_ == "adjust.apps.batch.BatchSummary"
     joblib = _cfg("track", ["hydra/launcher=joblib"], hydra_config=True).hydra.launcher
     assert get_class(joblib._target_).__name__ == "JoblibLauncher"
 
 
 def test_job_is_picklable_and_runs_after_unpickling(sessions, tmp_path):
     cloudpickle = pytest.importorskip("cloudpickle")
-    import adjust.track
+    import adjust.apps.track
 
     # submitit pickles the launcher's task function (the undecorated Hydra main) with cloudpickle
-    task = cloudpickle.loads(cloudpickle.dumps(adjust.track._main.__wrapped__))
+    task = cloudpickle.loads(cloudpickle.dumps(adjust.apps.track._main.__wrapped__))
     assert callable(task)
     job = pickle.loads(pickle.dumps(run_session))
     cfg = pickle.loads(pickle.dumps(_cfg("track", [f"input.session={sessions / 'c_ok'}", *FAST])))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from adjust.calibrate_cli import run
+from adjust.apps.calibrate import run
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import InputError, load_calibration, write_dlc_csv
 from adjust.scene import default_rig

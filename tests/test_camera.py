@@ -227,9 +227,8 @@ def test_small_helpers_shapes_values_gradients():
 
 
 def test_reprojection_errors_one_implementation():
-    from adjust.app import stats
     from adjust.camera import reprojection_errors
-    from adjust.metrics import error_summary
+    from adjust.metrics import error_summary, stats
     from adjust.metrics import reprojection_errors as errors_np
     from adjust.triangulate import reprojection_errors as errors_tri
 

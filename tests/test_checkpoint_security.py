@@ -32,10 +32,10 @@ import pytest
 import torch
 from helpers import tiny_deformation_model, tiny_lstm_config
 
-import adjust.track
+import adjust.apps.track
 import deformnet.classify
 import deformnet.train
-from adjust.app import run_or_exit
+from adjust.apps.common import run_or_exit
 from deformnet.body import default_mouse
 from deformnet.checkpoint import load_checkpoint, plain_kwargs
 from deformnet.classify import _build, export_classifier, load_classifier
@@ -319,7 +319,7 @@ def _apps(tmp_path: Path, ckpt: Path, kind: str):
         return [("deformnet-classify mode=predict", deformnet.classify.main, _compose(
             "classify", ["mode=predict", f"checkpoint={ckpt}", f"tracks={tracks}",
                          f"output.dir={out}"]))]  # fmt: skip
-    track = functools.partial(run_or_exit, adjust.track.run)  # adjust-track's single run
+    track = functools.partial(run_or_exit, adjust.apps.track.run)  # adjust-track's single run
     return [
         ("adjust-track", track, _compose("track", [
             f"input.calibration={tmp_path / 'calibration.toml'}",

@@ -37,7 +37,7 @@ class _Keep(logging.Handler):
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    from adjust.demo import run
+    from adjust.apps.demo import run
 
     out = tmp_path_factory.mktemp("demo")
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
@@ -75,7 +75,7 @@ def test_every_picture_exists_and_is_a_png(demo):
     assert len(srcs) == len(referenced)
     assert all(s.startswith("data:image/png;base64,iVBORw0KGgo") for s in srcs)  # embedded
     assert Path(res["report"]["html"]) == out / "report.html"
-    from adjust.demo import closing_lines
+    from adjust.apps.demo import closing_lines
 
     last = closing_lines(res, 1.0).splitlines()[-2:]
     assert last[0] == f"Report: {out / 'report.md'}"
@@ -96,7 +96,7 @@ def test_console_shows_the_steps_not_library_tips(demo):
 
 
 def test_report_flags_the_quick_preset_and_a_one_class_classifier(demo):
-    from adjust.report import blocks, notes, to_markdown
+    from adjust.apps.report import blocks, notes, to_markdown
 
     out, _, rep = demo
     html = (out / "report.html").read_text()
@@ -226,7 +226,7 @@ def test_deformnet_never_imports_adjust():
     ],
 )
 def test_bad_labelled_sessions_fail_before_anything_runs(tmp_path, override, message):
-    from adjust.demo import run
+    from adjust.apps.demo import run
 
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = hydra.compose("demo", overrides=["preset=quick", f"output.dir={tmp_path}", override])
@@ -236,7 +236,7 @@ def test_bad_labelled_sessions_fail_before_anything_runs(tmp_path, override, mes
 
 
 def test_unknown_preset_is_one_clear_error(tmp_path):
-    from adjust.demo import run
+    from adjust.apps.demo import run
 
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = hydra.compose("demo", overrides=["preset=huge", f"output.dir={tmp_path}"])
@@ -248,7 +248,7 @@ def test_unknown_preset_is_one_clear_error(tmp_path):
 def test_dlt_primary_classifier_fills_gaps_in_training_and_prediction(tmp_path):
     """primary=dlt: the labelled sessions are DLT-triangulated, and both the classifier's training
     and its prediction fill the gaps (data.interpolate=true); every frame gets a label."""
-    from adjust.demo import run
+    from adjust.apps.demo import run
 
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = hydra.compose(

@@ -96,7 +96,7 @@ def _cfg(overrides):
 
 
 def test_adjust_events_cli_writes_events_and_order(tmp_path):
-    from adjust.events_cli import run
+    from adjust.apps.events import run
 
     parts, P, ncams, sigma = _track()
     T = len(P)
@@ -138,8 +138,8 @@ def test_adjust_events_cli_writes_events_and_order(tmp_path):
 def test_mechanisms_from_simulated_scene_calibration(tmp_path):
     """adjust-simulate writes the mechanisms into the calibration's metadata; adjust-events reads
     them from there."""
-    from adjust.events_cli import mechanism_positions
-    from adjust.scene_cli import run as simulate
+    from adjust.apps.events import mechanism_positions
+    from adjust.apps.simulate import run as simulate
 
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = hydra.compose("scene", overrides=[f"output.dir={tmp_path}", "num_frames=40"])
@@ -157,7 +157,7 @@ def test_adjust_events_durations_in_seconds_at_any_frame_rate(tmp_path):
     contact.merge_gap_seconds) and the tables get start_s / stop_s: the same track recorded at
     30 and at 90 fps (each frame three times) gives the same events in seconds, to a frame at
     30 fps. Seconds without a frame rate are an error."""
-    from adjust.events_cli import run
+    from adjust.apps.events import run
 
     parts, P, ncams, sigma = _track()
     mech = "{lever: [100.0, 200.0, 20.0], ball: [160.0, 200.0, 10.0]}"

@@ -172,7 +172,7 @@ HELDOUT_SEED = 100
 
 def _scene(tmp_path_factory, frames: int) -> Path:
     """A default-mouse scene (the shipped net's own kind of mouse) of the held-out seed."""
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
 
     out = tmp_path_factory.mktemp("heldout") / "scene"
     run(compose("scene", [f"output.dir={out}", f"num_frames={frames}", f"seed={HELDOUT_SEED}"]))
@@ -261,7 +261,7 @@ def test_require_better_is_checked(scene, tmp_path):
 
 
 def test_batch_summary_says_how_many_parts_the_net_predicted():
-    from adjust.batch import _row_from_summary
+    from adjust.apps.batch import _row_from_summary
 
     row = {}
     held = {"checked": True, "net_parts": ["nose_tip"], "net_mm": dict.fromkeys("abcdefgh", 1.0)}

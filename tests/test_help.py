@@ -146,9 +146,9 @@ def _hydra_help(app: str) -> subprocess.Popen:
 
     scripts = tomllib.loads((REPO_DIR / "pyproject.toml").read_text())["project"]["scripts"]
     module = {
-        "adjust-track": "adjust.track",
+        "adjust-track": "adjust.apps.track",
         "deformnet-classify": "deformnet.classify",
-        "adjust-events": "adjust.events_cli",
+        "adjust-events": "adjust.apps.events",
     }[app]
     assert scripts[app].split(":")[0] in ("adjust.entry", "deformnet.entry")
     code = f"import sys; sys.argv = [{app!r}, '--help']; from {module} import main; main()"

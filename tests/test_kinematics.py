@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
+from adjust.apps.export import run as export
 from adjust.export import write_anipose
-from adjust.export_cli import run as export
 from adjust.io import InputError, read_points3d, write_points3d
 from adjust.kinematics import (
     align_tracks,

@@ -2,6 +2,8 @@
 
 - `deformnet` never imports `adjust` (not at the top of a module, not inside a function, not by
   ``importlib.import_module``): the learning half stands alone; `adjust` may import `deformnet`.
+- The library never imports an app: no module of `adjust` outside `adjust/apps/` (one module
+  per console script) imports `adjust.apps`, and `adjust/entry.py` names only app modules.
 - Every module of `adjust` and of `deformnet.sim` imports without Lightning (only training,
   `deformnet.lit` / `deformnet.train` / ..., needs it), and so do the `deformnet` modules that
   `adjust-track` loads at run time outside training (`RUNTIME`).
@@ -55,6 +57,35 @@ def test_deformnet_never_imports_adjust():
         if mod == "adjust" or mod.startswith("adjust.")
     ]
     assert not bad, "deformnet must never import adjust:\n" + "\n".join(bad)
+
+
+def test_the_library_never_imports_an_app():
+    apps = ROOT / "adjust" / "apps"
+    files = [p for p in sorted((ROOT / "adjust").rglob("*.py")) if apps not in p.parents]
+    assert len(files) > 20 and (apps / "track.py").is_file()
+    bad = [
+        f"{p.relative_to(ROOT)}:{line} imports {mod}"
+        for p in files
+        for line, mod in _imported_modules(p)
+        if mod == "adjust.apps" or mod.startswith("adjust.apps.")
+    ]
+    assert not bad, "the library (adjust outside adjust/apps) must not import an app:\n" + (
+        "\n".join(bad)
+    )
+
+
+def test_every_console_script_is_an_app_module():
+    """pyproject's adjust-* scripts go through adjust/entry.py to a module of adjust/apps/."""
+    import re
+
+    targets = re.findall(
+        r'console_script\("\w+", "([\w.]+):main"\)',
+        (ROOT / "adjust" / "entry.py").read_text(encoding="utf-8"),
+    )
+    assert len(targets) >= 8
+    for t in targets:
+        assert t.startswith("adjust.apps."), t
+        assert (ROOT / (t.replace(".", "/") + ".py")).is_file(), t
 
 
 def test_the_scan_sees_every_kind_of_import(tmp_path):

@@ -163,7 +163,7 @@ def test_rearing_is_high_with_free_front_paws(run):
 def test_adjust_simulate_mouse_b_scene(tmp_path, detector):
     from hydra import compose, initialize_config_dir
 
-    from adjust.scene_cli import run as scene_run
+    from adjust.apps.simulate import run as scene_run
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = compose(

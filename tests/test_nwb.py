@@ -35,8 +35,8 @@ def _cfg(name: str, overrides: list[str]):
 @pytest.fixture(scope="module")
 def tracked(tmp_path_factory):
     """A 60-frame simulated scene tracked by adjust-track with output.nwb=true."""
-    from adjust.scene_cli import run as simulate
-    from adjust.track import run as track
+    from adjust.apps.simulate import run as simulate
+    from adjust.apps.track import run as track
 
     scene = tmp_path_factory.mktemp("scene")
     simulate(_cfg("scene", [f"output.dir={scene}", "num_frames=60", "seed=3"]))
@@ -133,8 +133,8 @@ def test_nwb_validates(tracked):
 
 
 def test_export_cli_with_bouts_and_events(tracked, tmp_path):
+    from adjust.apps.export import run
     from adjust.export import read_nwb_tracks
-    from adjust.export_cli import run
 
     scene, out, _ = tracked
     bouts, events = _bouts_events(tmp_path)
@@ -243,7 +243,7 @@ def _by_importance(messages) -> dict[str, list[str]]:
 
 
 def test_export_passes_nwbinspector(tracked, tmp_path, caplog):
-    from adjust.export_cli import run
+    from adjust.apps.export import run
 
     scene, out, _ = tracked
     base = [
@@ -299,8 +299,8 @@ def test_movement_reads_the_nwb(tracked):
 
 
 def test_movement_reads_points3d(tracked, tmp_path):
-    from adjust.export_cli import run as export
-    from adjust.triangulate_cli import run as triangulate
+    from adjust.apps.export import run as export
+    from adjust.apps.triangulate import run as triangulate
 
     scene, out, _ = tracked
     # adjust-triangulate's points3d.csv as it is: anipose's columns, axes columns included

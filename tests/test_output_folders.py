@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from adjust.app import OutputBusy, OutputSet, recover_outputs, write_outputs
+from adjust.apps.common import OutputBusy, OutputSet, recover_outputs, write_outputs
 from deformnet.atomic import file_digest
 from deformnet.outputs import (
     JOURNAL_NAME,
@@ -210,7 +210,7 @@ def scene(tmp_path_factory) -> Path:
     """A 400-frame simulated session (adjust-simulate)."""
     import hydra
 
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
     from deformnet.paths import CONF_DIR
 
     folder = tmp_path_factory.mktemp("scene")
@@ -338,6 +338,6 @@ def test_ctrl_c_while_importing_is_one_line_and_130(monkeypatch, caplog):
     monkeypatch.setattr(importlib, "import_module", interrupted)
     monkeypatch.setattr(sys, "argv", ["adjust-track", "input.session=x"])
     with pytest.raises(SystemExit) as exc:
-        console_script("track", "adjust.track:main")()
+        console_script("track", "adjust.apps.track:main")()
     assert exc.value.code == 130
     assert "interrupted (Ctrl-C) before the run started" in caplog.text

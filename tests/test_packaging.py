@@ -39,7 +39,7 @@ def test_wheel_ships_every_config(tmp_path):
         for p in CONF_DIR.rglob("*.yaml")
     }
     assert want and want <= names, sorted(want - names)
-    assert "adjust/track.py" in names and "deformnet/paths.py" in names
+    assert "adjust/apps/track.py" in names and "deformnet/paths.py" in names
     # installed without the checkout, the apps find their configs in the package
     target = tmp_path / "site"
     subprocess.run(

@@ -36,7 +36,7 @@ def _is_png(path) -> bool:
 
 @pytest.fixture(scope="module")
 def hand_tracks(tmp_path_factory):
-    from adjust.triangulate_cli import run
+    from adjust.apps.triangulate import run
 
     d = real_hand_dir()
     assert (d / "calibration.toml").is_file(), f"shared real hand data missing: {d}"
@@ -55,7 +55,7 @@ def hand_tracks(tmp_path_factory):
 
 
 def test_real_hand_data_figures(hand_tracks, tmp_path):
-    from adjust.plot_cli import run
+    from adjust.apps.plot import run
 
     d, tracks = hand_tracks
     res = run(
@@ -87,7 +87,7 @@ def test_real_hand_data_figures(hand_tracks, tmp_path):
 def test_tracks_alone_need_no_calibration(hand_tracks, tmp_path):
     import pandas as pd
 
-    from adjust.plot_cli import run
+    from adjust.apps.plot import run
 
     _, tracks = hand_tracks
     short = tmp_path / "points3d.csv"  # the first 40 frames, 5 parts: the same figures
@@ -104,7 +104,7 @@ def test_tracks_alone_need_no_calibration(hand_tracks, tmp_path):
 
 
 def test_bad_arguments_are_clear_errors(hand_tracks, tmp_path):
-    from adjust.plot_cli import parse_clip, run
+    from adjust.apps.plot import parse_clip, run
 
     d, tracks = hand_tracks
     with pytest.raises(ValueError, match="clip=START:STOP needs video=DIR"):
@@ -123,8 +123,8 @@ def test_bad_arguments_are_clear_errors(hand_tracks, tmp_path):
 @pytest.fixture(scope="module")
 def scene_with_videos(tmp_path_factory):
     """A 12-frame simulated scene, its DLT tracks, one small grey video per camera."""
-    from adjust.scene_cli import run as simulate
-    from adjust.triangulate_cli import run as triangulate
+    from adjust.apps.simulate import run as simulate
+    from adjust.apps.triangulate import run as triangulate
 
     root = tmp_path_factory.mktemp("video")
     simulate(_compose("scene", ["num_frames=12", "seed=3", f"output.dir={root / 'scene'}"]))
@@ -155,7 +155,7 @@ def scene_with_videos(tmp_path_factory):
 
 
 def test_video_overlay_and_clip(scene_with_videos, tmp_path):
-    from adjust.plot_cli import COLORS, _project, run
+    from adjust.apps.plot import COLORS, _project, run
 
     calib, tracks, videos = scene_with_videos
     res = run(
@@ -190,7 +190,7 @@ def test_video_overlay_and_clip(scene_with_videos, tmp_path):
 
 
 def test_missing_video_frame_is_a_clear_error(scene_with_videos, tmp_path):
-    from adjust.plot_cli import match_videos, run
+    from adjust.apps.plot import match_videos, run
 
     calib, tracks, videos = scene_with_videos
     assert set(match_videos(videos, load_calibration(calib))) == {"top", "side", "front"}
@@ -235,7 +235,7 @@ def test_input_pattern_chooses_the_detection_files(scene_with_videos, tmp_path):
     files per camera is ambiguous without it, read with it."""
     import shutil
 
-    from adjust.plot_cli import run
+    from adjust.apps.plot import run
 
     calib, tracks, _ = scene_with_videos
     det = tmp_path / "detections"
@@ -255,7 +255,7 @@ def test_input_pattern_chooses_the_detection_files(scene_with_videos, tmp_path):
 
 def test_video3d_writes_the_labelled_3d_video(scene_with_videos, tmp_path):
     """adjust-plot video3d=true: tracks3d.mp4, one frame per row of the clip."""
-    from adjust.plot_cli import run
+    from adjust.apps.plot import run
 
     calib, tracks, videos = scene_with_videos
     res = run(

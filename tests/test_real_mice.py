@@ -23,7 +23,7 @@ from deformnet.so3 import transform_points
 
 
 def track(session: Path, out: Path, overrides: list[str] = ()) -> dict:
-    from adjust.track import run
+    from adjust.apps.track import run
 
     return run(
         compose(
@@ -250,7 +250,7 @@ def test_fusion_at_least_as_accurate_as_triangulation_without_deformation(tmp_pa
 
 
 def test_interp_beats_rigid_and_is_calibrated_on_a_deforming_mouse(tmp_path):
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
 
     scene = tmp_path / "scene"
     run(compose("scene", [f"output.dir={scene}", "num_frames=600", "seed=93001", "sim=mouse_b"]))

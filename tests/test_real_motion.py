@@ -10,6 +10,7 @@ import hydra
 import numpy as np
 import pytest
 
+from adjust.apps.track import run
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
 from adjust.scene.motion import (
@@ -20,7 +21,6 @@ from adjust.scene.motion import (
     write_motion_scene,
 )
 from adjust.summary import TrackingFailed, track_health
-from adjust.track import run
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, real_mouse_motion_dir
 

@@ -258,7 +258,7 @@ def test_nan_cost_is_never_converged():
 def test_settings_of_wrong_type_or_range(key, value, accepts):
     from omegaconf import OmegaConf
 
-    from adjust.app import MAX_THREADS, check_settings
+    from adjust.settings import MAX_THREADS, check_settings
 
     accepts = accepts.format(MAX_THREADS=MAX_THREADS)
     cfg = OmegaConf.create({"solver": {"max_iterations": 30}, "threads": 1})
@@ -290,9 +290,9 @@ def test_triangulate_fnum_is_the_files_frame_number(tmp_path, frames):
     import hydra
     import torch
 
+    from adjust.apps.triangulate import run
     from adjust.camera import CameraTensors, project_cameras
     from adjust.io import read_points3d
-    from adjust.triangulate_cli import run
     from deformnet.paths import CONF_DIR
 
     cams = _rig()
@@ -362,7 +362,7 @@ def test_triangulate_refuses_a_one_camera_session(tmp_path):
     """It exited 0 with 0% triangulated; now one error naming the cameras and their counts."""
     import hydra
 
-    from adjust.triangulate_cli import run
+    from adjust.apps.triangulate import run
     from deformnet.paths import CONF_DIR
 
     det = tmp_path / "det"

@@ -352,8 +352,8 @@ def test_truth_labels_csv_is_what_classify_reads(tmp_path, rig, sim):
 def test_adjust_simulate_compose_run(tmp_path):
     from hydra import compose, initialize_config_dir
 
+    from adjust.apps.simulate import run
     from adjust.io import load_scene
-    from adjust.scene_cli import run
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = compose("scene", overrides=["num_frames=3000", "seed=0", f"output.dir={tmp_path}"])
@@ -394,7 +394,7 @@ def test_dataclass_defaults_match_shipped_config():
 def test_adjust_simulate_bad_config(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         for bad, match in (("num_frames=0", "num_frames"), ("seed=-1", "seed")):

@@ -103,7 +103,7 @@ class _Oracle(DeformationModel):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     """A default-mouse scene: the shipped net's own kind of mouse."""
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
 
     out = tmp_path_factory.mktemp("selfgate") / "scene"
     run(compose("scene", [f"output.dir={out}", "num_frames=600", "seed=7"]))

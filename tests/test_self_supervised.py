@@ -18,7 +18,7 @@ from deformnet.sessions import SessionTokens, split_sessions
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     """A deforming mouse_b scene (1.2x Table 1, 100 fps, spine bending, free head)."""
-    from adjust.scene_cli import run
+    from adjust.apps.simulate import run
 
     out = tmp_path_factory.mktemp("self") / "scene"
     run(compose("scene", [f"output.dir={out}", "num_frames=900", "seed=31", "sim=mouse_b"]))

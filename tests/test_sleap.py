@@ -148,7 +148,7 @@ def test_shared_sleap_mouse_tracked_beside_sleap_anipose(tmp_path):
     `side` out by itself and reprojects into the two cameras that see the whole session (mid,
     top) well below the peer's own output for these files (sleap-anipose's stored points:
     `benchmarks/real_sleap_peer.py`)."""
-    from adjust.track import run
+    from adjust.apps.track import run
     from deformnet.confutil import compose
 
     cal = SLEAP_MOUSE / "calibration.toml"

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
+from adjust.apps.track import run
 from adjust.camera import CameraTensors
 from adjust.io import InputError, load_scene, read_points3d
-from adjust.track import run
 from deformnet.behavior_labels import POSE_COLUMNS
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR, real_hand_dir
@@ -31,7 +31,7 @@ def _cfg(name: str, overrides: list[str]):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     """A small simulated scene folder (default rig and detector), written by adjust-simulate."""
-    from adjust.scene_cli import run as simulate
+    from adjust.apps.simulate import run as simulate
 
     out = tmp_path_factory.mktemp("scene")
     simulate(_cfg("scene", [f"output.dir={out}", "num_frames=120", "seed=5"]))
@@ -430,8 +430,8 @@ def test_nwb_without_a_session_start_stops_before_tracking(scene, tmp_path):
 def test_body_shape_from_a_handful_of_frames_is_not_trusted(tmp_path):
     """body.shape=data on a 20-frame session (fewer than MIN_SHAPE_FRAMES frames with 3 parts
     in 3D): the named model's shape, scaled, said in summary.json."""
+    from adjust.apps.simulate import run as simulate
     from adjust.body_fit import MIN_SHAPE_FRAMES
-    from adjust.scene_cli import run as simulate
 
     simulate(_cfg("scene", [f"output.dir={tmp_path / 's'}", "num_frames=20", "seed=6"]))
     s = _track(tmp_path / "s", tmp_path / "out")

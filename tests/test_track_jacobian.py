@@ -97,9 +97,9 @@ def test_frozen_solve_reaches_the_central_difference_solution(tmp_path):
     import hydra
     import numpy as np
 
+    from adjust.apps.simulate import run as simulate
+    from adjust.apps.track import run as track
     from adjust.io import read_points3d
-    from adjust.scene_cli import run as simulate
-    from adjust.track import run as track
     from deformnet.paths import CONF_DIR
 
     def compose(name, overrides):

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
+from adjust.apps.triangulate import run
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import read_points3d, save_calibration, write_dlc_csv
-from adjust.triangulate_cli import run
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR, real_hand_dir
 

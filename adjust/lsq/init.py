@@ -13,6 +13,7 @@ from torch import Tensor
 
 from adjust.camera import CameraTensors, project_cameras
 from adjust.lsq.geometry import so3_exp, so3_log
+from adjust.lsq.memory import release_freed_memory
 from adjust.triangulate import triangulate
 from deformnet.so3 import kabsch
 
@@ -330,15 +331,13 @@ def initial_poses(
     dt = body.dtype
     if T == 0:
         return xy.new_zeros((0, 6)), torch.zeros(0, dtype=torch.bool)
-    from adjust.lsq.solver import _release_freed_memory
-
     fits = []
     for a in range(0, T, 10000):  # per-frame fits in blocks of frames (cache-friendly)
         X, mask = triangulated_parts(xy[a : a + 10000], valid[a : a + 10000], cams)
         fits.append((*kabsch_robust(body, X, mask), mask.sum(1) >= 4))
         del X, mask
         if T > 10000:
-            _release_freed_memory()
+            release_freed_memory()
     poses = torch.cat([f[0] for f in fits], 0)
     ok = torch.cat([f[1] for f in fits], 0)
     strong = ok & torch.cat([f[2] for f in fits], 0)

@@ -8,7 +8,7 @@ called with the current poses at the start of every Gauss-Newton iteration, so t
 equations keep their block-banded structure and the deformation is re-evaluated as the poses
 converge (a fixed-point / block-Jacobi treatment of the cross-frame coupling).
 
-The models (the app, `adjust.track`, only picks one):
+The models (the tracker, `adjust.deformation_modes`, only picks one):
 - `RigidObservation`: the rigid body moved by the pose (eq. 4), optionally with each part's
   estimated deformation variance;
 - `InterpObservation` (``deformation=interp``): plus each part's body-frame offset interpolated
@@ -131,7 +131,7 @@ class InterpObservation:
     observed frame an independent prediction to fuse with the frame's own detections.
 
     few_var (K, 3) mm^2, optional: the spread of parts with too few 3D observations to
-    estimate it (e.g. placed from their single views, `adjust.track.refine_body`; NaN: unknown).
+    estimate it (e.g. placed from their single views, `adjust.body_fit.refine_body`; NaN: unknown).
     measured_var (K, 3) mm^2, optional: then a part-frame with its own 3D observation takes
     the rigid model point with this variance (the shape prior) instead of the prediction from
     its neighbours (`deformation=self` chooses between the two by held-out cameras,

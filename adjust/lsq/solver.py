@@ -41,6 +41,7 @@ from adjust.lsq.geometry import (
 )
 from adjust.lsq.init import initial_poses
 from adjust.lsq.lm import add_ridge, levenberg_marquardt
+from adjust.lsq.memory import release_freed_memory
 from adjust.lsq.observation import ObservationModel, RigidObservation
 from adjust.lsq.robust import kernel_cost, kernel_weight, mixture_weights
 from deformnet.threads import torch_threads
@@ -139,25 +140,6 @@ class _MaskedRows:
         """All frames in the stored dtype (float32 detections stay float32: the initialisation
         computes in the cameras' dtype, with the same result)."""
         return self.x.clone().masked_fill_(~self.mask, 0.0)
-
-
-def _release_freed_memory() -> None:
-    """Hand the heap memory freed by a chunk back to the OS (glibc ``malloc_trim``; elsewhere a
-    no-op). Without it the chunks' freed temporaries stay resident, fragmented between longer
-    lived allocations, and the resident size of a long session grows by ~0.6 KB per frame."""
-    global _malloc_trim
-    if _malloc_trim is None:
-        try:
-            import ctypes
-
-            _malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
-        except (OSError, AttributeError):  # not glibc
-            _malloc_trim = False
-    if _malloc_trim:
-        _malloc_trim(0)
-
-
-_malloc_trim = None
 
 
 def _as_stored(x, dtype: torch.dtype) -> Tensor:
@@ -498,7 +480,7 @@ def _adjust_poses(
         shares.append(out["share"])
         del out
         if len(cores) > 1:
-            _release_freed_memory()
+            release_freed_memory()
     share = float(np.mean(shares)) if shares else 1.0
     # per-frame outputs, chunk by chunk (cache-friendly; neighbours for windowed models)
     # ... each chunk's core written into arrays of all frames (only those asked for)
@@ -523,7 +505,7 @@ def _adjust_poses(
                 arrays[k][a:b] = v[a - ea : b - ea]
         del out
         if len(cores) > 1:
-            _release_freed_memory()
+            release_freed_memory()
     return AdjustmentResult(
         pose_cov=pose_cov,
         fitted=fitted.cpu().numpy(),

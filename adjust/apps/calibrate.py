@@ -29,9 +29,10 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, hydra_app, prepare_output, required, setting
+from adjust.apps.common import finite_or_none, hydra_app, prepare_output
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import InputError, load_calibration, read_dlc, save_calibration
+from adjust.settings import required, setting
 from deformnet.atomic import write_text
 from deformnet.paths import regular_file
 

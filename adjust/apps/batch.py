@@ -25,16 +25,21 @@ import io
 import json
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from adjust.io.scene import SUFFIXES
+from adjust.pipeline import run as track_run
 from adjust.session import SESSION_KEY, session_name, with_session
 from deformnet import project
-from deformnet.atomic import write_text
+from deformnet.atomic import file_digest, write_text
 from deformnet.outputs import output_lock, recover_outputs
 
 log = logging.getLogger(__name__)
@@ -58,9 +63,6 @@ _NOT_SETTINGS = ("force", "progress", "output.dir")
 
 def in_multirun() -> bool:
     """True inside a Hydra multirun job (``-m``)."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
@@ -109,8 +111,6 @@ def _done(folder: Path, calibration: Path, detections: Path, settings: str, inpu
     """The summary of a finished run in ``folder`` of inputs with this content digest
     (`inputs_digest`) and these settings whose outputs are whole (the summary's sha256 of
     ``points3d.csv`` matches the file), else None."""
-    from deformnet.atomic import file_digest
-
     recover_outputs(folder)  # a commit interrupted by a kill: completed first
     outputs = [folder / "points3d.csv", folder / "summary.json"]
     status_path = folder / STATUS_FILE
@@ -172,18 +172,19 @@ def _one_line(exc: BaseException) -> str:
     return text if isinstance(exc, ValueError) else f"{type(exc).__name__}: {text}"
 
 
-def run_session(cfg: DictConfig, job_dir: str | Path | None = None) -> dict:
-    """The batch job: track one session (``adjust.track.run``), never raising.
+def run_session(
+    cfg: DictConfig,
+    job_dir: str | Path | None = None,
+    run: Callable[[DictConfig], dict] = track_run,
+) -> dict:
+    """The batch job: track one session (`run`: adjust-track's, `adjust.pipeline.run`), never
+    raising.
 
     ``job_dir``: where the status row goes (default: Hydra's job folder); the outputs go there
     too, or to ``output.dir/<session name>`` when output.dir is set. Returns the status row
     (`SUMMARY_COLUMNS` plus ``name``, ``settings``)."""
-    from adjust.track import run
-
     t0 = time.perf_counter()
     if job_dir is None:
-        from hydra.core.hydra_config import HydraConfig
-
         hc = HydraConfig.get()
         job_dir, num = Path(hc.runtime.output_dir), hc.job.num
     else:
@@ -265,8 +266,6 @@ def read_summary(path: str | Path) -> list[dict]:
 def batch_sessions(config: DictConfig) -> set[str] | None:
     """The folder names of a multirun's sessions (its ``input.session`` override, a list or one
     folder), or None when it sweeps no session (then its jobs are named job<N>)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     task = [str(o) for o in OmegaConf.select(config, "hydra.overrides.task", default=[]) or []]
     given = [o for o in task if o.split("=", 1)[0].lstrip("+~") == SESSION_KEY and "=" in o]
     if not given:

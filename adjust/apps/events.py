@@ -25,9 +25,10 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, hydra_app, required
+from adjust.apps.common import finite_or_none, hydra_app
 from adjust.events import detect_events, first_operated, operations
 from adjust.io import InputError, load_calibration_metadata, read_points3d, recording_fps
+from adjust.settings import required
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
 from deformnet.lockbox import mechanism_table

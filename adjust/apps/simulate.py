@@ -19,7 +19,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from adjust.app import run_or_exit
+from adjust.apps.common import run_or_exit
 from adjust.scene import default_rig, simulate_scene, write_scene
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel

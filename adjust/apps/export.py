@@ -20,10 +20,11 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from adjust.app import hydra_app, required
+from adjust.apps.common import hydra_app
 from adjust.export import FILE_KEYS, SUBJECT_KEYS, write_anipose, write_nwb
 from adjust.io.errors import InputError
 from adjust.kinematics import angles_csv
+from adjust.settings import required
 from deformnet.paths import regular_file
 
 log = logging.getLogger(__name__)

@@ -1,8 +1,8 @@
 """The demo's report: every number computed from the run's own files, written as
 ``report.json``, then ``report.md`` and a self-contained ``report.html`` generated from it.
 
-    from adjust.report import write_report
-    write_report(out, record)   # record: what `adjust.demo` ran (folders, timings, settings)
+    from adjust.apps.report import write_report
+    write_report(out, record)   # record: what `adjust.apps.demo` ran (folders, timings, settings)
 
 `record` names the run's folders: ``scene`` (an `adjust-simulate` folder: calibration.toml,
 detections/, truth.npz, scene.json), ``methods`` (method -> an `adjust-triangulate` /
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adjust.app import finite_or_none
+from adjust.apps.common import finite_or_none
 from adjust.io import load_calibration, load_calibration_metadata, load_scene, read_points3d
 from adjust.metrics import point_errors
 from deformnet.atomic import write_text

@@ -20,19 +20,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.app import (
-    finite_or_none,
-    hydra_app,
-    load_kwargs,
-    prepare_output,
-    required,
-    setting,
-    stats,
-    write_outputs,
-)
+from adjust.apps.common import finite_or_none, hydra_app, prepare_output, write_outputs
 from adjust.camera import CameraTensors
 from adjust.camera_check import check_from_config
 from adjust.io import check_cameras_usable, load_scene, write_points3d
+from adjust.metrics import stats
+from adjust.settings import load_kwargs, required, setting
 from deformnet.body import BodyModel
 
 log = logging.getLogger(__name__)

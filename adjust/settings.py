@@ -1,53 +1,26 @@
-"""Helpers shared by the `adjust` Hydra apps (adjust-triangulate, adjust-track)."""
+"""Typed settings of the adjust apps: each read and checked once, a bad value a ValueError
+naming the setting and what it accepts (`setting`, `check_settings`), required keys
+(`required`), the detections' input block (`load_kwargs`)."""
 
 from __future__ import annotations
 
-import logging
+import dataclasses
 import math
 import os
-from collections.abc import Callable
-from pathlib import Path
 
-import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from deformnet.apprun import run_app
-from deformnet.atomic import file_digest, finite_or_none  # noqa: F401  (apps: adjust.app.*)
-from deformnet.outputs import (  # noqa: F401  (apps: adjust.app.*; registers ${output_or:...})
-    OutputBusy,
-    OutputSet,
-    output_lock,
-    prepare_output,
-    recover_outputs,
-)
+from adjust.lsq.config import SolverConfig
 
-log = logging.getLogger(__name__)
-
-
-def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
-    """Call an app's `run(cfg)` through the one error handler of every app
-    (`deformnet.apprun.run_app`): bad input or config (ValueError, whose message names the file,
-    camera, part or frame, or an OmegaConf error about a setting) is one logged line and exit
-    status 2, an unusable or busy output folder (OSError, `OutputBusy`) too, Ctrl-C exit status
-    130, never a traceback. Settings (`check_settings`) and ``output.dir`` (`prepare_output`,
-    which locks it) are checked before `run`; the per-project settings the console script added
-    are logged first (`deformnet.project`)."""
-    return run_app(run, cfg, check_settings)
-
-
-def hydra_app(run: Callable[[DictConfig], dict], config_name: str) -> Callable[[], None]:
-    """An app's console-script entry point: Hydra composes ``conf/<config_name>.yaml`` with
-    the command line, then `run_or_exit` calls `run`."""
-    import hydra
-
-    from deformnet.paths import CONF_DIR
-
-    def main(cfg: DictConfig) -> None:
-        run_or_exit(run, cfg)
-
-    main.__wrapped__ = run  # Hydra names the job (and its log file) after run's module
-    return hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)(main)
-
+__all__ = [
+    "MAX_THREADS",
+    "MIN_SIGMA_PX",
+    "SETTINGS",
+    "check_settings",
+    "load_kwargs",
+    "required",
+    "setting",
+]
 
 _KINDS = {"int": "an integer", "float": "a number", "bool": "true or false"}
 
@@ -177,10 +150,6 @@ def check_settings(cfg) -> None:
     solver = cfg.get("solver")
     if solver is None or not hasattr(solver, "keys"):
         return
-    import dataclasses
-
-    from adjust.lsq.config import SolverConfig
-
     for f in dataclasses.fields(SolverConfig):
         if f.name not in solver:
             continue
@@ -193,47 +162,12 @@ def check_settings(cfg) -> None:
         setting(solver, f.name, kind, lo=lo, hi=hi, allow_none=True, prefix="solver.")
 
 
-def write_outputs(
-    out: Path,
-    write_points: Callable[[Path], Path],
-    summary: dict,
-    outputs: OutputSet | None = None,
-) -> dict:
-    """Write ``points3d.csv`` and ``summary.json`` into `out` as one set (`OutputSet`): a
-    reader never sees a new one beside an old other, and a run stopped at any moment (SIGKILL
-    included) leaves the previous pair. The summary, written last, records every file's sha256
-    and size (``outputs.files``; ``outputs.points3d_sha256``). With `outputs` (an open
-    `OutputSet` of `out` holding the run's other files) the points join that set and it is
-    committed here. Returns the summary as written."""
-    if outputs is None:
-        with OutputSet(out) as staged:
-            return write_outputs(out, write_points, summary, staged)
-    write_points(outputs.path("points3d.csv"))
-    summary = dict(summary)
-    summary["outputs"] = {
-        **dict(summary.get("outputs") or {}),
-        "points3d": str(outputs.final("points3d.csv")),
-    }
-    return outputs.commit(summary)
-
-
 def required(cfg: DictConfig, key: str, config_name: str) -> str:
     """The string value of a required config key, or a ValueError saying how to set it."""
     value = OmegaConf.select(cfg, key, throw_on_missing=False)
     if value is None or OmegaConf.is_missing(cfg, key) or str(value) == "":
         raise ValueError(f"set {key}=... (see conf/{config_name}.yaml)")
     return str(value)
-
-
-def stats(values: np.ndarray) -> dict:
-    """count, median, mean, p90 and max of the finite values (None when there are none): the
-    summary.json view of `adjust.metrics.error_summary`, the one statistics summary."""
-    from adjust.metrics import error_summary
-
-    s = error_summary(values)
-    if s["n"] == 0:
-        return {"count": 0, "median": None, "mean": None, "p90": None, "max": None}
-    return {"count": s["n"], **{k: s[k] for k in ("median", "mean", "p90", "max")}}
 
 
 def load_kwargs(inp: DictConfig) -> dict:

@@ -28,49 +28,39 @@ Writes into ``output.dir``:
 - ``summary.json``: settings, iterations, costs, convergence, reprojection error statistics
   (all, per camera, per part), completeness, uncertainty, timings.
 
-The recipe is `adjust.pipeline.track`; `run(cfg) -> dict` (it, within the configured torch
-threads) is the plain function behind the Hydra app (tests call it through Hydra's compose API);
-it returns the summary.
+The recipe is `adjust.pipeline` (`run(cfg) -> dict`, the plain function behind the Hydra app;
+tests call it through Hydra's compose API; it returns the summary); a batch's sessions
+(``-m``) go through `adjust.apps.batch.run_session`.
 """
 
 from __future__ import annotations
 
 import logging
+import sys
 
 import hydra
 from omegaconf import DictConfig
 
-from adjust.app import run_or_exit
-from adjust.pipeline import track
+from adjust.apps.batch import in_multirun, run_session
+from adjust.apps.common import run_or_exit
+from adjust.pipeline import run
 from adjust.session import expand_session_globs
 from deformnet.paths import CONF_DIR
-from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
-
-def run(cfg: DictConfig) -> dict:
-    """Load, adjust, write points3d.csv and summary.json (`adjust.pipeline.track`); returns
-    the summary.
-
-    ``threads`` (torch's intra-op threads) applies for the call and is restored after it."""
-    with torch_threads(cfg.get("threads")):
-        return track(cfg)
+__all__ = ["main", "run"]
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="track", version_base=None)
 def _main(cfg: DictConfig) -> dict | None:
-    from adjust.batch import in_multirun, run_session
-
-    if in_multirun():  # one session of a batch (adjust.batch): records a failure, never raises
-        return run_session(cfg)
+    if in_multirun():  # one session of a batch (adjust.apps.batch): records a failure, never raises
+        return run_session(cfg, run=run)
     run_or_exit(run, cfg)
 
 
 def main() -> None:
     """Console script: ``input.session=glob(PATTERN)`` -> the matching folders, then Hydra."""
-    import sys
-
     try:
         sys.argv = expand_session_globs(sys.argv)
     except ValueError as exc:

@@ -18,7 +18,7 @@ Each step is the app a user runs, called through Hydra's compose API (`run(cfg)`
                               fine-tuned on them, then the primary tracks labelled
                               (OUT/classify/predict)
 6. ``adjust-events``          OUT/events: lock-box contacts on the primary tracks
-7. `adjust.report`            OUT/report.json, report.md, report.html, figures/
+7. `adjust.apps.report`            OUT/report.json, report.md, report.html, figures/
 
 `run(cfg) -> dict` is the plain function behind the Hydra app. The last lines printed say where
 the report is.
@@ -31,12 +31,22 @@ import logging
 import time
 
 import hydra
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
-from adjust.app import run_or_exit
+from adjust.apps import events as events_app
+from adjust.apps import simulate as simulate_app
+from adjust.apps import track as track_app
+from adjust.apps import triangulate as triangulate_app
+from adjust.apps.common import run_or_exit
+from adjust.apps.report import notes, write_report
+from adjust.scene import scene_fps, write_truth_labels
 from deformnet.atomic import write_text
 from deformnet.paths import CONF_DIR, output_dir
 from deformnet.quiet import quiet_lightning
+from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -45,10 +55,6 @@ METHODS = ("dlt", "rigid", "interp", "net", "self")
 
 def compose(name: str, overrides: list[str]) -> DictConfig:
     """An app's config (conf/<name>.yaml) with overrides, inside a running Hydra app or not."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
     if GlobalHydra.instance().is_initialized():
         return hydra_compose(config_name=name, overrides=overrides)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
@@ -97,14 +103,11 @@ def labelled_sessions(folder, p: DictConfig, method: str, ckpt, cfg: DictConfig)
     ``labels.csv``: ``folder/<seed>/{scene, <method>, labels.csv}``. Returns the
     `deformnet-classify` ``data.*`` lists: {"train_tracks": "[...]", "train_labels": ..., ...}.
     """
-    from adjust import scene_cli, track, triangulate_cli
-    from adjust.scene import write_truth_labels
-
     data: dict[str, list[str]] = {}
     for split, seeds in session_seeds(p, int(cfg.seed)).items():
         for s in seeds:
             d = folder / str(s)
-            scene_cli.run(
+            simulate_app.run(
                 compose(
                     "scene",
                     [
@@ -114,7 +117,7 @@ def labelled_sessions(folder, p: DictConfig, method: str, ckpt, cfg: DictConfig)
                     ],
                 )
             )
-            app = triangulate_cli if method == "dlt" else track
+            app = triangulate_app if method == "dlt" else track_app
             app.run(track_config(method, d / "scene", d / method, ckpt, p, cfg))
             data.setdefault(f"{split}_tracks", []).append(str(d / method / "points3d.csv"))
             data.setdefault(f"{split}_labels", []).append(
@@ -168,17 +171,11 @@ def run(cfg: DictConfig) -> dict:
     is restored after it; so does the quiet console (`deformnet.quiet.quiet_lightning`: the
     steps' progress and results, not Lightning's, TensorBoard's and numexpr's info lines, tips
     and deprecations)."""
-    from deformnet.threads import torch_threads
-
     with torch_threads(cfg.get("threads")), quiet_lightning(info=False):
         return _run(cfg)
 
 
 def _run(cfg: DictConfig) -> dict:
-    from adjust import events_cli, scene_cli, track, triangulate_cli
-    from adjust.report import notes, write_report
-    from adjust.scene import scene_fps
-
     name = str(cfg.preset)
     if name not in cfg.presets:
         raise ValueError(f"preset={name} is not one of {list(cfg.presets)}")
@@ -201,12 +198,12 @@ def _run(cfg: DictConfig) -> dict:
     step(
         "scene",
         "adjust-simulate: the scene",
-        scene_cli.run,
+        simulate_app.run,
         compose("scene", [f"num_frames={int(p.frames)}", f"seed={seed}", f"output.dir={scene}"]),
     )
 
     # 2. the nets, side by side, one TensorBoard root
-    from deformnet import train
+    from deformnet import train  # (Lightning: adjust imports without it, tests/test_layering)
 
     tb = out / "tb"
     trained = {}
@@ -237,14 +234,14 @@ def _run(cfg: DictConfig) -> dict:
     step(
         "dlt",
         "adjust-triangulate (DLT)",
-        triangulate_cli.run,
+        triangulate_app.run,
         track_config("dlt", scene, out / "dlt", ckpt, p, cfg),
     )
     for method in ("rigid", "interp", "net", "self"):
         step(
             method,
             f"adjust-track deformation={DEFORMATION.get(method, ckpt)}",
-            track.run,
+            track_app.run,
             track_config(method, scene, out / method, ckpt, p, cfg),
         )
     tracks = out / primary / "points3d.csv"
@@ -252,7 +249,7 @@ def _run(cfg: DictConfig) -> dict:
     # 5. behavior
     classify = None
     if bool(cfg.behavior):
-        from deformnet import classify as cls_app
+        from deformnet import classify as cls_app  # (Lightning, as deformnet.train above)
 
         sessions = step(
             "classify_sessions",
@@ -319,7 +316,7 @@ def _run(cfg: DictConfig) -> dict:
                 f"output.dir={out / 'events'}",
             ],
         )
-        step("events", "adjust-events", events_cli.run, ecfg)
+        step("events", "adjust-events", events_app.run, ecfg)
         events = {"dir": str(out / "events")}
 
     # 7. the report
@@ -342,7 +339,7 @@ def _run(cfg: DictConfig) -> dict:
             "tensorboard": str(tb),
         },
     }
-    # the run's record first: `adjust.report.write_report(out, record)` can redo the report
+    # the run's record first: `adjust.apps.report.write_report(out, record)` can redo the report
     write_text(out / "demo.json", json.dumps(record, indent=2, default=str) + "\n")
     t0 = time.perf_counter()
     written = write_report(out, record)

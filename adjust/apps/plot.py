@@ -36,8 +36,9 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from adjust.app import finite_or_none, load_kwargs, required, run_or_exit
+from adjust.apps.common import finite_or_none, run_or_exit
 from adjust.io import InputError, load_calibration, load_scene, read_points3d
+from adjust.settings import load_kwargs, required
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
