@@ -247,3 +247,32 @@ def test_retract_is_multiplicative_near_pi():
     expected = G.so3_exp(d[:, :3]) @ G.so3_exp(p[:, :3])
     torch.testing.assert_close(G.so3_exp(out[:, :3]), expected)
     assert float(out[:, :3].norm()) <= np.pi + 1e-12
+
+
+@pytest.mark.parametrize("start, stol, settled", [(1e-3, 0.05, True), (1e-3, 0.0, False),
+                                                  (10.0, 0.05, False)])  # fmt: skip
+def test_iteration_cap_is_converged_only_when_the_last_step_settled(start, stol, settled):
+    """A reweighted problem whose cost creeps on: the iteration cap stops it; `converged` says
+    whether its last step was below `stol` (rms over the parameters), not always False."""
+    T, n = 4, 6
+    target = np.arange(T * n, dtype=float).reshape(T, n)
+
+    def linearise(x):
+        blocks = banded.zeros(T, n, 0)
+        blocks[0][:] = np.eye(n)
+        r = x - target
+        return blocks, -r, 0.5 * float(np.sum(r * r)), None
+
+    out = levenberg_marquardt(
+        target + start,
+        linearise,
+        lambda x, _: 0.5 * float(np.sum((x - target) ** 2)),
+        lambda x, d: x + 0.5 * d,  # half steps: never at the minimum, the step shrinks
+        max_iterations=1,
+        min_iterations=5,  # no other rule may stop it
+        ftol=0.0,
+        xtol=0.0,
+        stol=stol,
+    )
+    assert out.iterations == 1
+    assert out.converged is settled

@@ -103,6 +103,7 @@ class LMConfig:
     dtol: float = 1e-2  # ... or by less than this per frame (and < 1e-3 relative)
     wtol: float = 1e-4  # ... or the cost changes by less than this between iterations (IRLS)
     xtol: float = 1e-10  # ... or the step is below this (relative to pose scale)
+    stol: float = 0.05  # at the iteration cap: converged if the last step's rms (mm, rad) < this
     lm_lambda: float = 1e-6  # initial Levenberg-Marquardt damping (relative to diag)
     lm_up: float = 10.0
     lm_down: float = 0.3

@@ -55,6 +55,7 @@ def levenberg_marquardt(
     xtol: float = 1e-12,
     wtol: float = 0.0,
     atol: float = 0.0,
+    stol: float = 0.0,
     lam: float = 1e-6,
     lam_up: float = 10.0,
     lam_down: float = 0.3,
@@ -68,11 +69,16 @@ def levenberg_marquardt(
     than `atol` (absolute) while also by less than 1e-3 (relative), moves less than `xtol` (max
     abs), the cost at successive linearisation points changes by less than `wtol` (relative;
     for reweighted problems), or no damping gives a decrease.
+    A run stopped by `max_iterations` still counts as converged when its last accepted step was
+    settled: the rms of the step over all parameters below `stol` (in the parameters' own
+    units; 0 = never). Reweighted problems (IRLS, kriged offsets refreshed every iteration)
+    can creep on along a flat valley long after the solution has settled.
     """
     x = x0
     history: list[float] = []
     converged = False
     it = 0
+    settled = False
     for it in range(1, max_iterations + 1):
         blocks, g, c, ctx = linearise(x)
         history.append(c)
@@ -99,6 +105,7 @@ def levenberg_marquardt(
                 accepted = True
                 rel = (c - new) / max(c, 1e-300)
                 step = float(np.abs(delta).max()) if delta.size else 0.0
+                settled = bool(delta.size) and float(np.sqrt(np.mean(delta**2))) < stol
                 x = trial
                 lam = max(lam * lam_down, 1e-12)
                 change = abs(history[-2] - c) / max(c, 1e-300) if it > 1 else math.inf
@@ -115,4 +122,6 @@ def levenberg_marquardt(
         if stop:
             converged = True
             break
+    else:  # the iteration cap: converged if the last step had settled
+        converged = settled
     return LMResult(x, it, history, converged, blocks if max_iterations > 0 else None)

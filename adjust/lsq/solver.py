@@ -336,6 +336,7 @@ def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
             ftol=cfg.ftol,
             xtol=cfg.xtol,
             wtol=cfg.wtol,
+            stol=cfg.stol,
             atol=cfg.dtol * T,
             lam=cfg.lm_lambda,
             lam_up=cfg.lm_up,
