@@ -18,7 +18,7 @@ import pandas as pd
 import torch
 
 from deformnet.series import interpolate_gaps
-from deformnet.tables import read_csv, xyz_parts
+from deformnet.tables import read_csv, read_points3d_table, xyz_parts
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +166,7 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
     from deformnet.tokens import kabsch
 
     path = Path(path)
-    df = read_csv(path, "tracks file")
+    df = read_points3d_table(path, "tracks file")  # with its sidecar's pose columns
     cols = set(df.columns)
     found: dict[str, str] = {}
     unused: list[str] = []  # the file's parts that name none of the model's
@@ -408,15 +408,75 @@ def to_track_frames(
     return out.reshape((len(t),) + values.shape[1:])
 
 
+#: BORIS's aggregated events export: the behavior, its start and stop (s; "Image index" columns,
+#: when there, give frames), the frame rate
+BORIS_COLUMNS = ("Behavior", "Start (s)", "Stop (s)")
+
+
+def _boris_bouts(df: pd.DataFrame, path: Path, fps: float | None, fnum0: int) -> pd.DataFrame:
+    """A BORIS aggregated events table -> `start,stop,label` (frames; stop inclusive): frames
+    from its "Image index start/stop" columns, else its times at its "FPS" column's rate or
+    ``fps`` (frame ``fnum0`` at 0 s); a point event (stop = start) labels one frame."""
+    if {"Image index start", "Image index stop"} <= set(df.columns):
+        start = pd.to_numeric(df["Image index start"], errors="coerce")
+        stop = pd.to_numeric(df["Image index stop"], errors="coerce")
+        return pd.DataFrame({"start": start + fnum0, "stop": stop + fnum0,
+                             "label": df["Behavior"]})  # fmt: skip
+    rate = pd.to_numeric(df["FPS"], errors="coerce") if "FPS" in df.columns else None
+    if rate is None or not np.all(np.isfinite(rate) & (rate > 0)):
+        if fps is None:
+            raise ValueError(f"{path}: BORIS events in seconds: give the frame rate (fps=)")
+        rate = pd.Series(float(fps), index=df.index)
+    start = pd.to_numeric(df["Start (s)"], errors="coerce") * rate
+    stop = pd.to_numeric(df["Stop (s)"], errors="coerce") * rate
+    bad = ~(np.isfinite(start) & np.isfinite(stop))
+    if bad.any():
+        r = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{path}: row {r + 1}: 'Start (s)' / 'Stop (s)' must be numbers")
+    first = np.round(start).astype(np.int64)
+    last = np.maximum(first, np.ceil(stop - 1e-6).astype(np.int64) - 1)  # [start, stop) in time
+    return pd.DataFrame({"start": first + fnum0, "stop": last + fnum0, "label": df["Behavior"]})
+
+
+def _simba_frames(df: pd.DataFrame, path: Path, classes: Sequence[str], fnum0: int):
+    """SimBA's per-frame behavior columns (0 / 1, one per class; row i = frame i) ->
+    `fnum,label` (a frame with none unlabelled, with two an error naming it)."""
+    names = [c for c in classes if c in df.columns]
+    flags = df[names].apply(pd.to_numeric, errors="coerce")
+    if not np.all(flags.isin([0, 1]).to_numpy()):
+        raise ValueError(f"{path}: SimBA behavior columns {names} must hold 0 or 1")
+    on = flags.to_numpy(dtype=bool)
+    many = np.flatnonzero(on.sum(1) > 1)
+    if many.size:
+        r = int(many[0])
+        raise ValueError(f"{path}: row {r + 1}: several behaviors at once "
+                         f"({[n for n, f in zip(names, on[r]) if f]})")  # fmt: skip
+    rows = np.flatnonzero(on.any(1))
+    label = np.asarray(names, dtype=object)[on[rows].argmax(1)]
+    return pd.DataFrame({"fnum": rows + fnum0, "label": label})
+
+
 def read_labels(
-    path: str | os.PathLike, fnum: np.ndarray, classes: Sequence[str], tracks: str = "the track"
+    path: str | os.PathLike,
+    fnum: np.ndarray,
+    classes: Sequence[str],
+    tracks: str = "the track",
+    fps: float | None = None,
 ) -> np.ndarray:
-    """Labels (T,) int64 (-1: unlabelled) for frames `fnum` from a `fnum,label` CSV (one row per
-    frame) or a `start,stop,label` CSV (bouts, frame numbers, stop inclusive). Unknown labels,
-    duplicate frames, overlapping bouts and frames outside the track are errors naming the file
-    and row (rows count data rows from 1)."""
+    """Labels (T,) int64 (-1: unlabelled) for frames `fnum` from a labels CSV as labs export
+    them: `fnum,label` (one row per frame), `start,stop,label` (bouts, frame numbers, stop
+    inclusive), BORIS's aggregated events (`BORIS_COLUMNS`: seconds at its FPS column's rate
+    or ``fps``, or its image indices; 0 s is the track's first frame) or SimBA's per-frame
+    behavior columns (one 0 / 1 column per class, row i the track's i-th frame). Unknown
+    labels, duplicate frames, overlapping bouts and frames outside the track are errors naming
+    the file and row (rows count data rows from 1)."""
     path = Path(path)
-    df = read_csv(path, "labels file", dtype={"label": str})
+    df = read_csv(path, "labels file", dtype={"label": str, "Behavior": str})
+    fnum0 = int(np.min(fnum)) if len(fnum) else 0
+    if set(BORIS_COLUMNS) <= set(df.columns):
+        df = _boris_bouts(df, path, fps, fnum0)
+    elif "label" not in df.columns and any(c in df.columns for c in classes):
+        df = _simba_frames(df, path, classes, fnum0)
     index = {str(c): i for i, c in enumerate(classes)}
     pos = {int(f): i for i, f in enumerate(fnum)}
     lo, hi = int(np.min(fnum)), int(np.max(fnum))
@@ -428,8 +488,9 @@ def read_labels(
         kind, frame_cols = "bouts", ("start", "stop")
     else:
         raise ValueError(
-            f"{path}: expected columns 'fnum,label' (per frame) or 'start,stop,label' (bouts), "
-            f"got {list(df.columns)}"
+            f"{path}: expected columns 'fnum,label' (per frame), 'start,stop,label' (bouts), "
+            f"BORIS's aggregated events ({', '.join(BORIS_COLUMNS)}) or SimBA's behavior "
+            f"columns (one per class: {', '.join(classes)}), got {list(df.columns)}"
         )
 
     def frame(r: int, col: str) -> int:

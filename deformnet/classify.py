@@ -889,7 +889,8 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
         if lp is None:
             lab = np.full(len(tr["fnum"]), -1, dtype=np.int64)
         else:
-            lab = read_labels(lp, tr["fnum"], classes, tracks=tp)
+            rate = fps if rates is None else rates[i]  # BORIS events in seconds
+            lab = read_labels(lp, tr["fnum"], classes, tracks=tp, fps=rate)
         parts = (tr["rigid"], tr["deformed"], tr["observed"], tr["fnum"])
         s = Session(tp, *parts, lab, pose=tr["pose"])
         if rates is not None and not same_fps(rates[i], fps):
