@@ -1,0 +1,200 @@
+"""``deformation=self``'s fine-tuning (`adjust.adapt`): the device it picks, its step budget and
+early stopping, and that it adapts the shipped net (a net that differs from it, better on the
+recording's held-out tokens than where it started)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+import adjust.adapt as adapt
+from adjust.adapt import AdaptConfig, adapt_net, fine_tune, select_device, starting_model
+from deformnet.body import BodyModel, default_mouse
+from deformnet.data import DeformDataModule
+from deformnet.deformation import DeformationModel
+from deformnet.pretrained import load_default
+from deformnet.sessions import SessionTokens, split_sessions
+from deformnet.windows import toy_sequence
+
+torch.set_num_threads(1)
+
+
+def _tokens(body: BodyModel, frames: int = 400, seed: int = 3) -> SessionTokens:
+    """A recording's tokens: the toy generator's smoothly deforming body, 2% unmeasured."""
+    s = toy_sequence(body, frames, seed)
+    deformed = np.where(s.observed[..., None], s.deformed, np.nan).astype(np.float32)
+    pts = np.array(body.points, dtype=np.float64)
+    return SessionTokens(s.rigid, deformed, s.observed, tuple(body.parts), pts, body.name)
+
+
+# --- the device ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("accelerator", "cuda", "expected"),
+    [("auto", True, "cuda"), ("auto", False, "cpu"), ("cpu", True, "cpu"), ("cuda", True, "cuda"),
+     ("gpu", True, "cuda")],
+)  # fmt: skip
+def test_select_device(monkeypatch, accelerator, cuda, expected):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
+    assert select_device(accelerator).type == expected
+
+
+def test_select_device_refuses_cuda_without_one_and_unknown_names(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="no CUDA device"):
+        select_device("cuda")
+    with pytest.raises(ValueError, match="adapt.accelerator must be one of"):
+        select_device("tpu")
+    with pytest.raises(ValueError, match="adapt.accelerator must be one of"):
+        AdaptConfig.from_any({"accelerator": "tpu"})
+
+
+def test_adapt_net_trains_on_the_device_auto_selects(monkeypatch, tmp_path):
+    """adapt.accelerator=auto: adapt_net hands fine_tune CUDA when torch sees it."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    seen = {}
+
+    def fake(model, train, val, cfg, device, *args, **kwargs):
+        seen["device"] = device
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(adapt, "fine_tune", fake)
+    with pytest.raises(RuntimeError, match="stop here"):
+        adapt_net(_tokens(default_mouse()), tmp_path, {"accelerator": "auto"}, False)
+    assert seen["device"] == torch.device("cuda")
+
+
+# --- the config ------------------------------------------------------------------------------
+
+
+def test_config_reads_the_track_yaml_block():
+    from deformnet.confutil import compose, to_plain
+
+    cfg = AdaptConfig.from_any(to_plain(compose("track", []).adapt))
+    assert cfg.max_time == 180.0 and cfg.max_steps >= 1 and cfg.pretrained == "default"
+    assert cfg.augment.steps == (1, 1, 2, 3)
+    with pytest.raises(ValueError, match=r"unknown adapt options \['steps_per_epochs'\]"):
+        AdaptConfig.from_any({"steps_per_epochs": 3})
+    with pytest.raises(ValueError, match="DD:HH:MM:SS"):
+        AdaptConfig.from_any({"max_time": "3 minutes"})
+    with pytest.raises(ValueError, match="adapt.max_steps must be >= 1"):
+        AdaptConfig.from_any({"max_steps": 0})
+
+
+# --- the step budget and early stopping ------------------------------------------------------
+
+
+def _data(model: DeformationModel, tokens: SessionTokens, every: int):
+    train, val, _ = split_sessions([tokens], 0.25, 100, min_frames=model.window)
+    dm = DeformDataModule(
+        body=model.body, half_window=model.half_window, source="arrays", train_data=train,
+        val_data=val, batch_size=16, steps_per_epoch=every, val_windows=32,
+    )  # fmt: skip
+    dm.setup("fit")
+    return dm.train_set, dm.val_set
+
+
+def test_fine_tune_stops_at_its_step_budget():
+    model, _ = starting_model(load_default(), default_mouse())
+    train, val = _data(model, _tokens(model.body), every=3)
+    cfg = AdaptConfig(max_steps=7, eval_every=3, patience=100, max_time=None, warmup_steps=1)
+    facts = fine_tune(model, train, val, cfg, torch.device("cpu"))
+    assert facts["steps"] == 7 and facts["stopped"] == "max_steps"
+    assert [h["step"] for h in facts["history"]] == [0, 3, 6, 7]
+
+
+def test_fine_tune_stops_early_without_improvement_and_keeps_the_best_weights():
+    """lr 0: no score ever improves, so it stops after `patience` scores and keeps the
+    starting weights."""
+    model, _ = starting_model(load_default(), default_mouse())
+    start = {k: v.clone() for k, v in model.state_dict().items()}
+    train, val = _data(model, _tokens(model.body), every=2)
+    cfg = AdaptConfig(max_steps=1000, eval_every=2, patience=3, lr=0.0, max_time=None)
+    facts = fine_tune(model, train, val, cfg, torch.device("cpu"))
+    assert facts["steps"] == 6 and facts["stopped"] == "no improvement"
+    assert facts["best_step"] == 0
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, start[k]), k
+
+
+# --- what it produces ------------------------------------------------------------------------
+
+
+def test_self_adapts_the_shipped_net(tmp_path):
+    """On a recording the shipped net did not see: a net that differs from the shipped one,
+    saved as deformation.ckpt, better on the held-out blocks than the shipped net was."""
+    shipped = load_default()
+    tokens = _tokens(default_mouse(), frames=600)
+    cfg = {"max_steps": 40, "eval_every": 10, "batch_size": 32, "val_windows": 128,
+           "block_frames": 100, "tensorboard": False}  # fmt: skip
+    model, facts = adapt_net(tokens, tmp_path, cfg, False)
+    assert facts["start"] == "fine-tune" and facts["pretrained"] == "default"
+    assert facts["device"] == "cpu" and 10 <= facts["steps"] <= 40
+    assert facts["data"]["val_blocks"]
+    saved = DeformationModel.from_checkpoint(tmp_path / "deformation.ckpt")
+    differ = [
+        not torch.equal(a, b)
+        for a, b in zip(saved.net.state_dict().values(), shipped.net.state_dict().values())
+    ]
+    assert any(differ)
+    history = __import__("json").loads((tmp_path / "adapt" / "metrics.json").read_text())
+    first = history["history"][0]["net"]  # the shipped net, before any step
+    assert facts["val_rmse_mm"] < 0.9 * first, (facts["val_rmse_mm"], first)
+    assert tuple(saved.body.parts) == tuple(tokens.parts)
+    np.testing.assert_allclose(np.array(saved.body.points), tokens.body_points, atol=1e-5)
+
+
+class _AgnosticNet(nn.Module):
+    """Stands for a part-agnostic net: runs on any number of parts (predicts the rigid mid
+    point plus a learned shift)."""
+
+    part_agnostic = True
+
+    def __init__(self, half_window: int = 2):
+        super().__init__()
+        self.half_window = half_window
+        self.shift = nn.Parameter(torch.zeros(3))
+
+    def forward(self, rigid, deformed, observed):
+        return rigid[:, self.half_window] + self.shift
+
+
+def test_starting_model_for_another_skeleton():
+    """A skeleton the net does not know: a part-agnostic net is fine-tuned as it is (its
+    weights copied, not shared), another net's architecture is built for the new parts."""
+    body = BodyModel.from_mapping(
+        {"a": [0.0, 0.0, 0.0], "b": [0.0, 30.0, 0.0], "c": [10.0, 10.0, 5.0]}, name="three"
+    )
+    agnostic = DeformationModel(_AgnosticNet(), default_mouse(), 2, {"_target_": "x"})
+    model, how = starting_model(agnostic, body)
+    assert how == "fine-tune" and model.body.parts == body.parts
+    assert model.net is not agnostic.net and torch.equal(model.net.shift, agnostic.net.shift)
+    model, how = starting_model(load_default(), body)
+    assert how == "scratch" and model.num_parts == 3
+    assert model.net_config["prior_residual"] is True
+    out = model(*(torch.zeros(2, model.window, 3, 3), torch.zeros(2, model.window, 3, 3),
+                  torch.ones(2, model.window, 3, dtype=torch.bool)))  # fmt: skip
+    assert out.shape == (2, 3, 3)
+
+
+def test_forecast_term_is_passed_to_the_fine_tuning(monkeypatch, tmp_path):
+    """adapt.forecast > 0: fine_tune gets deformnet-train's forecasting head with that weight
+    (and batches with forecasting targets); 0: none."""
+    seen = {}
+
+    def fake(model, train, val, cfg, device, forecast_head=None, *args, **kwargs):
+        seen["head"], seen["weight"] = forecast_head, cfg.forecast
+        seen["ahead"] = "ahead" in next(iter(train))
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(adapt, "fine_tune", fake)
+    for w in (0.0, 0.5):
+        with pytest.raises(RuntimeError, match="stop here"):
+            adapt_net(_tokens(default_mouse()), tmp_path / f"a{w}", {"forecast": w}, False)
+        assert seen["weight"] == w
+        assert (seen["head"] is not None) == (w > 0) == seen["ahead"]
+        if w > 0:
+            assert seen["head"].forecast_weight == w
