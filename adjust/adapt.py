@@ -2,10 +2,10 @@
 
 A plain torch loop, no Lightning trainer: one recording's fine-tune is a few hundred small
 steps, and a trainer's start-up, checkpoint files and per-epoch machinery cost as much as the
-steps themselves. The objective is deformnet-train's (``data=sessions``): the masked mid
-token of the recording's windows (`deformnet.windows`, cut and augmented by
-`deformnet.data.DeformDataModule` exactly as ``deformnet-train data=sessions``), split by time
-blocks (`deformnet.sessions.split_sessions`); the held-out blocks' windows are scored every
+steps themselves (importing Lightning alone takes seconds). The objective is deformnet-train's
+(``data=sessions``): the masked mid token of the recording's windows (`deformnet.windows`,
+masked and augmented as ``deformnet-train data=sessions`` does), split by time blocks
+(`deformnet.sessions.split_sessions`); the held-out blocks' windows are scored every
 ``adapt.eval_every`` steps (`deformnet.heldout.window_sums`: the net, rigid, linear and offset
 interpolation on the same windows), the best weights are kept, and training stops after
 ``adapt.max_steps`` steps, after ``adapt.patience`` scores without improvement, or at
@@ -31,15 +31,27 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
-from deformnet.data import Augment, DeformDataModule
 from deformnet.deformation import DeformationModel, build_net, check_track_up
 from deformnet.heldout import window_sums
+from deformnet.paths import regular_file
+from deformnet.pretrained import load_default
+from deformnet.sessions import split_sessions
 from deformnet.threads import torch_threads
 from deformnet.tokens import masked_mse
+from deformnet.windows import (
+    Augment,
+    FixedWindowBatches,
+    MaskConfig,
+    RandomWindowBatches,
+    WindowBank,
+    mirror_asymmetry,
+    mirror_permutation,
+)
 
 log = logging.getLogger("adjust.track")
 
@@ -140,6 +152,59 @@ def select_device(accelerator: str) -> torch.device:
     raise ValueError(f"adapt.accelerator={accelerator}: torch sees no CUDA device on this machine")
 
 
+def load_start(spec: str | None) -> DeformationModel | None:
+    """``adapt.pretrained``: None (from scratch), ``default`` (the shipped net,
+    `deformnet.pretrained.load_default`) or a checkpoint path."""
+    if spec is None:
+        return None
+    if str(spec).lower() == "default":
+        return load_default()
+    p = Path(str(spec))
+    if not p.exists():
+        raise ValueError(f"adapt.pretrained={spec}: no such checkpoint")
+    regular_file(p, f"adapt.pretrained={spec}: the checkpoint")
+    return DeformationModel.from_checkpoint(p)
+
+
+def mirror_perm(body: BodyModel, augment: Augment) -> list[int] | None:
+    """The part permutation of a mirrored window when ``augment.mirror`` > 0 and the body is
+    its own mirror image (left/right pairs, `deformnet.windows.mirror_permutation`, and the
+    model within 10% of its size of its reflection: deformnet-train's rule,
+    `deformnet.data.DeformDataModule`); else None (no mirroring)."""
+    if augment.mirror <= 0:
+        return None
+    perm = mirror_permutation(body.parts)
+    if perm is None:
+        return None
+    pts = np.asarray(body.points, dtype=np.float64)
+    size = float(np.sqrt(((pts - pts.mean(0)) ** 2).sum(-1).mean()))
+    return None if mirror_asymmetry(pts, perm) > 0.1 * size else perm
+
+
+def window_data(
+    tokens, model: DeformationModel, cfg: AdaptConfig, ahead_shift=None
+) -> tuple[RandomWindowBatches, FixedWindowBatches, dict]:
+    """The recording's training windows (random, masked, augmented; `eval_every` per pass)
+    and held-out windows (fixed), split by time blocks; and the split's facts."""
+    step = int(cfg.step)
+    window = 2 * model.half_window * step + 1
+    train, val, facts = split_sessions(
+        [tokens], float(cfg.val_fraction), int(cfg.block_frames), min_frames=window
+    )
+    masking = MaskConfig()  # deformnet-train's (conf/data/sim.yaml masking)
+    bank = WindowBank(train, model.half_window, step)
+    train_set = RandomWindowBatches(
+        bank, int(cfg.batch_size), int(cfg.eval_every), masking, int(cfg.seed),
+        augment=cfg.augment, mirror_perm=mirror_perm(model.body, cfg.augment),
+        ahead_shift=ahead_shift,
+    )  # fmt: skip
+    vbank = WindowBank(val, model.half_window, step)
+    val_set = FixedWindowBatches.build(
+        vbank, int(cfg.val_windows), int(cfg.batch_size), int(cfg.seed) + 1, masking
+    )
+    return train_set, val_set, facts
+
+
 def _body_of(tokens) -> BodyModel:
     return BodyModel.from_mapping(
         {p: [float(c) for c in xyz] for p, xyz in zip(tokens.parts, tokens.body_points)},
@@ -165,9 +230,7 @@ def starting_model(
         return DeformationModel(net, body, p.half_window, p.net_config, p.step, p.steps, p.up), (
             "fine-tune"
         )
-    if pretrained is None:
-        from deformnet.pretrained import load_default  # (only for its architecture)
-
+    if pretrained is None:  # the shipped net's architecture
         pretrained = load_default()
     arch = pretrained
     if arch.net_config is None:
@@ -317,15 +380,11 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
     default) on this recording's tokens (`fine_tune`, split by time blocks). Writes the adapted
     model ``out/deformation.ckpt`` and the fine-tuning's record ``out/adapt/metrics.json``
     (``adapt.tensorboard``: scalars in ``out/adapt/tb``); returns (model on the CPU, facts)."""
-    from deformnet.pretrained import load_default
-    from deformnet.sessions import split_sessions
-    from deformnet.train import load_pretrained
-
     cfg = AdaptConfig.from_any(adapt_cfg)
     device = select_device(cfg.accelerator)
     work = Path(out) / "adapt"
     work.mkdir(parents=True, exist_ok=True)
-    pre = load_default() if cfg.pretrained == "default" else load_pretrained(cfg.pretrained)
+    pre = load_start(cfg.pretrained)
     body = _body_of(tokens)
     model, how = starting_model(pre, body)
     if how == "scratch" and pre is not None:
@@ -339,22 +398,14 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
         check_track_up(tokens.rigid, tokens.body_points, model.up, tokens.source or "recording")
     with torch_threads(cfg.threads):
         torch.manual_seed(int(cfg.seed))
-        step = int(cfg.step)
-        window = 2 * model.half_window * step + 1
-        train, val, data_facts = split_sessions(
-            [tokens], float(cfg.val_fraction), int(cfg.block_frames), min_frames=window
-        )
         fc = {}
         if float(cfg.forecast) > 0:
             lo, hi = FORECAST_SHIFTS
             fc = {"weight": float(cfg.forecast), "min_shift": lo, "max_shift": hi}
-        dm = DeformDataModule(
-            body=model.body, half_window=model.half_window, step=step, source="arrays",
-            train_data=train, val_data=val, seed=int(cfg.seed), batch_size=int(cfg.batch_size),
-            steps_per_epoch=int(cfg.eval_every), val_windows=int(cfg.val_windows),
-            augment=cfg.augment, ahead_shift=(fc["min_shift"], fc["max_shift"]) if fc else None,
-        )  # fmt: skip
-        dm.setup("fit")
+        train, val, data_facts = window_data(
+            tokens, model, cfg, (fc["min_shift"], fc["max_shift"]) if fc else None
+        )
+        step = int(cfg.step)
         model.steps = tuple(sorted({step, *(cfg.augment.steps or (step,))}))
         model.step = step
         head = None
@@ -382,7 +433,7 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
             log.debug("adapt step %d: %s", s, scores)
 
         try:
-            facts = fine_tune(model, dm.train_set, dm.val_set, cfg, device, head, on_eval)
+            facts = fine_tune(model, train, val, cfg, device, head, on_eval)
         finally:
             if bar is not None:
                 bar.stop()

@@ -12,11 +12,10 @@ from torch import nn
 import adjust.adapt as adapt
 from adjust.adapt import AdaptConfig, adapt_net, fine_tune, select_device, starting_model
 from deformnet.body import BodyModel, default_mouse
-from deformnet.data import DeformDataModule
 from deformnet.deformation import DeformationModel
 from deformnet.pretrained import load_default
-from deformnet.sessions import SessionTokens, split_sessions
-from deformnet.windows import toy_sequence
+from deformnet.sessions import SessionTokens
+from deformnet.windows import Augment, toy_sequence
 
 torch.set_num_threads(1)
 
@@ -88,13 +87,9 @@ def test_config_reads_the_track_yaml_block():
 
 
 def _data(model: DeformationModel, tokens: SessionTokens, every: int):
-    train, val, _ = split_sessions([tokens], 0.25, 100, min_frames=model.window)
-    dm = DeformDataModule(
-        body=model.body, half_window=model.half_window, source="arrays", train_data=train,
-        val_data=val, batch_size=16, steps_per_epoch=every, val_windows=32,
-    )  # fmt: skip
-    dm.setup("fit")
-    return dm.train_set, dm.val_set
+    cfg = AdaptConfig(eval_every=every, batch_size=16, val_windows=32, block_frames=100)
+    train, val, _ = adapt.window_data(tokens, model, cfg)
+    return train, val
 
 
 def test_fine_tune_stops_at_its_step_budget():
@@ -198,3 +193,23 @@ def test_forecast_term_is_passed_to_the_fine_tuning(monkeypatch, tmp_path):
         assert (seen["head"] is not None) == (w > 0) == seen["ahead"]
         if w > 0:
             assert seen["head"].forecast_weight == w
+
+
+def test_mirror_rule_is_deformnet_trains():
+    """adapt mirrors windows exactly where deformnet-train data=sessions would: a symmetric
+    body (the default mouse), not a lopsided one, not without left/right pairs."""
+    from deformnet.data import DeformDataModule
+
+    aug = Augment(mirror=0.5)
+    mouse = default_mouse()
+    pts = np.array(mouse.points, dtype=np.float64)
+    i = mouse.parts.index("left_ear")
+    lop = pts.copy()
+    lop[i] += [40.0, 30.0, 0.0]
+    lopsided = BodyModel.from_mapping(dict(zip(mouse.parts, lop.tolist())), name="lopsided")
+    plain = BodyModel.from_mapping({"a": [0.0, 0, 0], "b": [0.0, 20, 0], "c": [0.0, 40, 5]})
+    for body in (mouse, lopsided, plain):
+        dm = DeformDataModule(body=body, source="toy", augment=aug)
+        assert adapt.mirror_perm(body, aug) == dm.mirror_perm, body.name
+    assert adapt.mirror_perm(mouse, aug) is not None
+    assert adapt.mirror_perm(mouse, Augment(mirror=0.0)) is None
