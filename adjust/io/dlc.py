@@ -15,9 +15,10 @@ H5 holds the same DataFrame under the key ``df_with_missing``. Missing values ar
 from __future__ import annotations
 
 import csv
+import itertools
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,66 +86,129 @@ def read_dlc(path: str | os.PathLike, individual: str | None = None) -> DLCTable
 
 
 def _read_csv(path: Path) -> tuple[list[tuple], np.ndarray, np.ndarray]:
+    (block,) = _csv_blocks(path, None)
+    return block
+
+
+def iter_dlc(
+    path: str | os.PathLike, individual: str | None = None, block_rows: int = 50_000
+) -> Iterator[DLCTable]:
+    """`read_dlc` in consecutive blocks of at most `block_rows` rows (a CSV is parsed as it is
+    read: a long session's file is never held whole; an H5 file comes as one block). The
+    blocks' tables concatenated are `read_dlc`'s table; errors name the file's line as there."""
+    path = regular_file(path, "DeepLabCut file", InputError)
+    if path.suffix.lower() != ".csv":
+        yield read_dlc(path, individual)
+        return
+    for columns, values, frames in _csv_blocks(path, block_rows):
+        yield _assemble(path, columns, values, frames, individual)
+
+
+def _csv_lines(fh, path: Path) -> Iterator[list[str]]:
+    """The CSV's rows; a read error is an InputError naming the file."""
+    reader = csv.reader(fh)
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except (OSError, UnicodeDecodeError, csv.Error) as exc:
+            raise InputError(f"{path}: cannot read CSV: {exc}") from None
+        yield row
+
+
+def _csv_blocks(
+    path: Path, block_rows: int | None
+) -> Iterator[tuple[list[tuple], np.ndarray, np.ndarray]]:
+    """(columns, values, frames) of the CSV's data rows in blocks of at most `block_rows` rows
+    (None: one block), read as the file is parsed; a file without data rows gives one empty
+    block."""
     try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        fh = open(path, newline="", encoding="utf-8-sig")
+    except OSError as exc:
         raise InputError(f"{path}: cannot read CSV: {exc}") from None
-    # header rows: first cells scorer, [individuals], bodyparts, coords
-    levels: dict[str, list[str]] = {}
-    n_header = 0
-    for row in rows:
-        first = row[0].strip() if row else ""
-        if first not in _LEVELS:
-            break
-        if first in levels:
-            raise InputError(f"{path}: header row '{first}' appears twice (line {n_header + 1})")
-        levels[first] = row
-        n_header += 1
-    names = tuple(levels)
-    if names not in (("scorer", "bodyparts", "coords"), _LEVELS):
-        raise InputError(
-            f"{path}: not a DeepLabCut table: expected header rows starting with 'scorer', "
-            f"['individuals',] 'bodyparts', 'coords' in the first column, found {list(names)} "
-            f"(first line: {','.join(rows[0][:4]) if rows else '<empty file>'}...)"
-        )
-    width = len(levels["scorer"])
-    for name, row in levels.items():
-        if len(row) != width:
+    with fh:
+        lines = _csv_lines(fh, path)
+        # header rows: first cells scorer, [individuals], bodyparts, coords
+        levels: dict[str, list[str]] = {}
+        n_header = 0
+        first_line: list[str] | None = None
+        first_body: list[str] | None = None
+        for row in lines:
+            if first_line is None:
+                first_line = row
+            first = row[0].strip() if row else ""
+            if first not in _LEVELS:
+                first_body = row
+                break
+            if first in levels:
+                raise InputError(
+                    f"{path}: header row '{first}' appears twice (line {n_header + 1})"
+                )
+            levels[first] = row
+            n_header += 1
+        names = tuple(levels)
+        if names not in (("scorer", "bodyparts", "coords"), _LEVELS):
             raise InputError(
-                f"{path}: header row '{name}' has {len(row)} cells, the 'scorer' row {width}"
+                f"{path}: not a DeepLabCut table: expected header rows starting with 'scorer', "
+                f"['individuals',] 'bodyparts', 'coords' in the first column, found {list(names)} "
+                f"(first line: "
+                f"{','.join(first_line[:4]) if first_line is not None else '<empty file>'}...)"
             )
-    # index columns: the first, plus leading columns with empty header cells (labelled data)
-    n_index = 1
-    while n_index < width and all(levels[n][n_index].strip() == "" for n in names):
-        n_index += 1
-    if n_index >= width:
-        raise InputError(f"{path}: no data columns after the index column(s)")
-    body = rows[n_header:]
-    # pandas writes a row with the index name (and empty cells) when the index is named
-    if body and all(c.strip() == "" for c in body[0][n_index:]) and not _is_number(body[0][0]):
-        body = body[1:]
-        n_header += 1
-    line0 = n_header + 1  # 1-based line number of the first data row
-    kept = []
-    for i, row in enumerate(body):
-        if not row or all(c.strip() == "" for c in row):
-            continue  # blank line
-        if len(row) != width:
-            raise InputError(
-                f"{path}: line {line0 + i} has {len(row)} cells, the header {width} "
-                "(truncated or malformed row)"
+        width = len(levels["scorer"])
+        for name, row in levels.items():
+            if len(row) != width:
+                raise InputError(
+                    f"{path}: header row '{name}' has {len(row)} cells, the 'scorer' row {width}"
+                )
+        # index columns: the first, plus leading columns with empty header cells (labelled data)
+        n_index = 1
+        while n_index < width and all(levels[n][n_index].strip() == "" for n in names):
+            n_index += 1
+        if n_index >= width:
+            raise InputError(f"{path}: no data columns after the index column(s)")
+        columns = [
+            tuple(
+                (levels[n][j].strip() if n in levels else None)
+                for n in ("scorer", "individuals", "bodyparts", "coords")
             )
-        kept.append((line0 + i, row))
-    columns = [
-        tuple(
-            (levels[n][j].strip() if n in levels else None)
-            for n in ("scorer", "individuals", "bodyparts", "coords")
-        )
-        for j in range(n_index, width)
-    ]
+            for j in range(n_index, width)
+        ]
+        body = lines if first_body is None else itertools.chain([first_body], lines)
+        # pandas writes a row with the index name (and empty cells) when the index is named
+        if (
+            first_body is not None
+            and all(c.strip() == "" for c in first_body[n_index:])
+            and not _is_number(first_body[0])
+        ):
+            next(body)
+            n_header += 1
+        line0 = n_header + 1  # 1-based line number of the first data row
+        kept: list[tuple[int, list[str]]] = []
+        given = 0
+        for i, row in enumerate(body):
+            if not row or all(c.strip() == "" for c in row):
+                continue  # blank line
+            if len(row) != width:
+                raise InputError(
+                    f"{path}: line {line0 + i} has {len(row)} cells, the header {width} "
+                    "(truncated or malformed row)"
+                )
+            kept.append((line0 + i, row))
+            if block_rows is not None and len(kept) >= block_rows:
+                yield columns, *_csv_values(path, columns, kept, n_index)
+                given += 1
+                kept = []
+        if kept or not given:
+            yield columns, *_csv_values(path, columns, kept, n_index)
+
+
+def _csv_values(
+    path: Path, columns: list[tuple], kept: list[tuple[int, list[str]]], n_index: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (line, row) pairs' values (rows, columns) float64 (NaN: an empty cell) and frames."""
     if not kept:
-        return columns, np.zeros((0, width - n_index)), np.zeros(0, dtype=np.int64)
+        return np.zeros((0, len(columns))), np.zeros(0, dtype=np.int64)
     cells = np.array([r[n_index:] for _, r in kept], dtype=object)
     index = [r[0] if n_index == 1 else "/".join(r[:n_index]) for _, r in kept]
     flat = pd.Series(cells.reshape(-1), dtype=object)
@@ -161,7 +225,7 @@ def _read_csv(path: Path) -> tuple[list[tuple], np.ndarray, np.ndarray]:
             f"column {n_index + c + 1} ({_column_name(columns[c])})"
             + (f"; {int(bad.sum()) - 1} more non-numeric cells" if bad.sum() > 1 else "")
         )
-    return columns, values, _frames(index, path)
+    return values, _frames(index, path)
 
 
 def _is_number(s: str) -> bool:

@@ -285,6 +285,7 @@ def load_detections(
     pattern: str | None = None,
     ignore_unknown_parts: bool = False,
     allow_missing_parts: bool = False,
+    tables: Sequence[DLCTable] | None = None,
 ) -> Detections:
     """Read one DeepLabCut file per camera from `folder` into `Detections`.
 
@@ -292,6 +293,8 @@ def load_detections(
     the files' own part names. individual: for multi-animal files. pattern: a glob the file names
     must match. ignore_unknown_parts: drop file parts the model does not know (default: error).
     allow_missing_parts: model parts absent from a file count as never detected (default: error).
+    tables: the cameras' tables (in camera order) already read from their files, e.g. a long
+    session's frame range (`adjust.chunks`), instead of reading the files.
     """
     if not cameras:
         raise ValueError("no cameras given")
@@ -305,7 +308,8 @@ def load_detections(
         )
     names = [c.name for c in cameras]
     paths = match_files(folder, names, pattern)
-    tables = [read_table(paths[n], individual) for n in names]
+    if tables is None:
+        tables = [read_table(paths[n], individual) for n in names]
     frames, rows = _align_frames(Path(folder), tables)
     T = len(frames)
     if T == 0:
