@@ -21,6 +21,7 @@ from adjust.io import Detections, InputError
 from adjust.lsq.geometry import rigid_points
 from adjust.lsq.init import kabsch_poses
 from adjust.lsq.observation import RigidObservation
+from adjust.track_config import BodyFitConfig
 from adjust.triangulate import triangulate
 from deformnet.body import BodyModel
 from deformnet.deformation import check_world_up as check_model_up
@@ -29,14 +30,11 @@ from deformnet.so3 import rodrigues_to_matrix
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "BODY_SHAPES",
     "MIN_SHAPE_FRAMES",
     "SHAPE_FRAMES",
-    "body_shape",
     "check_world_up",
     "estimate_body",
     "fit_body",
-    "is_auto",
     "refine_body",
     "rigid_observation",
     "scale_body",
@@ -57,35 +55,15 @@ def triangulate_points(det: Detections, cams: CameraTensors, robust: bool, max_e
         )
 
 
-def is_auto(body_cfg) -> bool:
-    return body_cfg is not None and bool(body_cfg.get("auto", False))
-
-
-BODY_SHAPES = ("data", "table")
-
-
-def body_shape(body_cfg) -> str:
-    """``body.shape`` of a named body model (``conf/body/mouse.yaml``): ``data`` = its shape
-    estimated from the session (`estimate_body`, then `BodyModel.in_frame_of` the named model),
-    ``table`` = the named model's points, scaled (`scale_body`); a body config without the key
-    is ``table``."""
-    shape = str(body_cfg.get("shape", "table")).lower()
-    if shape not in BODY_SHAPES:
-        raise InputError(f"body.shape must be one of {', '.join(BODY_SHAPES)}, got {shape!r}")
-    return shape
-
-
-def scale_factor(body: BodyModel, body_cfg) -> tuple[BodyModel, dict]:
+def scale_factor(body: BodyModel, fit: BodyFitConfig) -> tuple[BodyModel, dict]:
     """``body.scale_factor``: the model's size times this (> 0; 1 keeps it)."""
-    f = body_cfg.get("scale_factor", 1.0)
+    f = fit.scale_factor
     try:
         f = float(f)
     except (TypeError, ValueError):
         f = float("nan")
     if not (math.isfinite(f) and f > 0):
-        raise InputError(
-            f"body.scale_factor must be a number > 0, got {body_cfg.get('scale_factor')!r}"
-        )
+        raise InputError(f"body.scale_factor must be a number > 0, got {fit.scale_factor!r}")
     return (body, {}) if f == 1.0 else (body.scaled(f), {"scale_factor": f})
 
 
@@ -107,24 +85,24 @@ def shape_frames(num_frames: int) -> np.ndarray:
 def estimate_body(
     det: Detections,
     cams: CameraTensors,
-    body_cfg,
+    fit: BodyFitConfig,
     name: str = "auto",
     cons=None,
     min_frames: int = 0,
+    max_error_px: float = 20.0,
 ) -> tuple[BodyModel, dict]:
     """``body=auto``: robust triangulation, then a rigid model by generalized Procrustes
     (`BodyModel.from_observations`). Returns the model and facts about the estimate, among them
     ``rms_deviation_mm`` (per-coordinate rms distance of the triangulated parts from the model
     fitted per frame: how far the data is from rigid). With the session's 3D observations
-    (`cons`), at most `SHAPE_FRAMES` frames, evenly spaced (`shape_frames`), are used."""
+    (`cons`), at most `SHAPE_FRAMES` frames, evenly spaced (`shape_frames`), are used; without,
+    a robust triangulation (``body.robust``, `max_error_px`)."""
     if cons is not None:  # the session's gated 3D observations
         X = cons.points[shape_frames(len(cons.points))]
     else:
-        tri = triangulate_points(
-            det, cams, bool(body_cfg.get("robust", True)), float(body_cfg.get("max_error_px", 20.0))
-        )
+        tri = triangulate_points(det, cams, bool(fit.robust), float(max_error_px))
         X = tri.points.numpy()
-    min_parts = body_cfg.get("min_parts")
+    min_parts = fit.min_parts
     try:
         body = BodyModel.from_observations(
             X, parts=det.parts, min_parts=None if min_parts is None else int(min_parts), name=name
@@ -188,13 +166,13 @@ def check_world_up(model, poses: np.ndarray, where: str) -> float | None:
         raise InputError(str(exc)) from None
 
 
-def scale_body(body: BodyModel, body_cfg, cons) -> tuple[BodyModel, dict]:
+def scale_body(body: BodyModel, fit: BodyFitConfig, cons) -> tuple[BodyModel, dict]:
     """``body.scale``: ``auto`` (default) fits the model's size to the session's triangulated
     parts (`BodyModel.estimate_scale`), a number scales by it (1 keeps the model as is)."""
-    want = body_cfg.get("scale", "auto") if body_cfg is not None else "auto"
+    want = fit.scale
     if want is None or (isinstance(want, str) and want.lower() == "auto"):
         if cons is None:
-            return body, {"scale": 1.0, "scale_source": "none (stochastic.estimate=false)"}
+            return body, {"scale": 1.0, "scale_source": "none (consensus.estimate=false)"}
         s, n = body.estimate_scale(cons.points)
         if not math.isfinite(s) or n < 5:
             log.warning(
@@ -235,7 +213,7 @@ def rigid_observation(body: BodyModel, cons) -> tuple:
     return RigidObservation(B, torch.as_tensor(mom)), facts
 
 
-def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid_obs):
+def refine_body(body: BodyModel, fit: BodyFitConfig, poses, det, weight, cams, cons, rigid_obs):
     """``body=auto``: the rigid model re-estimated from the detections themselves at the rigid
     adjustment's poses (`adjust.estimate.place_from_rays`: each part where its views' rays meet
     in the body frame across all frames, robustly; the structure step of a bundle adjustment).
@@ -250,10 +228,8 @@ def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid
     (at most `SHAPE_FRAMES`, evenly spaced) place the parts.
     Returns None (nothing done) or (body, rigid observation, few_var (K, 3) torch, NaN for
     parts with enough 3D observations, facts)."""
-    mode = str(body_cfg.get("refine", "views")).lower()
-    if mode not in ("views", "unplaced", "none"):
-        raise ValueError(f"body.refine must be views, unplaced or none, got {mode!r}")
-    below = int(body_cfg.get("rays_below", 20) or 0)
+    mode = fit.refine
+    below = int(fit.rays_below or 0)
     few = cons.observed.sum(0) < below
     which = np.ones_like(few) if mode == "views" else few
     if mode == "none" or few.all() or not which.any():
@@ -273,7 +249,7 @@ def refine_body(body: BodyModel, body_cfg, poses, det, weight, cams, cons, rigid
         which,
         cons.sigma_det_px,
         max(prior_sd, 1.0),
-        min_views=int(body_cfg.get("rays_min_views", 10)),
+        min_views=int(fit.rays_min_views),
     )
     if not pl.placed.any():
         return None
@@ -315,7 +291,7 @@ def fit_body(
     det: Detections,
     cams: CameraTensors,
     body: BodyModel | None,
-    body_cfg,
+    fit: BodyFitConfig,
     cons,
     solver_cfg,
     *,
@@ -324,17 +300,28 @@ def fit_body(
     frame_of: BodyModel | None,
     from_checkpoint: bool,
     facts: dict,
+    sigma_def_mm: float | None = None,
+    max_error_px: float = 20.0,
 ) -> tuple[BodyModel, object, bool]:
     """The session's body model: its shape estimated from the data (``estimated``: `body=auto`
     or ``body.shape=data``; a named model too short of data falls back to its own shape), moved
     into the frame of the named model `frame_of`; then sized (`scale_body`, `scale_factor`)
     unless it comes from a net's checkpoint. body: the named (or the checkpoint's) model, None
-    for ``body=auto``; facts: summary.json's ``body`` block, added to. Returns (body, the
-    solver config with ``body.sigma_def_mm`` applied, whether the shape was estimated)."""
+    for ``body=auto``; facts: summary.json's ``body`` block, added to; sigma_def_mm:
+    ``solver.sigma_def_mm`` (None: the data's rms deviation from the rigid model where the shape
+    is estimated); max_error_px: ``consensus.max_error_px``. Returns (body, the solver config
+    with the deformation std applied, whether the shape was estimated)."""
     if estimated:
         try:
-            name = str(body_cfg.get("name", "auto"))
-            est = estimate_body(det, cams, body_cfg, name, cons, 0 if auto else MIN_SHAPE_FRAMES)
+            est = estimate_body(
+                det,
+                cams,
+                fit,
+                str(fit.name),
+                cons,
+                0 if auto else MIN_SHAPE_FRAMES,
+                max_error_px,
+            )
         except InputError as exc:
             if auto:
                 raise
@@ -353,22 +340,19 @@ def fit_body(
             body, facts["frame"] = body.in_frame_of(frame_of)
             aliases = {k: v for k, v in frame_of.aliases.items() if v in body.parts}
             body = BodyModel(body.parts, body.points, aliases, body.name)
-        sig = body_cfg.get("sigma_def_mm")
-        if sig == "auto" and math.isfinite(facts["rms_deviation_mm"]):
+        if sigma_def_mm is None and math.isfinite(facts["rms_deviation_mm"]):
             value = max(float(facts["rms_deviation_mm"]), 0.5)
             solver_cfg = solver_cfg.replace(sigma_def_mm=value)
             log.info(
                 "body from the data: solver.sigma_def_mm = %.2f mm (the data's rms deviation)",
                 value,
             )
-        elif sig not in (None, "auto"):
-            solver_cfg = solver_cfg.replace(sigma_def_mm=float(sig))
     if tuple(body.parts) != tuple(det.parts):  # load_scene orders parts as the model does
         raise InputError(f"parts {list(det.parts)} do not match the body model {list(body.parts)}")
     if not estimated and not from_checkpoint:
-        body, scale_facts = scale_body(body, body_cfg, cons)
+        body, scale_facts = scale_body(body, fit, cons)
         facts.update(scale_facts)
     if not from_checkpoint:
-        body, factor_facts = scale_factor(body, body_cfg)
+        body, factor_facts = scale_factor(body, fit)
         facts.update(factor_facts)
     return body, solver_cfg, estimated

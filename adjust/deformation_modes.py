@@ -35,6 +35,7 @@ from adjust.io import Detections, InputError
 from adjust.lsq.observation import InterpObservation, NetObservation
 from adjust.net_gate import heldout_check, net_vs_kriging
 from adjust.tokenize import session_tokens
+from adjust.track_config import MEASURED, ConsensusConfig, DeformConfig
 from adjust.validate import choose_measured_prior
 from deformnet import pretrained
 from deformnet.body import BodyModel
@@ -60,9 +61,6 @@ __all__ = [
     "mode_from_config",
 ]
 
-#: ``deform.measured``: a measured part-frame's prior in the net modes
-MEASURED = ("cv", "interp", "rigid", "net")
-
 
 def load_deformation(path: str):
     """`DeformationModel.from_checkpoint`, with a clear error for a missing/unreadable file."""
@@ -82,25 +80,26 @@ def make_deformable_observation(
     body_points: np.ndarray,
     det: Detections,
     cams,
-    cfg_def,
+    cfg_def: DeformConfig,
     cons=None,
     few_var=None,
     net_parts=None,
+    max_error_px: float = 20.0,
 ):
     """The solver's deformable observation for this data: the net's ``deformed`` inputs for
     observed tokens are the parts triangulated (robustly) from the detections (the session's
     gated 3D observations `cons` when given), gated by their distance from the rigid model
     (`deform.gate_mm`). few_var: (K, 3) torch, the spread of parts with too few 3D observations
     (`refine_body`; NaN: unknown). net_parts: (K,) bool, the parts that take the net's
-    prediction (`heldout_check`; None: all)."""
-    cfg_def = cfg_def if cfg_def is not None else {}
+    prediction (`heldout_check`; None: all); max_error_px: ``consensus.max_error_px`` (the
+    robust triangulation without `cons`)."""
     if cons is not None:
         X = torch.as_tensor(cons.points, dtype=torch.float64)
     else:
-        tri = triangulate_points(det, cams, True, float(cfg_def.get("max_error_px", 20.0)))
+        tri = triangulate_points(det, cams, True, float(max_error_px))
         X = tri.points.to(torch.float64)
     observed = torch.isfinite(X).all(-1)
-    jac = str(cfg_def.get("jacobian", "frozen"))
+    jac = str(cfg_def.jacobian)
     # finite differences need float64 through the net; the frozen Jacobian does not
     net = (model.float() if jac == "frozen" else model.double()).eval()
     for p in net.parameters():
@@ -112,14 +111,13 @@ def make_deformable_observation(
         int(model.window),
         torch.nan_to_num(X),
         observed,
-        float(cfg_def.get("gate_mm", 30.0)),
-        int(cfg_def.get("batch_size", 4096)),
+        float(cfg_def.gate_mm),
+        int(cfg_def.batch_size),
         jac,
         noise_var=noise,
-        refresh=int(cfg_def.get("refresh", 2)),
-        beyond_window=str(cfg_def.get("beyond_window", "interp")),
-        measured="net" if str(cfg_def.get("measured", "cv")) == "net" else "interp",
-        threads=cfg_def.get("threads"),
+        refresh=int(cfg_def.refresh),
+        beyond_window=str(cfg_def.beyond_window),
+        measured="net" if cfg_def.measured == "net" else "interp",
         few_var=few_var,
         step=deform_step(model, cfg_def),
         far_steps=far_steps(model, cfg_def),
@@ -128,14 +126,17 @@ def make_deformable_observation(
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
 
+def _deform(cfg_def) -> DeformConfig:
+    """A `DeformConfig` (as given, or from a mapping of ``deform`` settings)."""
+    return cfg_def if isinstance(cfg_def, DeformConfig) else DeformConfig.from_config(cfg_def)
+
+
 def deform_step(model, cfg_def) -> int:
     """Frames between the net's window tokens: ``deform.step`` (null: the step the net was
     trained with, `DeformationModel.step`)."""
-    step = (cfg_def or {}).get("step")
+    step = _deform(cfg_def).step
     if step is None:
         return int(getattr(model, "step", 1))
-    if int(step) < 1:
-        raise InputError(f"deform.step must be an integer >= 1, got {step}")
     return int(step)
 
 
@@ -143,7 +144,7 @@ def far_steps(model, cfg_def) -> tuple[int, ...]:
     """``deform.far_steps``: wider token steps for part-frames the window does not reach
     (``auto``: the larger steps the net was trained with, `DeformationModel.steps`; a list;
     ``[]``: none)."""
-    spec = (cfg_def or {}).get("far_steps", "auto")
+    spec = _deform(cfg_def).far_steps
     if spec is None or str(spec) == "auto":
         base = deform_step(model, cfg_def)
         return tuple(s for s in getattr(model, "steps", ()) if s > base)
@@ -178,11 +179,12 @@ class Adjusting:
 
     solve(config, observation, init_poses) -> an `adjust.lsq.AdjustmentResult` of this
     session; rigid: the rigid adjustment's (None when none ran); cons: the session's 3D
-    observations (`adjust.estimate.Consensus`, None with ``stochastic.estimate=false``);
+    observations (`adjust.estimate.Consensus`, None with ``consensus.estimate=false``);
     rigid_obs: the rigid observation with the parts' deformation moments (None without cons);
     few_var: (K, 3) torch, the spread of parts placed from their single views (else NaN);
-    deform_cfg / adapt_cfg: the ``deform`` / ``adapt`` blocks; consensus_cfg: the top-level
-    consensus block (its max_error_px, gate_sigmas); timings: summary.json's time_s, added to."""
+    deform: the ``deform`` settings; adapt_cfg: the ``adapt`` block (`adjust.adapt`'s to read);
+    consensus: the consensus triangulation's settings; timings: summary.json's time_s, added
+    to."""
 
     det: Detections
     weight: np.ndarray
@@ -194,9 +196,9 @@ class Adjusting:
     solver_cfg: Any
     solve: Callable
     rigid: Any
-    deform_cfg: Any
+    deform: DeformConfig
     adapt_cfg: Any
-    consensus_cfg: Any
+    consensus: ConsensusConfig
     where: str
     out: Path
     progress: bool
@@ -204,14 +206,11 @@ class Adjusting:
 
     @property
     def deform_solver_cfg(self):
-        """The solver settings of the deformable adjustment (``deform.max_iterations``,
-        ``deform.sigma_def_mm`` where set)."""
-        cfg, d = self.solver_cfg, self.deform_cfg
-        if d.get("max_iterations") is not None:
-            cfg = cfg.replace(max_iterations=int(d["max_iterations"]))
-        if d.get("sigma_def_mm") is not None:
-            cfg = cfg.replace(sigma_def_mm=float(d["sigma_def_mm"]))
-        return cfg
+        """The solver settings of the deformable adjustment (``deform.max_iterations`` where
+        set)."""
+        if self.deform.max_iterations is None:
+            return self.solver_cfg
+        return self.solver_cfg.replace(max_iterations=int(self.deform.max_iterations))
 
     def interp_observation(self) -> InterpObservation:
         """``deformation=interp``'s observation of this session."""
@@ -229,7 +228,7 @@ class DeformationMode:
     """One choice of ``deformation=``. name: its summary.json ``mode``."""
 
     name = "rigid"
-    #: needs the session's 3D observations (``stochastic.estimate=true``)
+    #: needs the session's 3D observations (``consensus.estimate=true``)
     needs_consensus = False
 
     def checkpoint_body(self, body_cfg) -> BodyModel | None:
@@ -239,7 +238,7 @@ class DeformationMode:
     def prepare(self, body: BodyModel) -> None:
         """Anything the mode needs once the session's body model is final."""
 
-    def rigid_first(self, deform_cfg, cons) -> bool:
+    def rigid_first(self, deform: DeformConfig, cons) -> bool:
         """Whether the rigid adjustment runs before `adjust`."""
         return True
 
@@ -289,8 +288,8 @@ class NetMode(DeformationMode):
         """summary.json's ``deformation.checkpoint``."""
         raise NotImplementedError
 
-    def rigid_first(self, deform_cfg, cons) -> bool:
-        return cons is not None or bool(deform_cfg.get("rigid_first", True))
+    def rigid_first(self, deform: DeformConfig, cons) -> bool:
+        return cons is not None or bool(deform.rigid_first)
 
     def adjust(self, a: Adjusting) -> tuple[Any, dict]:
         res, interp_obs = a.rigid, None
@@ -317,10 +316,11 @@ class NetMode(DeformationMode):
                 a.body.points,
                 a.det,
                 a.cams,
-                a.deform_cfg,
+                a.deform,
                 cons=a.cons,
                 few_var=a.few_var,
                 net_parts=net_parts,
+                max_error_px=a.consensus.max_error_px,
             )
             def_facts.update(net_facts)
             if up_deg is not None:  # a heading-frame net: how far the mouse's up is from its up
@@ -363,7 +363,7 @@ class NetMode(DeformationMode):
         """``deform.measured`` (cv, rigid): a measured part-frame's prior, the rigid model
         point where it predicts held-out cameras better (``cv``, `adjust.validate`) or always
         (``rigid``); interp and net: no change here (the observation's own)."""
-        measured = str(a.deform_cfg.get("measured", "cv"))
+        measured = a.deform.measured
         if measured not in ("cv", "rigid"):
             return res, None
         t1 = time.perf_counter()
@@ -379,8 +379,8 @@ class NetMode(DeformationMode):
                 a.rigid_obs.var.numpy(),
                 a.solver_cfg.sigma_det_px,
                 consensus_kwargs={
-                    "max_error_px": float(a.consensus_cfg.get("max_error_px", 20.0)),
-                    "gate_sigmas": float(a.consensus_cfg.get("gate_sigmas", 4.0)),
+                    "max_error_px": float(a.consensus.max_error_px),
+                    "gate_sigmas": float(a.consensus.gate_sigmas),
                 },
                 few_var=a.few_var,
             )
@@ -486,7 +486,7 @@ class SelfNet(NetMode):
             facts["used"] = True
             return None, {"require_better": False, "checked": False}, None
         blocks = (facts.get("data") or {}).get("val_blocks")
-        step = deform_step(model, a.deform_cfg)
+        step = deform_step(model, a.deform)
         try:
             h = net_vs_kriging(model, self.tokens, interp_obs.cov, blocks, step)
         except ValueError as exc:  # held-out blocks shorter than a window
@@ -532,10 +532,10 @@ def _require_better(a: Adjusting, model, poses, mode: str):
         poses,
         a.body,
         a.cons,
-        a.deform_cfg,
+        a.deform.require_better,
         a.where,
         mode,
-        step=deform_step(model, a.deform_cfg),
+        step=deform_step(model, a.deform),
     )
     a.timings["heldout_check_s"] = time.perf_counter() - t1
     reason = None

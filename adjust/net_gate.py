@@ -27,7 +27,7 @@ REQUIRE_BETTER = ("auto", "parts", "all", "report", "false")
 
 
 def heldout_check(
-    model, poses, body, cons, cfg_def, where: str, mode: str = "default", step: int | None = None
+    model, poses, body, cons, require_better, where: str, mode: str = "default", step=None
 ):
     """``deform.require_better``: a net not trained on this recording (``deformation=default``
     or a checkpoint) against interpolation (the rigid model plus interpolated offsets, as
@@ -43,7 +43,7 @@ def heldout_check(
     interpolated, ``deformation=interp``'s model adjusted to convergence (the solver's
     iterations, not ``deform.max_iterations``; logged loudly). step: frames between the
     net's tokens (`adjust.deformation_modes.deform_step`; None: the net's)."""
-    spec = str((cfg_def or {}).get("require_better", "auto")).lower()
+    spec = str(require_better).lower()
     if spec not in REQUIRE_BETTER:
         raise InputError(
             f"deform.require_better must be one of {', '.join(REQUIRE_BETTER)}, got {spec!r}"

@@ -22,10 +22,10 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from adjust.body_fit import body_shape, fit_body, is_auto, refine_body, rigid_observation
+from adjust.body_fit import fit_body, refine_body, rigid_observation
 from adjust.camera import CameraTensors
 from adjust.camera_check import check_from_config
-from adjust.deformation_modes import MEASURED, Adjusting, mode_from_config
+from adjust.deformation_modes import Adjusting, mode_from_config
 from adjust.estimate import consensus
 from adjust.export import session_start, write_nwb
 from adjust.io import (
@@ -37,12 +37,12 @@ from adjust.io import (
     recording_fps,
     write_points3d,
 )
-from adjust.lsq.config import SolverConfig
 from adjust.lsq.solver import TRACK_OUTPUTS, adjust_poses
 from adjust.session import with_session
 from adjust.settings import load_kwargs, required
 from adjust.summary import report_result, result_summary, track_columns, track_health
 from adjust.tokenize import session_tokens
+from adjust.track_config import TrackConfig, resolve_deprecated
 from deformnet.body import BodyModel
 from deformnet.confutil import to_plain
 from deformnet.outputs import OutputSet
@@ -73,8 +73,10 @@ def check_nwb_output(cfg: DictConfig, calibration: str) -> None:
 
 
 def run(cfg: DictConfig) -> dict:
-    """`track` with ``threads`` (torch's intra-op threads) set for the call and restored after
-    it; returns the summary."""
+    """`track` with ``threads`` (torch's intra-op threads: the one thread setting) set for the
+    call and restored after it, values under deprecated names moved to their new ones first
+    (`adjust.track_config.resolve_deprecated`); returns the summary."""
+    cfg = resolve_deprecated(cfg)
     with torch_threads(cfg.get("threads")):
         return track(cfg)
 
@@ -89,25 +91,21 @@ def track(cfg: DictConfig) -> dict:
     where = str(detections)
     kwargs = load_kwargs(cfg.input)
     body_cfg = cfg.get("body")
-    solver_cfg = SolverConfig.from_config(cfg.get("solver"))
     if body_cfg is None:
         raise ValueError(
             "adjust-track needs a body model: body=mouse, body=auto (estimated from the data) or "
             "your own conf/body/<name>.yaml"
         )
-    auto = is_auto(body_cfg)
-    mode = mode_from_config(cfg.get("deformation"))
-    est_cfg = cfg.get("stochastic") or {}
-    deform_cfg = cfg.get("deform") or {}
-    estimate = bool(est_cfg.get("estimate", True))
+    tc = TrackConfig.from_config(cfg)
+    solver_cfg, fit = tc.solver, tc.body
+    auto = fit.auto
+    mode = mode_from_config(tc.deformation)
+    estimate = tc.consensus.estimate
     check_nwb_output(cfg, calibration)
     if mode.needs_consensus and not estimate:
         raise ValueError(
-            f"deformation={mode.name} needs stochastic.estimate=true (its 3D observations)"
+            f"deformation={mode.name} needs consensus.estimate=true (its 3D observations)"
         )
-    measured = str(deform_cfg.get("measured", "cv"))
-    if measured not in MEASURED:
-        raise ValueError(f"deform.measured must be cv, interp, rigid or net, got {measured!r}")
 
     # --- inputs and body model ----------------------------------------------------------
     t0 = time.perf_counter()
@@ -129,7 +127,7 @@ def track(cfg: DictConfig) -> dict:
         try:
             cameras, det = load_scene(calibration, detections, body, **kwargs)
         except UnknownPartsError as exc:
-            if str(body_cfg.get("other_parts", "error")).lower() != "auto":
+            if str(fit.other_parts).lower() != "auto":
                 raise
             log.warning(
                 "the detection files have parts that body '%s' does not know (%s): their own "
@@ -142,7 +140,7 @@ def track(cfg: DictConfig) -> dict:
             auto = True
             body_facts["other_parts"] = list(exc.parts)
         frame_of = body
-    estimated = not from_checkpoint and (auto or body_shape(body_cfg) == "data")
+    estimated = not from_checkpoint and (auto or fit.shape == "data")
     cameras, det, camera_report = check_from_config(cameras, det, cfg.get("input"))
     check_cameras_usable(det, where)  # one camera: depth unobserved, refused
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
@@ -155,9 +153,9 @@ def track(cfg: DictConfig) -> dict:
             det.xy,
             weight,
             cams,
-            max_error_px=float(est_cfg.get("max_error_px", 20.0)),
-            gate_sigmas=float(est_cfg.get("gate_sigmas", 4.0)),
-            sigma_det_px=est_cfg.get("sigma_det_px"),
+            max_error_px=float(tc.consensus.max_error_px),
+            gate_sigmas=float(tc.consensus.gate_sigmas),
+            sigma_det_px=tc.sigma_det_px,
         )
         weight = np.where(cons.dropped, 0.0, weight)
         solver_cfg = solver_cfg.replace(sigma_det_px=cons.sigma_det_px)
@@ -167,7 +165,7 @@ def track(cfg: DictConfig) -> dict:
         det,
         cams,
         body,
-        body_cfg,
+        fit,
         cons,
         solver_cfg,
         auto=auto,
@@ -175,6 +173,8 @@ def track(cfg: DictConfig) -> dict:
         frame_of=frame_of,
         from_checkpoint=from_checkpoint,
         facts=body_facts,
+        sigma_def_mm=tc.sigma_def_mm,
+        max_error_px=tc.consensus.max_error_px,
     )
     mode.prepare(body)
     rigid_obs = None
@@ -185,7 +185,7 @@ def track(cfg: DictConfig) -> dict:
 
     # --- adjustment ---------------------------------------------------------------------
     t0 = time.perf_counter()
-    progress = bool(cfg.get("progress", True))
+    progress = tc.progress
     # views of a unanimous camera consensus are fused without a gate; where the consensus had
     # to outvote a camera, the track decides which views to believe (a consistent wrong pair,
     # e.g. a left/right swap seen alike by two cameras, can outvote the right one)
@@ -211,11 +211,11 @@ def track(cfg: DictConfig) -> dict:
 
     few_var = None  # (K, 3) the spread of parts placed from their single views (else NaN)
     rigid, rigid_iterations = None, 0
-    if mode.rigid_first(deform_cfg, cons):
+    if mode.rigid_first(tc.deform, cons):
         # the rigid adjustment: the result itself, or the start of a deformable one
         rigid = solve(solver_cfg, rigid_obs)
         if estimated and rigid_obs is not None:  # the model from the detections themselves
-            refined = refine_body(body, body_cfg, rigid.poses, det, weight, cams, cons, rigid_obs)
+            refined = refine_body(body, fit, rigid.poses, det, weight, cams, cons, rigid_obs)
             if refined is not None:
                 body, rigid_obs, few_var, body_facts["refined"] = refined
                 rigid = solve(solver_cfg, rigid_obs, rigid.poses)
@@ -234,9 +234,9 @@ def track(cfg: DictConfig) -> dict:
             solver_cfg=solver_cfg,
             solve=solve,
             rigid=rigid,
-            deform_cfg=deform_cfg,
+            deform=tc.deform,
             adapt_cfg=cfg.get("adapt"),
-            consensus_cfg=est_cfg,
+            consensus=tc.consensus,
             where=where,
             out=out,
             progress=progress,

@@ -76,8 +76,11 @@ class ConstraintConfig:
 class StochasticConfig:
     """The stochastic model (`adjust.lsq.robust`), ``conf/solver/stochastic/default.yaml``."""
 
-    sigma_det_px: float = 2.0  # detector accuracy, px
-    sigma_def_mm: float = 3.0  # body deformation not explained by the model, mm (0: no mixture)
+    # detector accuracy, px (None: from the data, adjust-track's consensus; `resolved` 2 px)
+    sigma_det_px: float | None = 2.0
+    # body deformation not explained by the model, mm (0: no mixture; None: from the data where
+    # adjust-track estimates the body's shape; `resolved` 3 mm)
+    sigma_def_mm: float | None = 3.0
     mixture_prior: float = 0.7  # initial share of detections in the narrow (detector) Gaussian
     robust: str = "cauchy"  # robust kernel against mis-detections: none | huber | cauchy
     robust_scale: float = 3.0  # kernel scale on the whitened residual norm
@@ -87,8 +90,11 @@ class StochasticConfig:
         group = "stochastic/default.yaml"
         if self.robust not in _KERNELS:
             raise _bad(group, "robust", f"one of {_KERNELS}", self.robust)
-        _positive(self, group, "sigma_det_px", "robust_scale")
-        _non_negative(self, group, "sigma_def_mm")
+        _positive(self, group, "robust_scale")
+        if self.sigma_det_px is not None:
+            _positive(self, group, "sigma_det_px")
+        if self.sigma_def_mm is not None:
+            _non_negative(self, group, "sigma_def_mm")
         if not 0 < self.mixture_prior < 1:
             raise _bad(group, "mixture_prior", "in (0, 1)", self.mixture_prior)
 
@@ -184,6 +190,18 @@ class SolverConfig(InitConfig, LMConfig, StochasticConfig, ConstraintConfig):
             why = str(exc).splitlines()[0]
             raise ValueError(f"solver.{exc.full_key}={exc.value!r} is not valid: {why}") from None
         return cls(**OmegaConf.to_container(merged))
+
+    def resolved(self) -> SolverConfig:
+        """This configuration with a sigma left to the data (None) at its schema default (the
+        solver needs numbers; adjust-track fills them from the session first)."""
+        return self.replace(
+            sigma_det_px=StochasticConfig.sigma_det_px
+            if self.sigma_det_px is None
+            else self.sigma_det_px,
+            sigma_def_mm=StochasticConfig.sigma_def_mm
+            if self.sigma_def_mm is None
+            else self.sigma_def_mm,
+        )
 
     def replace(self, **changes) -> SolverConfig:
         return dataclasses.replace(self, **changes)

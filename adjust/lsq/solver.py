@@ -403,7 +403,7 @@ def adjust_poses(
     deformation covariance). outputs: names from `RESULT_ARRAYS` to return (None: all; the others
     are None; `TRACK_OUTPUTS`: what adjust-track needs): long sessions keep only what they use.
     """
-    cfg = config if config is not None else SolverConfig()
+    cfg = (config if config is not None else SolverConfig()).resolved()
     with torch_threads(cfg.num_threads):
         return _adjust_poses(
             xy, weight, cams, body_points, cfg, init_poses, observation, progress, trusted, outputs
@@ -597,7 +597,7 @@ def normal_matrix(
     """The banded normal matrix (5, T, 6, 6) J^T W J at `poses` with the plain (non-robust,
     single-Gaussian) weights weight / sigma_det^2 and the track constraint: the Fisher
     information of the problem (for Cramer-Rao bounds and tests)."""
-    cfg = config if config is not None else SolverConfig()
+    cfg = (config if config is not None else SolverConfig()).resolved()
     dt = poses.dtype
     valid = torch.isfinite(xy).all(-1) & (weight > cfg.min_weight)
     base = torch.where(valid, weight, torch.zeros_like(weight))

@@ -1,0 +1,235 @@
+"""adjust-track's settings, typed: one name per setting, each read once.
+
+- `ConsensusConfig` (``consensus:``): the consensus triangulation, the session's 3D
+  observations and detector noise (`adjust.estimate.consensus`); its ``max_error_px`` is also
+  the robust triangulation's of a body estimated without them and of a net's inputs.
+- `DeformConfig` (``deform:``): the deformation modes' settings (`adjust.deformation_modes`).
+- `BodyFitConfig` (the ``body`` group's estimator settings, `adjust.body_fit`).
+- `TrackConfig`: the above, the solver's (`adjust.lsq.SolverConfig`, ``solver.sigma_det_px``
+  and ``solver.sigma_def_mm`` null: from the data) and ``threads`` (the one thread setting:
+  torch's threads for the whole run, the solver's and the net's included).
+
+Deprecated names (`DEPRECATED`, kept for one release): a value given under an old name is used
+for its new key, with a logged warning (`resolve_deprecated`); given under both names with
+different values, a ValueError names both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from adjust.io import InputError
+from adjust.lsq.config import SolverConfig
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DEPRECATED",
+    "BodyFitConfig",
+    "ConsensusConfig",
+    "DeformConfig",
+    "TrackConfig",
+    "resolve_deprecated",
+]
+
+#: old name -> the one name it became (adjust-track; a value under the old name still works for
+#: one release, with a warning)
+DEPRECATED = {
+    "stochastic.estimate": "consensus.estimate",
+    "stochastic.max_error_px": "consensus.max_error_px",
+    "stochastic.gate_sigmas": "consensus.gate_sigmas",
+    "stochastic.sigma_det_px": "solver.sigma_det_px",
+    "deform.max_error_px": "consensus.max_error_px",
+    "body.max_error_px": "consensus.max_error_px",
+    "deform.sigma_def_mm": "solver.sigma_def_mm",
+    "body.sigma_def_mm": "solver.sigma_def_mm",
+    "deform.threads": "threads",
+    "adapt.threads": "threads",
+    "solver.num_threads": "threads",
+}
+#: an old name's value that means "not given" (solver.num_threads: 0, leave torch's setting)
+_UNSET = {"solver.num_threads": (None, 0)}
+
+
+def resolve_deprecated(cfg: DictConfig) -> DictConfig:
+    """`cfg` with every value given under a deprecated name (`DEPRECATED`) moved to its new
+    key (a copy; a warning per name). ``body.sigma_def_mm=auto`` is ``solver.sigma_def_mm``'s
+    null (from the data). Two old names for one key with different values, or an old and a new
+    name with different values where the new one is not its default: a ValueError."""
+    if not isinstance(cfg, DictConfig):
+        return cfg
+    cfg = cfg.copy()
+    given: dict[str, tuple[str, Any]] = {}
+    for old, new in DEPRECATED.items():
+        value = OmegaConf.select(cfg, old, default=None)
+        if value in _UNSET.get(old, (None,)):
+            continue
+        if old == "body.sigma_def_mm" and str(value).lower() == "auto":
+            value = None
+        if new in given and given[new][1] != value:
+            raise ValueError(
+                f"{given[new][0]}={given[new][1]} and {old}={value} are both {new} now: give "
+                f"{new}=... once"
+            )
+        given[new] = (old, value)
+        log.warning("%s is deprecated (it goes in the next release): use %s=%s", old, new, value)
+        with open_dict(cfg):
+            OmegaConf.update(cfg, old, _UNSET.get(old, (None,))[-1], force_add=True)
+            OmegaConf.update(cfg, new, value, force_add=True)
+    return cfg
+
+
+def _typed(cls, node: Mapping | None, prefix: str, ignore: tuple[str, ...] = ()):
+    """`cls` from a config node: unknown keys (but `ignore`) a ValueError naming them."""
+    data = (
+        {}
+        if node is None
+        else dict(OmegaConf.to_container(node) if OmegaConf.is_config(node) else node)
+    )
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names - set(ignore))
+    if unknown:
+        keys = [f"{prefix}.{k}" for k in unknown]
+        raise ValueError(f"unknown {prefix} settings {keys}; known: {sorted(names)}")
+    return cls(**{k: v for k, v in data.items() if k in names})
+
+
+@dataclass(frozen=True)
+class ConsensusConfig:
+    """``consensus:``: the session's 3D observations from a consensus of its cameras."""
+
+    estimate: bool = True  # false: no 3D observations (rigid or a checkpoint only)
+    max_error_px: float = 20.0  # robust triangulation: drop the worst view above this
+    gate_sigmas: float = 4.0  # a triangulated point is a 3D observation within this x noise
+
+    @classmethod
+    def from_config(cls, node) -> ConsensusConfig:
+        return _typed(cls, node, "consensus")
+
+
+#: ``deform.measured``: a measured part-frame's prior in the net modes
+MEASURED = ("cv", "interp", "rigid", "net")
+JACOBIANS = ("frozen", "forward", "central")
+
+
+@dataclass(frozen=True)
+class DeformConfig:
+    """``deform:``: how the deformation modes run (conf/track.yaml documents each key)."""
+
+    gate_mm: float = 30.0
+    batch_size: int = 4096
+    jacobian: str = "frozen"
+    step: int | None = None
+    far_steps: Any = "auto"
+    refresh: int = 2
+    beyond_window: str = "interp"
+    measured: str = "cv"
+    rigid_first: bool = True
+    max_iterations: int | None = 10
+    require_better: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.measured not in MEASURED:
+            raise ValueError(
+                f"deform.measured must be cv, interp, rigid or net, got {self.measured!r}"
+            )
+        if self.step is not None and int(self.step) < 1:
+            raise InputError(f"deform.step must be an integer >= 1, got {self.step}")
+
+    @classmethod
+    def from_config(cls, node) -> DeformConfig:
+        return _typed(cls, node, "deform", ignore=("threads", "max_error_px", "sigma_def_mm"))
+
+
+BODY_SHAPES = ("data", "table")
+REFINE = ("views", "unplaced", "none")
+
+
+@dataclass(frozen=True)
+class BodyFitConfig:
+    """The ``body`` group's settings of the body model's fit (``conf/body/auto.yaml``); the
+    model itself (name, parts, aliases) is `deformnet.body.BodyModel.from_config`'s."""
+
+    name: str = "auto"
+    auto: bool = False  # the body estimated from the data (body=auto)
+    shape: str = "table"  # data: estimated, moved into the named model's frame | table
+    scale: Any = "auto"  # shape=table: auto (fitted to the data) | a number
+    scale_factor: Any = 1.0  # a multiplier on the size (> 0)
+    other_parts: str = "error"  # files with parts the model lacks: auto | error
+    min_parts: int | None = None  # frames a shape is estimated from: >= this many parts
+    robust: bool = True  # robust triangulation of a shape estimated without 3D observations
+    refine: str = "views"  # the structure step: views | unplaced | none
+    rays_below: int = 20
+    rays_min_views: int = 10
+
+    def __post_init__(self) -> None:
+        shape = str(self.shape).lower()
+        if shape not in BODY_SHAPES:
+            raise InputError(
+                f"body.shape must be one of {', '.join(BODY_SHAPES)}, got {self.shape!r}"
+            )
+        if str(self.refine).lower() not in REFINE:
+            raise ValueError(f"body.refine must be views, unplaced or none, got {self.refine!r}")
+        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "refine", str(self.refine).lower())
+
+    @classmethod
+    def from_config(cls, node) -> BodyFitConfig:
+        return _typed(
+            cls,
+            node,
+            "body",
+            ignore=("parts", "aliases", "points", "max_error_px", "sigma_def_mm"),
+        )
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """adjust-track's settings the library reads (the ``input`` and ``output`` blocks are the
+    apps' own, `adjust.settings`)."""
+
+    deformation: str | None
+    body: BodyFitConfig
+    consensus: ConsensusConfig
+    deform: DeformConfig
+    solver: SolverConfig
+    #: solver.sigma_det_px: None = estimated by the consensus (2 px where nothing estimates it)
+    sigma_det_px: float | None
+    #: solver.sigma_def_mm: None = the data's rms deviation from the rigid model where the
+    #: body's shape is estimated, else the solver's default (3 mm)
+    sigma_def_mm: float | None
+    progress: bool = True
+    threads: int | None = 1
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> TrackConfig:
+        """From adjust-track's composed config (after `resolve_deprecated`)."""
+        solver = cfg.get("solver")
+        solver = {} if solver is None else OmegaConf.to_container(solver, resolve=True)
+        sigma_det = solver.pop("sigma_det_px", None)
+        sigma_def = solver.pop("sigma_def_mm", None)
+        solver.pop("num_threads", None)  # the one thread setting: `threads`
+        defaults = {}
+        if sigma_det is not None:
+            defaults["sigma_det_px"] = float(sigma_det)
+        if sigma_def is not None:
+            defaults["sigma_def_mm"] = float(sigma_def)
+        deformation = cfg.get("deformation")
+        return cls(
+            deformation=None if deformation is None else str(deformation),
+            body=BodyFitConfig.from_config(cfg.get("body")),
+            consensus=ConsensusConfig.from_config(cfg.get("consensus")),
+            deform=DeformConfig.from_config(cfg.get("deform")),
+            # num_threads 0: the solver runs in the app's threads (`threads`)
+            solver=SolverConfig.from_config(solver, num_threads=0, **defaults),
+            sigma_det_px=None if sigma_det is None else float(sigma_det),
+            sigma_def_mm=None if sigma_def is None else float(sigma_def),
+            progress=bool(cfg.get("progress", True)),
+            threads=cfg.get("threads"),
+        )

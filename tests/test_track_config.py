@@ -1,0 +1,72 @@
+"""adjust-track's settings: one name per setting, typed (`adjust.track_config`); the old names
+still work for one release, with a warning, and two names for one setting with different
+values are refused naming both."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from adjust.track_config import DEPRECATED, DeformConfig, TrackConfig, resolve_deprecated
+from deformnet.paths import CONF_DIR
+
+
+def _cfg(overrides: list[str]):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return compose("track", overrides=overrides)
+
+
+def test_defaults_are_typed_and_each_setting_has_one_name():
+    tc = TrackConfig.from_config(resolve_deprecated(_cfg([])))
+    assert tc.consensus.estimate and tc.consensus.max_error_px == 20.0
+    assert tc.sigma_det_px is None and tc.sigma_def_mm is None  # from the data
+    assert tc.solver.sigma_det_px == 2.0 and tc.solver.sigma_def_mm == 3.0  # where nothing does
+    assert tc.solver.num_threads == 0 and tc.threads == 1  # the solver runs in `threads`
+    assert tc.deform == DeformConfig() and tc.body.shape == "data" and not tc.body.auto
+    # the old names are placeholders only: none of them holds a value by default
+    cfg = _cfg([])
+    for old in DEPRECATED:
+        assert OmegaConf.select(cfg, old, default=None) in (None, 0), old
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "value"),
+    [
+        ("stochastic.sigma_det_px", "solver.sigma_det_px", 1.5),
+        ("stochastic.estimate", "consensus.estimate", False),
+        ("deform.max_error_px", "consensus.max_error_px", 12.0),
+        ("body.sigma_def_mm", "solver.sigma_def_mm", 2.5),
+        ("deform.threads", "threads", 2),
+        ("adapt.threads", "threads", 2),
+        ("solver.num_threads", "threads", 2),
+    ],
+)
+def test_an_old_name_still_works_with_a_warning(old, new, value, caplog):
+    with caplog.at_level(logging.WARNING, logger="adjust.track_config"):
+        cfg = resolve_deprecated(_cfg([f"{old}={value}"]))
+    assert OmegaConf.select(cfg, new) == value
+    assert f"{old} is deprecated" in caplog.text and new in caplog.text
+    tc = TrackConfig.from_config(cfg)
+    if new == "solver.sigma_det_px":
+        assert tc.sigma_det_px == value and tc.solver.sigma_det_px == value
+    if new == "consensus.estimate":
+        assert tc.consensus.estimate is False
+
+
+def test_auto_is_the_data_and_two_names_with_two_values_are_refused(caplog):
+    cfg = resolve_deprecated(_cfg(["body.sigma_def_mm=auto"]))
+    assert TrackConfig.from_config(cfg).sigma_def_mm is None
+    with pytest.raises(ValueError, match="deform.threads=2 and adapt.threads=3 are both threads"):
+        resolve_deprecated(_cfg(["deform.threads=2", "adapt.threads=3"]))
+
+
+def test_unknown_and_bad_settings_name_themselves():
+    with pytest.raises(ValueError, match=r"unknown deform settings \['deform.gate'\]"):
+        DeformConfig.from_config({"gate": 3})
+    with pytest.raises(ValueError, match="deform.measured must be"):
+        DeformConfig(measured="best")
+    with pytest.raises(ValueError, match="body.shape must be one of data, table"):
+        TrackConfig.from_config(_cfg(["body.shape=blob"]))
