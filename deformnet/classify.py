@@ -5,7 +5,6 @@ encoder, or predict behavior labels with one (Hydra app over `run(cfg)`).
         labels.fraction=0.1 data.train_tracks=[a/points3d.csv] data.train_labels=[a.csv] \\
         data.val_tracks=[...] data.val_labels=[...] data.test_tracks=[...] data.test_labels=[...]
     deformnet-classify pretrained=null net=transformer ...        # same architecture, scratch
-    deformnet-classify data.source=sim ...                        # simulator sessions (seeds)
     deformnet-classify mode=predict checkpoint=OUT/classifier.pt tracks=points3d.csv
 
 Inputs: 3D tracks in the points3d CSV layout `adjust-track` writes (`{part}_x/_y/_z` columns,
@@ -334,7 +333,7 @@ def fit_head_forest(
     }
 
 
-PSEUDO_TEACHERS = ("none", "self", "linear", "sequence", "cotrain")
+PSEUDO_TEACHERS = ("none", "linear", "cotrain")
 SEQUENCE_DEFAULTS = {  # pseudo_labels.sequence (conf/classify.yaml documents them)
     "encoder": None, "steps": 1000, "channels": 128, "dilations": [1, 2, 4, 8, 16, 32, 64],
     "mask_ratio": 0.75, "longest_span": 60, "crop": 256, "batch": 32, "lr": 1e-3,
@@ -394,8 +393,8 @@ def _sequence_settings(block) -> dict:
 
 def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     """`pseudo_labels` checked before any data is read: None (teacher none) or {"teacher",
-    "keep", "smooth", "labelled_weight", "bins", "unlabelled"} (teacher=sequence or cotrain: and
-    "sequence", its settings; cotrain: and "embedding_keep")."""
+    "keep", "smooth", "labelled_weight", "bins", "unlabelled"} (teacher=cotrain: and
+    "sequence", its sequence encoder's settings, and "embedding_keep")."""
     pl = dict(to_plain(cfg.get("pseudo_labels")) or {})
     teacher = str(pl.get("teacher", "none"))
     if teacher not in PSEUDO_TEACHERS:
@@ -423,9 +422,8 @@ def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
     if out["labelled_weight"] <= 0:
         raise ValueError(f"pseudo_labels.labelled_weight must be > 0, got "
                          f"{out['labelled_weight']}")  # fmt: skip
-    if teacher in ("sequence", "cotrain"):
-        out["sequence"] = _sequence_settings(pl.get("sequence"))
     if teacher == "cotrain":
+        out["sequence"] = _sequence_settings(pl.get("sequence"))
         out["embedding_keep"] = _number(
             "pseudo_labels", "embedding_keep", pl.get("embedding_keep", 0.5), float
         )
@@ -467,22 +465,19 @@ def sequence_teacher(
     out: Path,
     bins: int = 4,
     teach_unlabelled: bool = True,
-    views: bool = False,
-) -> tuple[np.ndarray | list[np.ndarray], dict]:
-    """`pseudo_labels.teacher=sequence`: the behavior-scale sequence encoder
+) -> tuple[list[np.ndarray], dict]:
+    """`pseudo_labels.teacher=cotrain`: the behavior-scale sequence encoder
     (`deformnet.sequence`), pretrained by masked-span reconstruction on the training sessions'
     per-frame features (each frame's own encoder output: the first `encoder.out_dim` columns of
     ``train_features`` (N, out_dim), every training frame, sessions of ``lengths`` frames) and
     the ``unlabelled`` sessions' (their features, (T_u, out_dim) each), or loaded
     (``settings["encoder"]``, checked against ``signature``, `sequence_signature`); it is saved
-    to out/sequence_encoder.pt. Its embedding beside the binned frame features (with context) is
-    the logistic-regression teacher (`linear_teacher_probs`, ``bins`` per frame feature) fitted
-    on the labelled frames ``idx`` (labels ``labels`` (L,), ``num_classes`` C, class weights
-    (C,) or None). Returns the probabilities (N + M, C) of every training frame, then every
-    unlabelled session's (M frames in all; M = 0 without ``teach_unlabelled``: then only the
-    pretraining reads them), and facts. With ``views`` (`pseudo_labels.teacher=cotrain`) two
-    teachers, one per view: the binned frame features alone (`linear_teacher_probs`) and the
-    embedding alone (`embedding_teacher_probs`), their probabilities as a list of two."""
+    to out/sequence_encoder.pt. Two teachers fitted on the labelled frames ``idx`` (labels
+    ``labels`` (L,), ``num_classes`` C, class weights (C,) or None), one per view: the binned
+    frame features (with context; `linear_teacher_probs`, ``bins`` per feature) and the
+    encoder's embedding (`embedding_teacher_probs`). Returns their probabilities (N + M, C) of
+    every training frame, then every unlabelled session's (M frames in all; M = 0 without
+    ``teach_unlabelled``: then only the pretraining reads them), as a list of two, and facts."""
     from deformnet.atomic import atomic_path
     from deformnet.sequence import (
         SequenceEncoder,
@@ -524,42 +519,35 @@ def sequence_teacher(
     emb = embeddings(seq, train_seqs + [u[:, :D].float() for u in taught], settings["context"])
     frame = torch.cat([train_features, *taught])[:, model.frame_columns()].double().numpy()
     emb = emb.double().numpy()
-    if views:
-        return [
-            linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins),
-            embedding_teacher_probs(emb, idx, labels, num_classes, class_weights),
-        ], facts  # fmt: skip
-    probs = linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins, emb)
-    return probs, facts
+    return [
+        linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins),
+        embedding_teacher_probs(emb, idx, labels, num_classes, class_weights),
+    ], facts  # fmt: skip
 
 
 def self_train_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
-    settings: dict, all_features: Tensor | None = None,
-    probs: np.ndarray | Sequence[np.ndarray] | None = None, unlabelled: Sequence[Tensor] = (),
+    settings: dict, probs: np.ndarray | Sequence[np.ndarray], all_features: Tensor | None = None,
+    unlabelled: Sequence[Tensor] = (),
 ) -> tuple[dict, Tensor]:  # fmt: skip
-    """Self-training of a fitted forest head: a teacher's class probabilities of every training
-    frame of ``bank`` (sessions of ``lengths`` frames; ``probs`` (len(bank), C), by default the
-    forest's own, `pseudo_labels.teacher=self`), the class-balanced pseudo-labels of the
-    unlabelled frames (`deformnet.pseudo.class_balanced_pseudo_labels`) join the labelled frames
-    ``idx`` (their features ``features`` (N, D)) and the forest is fitted again on both,
-    weighted per frame (`pseudo_sample_weights`). ``all_features``: every training frame's
-    features (len(bank), D), computed when not given. ``unlabelled``: the features (T_u, D) of
-    sessions nobody labelled (`data.unlabelled_tracks`), whose frames the teacher labels too
-    (``probs`` then (len(bank) + M, C), their M frames after the training frames). ``probs`` a
-    list of two (`pseudo_labels.teacher=cotrain`: the frame features' teacher's, the
-    embedding's): co-training (`deformnet.pseudo.co_training_pseudo_labels`, shares
-    settings["keep"] and settings["embedding_keep"]). Returns facts (the pseudo-labelled frames
-    in all, per class and from the unlabelled sessions, the refitted forest's; co-training: the
-    frames dropped for a conflict) and every training frame's features."""
+    """Self-training of a fitted forest head: a teacher's class probabilities ``probs``
+    (len(bank) + M, C) of every training frame of ``bank`` (sessions of ``lengths`` frames) and
+    of the M frames of ``unlabelled`` (the features (T_u, D) of sessions nobody labelled,
+    `data.unlabelled_tracks`, after the training frames); the class-balanced pseudo-labels of
+    the frames without a label (`deformnet.pseudo.class_balanced_pseudo_labels`) join the
+    labelled frames ``idx`` (their features ``features`` (N, D)) and the forest is fitted again
+    on both, weighted per frame (`pseudo_sample_weights`). ``all_features``: every training
+    frame's features (len(bank), D), computed when not given. ``probs`` a list of two
+    (`pseudo_labels.teacher=cotrain`: the frame features' teacher's, the embedding's):
+    co-training (`deformnet.pseudo.co_training_pseudo_labels`, shares settings["keep"] and
+    settings["embedding_keep"]). Returns facts (the pseudo-labelled frames in all, per class and
+    from the unlabelled sessions, the refitted forest's; co-training: the frames dropped for a
+    conflict) and every training frame's features."""
     from deformnet.pseudo import co_training_pseudo_labels, pseudo_sample_weights
 
     if all_features is None:
         all_features = context_features(model, bank, torch.arange(len(bank)))
     pool = torch.cat([all_features, *unlabelled]) if len(unlabelled) else all_features
-    if probs is None:
-        with torch.no_grad():
-            probs = model.classify(pool).softmax(-1).double().numpy()
     labels = bank.labels.numpy()
     views = [probs] if isinstance(probs, np.ndarray) else list(probs)
     N, C = len(labels), views[0].shape[1]
@@ -838,29 +826,11 @@ def set_body_scales(sessions: Sequence[Session], mode: str, body) -> None:
 
 def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list[Session]:
     """The sessions of a split (train, val, test; or unlabelled: data.unlabelled_tracks, no
-    labels files, every frame's label -1) as the config reads them."""
+    labels files, every frame's label -1) as the config reads them (`data.*_tracks` and
+    `data.*_labels`)."""
     d = cfg.data
     unl = split == "unlabelled"
     interp = bool(d.get("interpolate", False))
-    if str(d.source) == "sim":
-        from deformnet import sim
-
-        seeds = list(d.sim.get(f"{split}_seeds") or [])
-        out = []
-        sim_cfg = cfg.get("sim")
-        for s in seeds:
-            data = sim.simulate(sim_cfg, num_frames=int(d.sim.num_frames), seed=int(s), body=body)
-            lut = {b: classes.index(b) if b in classes else -1 for b in data.behaviors}
-            labels = np.array([lut[data.behaviors[i]] for i in data.labels], dtype=np.int64)
-            labels = np.full_like(labels, -1) if unl else labels
-            obs = np.asarray(data.observed, bool)
-            rigid = np.asarray(data.rigid, np.float32)
-            deformed = np.where(obs[..., None], data.deformed, rigid).astype(np.float32)
-            fnum = np.arange(len(labels))
-            out.append(Session(f"sim_seed{s}", rigid, deformed, obs, fnum, labels))
-        return out
-    if str(d.source) != "files":
-        raise ValueError(f"data.source must be 'files' or 'sim', got '{d.source}'")
     tracks = [str(p) for p in (d.get(f"{split}_tracks") or [])]
     labels = [str(p) for p in (d.get(f"{split}_labels") or [])]
     if unl:
@@ -990,18 +960,6 @@ def _encoder_config(cfg: DictConfig, classes):
     return ncfg, body, int(cfg.half_window), None, frame_up(to_plain(cfg.get("up")))
 
 
-def _training_fps(cfg: DictConfig) -> float | None:
-    """The training sessions' frame rate: ``fps`` (Hz; None: unknown), the simulator's
-    (``sim.fps``) with data.source=sim (a different ``fps`` is an error)."""
-    fps = check_fps(cfg.get("fps"), "fps")
-    if str(cfg.data.get("source")) == "sim":
-        sim_fps = check_fps((cfg.get("sim") or {}).get("fps", 30.0), "sim.fps")
-        if fps is not None and not same_fps(fps, sim_fps):
-            raise ValueError(f"fps={fps:g} but the simulated sessions are at sim.fps={sim_fps:g}")
-        fps = sim_fps
-    return fps
-
-
 def _train(cfg: DictConfig, out: Path) -> dict:
     import lightning as L
 
@@ -1023,7 +981,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     if scale_mode not in BODY_SCALE_MODES:
         raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{scale_mode}'")
     unf = _unfamiliar_settings(cfg)
-    fps = _training_fps(cfg)
+    fps = check_fps(cfg.get("fps"), "fps")  # the training sessions' rate (None: unknown)
     model, mech = classifier_from_config(cfg, net_cfg, body, hw, C, up)
     ff, meas = model.encoder.frame_features, model.encoder.measurements
     if mech is not None:
@@ -1036,14 +994,12 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     train = _sessions(cfg, "train", body, classes)
     val = _sessions(cfg, "val", body, classes)
     test = _sessions(cfg, "test", body, classes)
-    # more recordings without labels: the linear and sequence teachers label their frames too
-    # (the forest learns from them), and the sequence teacher's pretraining reads them
+    # more recordings without labels: the teachers label their frames too (the forest learns
+    # from them), and the cotrain teacher's sequence pretraining reads them
     unlabelled = _sessions(cfg, "unlabelled", body, classes)
-    if unlabelled and (
-        pseudo is None or pseudo["teacher"] not in ("linear", "sequence", "cotrain")
-    ):
+    if unlabelled and pseudo is None:
         log.warning("data.unlabelled_tracks: %d sessions not used (only "
-                    "pseudo_labels.teacher=linear|sequence|cotrain learns from them)",
+                    "pseudo_labels.teacher=linear|cotrain learns from them)",
                     len(unlabelled))  # fmt: skip
         unlabelled = []
     elif (
@@ -1122,98 +1078,80 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         trainer.fit(lit, train_dataloaders=train_loader, val_dataloaders=val_loader)
         return trainer
 
-    # A frozen encoder's features are computed once (no token dropout) and the head trains on
-    # them; a pretrained encoder that is fine-tuned gets such a probing phase first
-    # (`probe_epochs`, linear probing then fine-tuning), then trains with the encoder.
-    # With `head_solver=lbfgs` that head is fitted by full-batch L-BFGS to convergence (the
-    # linear-probe protocol), else by `probe_epochs` AdamW epochs (the whole run when frozen).
-    solver = str(cfg.get("head_solver", "sgd"))
-    if solver not in ("sgd", "lbfgs"):
-        raise ValueError(f"head_solver must be 'sgd' or 'lbfgs', got '{solver}'")
-    if forest:
-        solver = "forest"
-    probe = int(cfg.get("probe_epochs") or 0) if state is not None else 0
-    if solver == "lbfgs" and state is not None:
-        probe = max(probe, 1)
+    # A frozen encoder's features are computed once (no token dropout) and the head is fitted
+    # on them: a forest by scikit-learn, another head by full-batch L-BFGS to convergence (the
+    # linear-probe protocol); a pretrained encoder that is fine-tuned gets such a probe first,
+    # then trains with the encoder.
+    solver = "forest" if forest else "lbfgs"
+    probe = state is not None
     steps = 0
     trainer = None
     probe_facts: dict = {}
     all_features = None  # every training frame's features (the forest's self-training)
-    if bool(cfg.freeze) or probe > 0:
+    if bool(cfg.freeze) or probe:
         fbank = _FeatureBank(model, bank, idx, train_features)
-        fval = fv = None
-        if val_dl is not None:
-            fv = _FeatureBank(model, vbank, vidx)
-            fval = _loader(fv, np.arange(len(fv)), 512, None, 0)
+        fv = None if val_dl is None else _FeatureBank(model, vbank, vidx)
         lit.head_only = True
-        if solver in ("lbfgs", "forest"):
-            if forest:
-                probe_facts = fit_head_forest(model, fbank.features, fbank.labels, weights)
-                if pseudo is not None:
-                    lengths = [len(s) for s in train]
-                    tprobs, tfacts = None, {}
-                    ufeats: list = []  # the unlabelled sessions' features
-                    if pseudo["teacher"] in ("linear", "sequence", "cotrain"):
-                        all_features = context_features(model, bank, torch.arange(len(bank)))
-                        ylab = bank.labels.numpy()[idx]
-                        for u in unlabelled:
-                            ub = SessionBank([u], span)
-                            ufeats.append(context_features(model, ub, torch.arange(len(ub))))
-                    taught = ufeats if pseudo["unlabelled"] else []  # pseudo-labelled too
-                    if pseudo["teacher"] in ("sequence", "cotrain"):
-                        tprobs, tfacts = sequence_teacher(
-                            model, all_features, lengths, ufeats, idx, ylab, C, weights,
-                            pseudo["sequence"], sequence_signature(model, mech, scale_mode),
-                            out, pseudo["bins"], len(taught) > 0, pseudo["teacher"] == "cotrain",
-                        )  # fmt: skip
-                    elif pseudo["teacher"] == "linear":
-                        from deformnet.sequence import linear_teacher_probs
-
-                        frame = torch.cat([all_features, *taught])[:, model.frame_columns()]
-                        frame = frame.double().numpy()
-                        tprobs = linear_teacher_probs(frame, idx, ylab, C, weights,
-                                                      pseudo["bins"])  # fmt: skip
-                    probe_facts["pseudo_labels"], all_features = self_train_forest(
-                        model, bank, lengths, idx, fbank.features, pseudo, all_features, tprobs,
-                        taught,
+        if forest:
+            probe_facts = fit_head_forest(model, fbank.features, fbank.labels, weights)
+            if pseudo is not None:
+                lengths = [len(s) for s in train]
+                tfacts: dict = {}
+                all_features = context_features(model, bank, torch.arange(len(bank)))
+                ylab = bank.labels.numpy()[idx]
+                ufeats: list = []  # the unlabelled sessions' features
+                for u in unlabelled:
+                    ub = SessionBank([u], span)
+                    ufeats.append(context_features(model, ub, torch.arange(len(ub))))
+                taught = ufeats if pseudo["unlabelled"] else []  # pseudo-labelled too
+                if pseudo["teacher"] == "cotrain":
+                    tprobs, tfacts = sequence_teacher(
+                        model, all_features, lengths, ufeats, idx, ylab, C, weights,
+                        pseudo["sequence"], sequence_signature(model, mech, scale_mode),
+                        out, pseudo["bins"], len(taught) > 0,
                     )  # fmt: skip
-                    probe_facts["pseudo_labels"] |= tfacts
-                    pl = probe_facts["pseudo_labels"]
-                    log.info("self-training: %d pseudo-labelled frames (%s)", pl["frames"],
-                             dict(zip(classes, pl["per_class"])))  # fmt: skip
-            else:
-                probe_facts = fit_head_lbfgs(
-                    model,
-                    fbank.features,
-                    fbank.labels,
-                    weights,
-                    float(cfg.get("head_l2", 1.0)),
-                    int(cfg.get("head_max_iter", 200)),
-                )
-            if fv is not None:  # the probe's validation score: the state to beat
-                with torch.no_grad():
-                    pv = model.classify(fv.features).argmax(-1).numpy()
-                from deformnet.classify_lit import macro_f1
+                else:  # linear
+                    from deformnet.sequence import linear_teacher_probs
 
-                score, per = macro_f1(fv.labels.numpy(), pv, C)
-                probe_facts["val_macro_f1"] = score
-                lit.best_score = score
-                lit.best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-                if logger:
-                    logger.log_metrics(
-                        {"val/macro_f1": score}
-                        | ({"train/loss": probe_facts["loss"]} if "loss" in probe_facts else {})
-                        | {f"val/f1/{c}": float(f) for c, f in zip(classes, per) if np.isfinite(f)},
-                        step=0,
-                    )
-            log.info("head fitted by %s (%s)", "scikit-learn" if forest else "L-BFGS", probe_facts)
+                    frame = torch.cat([all_features, *taught])[:, model.frame_columns()]
+                    frame = frame.double().numpy()
+                    tprobs = linear_teacher_probs(frame, idx, ylab, C, weights,
+                                                  pseudo["bins"])  # fmt: skip
+                probe_facts["pseudo_labels"], all_features = self_train_forest(
+                    model, bank, lengths, idx, fbank.features, pseudo, tprobs, all_features,
+                    taught,
+                )  # fmt: skip
+                probe_facts["pseudo_labels"] |= tfacts
+                pl = probe_facts["pseudo_labels"]
+                log.info("self-training: %d pseudo-labelled frames (%s)", pl["frames"],
+                         dict(zip(classes, pl["per_class"])))  # fmt: skip
         else:
-            n = int(d.steps_per_epoch) * bs
-            floader = _loader(fbank, np.arange(len(fbank)), bs, n, cfg.seed)
-            probe_only = {} if cfg.freeze else {"max_epochs": probe, "max_time": None}
-            trainer = fit(floader, fval, **probe_only)
+            probe_facts = fit_head_lbfgs(
+                model,
+                fbank.features,
+                fbank.labels,
+                weights,
+                float(cfg.get("head_l2", 1.0)),
+                int(cfg.get("head_max_iter", 200)),
+            )
+        if fv is not None:  # the probe's validation score: the state to beat
+            with torch.no_grad():
+                pv = model.classify(fv.features).argmax(-1).numpy()
+            from deformnet.classify_lit import macro_f1
+
+            score, per = macro_f1(fv.labels.numpy(), pv, C)
+            probe_facts["val_macro_f1"] = score
+            lit.best_score = score
+            lit.best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            if logger:
+                logger.log_metrics(
+                    {"val/macro_f1": score}
+                    | ({"train/loss": probe_facts["loss"]} if "loss" in probe_facts else {})
+                    | {f"val/f1/{c}": float(f) for c, f in zip(classes, per) if np.isfinite(f)},
+                    step=0,
+                )
+        log.info("head fitted by %s (%s)", "scikit-learn" if forest else "L-BFGS", probe_facts)
         if not bool(cfg.freeze):
-            steps += int(trainer.global_step) if trainer is not None else 0
             lit.head_only = False
             trainer = fit(train_dl, val_dl)
     else:

@@ -228,18 +228,6 @@ def test_a_classifier_labels_a_recording_at_another_frame_rate(tmp_path, caplog)
         run(_compose([*pred, "fps=0", f"output.dir={tmp_path / 'bad'}"]))
 
 
-def test_simulated_sessions_have_the_simulators_rate():
-    """data.source=sim: the classifier's rate is sim.fps; another fps= is an error (before any
-    session is simulated)."""
-    from deformnet.classify import _training_fps
-
-    assert _training_fps(_compose(["data.source=sim"])) == 30.0
-    assert _training_fps(_compose(["data.source=sim", "sim.fps=100", "fps=100"])) == 100.0
-    assert _training_fps(_compose([])) is None
-    with pytest.raises(ValueError, match="fps=100 but the simulated sessions are at sim.fps=30"):
-        _training_fps(_compose(["data.source=sim", "fps=100"]))
-
-
 def test_training_sessions_at_several_frame_rates(tmp_path):
     """data.train_fps: labelled sessions recorded at 30 and at 90 fps, each read resampled to
     fps=30, train one classifier that labels a 30 fps test session right. A list of the wrong

@@ -95,21 +95,39 @@ def _compose(overrides):
         return hydra.compose("classify", overrides=overrides)
 
 
+def _sim_session(tmp_path, seed: int, T: int = 120) -> tuple[str, str]:
+    """A short simulated session as files: points3d CSV (truth, pose columns), per-frame labels."""
+    import pandas as pd
+
+    from deformnet.behavior_labels import POSE_COLUMNS
+    from deformnet.sim import simulate
+
+    d = simulate(None, num_frames=T, seed=seed)
+    cols = {"fnum": np.arange(T)} | dict(zip(POSE_COLUMNS, d.poses.T))
+    for k, part in enumerate(d.parts):
+        cols |= {f"{part}_{a}": d.deformed[:, k, i] for i, a in enumerate("xyz")}
+    tracks, labels = tmp_path / f"s{seed}.csv", tmp_path / f"s{seed}_labels.csv"
+    pd.DataFrame(cols).to_csv(tracks, index=False)
+    names = np.asarray(d.behaviors, dtype=object)[d.labels]
+    pd.DataFrame({"fnum": np.arange(T), "label": names}).to_csv(labels, index=False)
+    return str(tracks), str(labels)
+
+
 @pytest.mark.parametrize("net", ["lstm", "transformer"])
 def test_fast_dev_run_both_encoders(tmp_path, net):
     from deformnet.classify import run
 
     tiny = [f"net.{k}={v}" for k, v in TINY[net].items() if k != "_target_"]
+    (tt, tl), (vt, vl) = _sim_session(tmp_path, 0), _sim_session(tmp_path, 10000)
     cfg = _compose(
         [
             f"net={net}",
             *tiny,
             "half_window=2",
-            "data.source=sim",
-            "data.sim.num_frames=120",
-            "data.sim.train_seeds=[0]",
-            "data.sim.val_seeds=[10000]",
-            "data.sim.test_seeds=[]",
+            f"data.train_tracks=[{tt}]",
+            f"data.train_labels=[{tl}]",
+            f"data.val_tracks=[{vt}]",
+            f"data.val_labels=[{vl}]",
             "logger=none",
             "trainer.fast_dev_run=true",
             f"output.dir={tmp_path}",

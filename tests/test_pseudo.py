@@ -1,5 +1,5 @@
 """Class-balanced pseudo-labels (`deformnet.pseudo`) and the forest head's self-training
-(`deformnet-classify pseudo_labels.teacher=self`)."""
+(`deformnet-classify pseudo_labels.teacher=linear`)."""
 
 from __future__ import annotations
 
@@ -141,7 +141,7 @@ def few_label_toy(tmp_path) -> tuple[list[str], list]:
 
 
 def test_forest_self_training_in_deformnet_classify(tmp_path):
-    """pseudo_labels.teacher=self with head=forest: the forest labels the unlabelled training
+    """pseudo_labels.teacher=linear with head=forest: the teacher labels the unlabelled training
     frames, about `keep` of them (per class) join the labelled ones, the forest is refitted on
     both and is still right on a held-out session; classifier.pt reloads and mode=predict
     round-trips. A teacher for a head that is not a forest, or a bad share, is an error before
@@ -150,24 +150,24 @@ def test_forest_self_training_in_deformnet_classify(tmp_path):
 
     base, test = few_label_toy(tmp_path)
     forest = ["head=forest", "head.trees=25", "freeze=true"]
-    with pytest.raises(ValueError, match="pseudo_labels.teacher=self self-trains the forest"):
-        run(_compose([*base, "pseudo_labels.teacher=self", f"output.dir={tmp_path / 'x'}"]))
+    with pytest.raises(ValueError, match="pseudo_labels.teacher=linear self-trains the forest"):
+        run(_compose([*base, "pseudo_labels.teacher=linear", f"output.dir={tmp_path / 'x'}"]))
     with pytest.raises(ValueError, match=r"pseudo_labels.keep must be in \(0, 1\]"):
-        run(_compose([*base, *forest, "pseudo_labels.teacher=self", "pseudo_labels.keep=2",
+        run(_compose([*base, *forest, "pseudo_labels.teacher=linear", "pseudo_labels.keep=2",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
     with pytest.raises(ValueError, match="pseudo_labels.smooth must be an integer"):
-        run(_compose([*base, *forest, "pseudo_labels.teacher=self", "pseudo_labels.smooth=2.5",
+        run(_compose([*base, *forest, "pseudo_labels.teacher=linear", "pseudo_labels.smooth=2.5",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
     with pytest.raises(ValueError, match="pseudo_labels.teacher must be one of"):
         run(_compose([*base, *forest, "pseudo_labels.teacher=teacher",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
     out = tmp_path / "self"
-    rep = run(_compose([*base, *forest, "pseudo_labels.teacher=self", f"output.dir={out}"]))[
+    rep = run(_compose([*base, *forest, "pseudo_labels.teacher=linear", f"output.dir={out}"]))[
         "report"
     ]
     pl = rep["probe"]["pseudo_labels"]
     frames, labelled = 2 * 360, 2 * 18
-    assert pl["teacher"] == "self" and sum(pl["per_class"]) == pl["frames"]
+    assert pl["teacher"] == "linear" and sum(pl["per_class"]) == pl["frames"]
     # every class keeps at least 30% of the frames given it (ties can add more), less labelled
     assert 0.3 * frames - labelled <= pl["frames"] <= 0.5 * frames
     assert min(pl["per_class"]) >= 0.3 * 0.3 * frames  # both behaviors, not the easy one only

@@ -1,5 +1,5 @@
 """The behavior-scale sequence encoder (`deformnet.sequence`) and its teacher
-(`deformnet-classify pseudo_labels.teacher=sequence`)."""
+(`deformnet-classify pseudo_labels.teacher=cotrain`)."""
 
 from __future__ import annotations
 
@@ -212,8 +212,8 @@ def _teacher_toy(tmp_path, teacher: str) -> tuple[list, list]:
             "pseudo_labels.sequence.dilations=[1,2,4]"], unl  # fmt: skip
 
 
-def test_sequence_teacher_in_deformnet_classify(tmp_path):
-    """pseudo_labels.teacher=sequence: the sequence encoder pretrains on the training and the
+def test_sequence_encoder_in_deformnet_classify(tmp_path):
+    """pseudo_labels.teacher=cotrain: the sequence encoder pretrains on the training and the
     unlabelled sessions (data.unlabelled_tracks), is saved, teaches the forest head (the
     unlabelled session's frames pseudo-labelled too), and the classifier is right on a held-out
     session; a run that reuses the saved encoder pseudo-labels
@@ -221,7 +221,7 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     before any data is read."""
     from deformnet.classify import load_classifier, run
 
-    base, unl = _teacher_toy(tmp_path, "sequence")
+    base, unl = _teacher_toy(tmp_path, "cotrain")
     for bad, match in (
         ("pseudo_labels.sequence.mask_ratio=1", r"mask_ratio must be in \(0, 1\)"),
         ("pseudo_labels.sequence.context=[4]", "context must be odd"),
@@ -235,13 +235,13 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
     unl_on = [f"data.unlabelled_tracks=[{unl[0]}]", "pseudo_labels.unlabelled=true"]
     rep = run(_compose([*base, *unl_on, f"output.dir={out}"]))
     pl = rep["report"]["probe"]["pseudo_labels"]
-    assert pl["teacher"] == "sequence" and pl["encoder"] == str(out / "sequence_encoder.pt")
+    assert pl["teacher"] == "cotrain" and pl["encoder"] == str(out / "sequence_encoder.pt")
     assert pl["pretraining"]["sessions"] == 3 and pl["pretraining"]["frames"] == 3 * 360
     assert pl["pretraining"]["steps"] == 30
     assert min(pl["per_class"]) >= 0.3 * 0.3 * 720  # both behaviors pseudo-labelled
     assert rep["report"]["raw"]["macro_f1"] >= 0.95, rep["report"]["raw"]
     model, meta = load_classifier(out / "classifier.pt")  # how the head was taught is kept
-    assert meta["pseudo_labels"]["teacher"] == "sequence"
+    assert meta["pseudo_labels"]["teacher"] == "cotrain"
     # the unlabelled session's frames are pseudo-labelled too (the forest learns from them)
     assert 0 < pl["unlabelled_frames"] <= 360 and pl["frames"] == sum(pl["per_class"])
     assert meta["pseudo_labels"]["sequence"]["steps"] == 30
@@ -257,7 +257,7 @@ def test_sequence_teacher_in_deformnet_classify(tmp_path):
 
 
 def test_cotrain_teacher_in_deformnet_classify(tmp_path):
-    """pseudo_labels.teacher=cotrain: the sequence encoder pretrains as for teacher=sequence;
+    """pseudo_labels.teacher=cotrain: the sequence encoder pretrains as above;
     the binned frame features' teacher and the embedding's own teacher each pseudo-label their
     most confident frames (keep, embedding_keep), pooled, conflicts dropped; the classifier is
     right on a held-out session, and the pool holds more frames than one view's share alone.
