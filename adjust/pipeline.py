@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 from adjust.body_fit import fit_body, refine_body, rigid_observation
 from adjust.camera import CameraTensors
 from adjust.camera_check import check_from_config
+from adjust.chunks import ChunkHooks, track_long
 from adjust.deformation_modes import Adjusting, mode_from_config
 from adjust.estimate import consensus
 from adjust.export import session_start, write_nwb
@@ -78,11 +79,14 @@ def run(cfg: DictConfig) -> dict:
     (`adjust.track_config.resolve_deprecated`); returns the summary."""
     cfg = resolve_deprecated(cfg)
     with torch_threads(cfg.get("threads")):
-        return track(cfg)
+        summary = track_long(cfg, track)  # a long session, in chunks (adjust.chunks)
+        return summary if summary is not None else track(cfg)
 
 
-def track(cfg: DictConfig) -> dict:
-    """Load, adjust, write points3d.csv and summary.json; returns the summary."""
+def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
+    """Load, adjust, write points3d.csv and summary.json; returns the summary. chunk: one pass
+    over part of a long session (`adjust.chunks.ChunkHooks`: its rows are read, the session's
+    model estimated once is used, and the result is handed to it instead of written)."""
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     cfg = with_session(cfg)  # input.session=DIR: DIR/calibration.toml, DIR[/detections]
@@ -110,6 +114,8 @@ def track(cfg: DictConfig) -> dict:
     # --- inputs and body model ----------------------------------------------------------
     t0 = time.perf_counter()
     body_facts: dict = {}
+    load = load_scene if chunk is None else chunk.load_scene
+    model = None if chunk is None else chunk.model  # a long session's, from its sample
     frame_of = None  # a named model whose frame an estimated one is moved into
     body = mode.checkpoint_body(body_cfg)
     from_checkpoint = body is not None
@@ -119,13 +125,13 @@ def track(cfg: DictConfig) -> dict:
                 "deformation= needs the body model the net was trained with; drop body=auto "
                 f"(the checkpoint's model: '{body.name}', parts {list(body.parts)})"
             )
-        cameras, det = load_scene(calibration, detections, body, **kwargs)
+        cameras, det = load(calibration, detections, body, **kwargs)
     elif auto:
-        cameras, det = load_scene(calibration, detections, None, **kwargs)
+        cameras, det = load(calibration, detections, None, **kwargs)
     else:
         body = BodyModel.from_config(body_cfg)
         try:
-            cameras, det = load_scene(calibration, detections, body, **kwargs)
+            cameras, det = load(calibration, detections, body, **kwargs)
         except UnknownPartsError as exc:
             if str(fit.other_parts).lower() != "auto":
                 raise
@@ -136,12 +142,13 @@ def track(cfg: DictConfig) -> dict:
                 body.name,
                 ", ".join(exc.parts),
             )
-            cameras, det = load_scene(calibration, detections, None, **kwargs)
+            cameras, det = load(calibration, detections, None, **kwargs)
             auto = True
             body_facts["other_parts"] = list(exc.parts)
         frame_of = body
     estimated = not from_checkpoint and (auto or fit.shape == "data")
-    cameras, det, camera_report = check_from_config(cameras, det, cfg.get("input"))
+    check = check_from_config if chunk is None else chunk.check_cameras
+    cameras, det, camera_report = check(cameras, det, cfg.get("input"))
     check_cameras_usable(det, where)  # one camera: depth unobserved, refused
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     timings["load_s"] = time.perf_counter() - t0
@@ -155,32 +162,36 @@ def track(cfg: DictConfig) -> dict:
             cams,
             max_error_px=float(tc.consensus.max_error_px),
             gate_sigmas=float(tc.consensus.gate_sigmas),
-            sigma_det_px=tc.sigma_det_px,
+            sigma_det_px=tc.sigma_det_px if model is None else model.sigma_det_px,
         )
         weight = np.where(cons.dropped, 0.0, weight)
         solver_cfg = solver_cfg.replace(sigma_det_px=cons.sigma_det_px)
     timings["consensus_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    body, solver_cfg, estimated = fit_body(
-        det,
-        cams,
-        body,
-        fit,
-        cons,
-        solver_cfg,
-        auto=auto,
-        estimated=estimated,
-        frame_of=frame_of,
-        from_checkpoint=from_checkpoint,
-        facts=body_facts,
-        sigma_def_mm=tc.sigma_def_mm,
-        max_error_px=tc.consensus.max_error_px,
-    )
+    if model is None:
+        body, solver_cfg, estimated = fit_body(
+            det,
+            cams,
+            body,
+            fit,
+            cons,
+            solver_cfg,
+            auto=auto,
+            estimated=estimated,
+            frame_of=frame_of,
+            from_checkpoint=from_checkpoint,
+            facts=body_facts,
+            sigma_def_mm=tc.sigma_def_mm,
+            max_error_px=tc.consensus.max_error_px,
+        )
+        rigid_obs = None
+        if cons is not None:
+            rigid_obs, moment_facts = rigid_observation(body, cons)
+            body_facts.update(moment_facts)
+    else:  # a long session's chunk: the body model and sigmas estimated once (adjust.chunks)
+        body, solver_cfg, rigid_obs = model.body, model.solver_cfg, model.rigid_obs
+        estimated = False
     mode.prepare(body)
-    rigid_obs = None
-    if cons is not None:
-        rigid_obs, moment_facts = rigid_observation(body, cons)
-        body_facts.update(moment_facts)
     timings["body_s"] = time.perf_counter() - t0
 
     # --- adjustment ---------------------------------------------------------------------
@@ -209,7 +220,8 @@ def track(cfg: DictConfig) -> dict:
             outputs=TRACK_OUTPUTS,
         )
 
-    few_var = None  # (K, 3) the spread of parts placed from their single views (else NaN)
+    # (K, 3) the spread of parts placed from their single views (else NaN)
+    few_var = None if model is None else model.few_var
     rigid, rigid_iterations = None, 0
     if mode.rigid_first(tc.deform, cons):
         # the rigid adjustment: the result itself, or the start of a deformable one
@@ -286,6 +298,9 @@ def track(cfg: DictConfig) -> dict:
     timings["write_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     summary["time_s"] = {k: round(v, 3) for k, v in timings.items()}
+    if chunk is not None:  # one pass over part of a long session: adjust.chunks writes it
+        kept = {"body": body, "solver_cfg": solver_cfg, "rigid_obs": rigid_obs, "few_var": few_var}
+        return chunk.take(summary, res=res, cols=cols, det=det, cons=cons, **kept)
     # every output as one set (deformnet.outputs.OutputSet): a run stopped at any moment (SIGKILL
     # included) leaves the previous run's outputs whole; summary.json last, with every file's
     # sha256 (outputs.files)
