@@ -77,7 +77,14 @@ TRACK_FAST = ["progress=false", "solver.max_iterations=8"]
 CAMERAS = ("top", "side", "front")  # the default rig's
 ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
 #: the outputs of adjust-triangulate / adjust-track that must belong to one run
-OUTPUT_NAMES = ("points3d.csv", "summary.json", "accepted.npz", "tokens.npz", "tracks.nwb")
+OUTPUT_NAMES = (
+    "points3d.csv",
+    "points3d.extra.csv",
+    "summary.json",
+    "accepted.npz",
+    "tokens.npz",
+    "tracks.nwb",
+)
 
 
 # --- the scene and its spoilt copies -------------------------------------------------------

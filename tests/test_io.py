@@ -224,10 +224,13 @@ def test_points3d_round_trip_with_nan(tmp_path):
     assert header == [
         "a_x", "a_y", "a_z", "a_error", "a_ncams", "a_score",
         "b_x", "b_y", "b_z", "b_error", "b_ncams", "b_score",
-        "pose_rx", "a_sigma", "b_sigma",
         "M_00", "M_01", "M_02", "M_10", "M_11", "M_12", "M_20", "M_21", "M_22",
         "center_0", "center_1", "center_2", "fnum",
     ]  # fmt: skip
+    # anipose's columns only above; ours in the sidecar
+    side = (tmp_path / "points3d.extra.csv").read_text().splitlines()
+    assert side[0].startswith("# extra columns of points3d.csv sha256=")
+    assert side[1].split(",") == ["fnum", "pose_rx", "a_sigma", "b_sigma"]
     d = read_points3d(path)
     assert d["parts"] == ("a", "b")
     assert np.array_equal(d["points"], pts, equal_nan=True)

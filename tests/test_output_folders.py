@@ -225,7 +225,7 @@ def _track_args(scene: Path, out: Path, *extra: str) -> list[str]:
             "progress=false", "solver.max_iterations=6", *extra]  # fmt: skip
 
 
-TRACK_SET = ["accepted.npz", "points3d.csv", "tokens.npz"]
+TRACK_SET = ["accepted.npz", "points3d.csv", "points3d.extra.csv", "tokens.npz"]
 
 
 def test_track_killed_at_any_moment_leaves_one_whole_run(scene, tmp_path):

@@ -2,18 +2,25 @@
 
 One row per frame; for each part, in order, the columns ``{part}_x``, ``{part}_y``, ``{part}_z``
 (mm), ``{part}_error`` (mean reprojection error over the views used, px), ``{part}_ncams``
-(number of views used) and ``{part}_score`` (lowest likelihood among those views); then any
-extra columns (e.g. ``pose_rx`` .. ``pose_tz``, ``{part}_sigma``) in the order given; then
+(number of views used) and ``{part}_score`` (lowest likelihood among those views); then
 anipose's axes columns ``M_00`` .. ``M_22`` and ``center_0`` .. ``center_2`` (the same value in
 every row); then ``fnum`` (frame number). Values not estimated are NaN (empty cells, as pandas
-and anipose write them); floats are written exactly.
+and anipose write them); floats are written exactly. These are exactly the columns anipose
+writes, so tools that read anipose's files (movement's ``load_poses.from_anipose_file``, which
+refuses any other column) read ours with their default arguments.
+
+Our further per-frame columns (e.g. ``pose_rx`` .. ``pose_tz``, ``pose_sigma_r``,
+``{part}_sigma``) go to a sidecar beside the file, ``<stem>.extra.csv``
+(`deformnet.tables.extra_path`): a first line ``# extra columns of <name> sha256=<hex>`` (the
+points3d file's bytes), then ``fnum`` and the columns. `read_points3d` joins them back (a
+sidecar written for other bytes or frames is left out with a warning); files of older versions
+with those columns in the points3d file itself are read as well.
 
 The axes columns say how the points' frame relates to the calibration's world frame, as anipose's
 ``triangulation.axes`` writes them: ``X_out = M X_world - center`` (M a (3, 3) rotation, center
 (3,) mm in the output frame), so ``X_world = M^T (X_out + center)``. Without an axes alignment
-(`adjust.kinematics.align_axes`) M is the identity and center 0: the points are in the
-calibration's world frame. anipose's own files, and tools that read them (movement's
-``from_anipose_file``), expect these columns.
+(`adjust.kinematics.align_tracks`) M is the identity and center 0: the points are in the
+calibration's world frame.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ import pandas as pd
 
 from adjust.io.errors import InputError
 from deformnet.atomic import atomic_path
-from deformnet.tables import read_csv, xyz_parts
+from deformnet.tables import extra_header, extra_path, read_points3d_table, xyz_parts
 
 log = logging.getLogger(__name__)
 
@@ -53,13 +60,15 @@ def write_points3d(
     M: np.ndarray | None = None,
     center: np.ndarray | None = None,
 ) -> Path:
-    """Write 3D tracks atomically.
+    """Write 3D tracks atomically (and their extra columns' sidecar, see the module doc).
 
     points: (T, K, 3) mm, NaN where not estimated; error, score: (T, K) float; ncams: (T, K)
     (written as integers when all finite). extra: column name -> (T,) array; a name containing
-    ``{part}`` with a (T, K) array gives one column per part (``"{part}_sigma"``). fnum: (T,)
-    frame numbers (default 0..T-1). M: (3, 3), center: (3,) mm: the axes columns (see the
-    module doc; default identity and 0, the calibration's world frame).
+    ``{part}`` with a (T, K) array gives one column per part (``"{part}_sigma"``); written to
+    ``<stem>.extra.csv`` beside `path` (without extra columns a sidecar there is removed: it
+    belonged to an earlier file). fnum: (T,) frame numbers (default 0..T-1). M: (3, 3), center:
+    (3,) mm: the axes columns (see the module doc; default identity and 0, the calibration's
+    world frame). Returns `path`.
     """
     parts = [str(p) for p in parts]
     pts = np.asarray(points, dtype=np.float64)
@@ -83,6 +92,17 @@ def write_points3d(
         cols[f"{p}_error"] = per_part["error"][:, k].astype(np.float64)
         cols[f"{p}_ncams"] = nc[:, k].astype(np.int64) if nc_int else nc[:, k]
         cols[f"{p}_score"] = per_part["score"][:, k].astype(np.float64)
+    rot = np.eye(3) if M is None else np.asarray(M, dtype=np.float64)
+    ctr = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
+    if rot.shape != (3, 3) or ctr.shape != (3,):
+        raise ValueError(f"M must be (3, 3) and center (3,), got {rot.shape} and {ctr.shape}")
+    for n, v in zip(AXES_COLUMNS, np.concatenate([rot.ravel(), ctr])):
+        cols[n] = np.full(T, float(v))
+    f = np.arange(T) if fnum is None else np.asarray(fnum)
+    if f.shape != (T,):
+        raise ValueError(f"fnum must have shape ({T},), got {f.shape}")
+    cols["fnum"] = f
+    more: dict[str, np.ndarray] = {}
     for name, arr in (extra or {}).items():
         a = np.asarray(arr)
         names = {name: a} if "{part}" not in name else None
@@ -94,41 +114,41 @@ def write_points3d(
             v = np.asarray(v)
             if v.shape != (T,):
                 raise ValueError(f"extra column '{n}' must have shape (T,) = ({T},), got {v.shape}")
-            if n in cols or n == "fnum":
+            if n in cols or n in more:
                 raise ValueError(f"extra column '{n}' clashes with another column")
-            cols[n] = v
-    rot = np.eye(3) if M is None else np.asarray(M, dtype=np.float64)
-    ctr = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
-    if rot.shape != (3, 3) or ctr.shape != (3,):
-        raise ValueError(f"M must be (3, 3) and center (3,), got {rot.shape} and {ctr.shape}")
-    for n, v in zip(AXES_COLUMNS, np.concatenate([rot.ravel(), ctr])):
-        if n in cols:
-            raise ValueError(f"extra column '{n}' clashes with anipose's axes columns")
-        cols[n] = np.full(T, float(v))
-    f = np.arange(T) if fnum is None else np.asarray(fnum)
-    if f.shape != (T,):
-        raise ValueError(f"fnum must have shape ({T},), got {f.shape}")
-    cols["fnum"] = f
-    # streamed in blocks of rows: a long session's table is never built whole in memory
+            more[n] = v
+    path = Path(path)
+    _write_table(path, cols, T)
+    side = extra_path(path)
+    if more:
+        _write_table(side, {"fnum": f, **more}, T, first_line=extra_header(path))
+    else:
+        side.unlink(missing_ok=True)
+    return path
+
+
+def _write_table(path: Path, cols: Mapping[str, np.ndarray], T: int, first_line: str = "") -> None:
+    """`cols` (name -> (T,)) as a CSV, atomically, after an optional `first_line`; streamed in
+    blocks of rows: a long session's table is never built whole in memory."""
     with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        fh.write(first_line)
         pd.DataFrame(columns=list(cols)).to_csv(fh, index=False)
         for a in range(0, T, ROWS_PER_BLOCK):
             block = pd.DataFrame({n: v[a : a + ROWS_PER_BLOCK] for n, v in cols.items()})
             block.to_csv(fh, index=False, header=False)
-    return Path(path)
 
 
 def read_points3d(path: str | os.PathLike) -> dict:
-    """Read a points3d CSV (ours or anipose's).
+    """Read a points3d CSV (ours or anipose's) and its extra columns' sidecar when there is one.
 
     Returns a dict: ``parts`` (tuple), ``points`` (T, K, 3), ``error``, ``ncams``, ``score``
     (T, K) float64 (NaN where a column is absent), ``fnum`` (T,) (the detection files' frame
     numbers; strings for labelled images), ``M`` (3, 3) and ``center`` (3,) (anipose's axes
     columns; identity and 0 when the file has none), ``extra`` {column: (T,)} for every other
-    column, in file order.
+    column (the file's, then the sidecar's), in file order.
     """
     path = Path(path)
-    df = read_csv(path, "points3d file", InputError)
+    df = read_points3d_table(path, "points3d file", InputError)
     if len(df) == 0:
         raise InputError(f"{path}: no rows (a header without frames): nothing to read")
     for col in df.columns:
