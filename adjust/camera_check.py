@@ -43,6 +43,8 @@ import torch
 
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import Detections, InputError
+from adjust.resection import resect
+from adjust.triangulate import triangulate
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +60,6 @@ RESECTION_POINTS = 100  #: points (spread over the frames) a diagnostic resectio
 
 def _tri(det: Detections, cams: Sequence[Camera], idx: Sequence[int]) -> np.ndarray:
     """(T, K, 3) points triangulated from cameras `idx` (NaN where < 2 of them saw a part)."""
-    from adjust.triangulate import triangulate
 
     ct = CameraTensors.from_cameras([cams[i] for i in idx], dtype=torch.float64)
     with torch.no_grad():
@@ -140,8 +141,6 @@ def _diagnose(det, cams, active, c, X, err) -> tuple[str, str]:
                 + (f" and '{cams[d].name}''s fit it to {e_dc:.1f} px" if both else "")
             )
     if seen.sum() >= 6:
-        from adjust.resection import resect
-
         idx = np.flatnonzero(seen.reshape(-1))
         if idx.size > RESECTION_POINTS:
             idx = idx[np.linspace(0, idx.size - 1, RESECTION_POINTS).astype(int)]

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from adjust import adapt
 from adjust.body_fit import check_world_up, triangulate_points
 from adjust.camera import CameraTensors
 from adjust.io import Detections, InputError
@@ -464,15 +465,11 @@ class SelfNet(NetMode):
     prior_without_net = True
 
     def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
-        # deformation=self only: the fine-tuning's data module loads Lightning, which the
-        # library does not import otherwise (tests/test_layering.py)
-        from adjust.adapt import adapt_net
-
         t1 = time.perf_counter()
         tokens = session_tokens(
             poses, a.body.points, a.cons, a.body.parts, a.body.name, source=a.where
         )
-        model, facts = adapt_net(tokens, a.out, a.adapt_cfg, a.progress)
+        model, facts = adapt.adapt_net(tokens, a.out, a.adapt_cfg, a.progress)
         a.timings["adapt_s"] = time.perf_counter() - t1
         self.tokens, self.adapt_facts = tokens, facts
         return model, {"adapt": facts}

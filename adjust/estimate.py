@@ -25,10 +25,15 @@ from adjust.camera import CameraTensors
 from adjust.lsq.geometry import (
     normal_blocks_3d,
     project_components,
+    project_with_jacobian,
     rotation_gemm_weights,
+    so3_exp,
 )
+from adjust.lsq.robust import kernel_weight
 from adjust.lsq.stochastic import body_offsets, detector_sigma
 from adjust.sym3 import sym3_inverse
+from adjust.triangulate import triangulate
+from deformnet.so3 import rodrigues_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +87,6 @@ def consensus(
     the gate, and a triangulated point is an observation when every view it rests on is within
     the gate.
     """
-    from adjust.triangulate import triangulate
 
     observed_views = np.isfinite(xy).all(-1) & (weight > 0)
 
@@ -145,7 +149,6 @@ def deformation_moments(
     """Second moments (K, 3) mm^2 per body axis of the observed parts about the rigid model
     points at ``poses`` (T, 6) (mean^2 + variance of the body-frame offsets), and the offsets'
     means (K, 3). A part never observed gets the largest moment of the others."""
-    from deformnet.so3 import rodrigues_to_matrix
 
     R = rodrigues_to_matrix(torch.as_tensor(poses[:, :3], dtype=torch.float64)).numpy()
     o = body_offsets(R, poses[:, 3:], np.where(observed[..., None], X, np.nan), body)
@@ -214,8 +217,6 @@ def place_from_rays(
     (T, K, C) (0 = missing); body_points (K, 3) mm; var (K, 3) mm^2 (kept where not placed);
     which (K,) bool -> `RayPlacement`.
     """
-    from adjust.lsq.geometry import project_with_jacobian, so3_exp
-    from adjust.lsq.robust import kernel_weight
 
     xy = np.asarray(xy, dtype=np.float64)
     T, K, C, _ = xy.shape

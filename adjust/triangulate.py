@@ -24,6 +24,7 @@ from torch import Tensor
 from adjust.camera import Camera, CameraTensors, reprojection_errors
 from adjust.distortion import undistort_points
 from adjust.sym3 import sym3_solve
+from deformnet.threads import torch_threads
 
 
 @dataclass(frozen=True)
@@ -171,8 +172,6 @@ def triangulate(
     weight = weight.to(dtype).reshape(-1, C)
     if bool((weight < 0).any()):
         raise ValueError("weights must be >= 0 (0 = missing)")
-
-    from deformnet.threads import torch_threads
 
     with torch_threads(num_threads):
         parts = [

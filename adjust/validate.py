@@ -30,6 +30,10 @@ import logging
 import numpy as np
 import torch
 
+from adjust.estimate import consensus
+from adjust.lsq.fusion import held_out_view_errors
+from adjust.lsq.observation import InterpObservation, RigidObservation
+
 log = logging.getLogger(__name__)
 
 
@@ -57,9 +61,6 @@ def choose_measured_prior(
     frames (the cost stays bounded; thousands of held-out detections decide). Returns the
     choice and facts (median held-out errors, the number of held-out detections, per camera,
     the frames used)."""
-    from adjust.estimate import consensus
-    from adjust.lsq.fusion import held_out_view_errors
-    from adjust.lsq.observation import InterpObservation, RigidObservation
 
     T, K, C, _ = xy.shape
     if C < 3:

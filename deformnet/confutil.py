@@ -1,8 +1,10 @@
 """Config helpers for code that accepts both Hydra/OmegaConf nodes and plain mappings: plain
-values (`to_plain`), a project config (`compose`), an integer setting (`int_setting`)."""
+values (`to_plain`), a project config (`compose`), an integer setting (`int_setting`), a frame
+rate (`check_fps`)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 
@@ -35,3 +37,17 @@ def int_setting(cfg: Any, key: str, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{key} must be an integer >= {minimum}, got {value!r}")
     return value
+
+
+def check_fps(fps: Any, what: str) -> float | None:
+    """A frame rate from a config (Hz): None stays None; anything not a finite number > 0 is a
+    ValueError naming `what`."""
+    if fps is None:
+        return None
+    try:
+        f = float(fps)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a frame rate in Hz (a number > 0), got {fps!r}") from None
+    if not (math.isfinite(f) and f > 0):
+        raise ValueError(f"{what} must be a frame rate in Hz (a number > 0), got {fps!r}")
+    return f

@@ -3,7 +3,8 @@
 - `deformnet` never imports `adjust` (not at the top of a module, not inside a function, not by
   ``importlib.import_module``): the learning half stands alone; `adjust` may import `deformnet`.
 - The library never imports an app: no module of `adjust` outside `adjust/apps/` (one module
-  per console script) imports `adjust.apps`, and `adjust/entry.py` names only app modules.
+  per console script) imports `adjust.apps`, and `adjust/entry.py` names only app modules;
+  `adjust/io` imports no behavior code.
 - Every module of `adjust` and of `deformnet.sim` imports without Lightning (only training,
   `deformnet.lit` / `deformnet.train` / ..., needs it), and so do the `deformnet` modules that
   `adjust-track` loads at run time outside training (`RUNTIME`).
@@ -72,6 +73,24 @@ def test_the_library_never_imports_an_app():
     assert not bad, "the library (adjust outside adjust/apps) must not import an app:\n" + (
         "\n".join(bad)
     )
+
+
+BEHAVIOR = ("deformnet.behavior", "deformnet.classify", "deformnet.heads", "deformnet.pseudo",
+            "deformnet.sequence")  # fmt: skip
+
+
+def test_the_readers_never_import_behavior_code():
+    """adjust/io (the files' readers and writers) uses no behavior module (it took the frame
+    rate check from deformnet.behavior_labels; now deformnet.confutil.check_fps)."""
+    files = sorted((ROOT / "adjust" / "io").rglob("*.py"))
+    assert files
+    bad = [
+        f"{p.relative_to(ROOT)}:{line} imports {mod}"
+        for p in files
+        for line, mod in _imported_modules(p)
+        if mod.startswith(BEHAVIOR)
+    ]
+    assert not bad, "adjust/io must not import behavior code:\n" + "\n".join(bad)
 
 
 def test_every_console_script_is_an_app_module():

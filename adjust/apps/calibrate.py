@@ -32,6 +32,7 @@ from omegaconf import DictConfig
 from adjust.apps.common import finite_or_none, hydra_app, prepare_output
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import InputError, load_calibration, read_dlc, save_calibration
+from adjust.resection import resect
 from adjust.settings import required, setting
 from deformnet.atomic import write_text
 from deformnet.paths import regular_file
@@ -140,7 +141,6 @@ def _files(folder: Path, cameras) -> dict[str, Path]:
 
 def run(cfg: DictConfig) -> dict:
     """Resect every camera, write calibration.toml and summary.json; returns the summary."""
-    from adjust.resection import resect
 
     p3 = required(cfg, "input.points3d", "calibrate")
     p2 = Path(required(cfg, "input.points2d", "calibrate"))

@@ -36,7 +36,9 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
+from adjust import plot
 from adjust.apps.common import finite_or_none, run_or_exit
+from adjust.camera import CameraTensors, project_cameras
 from adjust.io import InputError, load_calibration, load_scene, read_points3d
 from adjust.settings import load_kwargs, required
 from deformnet.atomic import atomic_path, write_text
@@ -126,8 +128,6 @@ def _project(points: np.ndarray, cameras) -> np.ndarray:
     """(T, K, 3) mm -> (T, K, C, 2) px (NaN where a point is missing)."""
     import torch
 
-    from adjust.camera import CameraTensors, project_cameras
-
     X = torch.as_tensor(np.nan_to_num(points, nan=0.0))
     uv = project_cameras(X, CameraTensors.from_cameras(list(cameras))).numpy()
     uv[~np.isfinite(points).all(-1)] = np.nan
@@ -186,7 +186,6 @@ def _tile(images: list, label: str):
 
 def run(cfg: DictConfig) -> dict:
     """Draw the figures; returns {"output_dir", "files": {name: path}, ...}."""
-    from adjust import plot
 
     tracks_path = required(cfg, "tracks", "plot")
     inp = cfg.get("input") or {}

@@ -28,10 +28,16 @@ from pathlib import Path
 
 import numpy as np
 
+from adjust import plot
 from adjust.apps.common import finite_or_none
+from adjust.camera import CameraTensors, project_cameras
+from adjust.events import detect_events, first_operated
 from adjust.io import load_calibration, load_calibration_metadata, load_scene, read_points3d
 from adjust.metrics import point_errors
+from adjust.plot import camera_axes
 from deformnet.atomic import write_text
+from deformnet.behavior_labels import bouts
+from deformnet.behavior_report import confusion_figure, ethogram_figure, evaluate
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +161,6 @@ def sample_frames(truth: Mapping, codes_fn, n: int = 3) -> list[int]:
 
 def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, data: dict) -> dict:
     """Write the report's pictures into out/figures; returns name -> relative path."""
-    from adjust import plot
 
     fig_dir = out / "figures"
     figs: dict[str, str] = {}
@@ -213,8 +218,6 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
     # sample frames: the primary tracks reprojected over every camera's detections
     import torch
 
-    from adjust.camera import CameraTensors, project_cameras
-
     cams_t = CameraTensors.from_cameras(cameras)
     uv_all = project_cameras(torch.as_tensor(tracks[primary]["points"]), cams_t).numpy()
     _, det = load_scene(calib, scene / "detections", None)
@@ -262,8 +265,6 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
         keep("curves", plot.curves_figure(nets))
     beh = data.get("behavior")
     if beh and "_labels" in beh:
-        from deformnet.behavior_report import confusion_figure, ethogram_figure
-
         lab = beh.pop("_labels")
         s = beh["session"]
         keep(
@@ -307,9 +308,6 @@ def behavior_numbers(record: Mapping, truth: Mapping) -> dict | None:
     if not cls:
         return None
     import pandas as pd
-
-    from deformnet.behavior_labels import bouts
-    from deformnet.behavior_report import evaluate
 
     rep = json.loads((Path(cls["dir"]) / "report.json").read_text())
     classes = list(rep["raw"]["per_class"])
@@ -369,8 +367,6 @@ def event_numbers(record: Mapping, truth: Mapping) -> dict | None:
     if not ev:
         return None
     import pandas as pd
-
-    from adjust.events import detect_events, first_operated
 
     folder = Path(ev["dir"])
     summary = json.loads((folder / "summary.json").read_text())
@@ -460,7 +456,6 @@ def compute(out: Path, record: Mapping) -> dict:
         row["summary"] = str(Path(record["methods"][m]) / "summary.json")
     scene_json = json.loads((scene / "scene.json").read_text())
     cameras = load_calibration(scene / "calibration.toml")
-    from adjust.plot import camera_axes
 
     data: dict = {
         "title": "mousetrack demo report",

@@ -25,6 +25,7 @@ from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.confutil import int_setting
 from deformnet.paths import CONF_DIR, output_dir
+from deformnet.sim import simulate
 
 log = logging.getLogger(__name__)
 
@@ -33,10 +34,6 @@ DETECTOR_STREAM = 1
 
 
 def _simulate(cfg: DictConfig, body: BodyModel, num_frames: int, seed: int) -> Any:
-    try:
-        from deformnet.sim import simulate
-    except ImportError as e:  # pragma: no cover - the simulator ships with the package
-        raise RuntimeError(f"adjust-simulate needs the simulator deformnet.sim: {e}") from e
     return simulate(cfg.sim, num_frames=num_frames, seed=seed, body=body)
 
 

@@ -26,6 +26,7 @@ from adjust.camera_check import check_from_config
 from adjust.io import check_cameras_usable, load_scene, write_points3d
 from adjust.metrics import stats
 from adjust.settings import load_kwargs, required, setting
+from adjust.triangulate import triangulate
 from deformnet.body import BodyModel
 
 log = logging.getLogger(__name__)
@@ -35,7 +36,6 @@ WEIGHTS = ("likelihood", "uniform")
 
 def run(cfg: DictConfig) -> dict:
     """Load, triangulate, write points3d.csv and summary.json; returns the summary."""
-    from adjust.triangulate import triangulate
 
     calibration = required(cfg, "input.calibration", "triangulate")
     detections = required(cfg, "input.detections", "triangulate")

@@ -33,6 +33,7 @@ import numpy as np
 from adjust.camera import Camera
 from adjust.io.errors import InputError
 from deformnet.atomic import write_text
+from deformnet.confutil import check_fps
 from deformnet.paths import regular_file
 
 try:  # Python >= 3.11
@@ -258,8 +259,6 @@ def recording_fps(fps, metadata: dict, where: str = "the calibration") -> float 
     """A recording's frame rate (Hz): `fps` (a config's) where given, else the calibration's
     ``[metadata] fps`` (`metadata`: `load_calibration_metadata`'s table of `where`), else None.
     One that is not a number > 0 is an InputError naming where it came from."""
-    from deformnet.behavior_labels import check_fps
-
     if fps is not None:
         key, value = "fps", fps
     else:

@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from adjust.io.errors import InputError
+from adjust.io.sleap import is_sleap_file, sleap_edges
+from deformnet.tables import read_csv
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +68,6 @@ def spanning_edges(points: np.ndarray) -> list[tuple[int, int]]:
 
 def read_skeleton_csv(path: str | os.PathLike) -> list[tuple[str, str]]:
     """``skeleton.csv`` (``part_a,part_b``, one edge per row) -> [(a, b)]."""
-    from deformnet.tables import read_csv
 
     path = Path(path)
     df = read_csv(path, "skeleton file", InputError)
@@ -88,7 +89,6 @@ def read_skeleton_csv(path: str | os.PathLike) -> list[tuple[str, str]]:
 def read_skeleton(path: str | os.PathLike) -> list[tuple[str, str]]:
     """The edges of a skeleton file: ``skeleton.csv`` or a SLEAP file (``.slp``,
     ``.analysis.h5`` / SLEAP HDF5)."""
-    from adjust.io.sleap import is_sleap_file, sleap_edges
 
     path = Path(path)
     if not path.is_file():
@@ -102,7 +102,6 @@ def detection_edges(detections: str | os.PathLike) -> tuple[list[tuple[str, str]
     """The SLEAP edges of a session's detection folder (or one file): (edges, source file), or
     None when it has no SLEAP file with edges. Files whose edges differ: the first (sorted by
     name) is used, with a warning."""
-    from adjust.io.sleap import is_sleap_file, sleap_edges
 
     path = Path(detections)
     files = sorted(path.iterdir()) if path.is_dir() else [path] if path.is_file() else []

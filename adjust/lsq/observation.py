@@ -28,7 +28,9 @@ import torch
 from torch import Tensor
 
 from adjust.lsq.geometry import retract, rigid_points, so3_exp
+from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 from deformnet.so3 import skew
+from deformnet.threads import torch_threads
 
 
 @runtime_checkable
@@ -180,8 +182,6 @@ class InterpObservation:
 
     def prepare(self, poses: Tensor) -> None:
         import numpy as np
-
-        from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 
         R = so3_exp(poses[:, :3]).detach()
         Rn = R.cpu().numpy().astype(np.float64)
@@ -539,7 +539,6 @@ class NetObservation(DeformableObservation):
         same = self._M is not None and self._M.shape[0] == poses.shape[0]
         if same and self.jacobian == "frozen" and self.evaluations >= self.refresh:
             return  # the prediction is held in body coordinates from here on
-        from deformnet.threads import torch_threads
 
         self._net_inputs(poses)
         self.interp.prepare(poses)

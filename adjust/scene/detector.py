@@ -16,10 +16,12 @@ from scipy.ndimage import convolve1d
 from scipy.special import ndtri
 
 from adjust.camera import Camera, CameraTensors, depth, project_cameras
+from adjust.io import Detections
 from adjust.scene import occlusion
 from adjust.scene._checks import _range
 from adjust.scene.occlusion import Ellipsoid
 from deformnet.confutil import to_plain
+from deformnet.paths import CONF_DIR
 from deformnet.windows import mirror_permutation
 
 __all__ = [
@@ -123,8 +125,6 @@ def detector_config(cfg: Any = None) -> DetectorConfig:
     if cfg is None:
         from omegaconf import OmegaConf
 
-        from deformnet.paths import CONF_DIR
-
         cfg = OmegaConf.load(CONF_DIR / "detector" / "default.yaml")
     if isinstance(cfg, DetectorConfig):
         return cfg
@@ -190,7 +190,6 @@ class SceneDetections:
     def to_detections(self):
         """The in-memory twin of what `adjust.io.load_detections` reads from the written
         scene folder: an `adjust.io.Detections` (xy NaN below the threshold, no files)."""
-        from adjust.io import Detections
 
         return Detections(
             cameras=tuple(self.cameras),

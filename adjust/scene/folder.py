@@ -9,7 +9,9 @@ from typing import Any
 import numpy as np
 
 from adjust.camera import Camera
+from adjust.io import save_calibration, write_dlc_csv
 from adjust.scene.detector import SceneDetections
+from deformnet.atomic import atomic_path
 
 __all__ = ["write_scene"]
 
@@ -33,9 +35,6 @@ def write_scene(
     Returns {"dir", "calibration", "detections": {camera: path}, "truth"}.
     """
     from pathlib import Path
-
-    from adjust.io import save_calibration, write_dlc_csv
-    from deformnet.atomic import atomic_path
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -107,8 +106,6 @@ def write_truth_labels(scene_dir: Any, path: Any) -> Any:
     from pathlib import Path
 
     import pandas as pd
-
-    from deformnet.atomic import atomic_path
 
     src = Path(scene_dir) / "truth.npz"
     with np.load(src) as z:

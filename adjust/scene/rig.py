@@ -17,6 +17,7 @@ import torch
 from adjust.camera import Camera, CameraTensors, depth, look_at_pose, project_cameras
 from adjust.scene._checks import _vec
 from deformnet.confutil import to_plain
+from deformnet.paths import CONF_DIR
 from deformnet.so3 import matrix_to_rodrigues
 
 log = logging.getLogger(__name__)
@@ -139,8 +140,6 @@ def default_rig(cfg: Any = None, arena_size: Sequence[float] | None = None) -> l
     ``conf/rig/default.yaml``. Logs a warning when the arena is not fully in a camera's view."""
     if cfg is None:
         from omegaconf import OmegaConf
-
-        from deformnet.paths import CONF_DIR
 
         cfg = OmegaConf.load(CONF_DIR / "rig" / "default.yaml")
     plain = to_plain(cfg)
