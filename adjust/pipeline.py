@@ -5,7 +5,7 @@ Load the calibration and one detection file per camera (`adjust.io`), check the 
 session's 3D observations and detector noise), the body model (`adjust.body_fit`), the rigid
 pose-track adjustment (`adjust.lsq.adjust_poses`), then the deformation mode
 (`adjust.deformation_modes`, chosen once from ``deformation=``), then the outputs, written as
-one set (`deformnet.outputs.OutputSet`) with the summary (`adjust.summary`).
+one set (`adjust.track_outputs`) with the summary (`adjust.summary`).
 
 `track(cfg)` is the plain function; `run(cfg)` is it within the configured torch threads
 (``threads``), the function behind `adjust-track` (`adjust.apps.track`) and its batches.
@@ -28,49 +28,24 @@ from adjust.camera_check import check_from_config
 from adjust.chunks import ChunkHooks, track_long
 from adjust.deformation_modes import Adjusting, mode_from_config
 from adjust.estimate import consensus
-from adjust.export import session_start, write_nwb
 from adjust.io import (
-    InputError,
     UnknownPartsError,
     check_cameras_usable,
-    load_calibration_metadata,
     load_scene,
-    recording_fps,
-    write_points3d,
 )
 from adjust.lsq.solver import TRACK_OUTPUTS, adjust_poses
 from adjust.session import with_session
 from adjust.settings import load_kwargs, required
 from adjust.summary import report_result, result_summary, track_columns, track_health
-from adjust.tokenize import session_tokens
 from adjust.track_config import TrackConfig, resolve_deprecated
+from adjust.track_outputs import check_nwb_output, write_outputs
 from deformnet.body import BodyModel
-from deformnet.confutil import to_plain
-from deformnet.outputs import OutputSet
 from deformnet.paths import output_dir
-from deformnet.tables import extra_path
 from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
 __all__ = ["run", "track"]
-
-
-def check_nwb_output(cfg: DictConfig, calibration: str) -> None:
-    """``output.nwb=true`` needs the recording's frame rate and start time: checked before
-    any computing."""
-    if not cfg.output.get("nwb", False):
-        return
-    meta = load_calibration_metadata(calibration)
-    if recording_fps(cfg.output.get("fps"), meta) is None:
-        raise InputError(
-            f"output.nwb=true needs the recording's frame rate: set output.fps=... (Hz), or "
-            f"give a calibration whose [metadata] has fps ({calibration} has none)"
-        )
-    try:
-        session_start(cfg.output.get("session_start_time"), meta, calibration)
-    except InputError as exc:
-        raise InputError(f"output.nwb=true: {exc} (output.session_start_time=...)") from None
 
 
 def run(cfg: DictConfig) -> dict:
@@ -301,47 +276,8 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
     if chunk is not None:  # one pass over part of a long session: adjust.chunks writes it
         kept = {"body": body, "solver_cfg": solver_cfg, "rigid_obs": rigid_obs, "few_var": few_var}
         return chunk.take(summary, res=res, cols=cols, det=det, cons=cons, **kept)
-    # every output as one set (deformnet.outputs.OutputSet): a run stopped at any moment (SIGKILL
-    # included) leaves the previous run's outputs whole; summary.json last, with every file's
-    # sha256 (outputs.files)
-    with OutputSet(out) as staged:
-        # which detections every point rests on (for figures: adjust-plot, the demo report)
-        np.savez_compressed(
-            staged.path("accepted.npz"),
-            accepted=cols.observed,
-            parts=np.asarray(det.parts),
-            cameras=np.asarray(det.cameras),
-        )
-        summary["outputs"]["accepted"] = str(out / "accepted.npz")
-        if cons is not None:  # self-supervised tokens for deformnet-train data=sessions
-            tokens = session_tokens(
-                res.poses, body.points, cons, body.parts, body.name, source=str(out)
-            )
-            tokens.save(staged.path("tokens.npz"))
-            summary["outputs"]["tokens"] = str(out / "tokens.npz")
-        write_points3d(
-            staged.path("points3d.csv"),
-            det.parts,
-            cols.points,
-            cols.error,
-            cols.ncams,
-            cols.score,
-            extra=cols.extra,
-            fnum=fnum,
-        )
-        staged.path(extra_path(points_path).name)  # its sidecar (pose, sigmas) joins the set
-        summary["outputs"]["extra"] = str(extra_path(points_path))
-        if cfg.output.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
-            write_nwb(
-                staged.path("tracks.nwb"),
-                staged.path("points3d.csv"),
-                calibration,
-                fps=cfg.output.get("fps"),
-                session_start_time=cfg.output.get("session_start_time"),
-                subject=to_plain(cfg.output.get("subject")) or None,
-                detections=detections,
-            )
-            summary["outputs"]["nwb"] = str(out / "tracks.nwb")
-        summary = staged.commit(summary)
+    summary = write_outputs(
+        out, summary, det, cols, res.poses, body, cons, cfg.output, calibration, detections
+    )
     report_result(summary, where, out, fnum)
     return summary
