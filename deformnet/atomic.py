@@ -2,8 +2,8 @@
 
 A reader never sees a half-written file, and a crash leaves the previous file (or none); the
 temporary file is removed on any exception, KeyboardInterrupt and SystemExit included (the apps
-turn SIGTERM into SystemExit: `adjust.apps.common.run_or_exit`). The file gets the permissions a plain
-``open()`` would give it (0666 less the umask).
+turn SIGTERM into SystemExit: `adjust.apps.common.run_or_exit`). The file gets the permissions a
+plain ``open()`` would give it (0666 less the umask).
 """
 
 from __future__ import annotations
