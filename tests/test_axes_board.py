@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import hydra
 import numpy as np
 import pandas as pd
 import pynwb
@@ -15,6 +16,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from adjust.apps.export import run as export_run
 from adjust.camera import Camera, look_at_pose, project_points
 from adjust.export import read_nwb_tracks, write_anipose, write_nwb
 from adjust.io import InputError, read_points3d, save_calibration, write_points3d
@@ -28,6 +30,7 @@ from adjust.kinematics import (
     board_frame_from_files,
     read_board_corners,
 )
+from deformnet.paths import CONF_DIR
 
 ROWS, COLS, SQUARE = 5, 7, 30.0
 BOARD = BoardConfig(detections="corners.csv", rows=ROWS, columns=COLS, square_mm=SQUARE)
@@ -250,3 +253,28 @@ def test_board_aligns_an_nwb_export(tmp_path):
     with pynwb.NWBHDF5IO(str(path), "r") as io:
         notes = io.read().notes
     assert "plane_rms_mm" in notes and "square_mm_measured" in notes
+
+
+def test_adjust_export_takes_a_board(tmp_path):
+    """adjust-export anipose with axes.board.* (Hydra's compose API, as the console script):
+    the output is in the board's frame; a board without calibration is refused."""
+    calib = save_calibration(tmp_path / "calibration.toml", CAMS)
+    corners = _write_corners(tmp_path / "corners.csv", _pixels(_board_world(), CAMS), CAMS)
+    tracks, onboard = _tracks(tmp_path)
+    board = [
+        f"axes.board.detections={corners}",
+        f"axes.board.rows={ROWS}",
+        f"axes.board.columns={COLS}",
+        f"axes.board.square_mm={SQUARE}",
+    ]
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose(
+            "export", ["format=anipose", f"tracks={tracks}", f"calibration={calib}", *board]
+        )
+        bare = hydra.compose("export", ["format=anipose", f"tracks={tracks}", *board])
+    res = export_run(cfg)
+    d = read_points3d(res["output"])
+    np.testing.assert_allclose(d["points"], onboard, atol=1e-5)
+    np.testing.assert_allclose(d["M"], M_TRUE, atol=1e-9)
+    with pytest.raises(InputError, match="axes.board needs calibration="):
+        export_run(bare)

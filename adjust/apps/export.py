@@ -5,6 +5,9 @@
         subject.species='Mus musculus' subject.sex=F subject.age=P90D \
         [bouts=bouts.csv] [events=events.csv] [skeleton=skeleton.csv] output=OUT/session.nwb
     adjust-export anipose tracks=OUT/points3d.csv axes.x=[a,b] axes.y=[a,c]
+    adjust-export anipose tracks=OUT/points3d.csv calibration=calibration.toml \
+        axes.board.detections=board.csv axes.board.rows=5 axes.board.columns=7 \
+        axes.board.square_mm=30
     adjust-export angles tracks=OUT/points3d.csv +angles.knee=[hip,knee,ankle]
 
 The first bare word is the format (``nwb``, ``anipose``, ``angles``; also ``format=...``).
@@ -23,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from adjust.apps.common import hydra_app
 from adjust.export import FILE_KEYS, SUBJECT_KEYS, write_anipose, write_nwb
 from adjust.io.errors import InputError
-from adjust.kinematics import angles_csv
+from adjust.kinematics import alignment_kwargs, angles_csv
 from adjust.settings import required
 from deformnet.paths import regular_file
 
@@ -44,17 +47,9 @@ def _plain(value):
 
 
 def axes_kwargs(cfg: DictConfig) -> dict:
-    """``axes`` and ``origin`` of `adjust.kinematics.align_tracks` from the ``axes`` node
-    (``x``, ``y``, ``z``: [from, to]; ``origin``); {} without one."""
-    node = _plain(cfg.get("axes")) or {}
-    if not isinstance(node, dict):
-        raise ValueError(f"axes must be a mapping (axes.x=[a,b] axes.y=[a,c]), got {node!r}")
-    axes = {k: v for k, v in node.items() if k != "origin" and v is not None}
-    if not axes:
-        if node.get("origin") is not None:
-            raise ValueError("axes.origin needs two axes (axes.x=[a,b] axes.y=[a,c])")
-        return {}
-    return {"axes": axes, "origin": node.get("origin")}
+    """``axes`` and ``origin`` of `adjust.kinematics.align_tracks` from the ``axes`` node: named
+    points or a calibration board (`adjust.kinematics.alignment_kwargs`); {} without one."""
+    return alignment_kwargs(_plain(cfg.get("axes")), _opt(cfg, "calibration"))
 
 
 def nwb_kwargs(cfg: DictConfig) -> dict:
