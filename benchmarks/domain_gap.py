@@ -62,7 +62,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -87,6 +86,7 @@ from tracking import (  # noqa: E402
     view_fractions,
 )
 
+from adjust.io import read_points3d  # noqa: E402
 from adjust.metrics import point_errors  # noqa: E402
 from deformnet.paths import CONF_DIR  # noqa: E402
 from deformnet.shape import rigid_floor  # noqa: E402
@@ -114,8 +114,8 @@ def evaluate(est: np.ndarray, truth: np.ndarray, nviews: np.ndarray) -> dict:
 
 def calibration(out: Path, est: np.ndarray, truth: np.ndarray, nviews: np.ndarray, parts) -> dict:
     """rms error / rms sigma on seen (>= 2 cameras) and occluded part-frames."""
-    df = pd.read_csv(out / "points3d.csv")
-    sig = np.stack([df[f"{p}_sigma"].to_numpy(float) for p in parts], 1)
+    extra = read_points3d(out / "points3d.csv")["extra"]  # the sigmas: in the sidecar
+    sig = np.stack([np.asarray(extra[f"{p}_sigma"], float) for p in parts], 1)
     err = np.linalg.norm(est - truth, axis=-1)
     res = {}
     for name, m in (("seen", nviews >= 2), ("occluded", nviews < 2)):
