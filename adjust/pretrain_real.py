@@ -22,9 +22,10 @@ and judged on the validation segment's tokens; then ``benchmarks/real_motion.py 
 val``); the shipped net is trained on 0-2399.
 
     python -m adjust.pretrain_real [--frames 0-2400] [--steps N] [--seed 0] [--out PATH]
-        [--work DIR] [--data poses3d.csv] [--scenes 3x8s1,2x34s2,...]
+        [--work DIR] [--data poses3d.csv] [--scenes 3x8s1,2x34s2,...] [--report JSON]
     # choices: train on 0-1199 of the same tracks, evaluate on the validation segment
-    python -m adjust.pretrain_real --train-frames 0-1200 --eval-frames 1200-2200 --out X.pt
+    python -m adjust.pretrain_real --train-frames 0-1200 --eval-frames 1200-2200 --out X.pt \
+        --report runs/benchmarks/pretrain_real_heldout_val.json
 """
 
 from __future__ import annotations
@@ -275,13 +276,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=None, help=f"the checkpoint (default {DEFAULT_CHECKPOINT})")
     ap.add_argument("--work", default=None, help="keep the scenes and tracks here (a cache)")
     ap.add_argument("--data", default=str(DATA))
+    ap.add_argument("--report", default=None, help="also write the result's JSON here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     scenes = [SceneSpec.parse(s) for s in args.scenes.split(",") if s]
     res = build(args.frames, scenes, replace(RECIPE, steps=int(args.steps)), args.seed,
                 args.out, args.work, Path(args.data), args.train_frames,
                 args.eval_frames)  # fmt: skip
-    print(json.dumps(res, indent=2))
+    text = json.dumps(res, indent=2)
+    print(text)
+    if args.report:
+        Path(args.report).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.report).write_text(text + "\n", encoding="utf-8")
     return res
 
 

@@ -1,24 +1,34 @@
 """The default pretrained deformation net that ships with the package.
 
-``mouse_lstm_small.pt``: an `LSTMPredictor` (conf/net/lstm_small.yaml, half-window 16) trained
-on the default simulator's mice (Table 1 body) by `deformnet.pretrained.build`, which reproduces
-it from its seed, bit for bit on the kind of CPU that built it (elsewhere other float kernels
-give other bits and a net as good)::
+``real_mouse_parts.pt``: a `PartTransformer` (conf/net/parts.yaml: a part is identified by where
+it sits on the body, its rest coordinates and side, not by an index, so the one net runs on 8,
+22, 34 parts or a skeleton it has never seen) trained on a real mouse's motion: frames 0-2399
+of ``shared/data/real-mouse-motion-3d`` filmed through simulated rigs (2-4 cameras, 8 / 22 / 34
+parts, several detector seeds), tracked by adjust-track's defaults, with `deformation=self`'s
+self-supervised objective on the tracks' tokens. `adjust.pretrain_real` reproduces it from its
+seed, bit for bit on the kind of CPU that built it (elsewhere other float kernels give other
+bits and a net as good)::
 
-    python -m deformnet.pretrained.build   # writes deformnet/pretrained/mouse_lstm_small.pt
+    python -m adjust.pretrain_real   # writes deformnet/pretrained/real_mouse_parts.pt (make pretrained)
 
-`adjust-track deformation=default` uses it as it is, ``deformation=self`` fine-tunes it on the
-recording, `deformnet-train pretrained=default` on a lab's sessions. Loading needs no
-Lightning (`DeformationModel.from_checkpoint`).
+`adjust-track deformation=default` uses it as it is, on the session's own body
+(`DeformationModel.for_body`), ``deformation=self`` fine-tunes it on the recording,
+`deformnet-train pretrained=default` on a lab's sessions. Loading needs no Lightning
+(`DeformationModel.from_checkpoint`).
+
+``mouse_lstm_small.pt`` (`SIM_CHECKPOINT`): the earlier default, an `LSTMPredictor` for the
+default mouse's 8 parts trained on the simulator only (`deformnet.pretrained.build`); kept for
+comparison (``deformation=`` or ``pretrained=`` its path).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["DEFAULT_CHECKPOINT", "default_checkpoint", "load_default"]
+__all__ = ["DEFAULT_CHECKPOINT", "SIM_CHECKPOINT", "default_checkpoint", "load_default"]
 
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "mouse_lstm_small.pt"
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "mouse_lstm_small.pt"  # (until shipped)
+SIM_CHECKPOINT = Path(__file__).resolve().parent / "mouse_lstm_small.pt"
 
 
 def default_checkpoint() -> Path:
@@ -26,7 +36,7 @@ def default_checkpoint() -> Path:
     if not DEFAULT_CHECKPOINT.is_file():
         raise ValueError(
             f"the default pretrained net {DEFAULT_CHECKPOINT} is missing from this installation; "
-            "rebuild it with `python -m deformnet.pretrained.build`"
+            "rebuild it with `python -m adjust.pretrain_real` (make pretrained)"
         )
     return DEFAULT_CHECKPOINT
 

@@ -1,4 +1,7 @@
-"""Rebuild the shipped default net bit for bit: ``python -m deformnet.pretrained.build``.
+"""Rebuild the simulator-only LSTM net bit for bit: ``python -m deformnet.pretrained.build``.
+
+(The earlier default, ``mouse_lstm_small.pt``, `deformnet.pretrained.SIM_CHECKPOINT`; the
+shipped default is now built from real motion by `adjust.pretrain_real`.)
 
 `deformnet-train` on the default simulator (Table 1 mouse) with net=lstm_small, a fixed number
 of optimiser steps (not a time budget, which would depend on the machine), one thread and
@@ -61,10 +64,10 @@ def build(steps: int = STEPS, seed: int = SEED, out: Path | None = None, work=No
     """Train and export; returns {"checkpoint", "sha256", "metrics"}."""
     from deformnet.confutil import compose
     from deformnet.deformation import DeformationModel
-    from deformnet.pretrained import DEFAULT_CHECKPOINT
+    from deformnet.pretrained import SIM_CHECKPOINT
     from deformnet.train import run
 
-    out = Path(out) if out is not None else DEFAULT_CHECKPOINT
+    out = Path(out) if out is not None else SIM_CHECKPOINT
     with tempfile.TemporaryDirectory() as tmp:
         wdir = Path(work) if work is not None else Path(tmp)
         res = run(compose("train", overrides(steps, seed, wdir)))

@@ -126,7 +126,8 @@ def fit_sessions(
     if not banks:
         raise ValueError("fit_sessions: no sessions to train on")
     ref = max(banks, key=lambda b: (len(b["parts"]), b["windows"]))
-    models = [DeformationModel(net, b["body"], half_window, net_cfg) for b in banks]
+    steps = cfg.augment.steps  # the token steps it sees (the tracker's far steps use them)
+    models = [DeformationModel(net, b["body"], half_window, net_cfg, 1, steps) for b in banks]
     decay = [p for n, p in net.named_parameters() if p.ndim >= 2]
     no_decay = [p for n, p in net.named_parameters() if p.ndim < 2]
     opt = torch.optim.AdamW(
@@ -162,7 +163,7 @@ def fit_sessions(
                      math.sqrt(np.mean(recent)), len(recent))  # fmt: skip
             recent = []
     net.eval()
-    model = DeformationModel(net, ref["body"], half_window, net_cfg).eval()
+    model = DeformationModel(net, ref["body"], half_window, net_cfg, 1, steps).eval()
     facts = {
         "skeletons": [
             {"parts": len(b["parts"]), "windows": b["windows"], "steps": order.count(i)}
