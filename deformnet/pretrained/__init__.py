@@ -9,7 +9,7 @@ self-supervised objective on the tracks' tokens. `adjust.pretrain_real` reproduc
 seed, bit for bit on the kind of CPU that built it (elsewhere other float kernels give other
 bits and a net as good)::
 
-    python -m adjust.pretrain_real   # writes deformnet/pretrained/real_mouse_parts.pt (make pretrained)
+    python -m adjust.pretrain_real   # make pretrained: deformnet/pretrained/real_mouse_parts.pt
 
 `adjust-track deformation=default` uses it as it is, on the session's own body
 (`DeformationModel.for_body`), ``deformation=self`` fine-tunes it on the recording,
