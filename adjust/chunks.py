@@ -28,7 +28,10 @@ its peak memory independent of its length:
 A session no longer than one chunk runs the recipe unchanged (identical results). The net
 modes (``deformation=default``, ``self``, a checkpoint) run whole, their memory growing with the
 session; a long session says so in the log (`track_long` returns None). ``output.nwb=true``
-writes the NWB file from the whole points3d.csv (not bounded).
+writes the NWB file from the whole points3d.csv (not bounded). A chunk in which fewer than two
+cameras have a usable detection (e.g. the animal away for a whole chunk) stops the run with an
+error naming the chunk's frames (unchunked, such frames are tracked from the model alone): a
+larger ``chunk_frames``, or 0, tracks such a session.
 """
 
 from __future__ import annotations
@@ -55,7 +58,7 @@ from adjust.camera import Camera
 from adjust.camera_check import check_from_config, drop_cameras
 from adjust.deformation_modes import NetMode, mode_from_config
 from adjust.export import write_nwb
-from adjust.io import load_calibration, load_detections, match_files, write_points3d
+from adjust.io import InputError, load_calibration, load_detections, match_files, write_points3d
 from adjust.io.dlc import DLCTable, iter_dlc
 from adjust.io.scene import read_table
 from adjust.io.sleap import is_sleap_file
@@ -656,7 +659,13 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
                     cache.frames[b - 1],
                 )
                 hooks = ChunkHooks(cache, ra, rb, model=model, keep=(a - ra, b - ra), writer=writer)
-                s = track(cfg, chunk=hooks)
+                try:
+                    s = track(cfg, chunk=hooks)
+                except InputError as exc:  # e.g. a chunk without two cameras' detections
+                    raise InputError(
+                        f"chunk {i + 1}/{len(plan)} (frames {cache.frames[ra]}.."
+                        f"{cache.frames[rb - 1]}): {exc}"
+                    ) from None
                 s["health"] = _offset_health(s["health"], a)
                 summaries.append(s)
                 frames.append(b - a)

@@ -44,10 +44,12 @@ from common import emit
 from hydra import compose, initialize_config_dir
 from scipy.signal import lfilter
 
+from adjust.apps.common import finite_or_none
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import save_calibration
 from adjust.lsq import synthetic
 from adjust.pipeline import run as run_track
+from deformnet.atomic import write_text
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import transform_points
@@ -247,6 +249,11 @@ def main(argv: list[str] | None = None) -> dict:
             row["reprojection_median_px"] or float("nan"),
         )
         rows.append(row)
+        _result(rows, argv, args.out, final=False)  # each size as it ends (a long run may stop)
+    return _result(rows, argv, args.out, final=True)
+
+
+def _result(rows: list[dict], argv, out: Path, final: bool) -> dict:
     result = {
         "benchmark": "long_session",
         "command": " ".join(["benchmarks/long_session.py", *(argv or sys.argv[1:])]),
@@ -257,8 +264,12 @@ def main(argv: list[str] | None = None) -> dict:
         "target_peak_mb_at_1m": TARGET_MB_1M,
         "runs": rows,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "complete": final,
     }
-    emit(result, args.out)
+    if final:
+        emit(result, out)
+    else:
+        write_text(out, json.dumps(finite_or_none(result)) + "\n")
     return result
 
 

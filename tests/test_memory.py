@@ -1,6 +1,7 @@
 """Long sessions in bounded memory: `adjust_poses(outputs=...)` keeps only the arrays asked for
 (same values as the full result), float32 inputs are not copied whole, and (slow) the peak
-resident memory of a 200,000-frame rigid adjustment stays below a stated bound."""
+resident memory of a 200,000-frame rigid adjustment stays below a stated bound, and so does
+`adjust-track` end to end on a 300,000-frame session in chunks (`adjust.chunks`)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: (before the bounded-memory changes, float64 detections and every output: 1.85 GB, 1.41 GB).
 PEAK_MB_200K = 1100.0
 GROWTH_MB_200K = 600.0
+#: adjust-track end to end (body=auto, interp, 12 parts, 3 cameras, chunk_frames=50,000):
+#: issue 46's bound, which holds at any length (benchmarks/long_session.py)
+PEAK_MB_END_TO_END = 2048.0
 
 
 @pytest.fixture(scope="module")
@@ -78,3 +82,16 @@ def test_peak_memory_at_200k_frames():
     assert row["frames"] == 200000 and row["chunks"] == 20
     assert row["peak_rss_mb"] <= PEAK_MB_200K, row
     assert row["peak_rss_mb"] - row["before_rss_mb"] <= GROWTH_MB_200K, row
+
+
+@pytest.mark.slow
+def test_end_to_end_peak_memory_at_300k_frames(tmp_path):
+    """benchmarks/long_session.py at 300,000 frames (the session written to `tmp_path`, the run
+    in its own process): six chunks, peak resident memory within the bound."""
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "long_session.py"), "--frames", "300000"]
+    cmd += ["--work", str(tmp_path), "--out", str(tmp_path / "long_session.json")]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=ROOT)
+    row = json.loads(out.stdout.strip().splitlines()[-1])["runs"][0]
+    assert row["frames"] == 300000 and row["chunks"] == 6, row
+    assert row["health"] == "ok" and row["completeness"] == 1.0, row
+    assert row["peak_rss_mb"] <= PEAK_MB_END_TO_END, row
