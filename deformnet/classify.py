@@ -621,9 +621,10 @@ def _build(
     )  # fmt: skip
     ctx = dict(context or {})
     frames = [int(f) for f in (ctx.get("frames") or [])]
-    dim = BehaviorClassifier.feature_dim(enc.out_dim, frames)
+    halves = bool(ctx.get("halves", False))
+    dim = BehaviorClassifier.feature_dim(enc.out_dim, frames, halves)
     return BehaviorClassifier(
-        enc, build_head(head_cfg, dim, C, source), frames, int(ctx.get("stride", 1) or 1)
+        enc, build_head(head_cfg, dim, C, source), frames, int(ctx.get("stride", 1) or 1), halves
     )
 
 
@@ -1174,7 +1175,11 @@ def _train(cfg: DictConfig, out: Path) -> dict:
         "up": None if up is None else list(up),
         "head": head_cfg,
         "frame_features": ff,
-        "context": {"frames": list(model.context_frames), "stride": model.stride},
+        "context": {
+            "frames": list(model.context_frames),
+            "stride": model.stride,
+            "halves": model.halves,
+        },  # fmt: skip
         "mechanisms": mech,
         "measurements": meas,
         "heights_up": None if hup is None else list(hup),

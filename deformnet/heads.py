@@ -42,14 +42,13 @@ from torch import Tensor, nn
 from deformnet.checkpoint import plain_kwargs
 from deformnet.nets import LSTMPredictor, TransformerPredictor
 from deformnet.so3 import kabsch
-from deformnet.tokens import canonicalize
+from deformnet.windows import window_summary
 
 __all__ = [
     "MechanismFeatures",
     "normalize_size",
     "pose_measurements",
     "WindowEncoder",
-    "window_summary",
     "LinearHead",
     "MLPHead",
     "EnsembleHead",
@@ -75,29 +74,6 @@ def normalize_size(rigid: Tensor, points: Tensor, scale: Tensor) -> Tensor:
         raise ValueError(f"scale must be {tuple(rigid.shape[:-2])}, got {tuple(scale.shape)}")
     c = rigid.mean(-2, keepdim=True)
     return c + (points - c) / scale.to(points.dtype)[..., None, None]
-
-
-def window_summary(
-    net: nn.Module,
-    body_points: Tensor,
-    rigid: Tensor,
-    deformed: Tensor,
-    observed: Tensor,
-    up: Tensor | None = None,
-) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor, Tensor]]:
-    """A deformation net's summary of global windows: its `encode` outputs in the mid frame's
-    canonical coordinates, at the mid frame and averaged over the window (B, 2 encode_dim),
-    and the canonical window (rigid_c, deformed_c (B, W, K, 3), R (B, 3, 3), t (B, 3)).
-
-    rigid, deformed (B, W, K, 3) global mm (unobserved deformed values are ignored), observed
-    (B, W, K) bool; body_points (K, 3); up: the world's up (3,) for a net trained in the heading
-    frame (`deformnet.tokens.canonicalize`), None for the body frame."""
-    observed = observed.bool()
-    deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
-    mid = net.half_window
-    rigid_c, deformed_c, R, t = canonicalize(rigid, deformed, body_points.to(rigid.dtype), mid, up)
-    seq, _ = net.encode(rigid_c, deformed_c, observed)  # (B, W, encode_dim)
-    return torch.cat((seq[:, mid], seq.mean(1)), -1), (rigid_c, deformed_c, R, t)
 
 
 class MechanismFeatures(nn.Module):
@@ -514,8 +490,11 @@ class BehaviorClassifier(nn.Module):
     standard deviation of the encoder outputs of the frames around it, over centred spans of
     each length (every ``stride``-th frame): the behavior of a frame shows in how its window
     changes over the next second, as the SimBA-style rolling features of hand-made
-    measurements do (D (1 + 2 len(context_frames)) values). The head sees them standardised
-    by `feature_mean` / `feature_std` (set from the training frames, `set_standardization`).
+    measurements do (D (1 + 2 len(context_frames)) values). With ``halves`` each span also
+    gives the mean over its frames before and the mean over its frames after the frame (D (1 +
+    4 len(context_frames)) values): where a movement goes and what came before it, e.g. a walk
+    that ends at a mechanism, or how long a reach lasts. The head sees them standardised by
+    `feature_mean` / `feature_std` (set from the training frames, `set_standardization`).
 
     forward(rigid, deformed (B, W + 2 span, K, 3), observed (B, W + 2 span, K), scale (B,) or
     None) with W the encoder's window and span = `span` (0 without context); scale: each
@@ -528,17 +507,19 @@ class BehaviorClassifier(nn.Module):
         head: nn.Module,
         context_frames: Sequence[int] = (),
         stride: int = 1,
+        halves: bool = False,
     ) -> None:
         super().__init__()
         self.encoder = encoder
         self.head = head
         self.context_frames = tuple(int(f) for f in context_frames)
         self.stride = int(stride)
+        self.halves = bool(halves)
         self.offsets = context_offsets(self.context_frames, self.stride)
         self.span = max(self.offsets)
         self.window = encoder.window + 2 * self.span
         self.half_window = encoder.half_window + self.span
-        self.out_dim = encoder.out_dim * (1 + 2 * len(self.context_frames))
+        self.out_dim = self.feature_dim(encoder.out_dim, self.context_frames, self.halves)
         self.register_buffer("feature_mean", torch.zeros(self.out_dim))
         self.register_buffer("feature_std", torch.ones(self.out_dim))
 
@@ -553,8 +534,8 @@ class BehaviorClassifier(nn.Module):
         return i[(i % enc.out_dim) >= 2 * enc.net.encode_dim]
 
     @staticmethod
-    def feature_dim(encoder_dim: int, context_frames: Sequence[int]) -> int:
-        return int(encoder_dim) * (1 + 2 * len(tuple(context_frames)))
+    def feature_dim(encoder_dim: int, context_frames: Sequence[int], halves: bool = False) -> int:
+        return int(encoder_dim) * (1 + (4 if halves else 2) * len(tuple(context_frames)))
 
     def pool(self, per_frame: Tensor) -> Tensor:
         """(B, O, D) encoder outputs at `offsets` -> (B, out_dim) context features."""
@@ -565,8 +546,12 @@ class BehaviorClassifier(nn.Module):
         off = torch.as_tensor(self.offsets)
         out = [per_frame[:, self.offsets.index(0)]]
         for f in self.context_frames:
-            sel = per_frame[:, (off.abs() <= (f - 1) // 2).nonzero().flatten()]
+            near = off.abs() <= (f - 1) // 2
+            sel = per_frame[:, near.nonzero().flatten()]
             out += [sel.mean(1), sel.std(1, unbiased=False)]
+            if self.halves:
+                for side in (near & (off < 0), near & (off > 0)):
+                    out.append(per_frame[:, side.nonzero().flatten()].mean(1))
         return torch.cat(out, -1)
 
     def features(

@@ -42,9 +42,9 @@ import torch
 from torch import Tensor, nn
 
 from deformnet.deformation import CHECKPOINT_KEY, DeformationModel
-from deformnet.heads import window_summary
 from deformnet.heldout import window_sums
 from deformnet.tokens import masked_mse
+from deformnet.windows import window_summary
 
 __all__ = ["DeformLit"]
 

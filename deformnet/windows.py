@@ -33,12 +33,14 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 from torch.utils.data import Dataset, IterableDataset
 
 from deformnet.body import BodyModel
+from deformnet.tokens import canonicalize
 
 __all__ = [
+    "window_summary",
     "Augment",
     "MaskConfig",
     "SequenceArrays",
@@ -551,3 +553,26 @@ class FixedWindowBatches(Dataset):
                 hide = make_masks(B, bank.W, bank.K, masking or MaskConfig(), gen)
             out.append(bank.batch(chunk, hide))
         return cls(out)
+
+
+def window_summary(
+    net: nn.Module,
+    body_points: Tensor,
+    rigid: Tensor,
+    deformed: Tensor,
+    observed: Tensor,
+    up: Tensor | None = None,
+) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """A deformation net's summary of global windows: its `encode` outputs in the mid frame's
+    canonical coordinates, at the mid frame and averaged over the window (B, 2 encode_dim),
+    and the canonical window (rigid_c, deformed_c (B, W, K, 3), R (B, 3, 3), t (B, 3)).
+
+    rigid, deformed (B, W, K, 3) global mm (unobserved deformed values are ignored), observed
+    (B, W, K) bool; body_points (K, 3); up: the world's up (3,) for a net trained in the heading
+    frame (`deformnet.tokens.canonicalize`), None for the body frame."""
+    observed = observed.bool()
+    deformed = torch.where(observed[..., None], deformed, torch.zeros_like(deformed))
+    mid = net.half_window
+    rigid_c, deformed_c, R, t = canonicalize(rigid, deformed, body_points.to(rigid.dtype), mid, up)
+    seq, _ = net.encode(rigid_c, deformed_c, observed)  # (B, W, encode_dim)
+    return torch.cat((seq[:, mid], seq.mean(1)), -1), (rigid_c, deformed_c, R, t)

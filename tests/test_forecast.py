@@ -101,7 +101,7 @@ def test_forecast_loss_value_invariance_and_gradient(up):
     batch = next(iter(RandomWindowBatches(bank, 6, 1, MaskConfig(), seed=0, ahead_shift=(5, 9))))
     loss, rmse = lit.forecast_loss(batch)
     # by hand: the head on [summary, shift / n], targets in the mid frame's canonical frame
-    from deformnet.heads import window_summary
+    from deformnet.windows import window_summary
 
     m = lit.model
     s, (_, _, R, t) = window_summary(

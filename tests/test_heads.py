@@ -175,6 +175,22 @@ def test_frozen_encoder_weights_do_not_change(freeze):
         assert any(k.startswith("net.lstm") for k in enc_changed)
 
 
+def test_context_halves_add_the_means_before_and_after():
+    """context.halves: each span also gives the mean of its windows before the frame and of
+    those after it (what a movement leads to), in that order after its mean and std."""
+    enc = _encoder("lstm").eval()
+    dim = BehaviorClassifier.feature_dim(enc.out_dim, (5, 9), True)
+    model = BehaviorClassifier(enc, LinearHead(dim, 3), (5, 9), 2, halves=True).eval()
+    assert model.out_dim == dim == 9 * enc.out_dim
+    per = torch.randn(4, 5, enc.out_dim)  # offsets -4, -2, 0, 2, 4
+    f = model.pool(per)
+    want = torch.cat(
+        [per[:, 2], per[:, 1:4].mean(1), per[:, 1:4].std(1, unbiased=False), per[:, 1],
+         per[:, 3], per.mean(1), per.std(1, unbiased=False), per[:, :2].mean(1),
+         per[:, 3:].mean(1)], -1)  # fmt: skip
+    torch.testing.assert_close(f, want)
+
+
 @pytest.mark.parametrize("kind", ["lstm", "transformer"])
 def test_temporal_context_pools_the_surrounding_windows(kind):
     """With context (5, 9) and stride 2 the features are the mid window's encoder output plus
@@ -427,3 +443,13 @@ def test_pose_measurements_shape_value_gradient_and_encoder():
     with pytest.raises(ValueError, match="heights_up .* differs from the encoder's up"):
         WindowEncoder(build_net(cfg), np.asarray(body.points), 2, True, [0, 0, 1], None, True,
                       heights_up=[0, 1, 0])  # fmt: skip
+
+
+def test_the_deformation_training_imports_no_behavior_code():
+    """deformnet.lit (the deformation nets' training) reads a window's summary from
+    deformnet.windows, not from the behavior heads (a layer below them)."""
+    from test_layering import BEHAVIOR, ROOT, _imported_modules
+
+    for name in ("lit.py", "windows.py", "train.py", "deformation.py"):
+        mods = [m for _, m in _imported_modules(ROOT / "deformnet" / name)]
+        assert not [m for m in mods if m.startswith(BEHAVIOR)], (name, mods)
