@@ -227,7 +227,7 @@ class TrackConfig:
             consensus=ConsensusConfig.from_config(cfg.get("consensus")),
             deform=DeformConfig.from_config(cfg.get("deform")),
             # num_threads 0: the solver runs in the app's threads (`threads`)
-            solver=SolverConfig.from_config(solver, num_threads=0, **defaults),
+            solver=SolverConfig.from_config(solver, num_threads=0, **defaults).resolved(),
             sigma_det_px=None if sigma_det is None else float(sigma_det),
             sigma_def_mm=None if sigma_def is None else float(sigma_def),
             progress=bool(cfg.get("progress", True)),

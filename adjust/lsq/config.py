@@ -30,6 +30,9 @@ import torch
 from adjust.lsq.robust import KERNELS
 
 _CONSTRAINTS = ("spline", "grid", "none")
+#: the detector noise (px) and unexplained deformation (mm) where nothing estimates them
+SIGMA_DET_PX = 2.0
+SIGMA_DEF_MM = 3.0
 _KERNELS = tuple(KERNELS)
 _INITS = ("fit", "kalman")
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -76,11 +79,12 @@ class ConstraintConfig:
 class StochasticConfig:
     """The stochastic model (`adjust.lsq.robust`), ``conf/solver/stochastic/default.yaml``."""
 
-    # detector accuracy, px (None: from the data, adjust-track's consensus; `resolved` 2 px)
-    sigma_det_px: float | None = 2.0
+    # detector accuracy, px (None: from the data, adjust-track's consensus; else, as
+    # `SolverConfig.resolved` gives it to the solver, `SIGMA_DET_PX`)
+    sigma_det_px: float | None = None
     # body deformation not explained by the model, mm (0: no mixture; None: from the data where
-    # adjust-track estimates the body's shape; `resolved` 3 mm)
-    sigma_def_mm: float | None = 3.0
+    # adjust-track estimates the body's shape; else `SIGMA_DEF_MM`)
+    sigma_def_mm: float | None = None
     mixture_prior: float = 0.7  # initial share of detections in the narrow (detector) Gaussian
     robust: str = "cauchy"  # robust kernel against mis-detections: none | huber | cauchy
     robust_scale: float = 3.0  # kernel scale on the whitened residual norm
@@ -148,7 +152,7 @@ class SolverConfig(InitConfig, LMConfig, StochasticConfig, ConstraintConfig):
     chunk_size: int = 10000  # frames per chunk (0: never chunk)
     overlap: int = 64  # frames of overlap on each side of a chunk
     fuse_iterations: int = 1  # Gauss-Newton steps of the per-part fusion
-    num_threads: int = 1  # torch threads while solving (0: leave torch's setting)
+    num_threads: int = 0  # torch threads while solving (0: leave the caller's setting)
     dtype: str = "float64"
 
     def __post_init__(self) -> None:
@@ -192,15 +196,12 @@ class SolverConfig(InitConfig, LMConfig, StochasticConfig, ConstraintConfig):
         return cls(**OmegaConf.to_container(merged))
 
     def resolved(self) -> SolverConfig:
-        """This configuration with a sigma left to the data (None) at its schema default (the
-        solver needs numbers; adjust-track fills them from the session first)."""
+        """This configuration with a sigma left to the data (None) at `SIGMA_DET_PX` /
+        `SIGMA_DEF_MM` (the solver needs numbers; adjust-track fills them from the session
+        first)."""
         return self.replace(
-            sigma_det_px=StochasticConfig.sigma_det_px
-            if self.sigma_det_px is None
-            else self.sigma_det_px,
-            sigma_def_mm=StochasticConfig.sigma_def_mm
-            if self.sigma_def_mm is None
-            else self.sigma_def_mm,
+            sigma_det_px=SIGMA_DET_PX if self.sigma_det_px is None else self.sigma_det_px,
+            sigma_def_mm=SIGMA_DEF_MM if self.sigma_def_mm is None else self.sigma_def_mm,
         )
 
     def replace(self, **changes) -> SolverConfig:
