@@ -39,7 +39,8 @@ def _points(out: Path) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def tracked(scene, tmp_path_factory) -> dict:
-    """rigid, interp and deformation=self (60 s of fine-tuning) on the scene."""
+    """rigid, interp and deformation=self (fine-tuning capped at 60 s; it stops earlier, by
+    adapt.max_steps / adapt.patience: measured 75 steps, 7 s) on the scene."""
     root = tmp_path_factory.mktemp("tracks")
     runs = {}
     for name, ov in (
@@ -116,9 +117,28 @@ def test_self_lowers_the_occluded_error_against_rigid(scene, tracked):
     # step-1 window misses
     used = summary["deformation"]["net_used_by_step"]
     assert set(used) == {1, 2, 3} and used[1] > 0.5 and used[2] + used[3] > 0, used
-    # measured: occluded rigid 7.61, interp 3.67, self 3.57 mm (0.47x rigid) on this scene
+    # measured: occluded rigid 7.46, interp 3.66, self 4.32 mm (0.58x rigid) on this scene
     assert m["self"]["rmse_occluded"] < 0.6 * m["rigid"]["rmse_occluded"], m
     assert m["self"]["rmse_seen"] < 1.2 * m["interp"]["rmse_seen"], m
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 50: measured self/interp occluded RMSE 1.18 on this scene (4.32 vs 3.66 mm; "
+    "0.99 and 1.00 on seeds 32 and 33) since adjust.adapt's step-budgeted fine-tuning "
+    "(the Lightning 60 s one measured 0.93)",
+)
+def test_self_beats_interp_on_the_occluded_parts(scene, tracked):
+    """What deformation=self is for: the adapted net predicts the occluded parts better than
+    interp's kriging, by at least 3% (interp alone cannot pass this)."""
+    from adjust.metrics import point_errors
+
+    truth = np.load(scene / "truth.npz")
+    occluded = {
+        k: point_errors(_points(tracked[k][1]), truth["points"], truth["nviews"])["rmse_occluded"]
+        for k in ("interp", "self")
+    }
+    assert occluded["self"] < 0.97 * occluded["interp"], occluded
 
 
 def test_adapted_checkpoint_reproduces_the_track(scene, tracked, tmp_path):
@@ -143,13 +163,15 @@ def test_shipped_net_loads_without_lightning():
         "m = load_default(); import torch\n"
         "W, K = m.window, m.num_parts\n"
         "r = torch.zeros(2, W, K, 3) + torch.tensor(m.body.points, dtype=torch.float32)\n"
-        "print(tuple(m(r, r, torch.ones(2, W, K, dtype=torch.bool)).shape))\n"
+        "print(tuple(m(r, r, torch.ones(2, W, K, dtype=torch.bool)).shape), K)\n"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    assert res.stdout.strip() == "(2, 8, 3)"
+    shape, K = res.stdout.strip().rsplit(" ", 1)
+    assert shape == f"(2, {K}, 3)" and int(K) >= 8
 
 
+@pytest.mark.slow  # the fast check: test_heldout's test_the_shipped_net_passes_on_its_own_kind...
 def test_default_mode_uses_the_shipped_net(scene, tmp_path):
     s = _track(scene, tmp_path / "d", ["deformation=default"])
     assert s["deformation"]["mode"] == "default"
@@ -258,21 +280,24 @@ def test_forecasting_term_on_sessions_and_in_self_adaptation(tracked, tmp_path, 
     ]))  # fmt: skip
     assert np.isfinite(res["metrics"]["train/forecast_loss"])
     assert res["metrics"]["train/forecast_rmse_mm"] > 0
-    import deformnet.train
+    import adjust.adapt
     from adjust.adapt import adapt_net
 
     seen = {}
 
-    def fake(cfg):
-        seen["forecast"] = float(cfg.forecast.weight)
+    def fake(model, train, val, cfg, device, forecast_head=None, on_eval=None):
+        seen["forecast"] = float(cfg.forecast)
+        seen["head"] = forecast_head
         raise RuntimeError("stop here")
 
-    monkeypatch.setattr(deformnet.train, "run", fake)
+    monkeypatch.setattr(adjust.adapt, "fine_tune", fake)  # the fine-tuning loop (adapt_net's)
     tokens = SessionTokens.load(tracked["self"][1] / "tokens.npz")
     for w in (0.0, 0.5):
         with pytest.raises(RuntimeError, match="stop here"):
             adapt_net(tokens, tmp_path / f"a{w}", {"forecast": w, "tensorboard": False}, False)
         assert seen["forecast"] == w
+        # the forecasting head (its term in the loss) only with a weight
+        assert (seen["head"] is not None) == (w > 0)
 
 
 def test_sessions_glob_that_matches_nothing_is_a_clear_error(tmp_path):
@@ -294,29 +319,33 @@ def test_pretrained_build_is_reproducible(tmp_path):
 
 @pytest.mark.slow
 def test_shipped_net_is_the_build_scripts_output(tmp_path):
-    """`python -m deformnet.pretrained.build` reproduces the shipped file: bit for bit on the
-    kind of CPU that built it; elsewhere (other float kernels: 3000 steps of rounding apart) a
-    net as good as the shipped one on the build's validation windows, within 5% of its val
-    RMSE (about 5 minutes on 2 cores)."""
-    from helpers import quiet_trainer
-
+    """`python -m adjust.pretrain_real` (make pretrained) reproduces the shipped file: bit for
+    bit on the kind of CPU that built it; elsewhere (other float kernels: 3000 steps of
+    rounding apart) a net as good as the shipped one on the build's tracks' tokens of the
+    validation segment, within 5% of its RMSE (about 15 minutes on 2 cores)."""
+    from adjust.pretrain_real import (
+        DATA,
+        SCENES,
+        TRAIN_FRAMES,
+        build,
+        evaluate,
+        scene_tokens,
+        token_slice,
+    )
     from deformnet.deformation import DeformationModel
     from deformnet.pretrained import load_default
-    from deformnet.pretrained.build import STEPS, build, overrides, weights_sha256
-    from deformnet.train import build_datamodule, build_model
+    from deformnet.pretrained.build import weights_sha256
 
     shipped = load_default()
-    res = build(out=tmp_path / "rebuilt.pt")
+    res = build(out=tmp_path / "rebuilt.pt", work=tmp_path / "work")
     if res["sha256"] == weights_sha256(shipped):
         return
-    cfg = compose("train", overrides(STEPS, 0, tmp_path / "eval"))
-    rmse = {}
+    tokens = scene_tokens(DATA, TRAIN_FRAMES, SCENES, tmp_path / "work")
+    held = [token_slice(t, 1200, 2200, TRAIN_FRAMES[0]) for t in tokens]
     rebuilt = DeformationModel.from_checkpoint(res["checkpoint"])
-    for name, model in (("shipped", shipped), ("rebuilt", rebuilt)):
-        lit, body, _ = build_model(cfg, pretrained=model)
-        dm = build_datamodule(cfg, body, lit.mid)
-        rmse[name] = quiet_trainer(1).validate(lit, datamodule=dm, verbose=False)[0]["val/rmse_mm"]
-    assert rmse["rebuilt"] <= 1.05 * rmse["shipped"], rmse
+    a = np.mean([r["net_mm"] for r in evaluate(shipped, held, SCENES)])
+    b = np.mean([r["net_mm"] for r in evaluate(rebuilt, held, SCENES)])
+    assert b <= 1.05 * a, (a, b)
 
 
 def test_self_falls_back_to_interp_when_the_net_does_not_beat_interpolation(scene, tmp_path):
