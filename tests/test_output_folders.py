@@ -228,6 +228,7 @@ def _track_args(scene: Path, out: Path, *extra: str) -> list[str]:
 TRACK_SET = ["accepted.npz", "points3d.csv", "points3d.extra.csv", "tokens.npz"]
 
 
+@pytest.mark.slow  # fast: test_a_commit_killed_at_any_step_leaves_one_whole_set
 def test_track_killed_at_any_moment_leaves_one_whole_run(scene, tmp_path):
     """SIGKILL at random moments of a re-run: the folder holds the earlier run whole (its
     summary lists and matches every output) or the new one, never a mix."""
@@ -253,6 +254,7 @@ def test_track_killed_at_any_moment_leaves_one_whole_run(scene, tmp_path):
     assert seen  # the previous run or a new one, whole, every time
 
 
+@pytest.mark.slow  # fast: test_a_commit_killed_at_any_step_leaves_one_whole_set
 def test_triangulate_killed_at_any_moment_leaves_one_whole_run(scene, tmp_path):
     out = tmp_path / "out"
     args = [str(BIN / "adjust-triangulate"), f"input.calibration={scene / 'calibration.toml'}",
