@@ -181,8 +181,8 @@ def _scene(tmp_path_factory, frames: int) -> Path:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
-    """600 frames (the tests whose net is a stand-in)."""
-    return _scene(tmp_path_factory, 600)
+    """300 frames (the tests whose net is a stand-in)."""
+    return _scene(tmp_path_factory, 300)
 
 
 @pytest.fixture(scope="module")
