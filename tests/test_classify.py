@@ -14,6 +14,7 @@ from deformnet.behavior_labels import bouts, read_labels, read_tracks, smooth
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import transform_points
+from deformnet.tables import read_points3d_table
 
 CLASSES = ["walk", "rear"]
 TINY = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
@@ -222,7 +223,7 @@ def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
     names = {"nose_tip": "Snout", "left_ear": "Ear_L", "right_ear": "RightEar",
              "left_front_paw": "LFP", "right_front_paw": "Right-Front-Paw",
              "left_hind_paw": "hl", "tail_root": "TailBase"}  # fmt: skip
-    df0 = pd.read_csv(test[0][0])
+    df0 = read_points3d_table(test[0][0])  # with the sidecar's pose columns, as one table
     mine = df0.rename(columns={c: names[p] + c[len(p):] for c in df0.columns for p in names
                                if c.startswith(p + "_")})  # fmt: skip
     renamed = tmp_path / "renamed.csv"
