@@ -96,7 +96,7 @@ def test_console_shows_the_steps_not_library_tips(demo):
 
 
 def test_report_flags_the_quick_preset_and_a_one_class_classifier(demo):
-    from adjust.apps.report import blocks, notes, to_markdown
+    from adjust.apps.report_text import blocks, notes, to_markdown
 
     out, _, rep = demo
     html = (out / "report.html").read_text()

@@ -41,7 +41,8 @@ from adjust.apps import simulate as simulate_app
 from adjust.apps import track as track_app
 from adjust.apps import triangulate as triangulate_app
 from adjust.apps.common import run_or_exit
-from adjust.apps.report import notes, write_report
+from adjust.apps.report import write_report
+from adjust.apps.report_text import notes
 from adjust.scene import scene_fps, write_truth_labels
 from deformnet.atomic import write_text
 from deformnet.paths import CONF_DIR, output_dir
