@@ -238,8 +238,8 @@ def align(est: np.ndarray, parts, truth_parts) -> np.ndarray:
 
 def calibration(points_csv: Path, est, truth, nviews, parts) -> dict:
     """rms error / rms ``{part}_sigma`` on seen (>= 2 cameras) and occluded part-frames."""
-    df = pd.read_csv(points_csv)
-    sig = np.stack([df[f"{p}_sigma"].to_numpy(float) for p in parts], 1)
+    extra = read_points3d(points_csv)["extra"]  # the sigmas: in the sidecar
+    sig = np.stack([np.asarray(extra[f"{p}_sigma"], float) for p in parts], 1)
     err = np.linalg.norm(est - truth, axis=-1)
     res = {}
     for name, m in (("seen", nviews >= 2), ("occluded", nviews < 2)):
