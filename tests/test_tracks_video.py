@@ -1,4 +1,4 @@
-"""adjust.plot.tracks_video: a labelled 3D video (MP4) of the tracks beside their 2D
+"""adjust.tracks_video.tracks_video: a labelled 3D video (MP4) of the tracks beside their 2D
 reprojections (over the cameras' videos when given); skeletons for figures from a user's
 skeleton.csv."""
 
@@ -11,7 +11,8 @@ import pytest
 from adjust.camera import Camera
 from adjust.io import read_points3d, write_points3d
 from adjust.kinematics import align_tracks
-from adjust.plot import project_points, skeleton_edges, tracks_video
+from adjust.plot import skeleton_edges
+from adjust.tracks_video import project_points, tracks_video
 
 PARTS = ["nose", "head", "body", "tail"]
 T = 12

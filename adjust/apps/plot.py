@@ -41,6 +41,7 @@ from adjust.apps.common import finite_or_none, run_or_exit
 from adjust.camera import CameraTensors, project_cameras
 from adjust.io import InputError, load_calibration, load_scene, read_points3d
 from adjust.settings import load_kwargs, required
+from adjust.tracks_video import tracks_video
 from deformnet.atomic import atomic_path, write_text
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR, output_dir
@@ -281,7 +282,7 @@ def run(cfg: DictConfig) -> dict:
         )
     if cfg.get("video3d"):  # the labelled 3D video beside each camera's reprojections
         files["video3d"] = str(
-            plot.tracks_video(
+            tracks_video(
                 out / "tracks3d.mp4",
                 tr,
                 cameras,

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adjust import plot
+from adjust import plot, report_figures
 from adjust.apps.common import finite_or_none
 from adjust.apps.report_text import blocks, to_html, to_markdown
 from adjust.camera import CameraTensors, project_cameras
@@ -196,7 +196,9 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
     shown = {m: tracks[m]["points"][:, k] for m in ("dlt", primary, "net") if m in tracks}
     keep(
         "key",
-        plot.key_figure(truth["points"][:, k], shown, parts[k], occ[:, k], fps, (a, a + span)),
+        report_figures.key_figure(
+            truth["points"][:, k], shown, parts[k], occ[:, k], fps, (a, a + span)
+        ),
     )
     data["key"] = {
         "part": parts[k],
@@ -252,7 +254,7 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
     curves = data.get("_curves") or {}
     nets = {k: v for k, v in curves.items() if k in (record.get("train") or {})}
     if nets:
-        keep("curves", plot.curves_figure(nets))
+        keep("curves", report_figures.curves_figure(nets))
     beh = data.get("behavior")
     if beh and "_labels" in beh:
         lab = beh.pop("_labels")
@@ -269,7 +271,10 @@ def make_figures(out: Path, record: Mapping, truth: Mapping, tracks: Mapping, da
     ev = data.get("events")
     if ev:
         sources = {"tracked": ev["list"], "truth": ev["truth_list"]}
-        keep("events", plot.events_figure(sources, ev["mechanisms"], len(truth["points"]), fps))
+        keep(
+            "events",
+            report_figures.events_figure(sources, ev["mechanisms"], len(truth["points"]), fps),
+        )
     for name, rel in figs.items():
         if not _png_ok(out / rel):  # pragma: no cover - matplotlib writes PNGs
             raise RuntimeError(f"figure {name} ({rel}) is not a PNG")
