@@ -28,9 +28,11 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q tests/test_layering.py  # the layering contract
 
-# Rebuild the shipped default net (deformnet/pretrained/mouse_lstm_small.pt; ~5 min; bit for bit on the same machine).
+# Rebuild the shipped default net (deformnet/pretrained/real_mouse_parts.pt: a part-agnostic net
+# trained on filmed and tracked real motion, adjust.pretrain_real; ~15 min on 2 cores; bit for
+# bit on the same machine). The simulator-only LSTM: $(PY) -m deformnet.pretrained.build
 pretrained: $(STAMP)
-	$(PY) -m deformnet.pretrained.build
+	$(PY) -m adjust.pretrain_real
 
 # The documentation site (mkdocs.yml, docs/), built as CI builds it, into runs/site/ (browse it with
 # `.venv/bin/mkdocs serve`); mkdocs and mkdocs-material come with the test extra (or '.[docs]').

@@ -27,7 +27,7 @@ from pathlib import Path
 
 __all__ = ["DEFAULT_CHECKPOINT", "SIM_CHECKPOINT", "default_checkpoint", "load_default"]
 
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "mouse_lstm_small.pt"  # (until shipped)
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "real_mouse_parts.pt"
 SIM_CHECKPOINT = Path(__file__).resolve().parent / "mouse_lstm_small.pt"
 
 
