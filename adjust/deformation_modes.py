@@ -3,7 +3,7 @@
 - `RigidMode` (``rigid``): the rigid body model only.
 - `InterpMode` (``interp``, the default): each part's body-frame offset interpolated (kriged)
   from its own 3D observations across its gaps (`adjust.lsq.observation.InterpObservation`).
-- `NetMode`: a deformation net (`adjust.lsq.observation.NetObservation`) after rigid ->
+- `NetMode`: a deformation net (`adjust.lsq.net_observation.NetObservation`) after rigid ->
   interp; its three sources are `CheckpointNet` (a deformnet-train checkpoint, ``net``),
   `DefaultNet` (the shipped pretrained net, ``default``) and `SelfNet` (that net fine-tuned on
   this recording's own tokens, ``self``, `adjust.adapt`). A net that does not beat the
@@ -33,7 +33,8 @@ from adjust import adapt
 from adjust.body_fit import check_world_up, triangulate_points
 from adjust.camera import CameraTensors
 from adjust.io import Detections, InputError
-from adjust.lsq.observation import InterpObservation, NetObservation
+from adjust.lsq.net_observation import NetObservation
+from adjust.lsq.observation import InterpObservation
 from adjust.net_gate import heldout_check, net_vs_kriging
 from adjust.tokenize import session_tokens
 from adjust.track_config import MEASURED, ConsensusConfig, DeformConfig

@@ -139,7 +139,7 @@ def test_window_sums_are_the_per_part_squared_errors():
 
 def test_net_parts_keep_the_other_parts_on_interp():
     """NetObservation(net_parts=...): the excluded parts take interp's model points."""
-    from adjust.lsq.observation import NetObservation
+    from adjust.lsq.net_observation import NetObservation
 
     body = default_mouse()
     s = _tokens(body, 120, seed=3)

@@ -201,7 +201,7 @@ def test_far_steps_reach_across_long_gaps():
     end is within 2 steps. Part 0 hidden on frames 20..25: step 1 reaches none of them, step
     2 the middle two, step 3 all; part 1 hidden from frame 50 to the end: never reached (the
     interpolation's prediction); part 2 hidden on 60..61: step 1 reaches both."""
-    from adjust.lsq.observation import NetObservation
+    from adjust.lsq.net_observation import NetObservation
 
     body = torch.tensor(np.asarray(default_mouse().points), dtype=torch.float64)
     T, K = 80, body.shape[0]

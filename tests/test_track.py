@@ -362,7 +362,7 @@ def test_deformable_jacobians_are_the_derivatives_of_their_observations():
     own points: NetObservation's by central and forward differences through the net,
     DeformableObservation's by reverse mode (both to rounding; forward to its truncation);
     measured inputs reach the net, gated by distance."""
-    from adjust.lsq.observation import DeformableObservation, NetObservation
+    from adjust.lsq.net_observation import DeformableObservation, NetObservation
 
     model = _deforming_model()
     gen = torch.Generator().manual_seed(1)

@@ -39,7 +39,7 @@ def _problem(T: int = 12):
 
 
 def test_frozen_jacobian_is_exact_for_the_frozen_prediction():
-    from adjust.lsq.observation import NetObservation
+    from adjust.lsq.net_observation import NetObservation
 
     model = _model()
     body, poses, data, observed = _problem()
@@ -67,7 +67,7 @@ def test_frozen_jacobian_is_exact_for_the_frozen_prediction():
 
 def test_frozen_jacobian_equals_full_one_for_a_rigid_prediction():
     """An untrained net (zero-initialised head) predicts the rigid model: nothing is neglected."""
-    from adjust.lsq.observation import NetObservation
+    from adjust.lsq.net_observation import NetObservation
 
     model = _model(perturb=False)
     body, poses, data, observed = _problem()
@@ -83,7 +83,7 @@ def test_frozen_jacobian_equals_full_one_for_a_rigid_prediction():
 def test_unknown_jacobian_mode_is_refused():
     import pytest
 
-    from adjust.lsq.observation import NetObservation
+    from adjust.lsq.net_observation import NetObservation
 
     model = _model()
     body, _, data, observed = _problem()

@@ -9,7 +9,8 @@ Entry point: `adjust_poses(xy, weight, cams, body_points, SolverConfig(...)) -> 
 
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.constraint import make_grid, track_residuals
-from adjust.lsq.observation import DeformableObservation, ObservationModel, RigidObservation
+from adjust.lsq.net_observation import DeformableObservation
+from adjust.lsq.observation import ObservationModel, RigidObservation
 from adjust.lsq.solver import AdjustmentResult, adjust_poses, normal_matrix
 
 __all__ = [
