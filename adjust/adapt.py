@@ -83,19 +83,19 @@ class AdaptConfig:
     """The ``adapt:`` block of adjust-track's config (conf/track.yaml documents each key)."""
 
     pretrained: str | None = "default"
-    max_steps: int = 300
+    max_steps: int = 150
     eval_every: int = 25
-    patience: int = 3
+    patience: int = 2
     min_improvement: float = 0.002
     max_time: float | None = 180.0  # seconds (the config's DD:HH:MM:SS)
     accelerator: str = "auto"
     val_fraction: float = 0.2
     block_frames: int = 500
-    val_windows: int = 1024
+    val_windows: int = 512
     batch_size: int = 128
     lr: float = 1e-3
     weight_decay: float = 1e-4
-    warmup_steps: int = 20
+    warmup_steps: int = 10
     seed: int = 0
     forecast: float = 0.0
     step: int = 1
@@ -218,18 +218,14 @@ def starting_model(
     """The model fine-tuning starts from, on the recording's ``body`` (its body model: the
     canonical frames are the recording's), and how it was made: "fine-tune" (a copy of
     ``pretrained``'s net when it has ``body``'s parts, or when it is part-agnostic,
-    ``net.part_agnostic``: it identifies parts by their rest coordinates) or "scratch"
+    `DeformationModel.part_agnostic`: it identifies parts by their rest coordinates;
+    `DeformationModel.for_body`) or "scratch"
     (``pretrained``'s architecture built for ``body``'s parts, starting from the interpolation
     prior: ``prior_residual``; with no pretrained net, the shipped net's architecture)."""
     if pretrained is not None and (
-        tuple(pretrained.body.parts) == tuple(body.parts)
-        or bool(getattr(pretrained.net, "part_agnostic", False))
+        tuple(pretrained.body.parts) == tuple(body.parts) or pretrained.part_agnostic
     ):
-        p = pretrained
-        net = copy.deepcopy(p.net)
-        return DeformationModel(net, body, p.half_window, p.net_config, p.step, p.steps, p.up), (
-            "fine-tune"
-        )
+        return copy.deepcopy(pretrained).for_body(body), "fine-tune"
     if pretrained is None:  # the shipped net's architecture
         pretrained = load_default()
     arch = pretrained
@@ -275,6 +271,42 @@ def evaluate(model: DeformationModel, batches, device: torch.device) -> dict[str
     }  # fmt: skip
 
 
+class AdamW:
+    """AdamW (decoupled weight decay; the update of ``torch.optim.AdamW`` with its defaults),
+    the learning rate given at each step. Not torch.optim's: its first use imports
+    ``torch._dynamo``, 2-6 s on this 2-core machine, as long as the default tracking itself.
+
+    groups: [(parameters, weight decay), ...]."""
+
+    def __init__(self, groups, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
+        self.groups = [(list(ps), float(wd)) for ps, wd in groups]
+        self.betas, self.eps, self.t = betas, float(eps), 0
+        self.state = {
+            id(p): (torch.zeros_like(p), torch.zeros_like(p)) for ps, _ in self.groups for p in ps
+        }
+
+    def zero_grad(self) -> None:
+        for ps, _ in self.groups:
+            for p in ps:
+                p.grad = None
+
+    @torch.no_grad()
+    def step(self, lr: float) -> None:
+        self.t += 1
+        b1, b2 = self.betas
+        c1, c2 = 1.0 - b1**self.t, 1.0 - b2**self.t
+        for ps, wd in self.groups:
+            for p in ps:
+                if p.grad is None:
+                    continue
+                m, v = self.state[id(p)]
+                p.mul_(1.0 - lr * wd)
+                m.lerp_(p.grad, 1.0 - b1)
+                v.mul_(b2).addcmul_(p.grad, p.grad, value=1.0 - b2)
+                denom = (v.sqrt() / math.sqrt(c2)).add_(self.eps)
+                p.addcdiv_(m, denom, value=-lr / c1)
+
+
 def fine_tune(
     model: DeformationModel,
     train_batches,
@@ -297,11 +329,7 @@ def fine_tune(
     extra = [] if forecast_head is None else list(forecast_head.forecast_head.parameters())
     decay = [p for p in params + extra if p.ndim >= 2]
     no_decay = [p for p in params + extra if p.ndim < 2]
-    opt = torch.optim.AdamW(
-        [{"params": decay, "weight_decay": float(cfg.weight_decay)},
-         {"params": no_decay, "weight_decay": 0.0}],
-        lr=float(cfg.lr),
-    )  # fmt: skip
+    opt = AdamW([(decay, float(cfg.weight_decay)), (no_decay, 0.0)])
     total = int(cfg.max_steps)
     warm = max(1, min(int(cfg.warmup_steps), total // 5))
     budget = cfg.max_time
@@ -315,7 +343,6 @@ def fine_tune(
             p = max(p, (time.monotonic() - t0) / budget)
         return 0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, p)))
 
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
     scores = evaluate(model, val_batches, device)
     history = [{"step": 0, **scores}]
     if on_eval is not None:
@@ -329,10 +356,9 @@ def fine_tune(
         loss = masked_mse(pred_c, (b["target"] - t[:, None, :]) @ R, b["target_mask"])
         if forecast_head is not None:
             loss = loss + float(cfg.forecast) * forecast_head.forecast_loss(b)[0]
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad()
         loss.backward()
-        opt.step()
-        sched.step()
+        opt.step(float(cfg.lr) * factor(step))
         step += 1
         out_of_time = budget is not None and time.monotonic() - t0 >= budget
         if step % int(cfg.eval_every) == 0 or step >= total or out_of_time:

@@ -310,13 +310,10 @@ def main_real(args) -> int:
 
     shipped = load_default() if args.real_checkpoint is None else (
         DeformationModel.from_checkpoint(args.real_checkpoint))  # fmt: skip
-    parts = tuple(shipped.body.parts)
-    if getattr(shipped.net, "part_agnostic", False):
-        parts = tuple(default_parts())
+    parts = tuple(default_parts()) if shipped.part_agnostic else tuple(shipped.body.parts)
     seq, body, scale = real_tokens(Path(args.data), parts)
     # the shipped net on the recording's body model (its canonical frames), weights as shipped
-    model = DeformationModel(shipped.net, body, shipped.half_window, shipped.net_config,
-                             shipped.step, shipped.steps, shipped.up).eval()  # fmt: skip
+    model = shipped.for_body(body, "imputation --real").eval()
     train, held = cut(seq, *REAL_TRAIN), cut(seq, *REAL_HELD_OUT)
     cov = offset_covariance(held, np.array(body.points))
     allowed = sorted({*model.steps, *(int(x) for x in args.steps.split(","))})

@@ -13,7 +13,7 @@ import adjust.adapt as adapt
 from adjust.adapt import AdaptConfig, adapt_net, fine_tune, select_device, starting_model
 from deformnet.body import BodyModel, default_mouse
 from deformnet.deformation import DeformationModel
-from deformnet.pretrained import load_default
+from deformnet.pretrained import SIM_CHECKPOINT, load_default
 from deformnet.sessions import SessionTokens
 from deformnet.windows import Augment, toy_sequence
 
@@ -159,7 +159,8 @@ class _AgnosticNet(nn.Module):
 
 def test_starting_model_for_another_skeleton():
     """A skeleton the net does not know: a part-agnostic net is fine-tuned as it is (its
-    weights copied, not shared), another net's architecture is built for the new parts."""
+    weights copied, not shared), a net that knows parts by index gets its architecture built
+    for the new parts."""
     body = BodyModel.from_mapping(
         {"a": [0.0, 0.0, 0.0], "b": [0.0, 30.0, 0.0], "c": [10.0, 10.0, 5.0]}, name="three"
     )
@@ -167,7 +168,8 @@ def test_starting_model_for_another_skeleton():
     model, how = starting_model(agnostic, body)
     assert how == "fine-tune" and model.body.parts == body.parts
     assert model.net is not agnostic.net and torch.equal(model.net.shift, agnostic.net.shift)
-    model, how = starting_model(load_default(), body)
+    by_index = DeformationModel.from_checkpoint(SIM_CHECKPOINT)  # an LSTM: parts by index
+    model, how = starting_model(by_index, body)
     assert how == "scratch" and model.num_parts == 3
     assert model.net_config["prior_residual"] is True
     out = model(*(torch.zeros(2, model.window, 3, 3), torch.zeros(2, model.window, 3, 3),
@@ -213,3 +215,32 @@ def test_mirror_rule_is_deformnet_trains():
         assert adapt.mirror_perm(body, aug) == dm.mirror_perm, body.name
     assert adapt.mirror_perm(mouse, aug) is not None
     assert adapt.mirror_perm(mouse, Augment(mirror=0.0)) is None
+
+
+def test_adamw_is_torchs():
+    """adapt's AdamW (no torch.optim import) takes torch.optim.AdamW's steps, learning rate
+    changing from step to step, one group with weight decay and one without."""
+    torch.manual_seed(0)
+    a = [torch.randn(4, 3, requires_grad=True), torch.randn(3, requires_grad=True)]
+    b = [x.detach().clone().requires_grad_(True) for x in a]
+    start = [x.detach().clone() for x in a]
+    ours = adapt.AdamW([(a[:1], 0.1), (a[1:], 0.0)])
+    ref = torch.optim.AdamW(
+        [{"params": b[:1], "weight_decay": 0.1}, {"params": b[1:], "weight_decay": 0.0}], lr=1.0
+    )
+    target = torch.randn(4, 3)
+    for i in range(20):
+        lr = 0.01 * (1 + i % 3)
+        for params, opt in ((a, ours), (b, ref)):
+            loss = ((params[0] + params[1] - target) ** 2).sum()
+            opt.zero_grad()
+            loss.backward()
+            if opt is ref:
+                for g in ref.param_groups:
+                    g["lr"] = lr
+                ref.step()
+            else:
+                ours.step(lr)
+    for x, y in zip(a, b):
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+    assert all((x - s).abs().max() > 0.05 for x, s in zip(a, start))  # they moved
