@@ -277,10 +277,22 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", default=None, help="keep the scenes and tracks here (a cache)")
     ap.add_argument("--data", default=str(DATA))
     ap.add_argument("--report", default=None, help="also write the result's JSON here")
+    ap.add_argument(
+        "--net",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a net argument of the recipe (e.g. prior_residual=true)",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     scenes = [SceneSpec.parse(s) for s in args.scenes.split(",") if s]
-    res = build(args.frames, scenes, replace(RECIPE, steps=int(args.steps)), args.seed,
+    net = dict(RECIPE.net)
+    for item in args.net:
+        key, _, value = item.partition("=")
+        net[key] = json.loads(value.lower() if value.lower() in ("true", "false") else value)
+    recipe = replace(RECIPE, steps=int(args.steps), net=net)
+    res = build(args.frames, scenes, recipe, args.seed,
                 args.out, args.work, Path(args.data), args.train_frames,
                 args.eval_frames)  # fmt: skip
     text = json.dumps(res, indent=2)
