@@ -17,16 +17,22 @@ Rows:
   nose height, paws at the snout, an effector at a mechanism, run lengths, what a walk ends at;
 - ``simba_forest``: a random forest on SimBA-style per-frame features (pairwise distances,
   speeds, heights, mechanism distances, rolling means / sds over 5, 15, 33 frames);
-- ``recipe:<name>``: `deformnet-classify` runs (`deformnet.classify.run`) with the candidates'
-  overrides; ``default`` is `conf/classify.yaml` with only tracks, labels and the rig's
-  mechanism positions given.
+- ``recipe:<name>``: `deformnet-classify` runs (`deformnet.classify.run`, then its classifier
+  through the `mode=predict` path on the test sessions) with the `CANDIDATES`' overrides;
+  ``default`` is `conf/classify.yaml` with only tracks, labels and the rig's mechanism positions
+  given; ``mlp_scratch`` the former default (an MLP head on an LSTM from scratch, 60 s).
+``--candidates all`` runs every candidate (the validation sweep that chose the default).
 ``--encoders``: the forest head on the deformation encoder's outputs beside the frame features
-(`head.inputs=all`), pretrained checkpoints (each an independent `deformnet-train` run) against
-the same architecture's random weights (one initialisation per checkpoint seed).
+(`head.inputs=all`), pretrained checkpoints (each an independent `deformnet-train` run, e.g.
+`python -m deformnet.pretrained.build --steps 400 --seed S --out encS.pt`) against the same
+architecture's random weights (one initialisation per checkpoint), at `--encoder-fractions`.
 
     flock /tmp/mousetrack-cpu.lock .venv/bin/python benchmarks/behavior.py [--quick]
-        [--fractions 0.1,0.01] [--candidates default,...] [--encoders a.ckpt,b.ckpt,c.ckpt]
+        [--fractions 0.1,0.01] [--candidates default,mlp_scratch|all] [--encoders a,b,c]
 
+The default run (6 train, 2 validation, 4 test sessions of 4000 frames; two candidates at two
+label shares: 4 `deformnet-classify` runs, 2-3.5 min each in the measured run beside other
+jobs) stays under 20 min on 2 cores; ``--quick`` is a smoke run (about 1 min).
 Prints tables; the last line is JSON, also written to runs/benchmarks/behavior.json.
 """
 
@@ -62,60 +68,33 @@ SEEDS = {"train": 71_000, "val": 71_100, "test": 71_200}
 NOISE_MM = 1.0
 BOUT_CAP_S = 3.0  # s: a labelled bout's longest span (from its onset) ...
 MIN_BOUT_S = 0.5  # ... and at least this, else the share's part per class
-#: `deformnet-classify` candidates (overrides beyond tracks, labels, mechanisms)
+_FOREST = ["head=forest", "freeze=true", "net=lstm_small"]
+_CTX = "context.frames=[15,33]"  # the former default context
+#: `deformnet-classify` candidates (overrides beyond tracks, labels, mechanisms); every one
+#: spelt out, so that a change of the defaults does not change what a row measures
 CANDIDATES = {
-    "forest_frame": ["head=forest", "freeze=true", "measurements=false", "net=lstm_small"],
-    "forest_measure": ["head=forest", "freeze=true", "measurements=true", "net=lstm_small"],
-    "forest_measure_linear": [
-        "head=forest",
-        "freeze=true",
-        "measurements=true",
-        "net=lstm_small",
-        "pseudo_labels.teacher=linear",
-    ],
-    "forest_measure_linear_3s": [
-        "head=forest",
-        "freeze=true",
-        "measurements=true",
-        "net=lstm_small",
-        "pseudo_labels.teacher=linear",
-        "context.frames=[15,33,91]",
-    ],
-    "forest_measure_linear_halves": [
-        "head=forest",
-        "freeze=true",
-        "measurements=true",
-        "net=lstm_small",
-        "pseudo_labels.teacher=linear",
-        "context.frames=[15,33,91]",
-        "context.halves=true",
-    ],
-    "forest_measure_linear_halves_6s": [
-        "head=forest",
-        "freeze=true",
-        "measurements=true",
-        "net=lstm_small",
-        "pseudo_labels.teacher=linear",
-        "context.frames=[15,33,91,181]",
-        "context.halves=true",
-    ],
-    "forest_measure_3s": [
-        "head=forest",
-        "freeze=true",
-        "measurements=true",
-        "net=lstm_small",
-        "context.frames=[15,33,91]",
-    ],
-    "mlp_scratch": [
-        "head=mlp",
-        "freeze=false",
-        "measurements=false",
-        "pseudo_labels.teacher=none",
-        "trainer.max_time=00:00:01:00",
-    ],  # fmt: skip
-}
+    "default": [],  # conf/classify.yaml: forest_measure_linear_3s, chosen on validation
+    "forest_frame": [*_FOREST, _CTX, "measurements=false", "pseudo_labels.teacher=none"],
+    "forest_measure": [*_FOREST, _CTX, "measurements=true", "pseudo_labels.teacher=none"],
+    "forest_measure_linear": [*_FOREST, _CTX, "measurements=true",
+                              "pseudo_labels.teacher=linear"],
+    "forest_measure_3s": [*_FOREST, "context.frames=[15,33,91]", "measurements=true",
+                          "pseudo_labels.teacher=none"],
+    "forest_measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "measurements=true",
+                                 "pseudo_labels.teacher=linear"],
+    "forest_measure_linear_halves": [*_FOREST, "context.frames=[15,33,91]",
+                                     "context.halves=true", "measurements=true",
+                                     "pseudo_labels.teacher=linear"],
+    "forest_measure_linear_halves_6s": [*_FOREST, "context.frames=[15,33,91,181]",
+                                        "context.halves=true", "measurements=true",
+                                        "pseudo_labels.teacher=linear"],
+    # the former default: an MLP head on an LSTM trained from scratch (here for 60 s)
+    "mlp_scratch": ["net=lstm", "head=mlp", "freeze=false", _CTX, "measurements=false",
+                    "pseudo_labels.teacher=none", "trainer.max_time=00:00:01:00"],
+}  # fmt: skip
 #: the forest head on the encoder's outputs beside the frame features and measurements
-ENCODER_HEAD = ["head=forest", "freeze=true", "measurements=true", "head.inputs=all"]
+ENCODER_HEAD = ["head=forest", "freeze=true", "measurements=true", "head.inputs=all", _CTX,
+                "pseudo_labels.teacher=none"]  # fmt: skip
 
 
 def scratch_like(ckpt: str) -> list[str]:
@@ -315,7 +294,7 @@ def run_recipe(out: Path, train: list[dict], label_files: list[Path], val: list[
     (its report: the validation sessions' truth), then its classifier labels each test
     session through the `mode=predict` path (`read_session`, `predict_session`).
     Returns {"val": ..., "test": ...} (macro-F1 raw, smoothed; per-class F1)."""
-    ov = [f"output.dir={out}", "logger=none", "labels.classes=" + _list(ETHOGRAM),
+    ov = [f"output.dir={out}", "logger=none", "classes=" + _list(ETHOGRAM),
           f"data.train_tracks={_list(s['tracks'] for s in train)}",
           f"data.train_labels={_list(label_files)}",
           f"data.test_tracks={_list(s['tracks'] for s in val)}",
@@ -345,13 +324,14 @@ def _fmt(v) -> str:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="a smoke run (small sessions)")
-    ap.add_argument("--frames", type=int, default=6000)
+    ap.add_argument("--frames", type=int, default=4000)
     ap.add_argument("--train", type=int, default=6)
     ap.add_argument("--val", type=int, default=2)
     ap.add_argument("--test", type=int, default=4)
     ap.add_argument("--fractions", default="0.1,0.01")
     ap.add_argument("--label-draws", type=int, default=1)
-    ap.add_argument("--candidates", default=",".join(CANDIDATES))
+    ap.add_argument("--candidates", default="default,mlp_scratch",
+                    help=f"comma-separated, of {','.join(CANDIDATES)}; all: every one")  # fmt: skip
     ap.add_argument("--encoders", default="", help="comma-separated deformnet-train checkpoints")
     ap.add_argument("--encoder-fractions", default="0.1")
     ap.add_argument("--work", default="runs/benchmarks/behavior_work")
@@ -375,7 +355,11 @@ def main(argv: list[str] | None = None) -> dict:
                 for s in sessions[split]]  # fmt: skip
         results["rules"][split] = scored(sessions[split], pred)
     fractions = [float(f) for f in args.fractions.split(",")]
-    names = [c for c in args.candidates.split(",") if c]
+    names = list(CANDIDATES) if args.candidates == "all" else args.candidates.split(",")
+    names = [c for c in names if c]
+    unknown = sorted(set(names) - set(CANDIDATES))
+    if unknown:
+        ap.error(f"unknown candidates {unknown} (known: {', '.join(CANDIDATES)})")
     encoders = [e for e in args.encoders.split(",") if e]
     enc_fracs = [float(f) for f in args.encoder_fractions.split(",") if f]
     for frac in fractions:

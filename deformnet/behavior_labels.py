@@ -580,7 +580,7 @@ def subsample_labels(sessions: list[Session], fraction: float, segment: int, see
     """Keep the labels of a random `fraction` of each session's labelled frames (in segments of
     `segment` frames), unlabel the rest (in place)."""
     if not 0 < fraction <= 1:
-        raise ValueError(f"labels.fraction must be in (0, 1], got {fraction}")
+        raise ValueError(f"label_fraction must be in (0, 1], got {fraction}")
     if fraction >= 1:
         return
     rng = np.random.default_rng(seed)

@@ -2,7 +2,7 @@
 encoder, or predict behavior labels with one (Hydra app over `run(cfg)`).
 
     deformnet-classify pretrained=runs/train/<run>/checkpoints/best.ckpt freeze=false \\
-        labels.fraction=0.1 data.train_tracks=[a/points3d.csv] data.train_labels=[a.csv] \\
+        label_fraction=0.1 data.train_tracks=[a/points3d.csv] data.train_labels=[a.csv] \\
         data.val_tracks=[...] data.val_labels=[...] data.test_tracks=[...] data.test_labels=[...]
     deformnet-classify pretrained=null net=transformer ...        # same architecture, scratch
     deformnet-classify mode=predict checkpoint=OUT/classifier.pt tracks=points3d.csv
@@ -834,6 +834,11 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
     interp = bool(d.get("interpolate", False))
     tracks = [str(p) for p in (d.get(f"{split}_tracks") or [])]
     labels = [str(p) for p in (d.get(f"{split}_labels") or [])]
+    if split == "train" and cfg.get("tracks") and not tracks:  # tracks=[...] labels=[...]
+        tracks, labels = _path_list(cfg.get("tracks")), _path_list(cfg.get("labels"))
+        if len(tracks) != len(labels):
+            raise ValueError(f"tracks= has {len(tracks)} files but labels= {len(labels)} (one "
+                             "labels file per session)")  # fmt: skip
     if unl:
         labels = [None] * len(tracks)
     if len(tracks) != len(labels):
@@ -869,6 +874,14 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
             s = resample_session(s, rates[i], fps, bool(cfg.get("antialias", True)))
         out.append(s)
     return out
+
+
+def _path_list(value) -> list[str]:
+    """A path or a list of paths (``tracks=a.csv``, ``tracks=[a.csv,b.csv]``) as a list."""
+    value = to_plain(value)
+    if value is None:
+        return []
+    return [str(p) for p in value] if isinstance(value, list) else [str(value)]
 
 
 def mechanism_setup(cfg: DictConfig, body) -> dict | None:
@@ -967,7 +980,7 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     from deformnet.atomic import write_text
     from deformnet.classify_lit import ClassifyLit
 
-    classes = [str(c) for c in cfg.labels.classes]
+    classes = [str(c) for c in cfg.classes]
     C = len(classes)
     net_cfg, body, hw, state, up = _encoder_config(cfg, classes)
     body = body.with_aliases(to_plain(cfg.get("aliases")))  # kept in classifier.pt
@@ -1017,9 +1030,9 @@ def _train(cfg: DictConfig, out: Path) -> dict:
     set_body_scales((*train, *val, *test, *unlabelled), scale_mode, body)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
-    frac, seg = float(cfg.labels.fraction), int(cfg.labels.get("segment", 1))
-    subsample_labels(train, frac, seg, int(cfg.labels.seed))
-    subsample_labels(val, frac, seg, int(cfg.labels.seed) + 1)
+    frac, seg = float(cfg.label_fraction), int(cfg.get("label_segment", 1))
+    subsample_labels(train, frac, seg, int(cfg.label_seed))
+    subsample_labels(val, frac, seg, int(cfg.label_seed) + 1)
     bank = SessionBank(train, span)
     idx = np.flatnonzero(bank.labels.numpy() >= 0)
     if idx.size == 0:
@@ -1327,6 +1340,8 @@ def read_session(
 def _predict(cfg: DictConfig, out: Path) -> dict:
     from deformnet.atomic import atomic_path
 
+    if isinstance(to_plain(cfg.get("tracks")), list) or cfg.get("labels"):
+        raise ValueError("mode=predict labels one track: tracks=points3d.csv (no labels=)")
     if not cfg.get("checkpoint") or not cfg.get("tracks"):
         raise ValueError("mode=predict needs checkpoint=CLASSIFIER.pt and tracks=points3d.csv")
     model, meta = load_classifier(str(cfg.checkpoint))

@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from helpers import tiny_deformation_model, write_bout_labels
+from helpers import pinned, tiny_deformation_model, write_bout_labels
 
 from adjust.io import write_points3d
 from deformnet.behavior_labels import bouts, read_labels, read_tracks, smooth
@@ -71,7 +71,7 @@ def _toy_session(
 
 def _compose(overrides):
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return hydra.compose("classify", overrides=overrides)
+        return hydra.compose("classify", overrides=pinned(overrides))
 
 
 def _files(split: str, sessions) -> list[str]:
@@ -170,8 +170,8 @@ def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
     cfg = _compose(
         [
             *TINY,
-            f"labels.classes=[{','.join(CLASSES)}]",
-            "labels.fraction=0.25",
+            f"classes=[{','.join(CLASSES)}]",
+            "label_fraction=0.25",
             *_files("train", train),
             *_files("val", val),
             *_files("test", test),
@@ -255,7 +255,7 @@ def _fit_from_pretrained(tmp_path, overrides: list[str], up=None):
             [
                 f"pretrained={ckpt}",
                 *overrides,
-                f"labels.classes=[{','.join(CLASSES)}]",
+                f"classes=[{','.join(CLASSES)}]",
                 *_files("train", train),
                 "data.batch_size=16",
                 "data.steps_per_epoch=3",
@@ -322,7 +322,7 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
             [
                 "pretrained=null",
                 "up=[0,0,1]",
-                f"labels.classes=[{','.join(CLASSES)}]",
+                f"classes=[{','.join(CLASSES)}]",
                 *_files("train", [_toy_session(tmp_path, "train", 0, T=120)]),
                 "data.batch_size=16",
                 "data.steps_per_epoch=2",
@@ -344,9 +344,7 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
 def test_pretrained_probe_then_fine_tune_changes_the_encoder(tmp_path):
     from deformnet.classify import load_classifier
 
-    pre, _, res = _fit_from_pretrained(
-        tmp_path, ["freeze=false", "trainer.max_epochs=2"]
-    )
+    pre, _, res = _fit_from_pretrained(tmp_path, ["freeze=false", "trainer.max_epochs=2"])
     assert res["report"]["probe"]["iterations"] > 0  # the head's L-BFGS probe first
     assert res["report"]["training_steps"] == 2 * 3  # then fine-tuning
     # no validation sessions: the last state is kept (not a best-validation one)
@@ -409,8 +407,8 @@ def test_forest_head_on_a_frozen_encoder_and_predict(tmp_path):
         *TINY,
         "head=forest",
         "head.trees=25",
-        f"labels.classes=[{','.join(CLASSES)}]",
-        "labels.fraction=0.05",
+        f"classes=[{','.join(CLASSES)}]",
+        "label_fraction=0.05",
         *_files("train", train),
         *_files("test", test),
         "logger=none",
@@ -505,8 +503,8 @@ def test_lock_box_context_tells_apart_what_only_the_place_does(tmp_path):
         "head.trees=25",
         "freeze=true",
         "frame_features=false",
-        "labels.classes=[walk,lever]",
-        "labels.fraction=0.1",
+        "classes=[walk,lever]",
+        "label_fraction=0.1",
         *_files("train", train),
         *_files("test", test),
         "logger=none",
@@ -569,7 +567,8 @@ def test_mechanism_config_errors(overrides, match):
 
 
 def test_mechanism_setup_sources(tmp_path):
-    """positions=sim: the simulator's lock box; a calibration without the table is named."""
+    """positions=sim: the default simulator's lock box; a calibration without the table is
+    named."""
     from deformnet.body import BodyModel
     from deformnet.classify import mechanism_setup
     from deformnet.sim import MECHANISMS, simulate
@@ -577,7 +576,7 @@ def test_mechanism_setup_sources(tmp_path):
     cfg = _compose(["mechanisms.positions=sim", "mechanisms.parts=[snout]"])
     body = BodyModel.from_config(cfg.body)
     m = mechanism_setup(cfg, body)
-    data = simulate(cfg, num_frames=30, seed=0, body=body)
+    data = simulate(None, num_frames=30, seed=0, body=body)
     assert m["names"] == list(MECHANISMS) and m["parts"] == ["nose_tip"]
     np.testing.assert_allclose(m["positions"], data.mechanism_positions)
     bad = tmp_path / "calibration.toml"
@@ -601,8 +600,8 @@ def test_heights_up_gives_a_body_frame_encoder_the_part_heights(tmp_path):
         return run(
             _compose(
                 [*TINY, "head=forest", "head.trees=25", "freeze=true", "frame_features=false",
-                 "measurements=true", f"labels.classes=[{','.join(CLASSES)}]",
-                 "labels.fraction=0.25", "context.frames=[]", *_files("train", train),
+                 "measurements=true", f"classes=[{','.join(CLASSES)}]",
+                 "label_fraction=0.25", "context.frames=[]", *_files("train", train),
                  *_files("test", test), "logger=none", "smoothing.median=0",
                  "smoothing.min_bout=0", f"output.dir={out}", *extra]
             )
@@ -667,7 +666,7 @@ def test_predict_warns_on_a_recording_unlike_the_training_data(tmp_path, caplog)
     out = tmp_path / "cls"
     rep = run(
         _compose(
-            [*TINY, "freeze=true", f"labels.classes=[{','.join(CLASSES)}]",
+            [*TINY, "freeze=true", f"classes=[{','.join(CLASSES)}]",
              *_files("train", train), *_files("test", test), "logger=none",
              f"output.dir={out}", "body_scale=none"]
         )
@@ -706,7 +705,7 @@ def test_body_scale_lets_a_classifier_label_a_larger_mouse(tmp_path):
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8)]
     out = tmp_path / "cls"
-    ov = [*TINY, "freeze=true", f"labels.classes=[{','.join(CLASSES)}]",
+    ov = [*TINY, "freeze=true", f"classes=[{','.join(CLASSES)}]",
           *_files("train", train), "logger=none"]  # fmt: skip
     rep = run(_compose([*ov, *_files("test", test), f"output.dir={out}"]))["report"]
     assert rep["body_scales"] and all(abs(v - 1) < 0.01 for v in rep["body_scales"].values())
@@ -762,7 +761,7 @@ def test_measurements_alone_feed_a_forest_and_predict_round_trips(tmp_path):
     rep = run(
         _compose(
             [*TINY, "head=forest", "head.trees=25", "freeze=true", "frame_features=false",
-             "measurements=true", f"labels.classes=[{','.join(CLASSES)}]", "labels.fraction=0.25",
+             "measurements=true", f"classes=[{','.join(CLASSES)}]", "label_fraction=0.25",
              "context.frames=[5]",
              *_files("train", train), *_files("test", test), "logger=none", "smoothing.median=0",
              "smoothing.min_bout=0", f"output.dir={out}"]
@@ -855,3 +854,26 @@ def test_pose_mismatch_keeps_deformed_tracks():
     Q = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
     bad = pose_mismatch(body, _other_model_poses(poses, body, Q, np.zeros(3)), pts, obs)
     assert bad is not None and 80 < bad["angle_deg"] < 100
+
+
+def test_the_default_recipe_needs_only_tracks_and_labels(tmp_path):
+    """`deformnet-classify tracks=[...] labels=[...]` (the lab's command, nothing else): the
+    forest head on the frame features and measurements, taught by the linear teacher; it labels
+    a held-out session right. Unequal lists are an error naming both."""
+    from deformnet.classify import run
+
+    train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
+    test = _toy_session(tmp_path, "test", 8)
+    lab = [f"tracks=[{train[0][0]},{train[1][0]}]", f"labels=[{train[0][1]},{train[1][1]}]",
+           f"classes=[{','.join(CLASSES)}]", f"data.test_tracks=[{test[0]}]",
+           f"data.test_labels=[{test[1]}]", "logger=none"]  # fmt: skip
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose("classify", overrides=[*lab, f"output.dir={tmp_path / 'out'}"])
+        bad = hydra.compose("classify", overrides=[*lab[:1], f"labels=[{train[0][1]}]",
+                                                   f"output.dir={tmp_path / 'bad'}"])  # fmt: skip
+    rep = run(cfg)["report"]
+    assert rep["split"] == "test" and rep["head_solver"] == "forest"
+    assert rep["probe"]["pseudo_labels"]["teacher"] == "linear"
+    assert rep["raw"]["macro_f1"] >= 0.95, rep["raw"]
+    with pytest.raises(ValueError, match="tracks= has 2 files but labels= 1"):
+        run(bad)

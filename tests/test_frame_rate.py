@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from helpers import write_bout_labels
+from helpers import pinned, write_bout_labels
 
 from adjust.io import write_points3d
 from deformnet.behavior_labels import Session, check_fps, resample_session, to_track_frames
@@ -183,7 +183,7 @@ def _speed_track(tmp_path, name: str, seed: int, fps: float, seconds: float = 16
 
 
 def _compose(overrides):
-    return compose("classify", overrides)
+    return compose("classify", pinned(overrides))
 
 
 def test_a_classifier_labels_a_recording_at_another_frame_rate(tmp_path, caplog):
@@ -200,7 +200,7 @@ def test_a_classifier_labels_a_recording_at_another_frame_rate(tmp_path, caplog)
     lab = ",".join(str(s[1]) for s in train)
     out = tmp_path / "cls"
     ov = [*tiny, "freeze=true", "head=forest", "measurements=true", "fps=30",
-          f"labels.classes=[{','.join(CLASSES)}]", f"data.train_tracks=[{t}]",
+          f"classes=[{','.join(CLASSES)}]", f"data.train_tracks=[{t}]",
           f"data.train_labels=[{lab}]", f"data.test_tracks=[{test[0]}]",
           f"data.test_labels=[{test[1]}]", "logger=none", f"output.dir={out}"]  # fmt: skip
     rep = run(_compose(ov))["report"]
@@ -240,7 +240,7 @@ def test_training_sessions_at_several_frame_rates(tmp_path):
     t = ",".join(str(s[0]) for s in train)
     lab = ",".join(str(s[1]) for s in train)
     ov = [*tiny, "freeze=true", "head=forest", "measurements=true",
-          f"labels.classes=[{','.join(CLASSES)}]", f"data.train_tracks=[{t}]",
+          f"classes=[{','.join(CLASSES)}]", f"data.train_tracks=[{t}]",
           f"data.train_labels=[{lab}]", f"data.test_tracks=[{test[0]}]",
           f"data.test_labels=[{test[1]}]", "logger=none"]  # fmt: skip
     rep = run(_compose([*ov, "fps=30", "data.train_fps=[30,90]", f"output.dir={tmp_path / 'ok'}"]))

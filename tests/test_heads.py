@@ -6,7 +6,7 @@ import hydra
 import numpy as np
 import pytest
 import torch
-from helpers import quiet_trainer
+from helpers import pinned, quiet_trainer
 
 from deformnet.body import default_mouse
 from deformnet.deformation import build_net
@@ -92,7 +92,7 @@ def test_heading_frame_encoder_sees_pitch_and_keeps_the_body_frame_features(kind
 
 def _compose(overrides):
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        return hydra.compose("classify", overrides=overrides)
+        return hydra.compose("classify", overrides=pinned(overrides))
 
 
 def _sim_session(tmp_path, seed: int, T: int = 120) -> tuple[str, str]:

@@ -132,8 +132,8 @@ def few_label_toy(tmp_path) -> tuple[list[str], list]:
     test = [_toy_session(tmp_path, "test", 8)]
     base = [
         *TINY,
-        f"labels.classes=[{','.join(CLASSES)}]",
-        "labels.fraction=0.05",
+        f"classes=[{','.join(CLASSES)}]",
+        "label_fraction=0.05",
         *_files("train", train),
         *_files("test", test),
         "logger=none",
@@ -273,7 +273,7 @@ def test_the_teacher_matters_where_the_forest_alone_falls_short(tmp_path):
 
     train = [_subtle_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_subtle_session(tmp_path, "test", 8)]
-    base = [*TINY, f"labels.classes=[{','.join(CLASSES)}]", "labels.fraction=0.03",
+    base = [*TINY, f"classes=[{','.join(CLASSES)}]", "label_fraction=0.03",
             *_files("train", train), *_files("test", test), "logger=none",
             "smoothing.median=0", "smoothing.min_bout=0", "head=forest", "head.trees=25",
             "freeze=true", "context.frames=[]"]  # fmt: skip
