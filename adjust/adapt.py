@@ -274,7 +274,7 @@ def evaluate(model: DeformationModel, batches, device: torch.device) -> dict[str
 class AdamW:
     """AdamW (decoupled weight decay; the update of ``torch.optim.AdamW`` with its defaults),
     the learning rate given at each step. Not torch.optim's: its first use imports
-    ``torch._dynamo``, 2-6 s on this 2-core machine, as long as the default tracking itself.
+    ``torch._dynamo``, 3-6 s on this shared 2-core machine, about the default tracking's time.
 
     groups: [(parameters, weight decay), ...]."""
 
