@@ -724,7 +724,7 @@ def test_body_scale_lets_a_classifier_label_a_larger_mouse(tmp_path):
     # refitted to the classifier's model, so the labels stay the same
     from deformnet.behavior_labels import POSE_COLUMNS
 
-    other = pd.read_csv(_toy_session(tmp_path, "same", 9)[0])
+    other = read_points3d_table(_toy_session(tmp_path, "same", 9)[0])  # with the pose sidecar
     Q = np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]])
     body = default_mouse()
     other[list(POSE_COLUMNS)] = _other_model_poses(
@@ -740,7 +740,7 @@ def test_body_scale_lets_a_classifier_label_a_larger_mouse(tmp_path):
     assert got["warning"] is None
     with pytest.raises(ValueError, match="body_scale must be one of"):
         run(_compose([*ov, "body_scale=size", f"output.dir={tmp_path / 'bad'}"]))
-    metres = pd.read_csv(test[0][0])
+    metres = read_points3d_table(test[0][0])
     xyz = [c for c in metres.columns if c[-2:] in ("_x", "_y", "_z") and not c.startswith("pose")]
     metres[xyz] = metres[xyz] / 1000.0
     metres.to_csv(tmp_path / "metres.csv", index=False)
@@ -802,7 +802,7 @@ def test_read_tracks_pose_columns_of_another_body_model(tmp_path, caplog, what):
     body = default_mouse()
     own = read_tracks(tracks, body)
     assert own["pose"] == "columns"
-    df = pd.read_csv(tracks)
+    df = read_points3d_table(tracks)  # the pose columns are in the sidecar
     poses = df[list(POSE_COLUMNS)].to_numpy()
     if what == "axes":  # the principal axes of body=auto: y along the body, here rolled 90 deg
         Q, shift = np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]), np.zeros(3)
