@@ -56,7 +56,7 @@ from omegaconf import DictConfig
 from adjust.body_fit import SHAPE_FRAMES
 from adjust.camera import Camera
 from adjust.camera_check import check_from_config, drop_cameras
-from adjust.deformation_modes import NetMode, mode_from_config
+from adjust.deformation_modes import CheckpointNet, NetMode, load_deformation, mode_from_config
 from adjust.export import write_nwb
 from adjust.io import InputError, load_calibration, load_detections, match_files, write_points3d
 from adjust.io.dlc import DLCTable, iter_dlc
@@ -598,6 +598,9 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
     chunk = ChunkConfig.from_config(cfg).chunk_frames
     if not chunk:
         return None
+    mode = mode_from_config(cfg.get("deformation"))
+    if isinstance(mode, CheckpointNet):  # a user's checkpoint is checked before any input
+        load_deformation(mode.path)
     cfg = with_session(cfg)
     calibration = required(cfg, "input.calibration", "track")
     detections = required(cfg, "input.detections", "track")
@@ -607,7 +610,6 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
     rows = max(_count_rows(Path(p), kwargs["individual"]) for p in paths.values())
     if rows <= chunk:
         return None
-    mode = mode_from_config(cfg.get("deformation"))
     if isinstance(mode, NetMode):
         log.warning(
             "a long session (%d frames > chunk_frames=%d): deformation=%s needs a net over the "

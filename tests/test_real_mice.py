@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 import torch
 
@@ -20,6 +19,7 @@ from deformnet.body import BodyModel, default_mouse
 from deformnet.confutil import compose
 from deformnet.shape import real_paper_parts, rigid_floor
 from deformnet.so3 import transform_points
+from deformnet.tables import read_points3d_table
 
 
 def track(session: Path, out: Path, overrides: list[str] = ()) -> dict:
@@ -260,7 +260,7 @@ def test_interp_beats_rigid_and_is_calibrated_on_a_deforming_mouse(tmp_path):
     for mode in ("rigid", "interp"):
         s = track(scene, tmp_path / mode, [f"deformation={mode}"])
         d = read_points3d(tmp_path / mode / "points3d.csv")
-        df = pd.read_csv(tmp_path / mode / "points3d.csv")
+        df = read_points3d_table(tmp_path / mode / "points3d.csv")  # with points3d.extra.csv
         sig = np.stack([df[f"{p}_sigma"].to_numpy(float) for p in d["parts"]], 1)
         err = np.linalg.norm(d["points"] - T, axis=-1)
         res[mode] = {
