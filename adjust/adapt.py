@@ -103,6 +103,7 @@ class AdaptConfig:
     threads: int | None = None
     tensorboard: bool = False
     require_better: bool = True
+    min_gain: float = 0.02
 
     @classmethod
     def from_any(cls, cfg: Mapping[str, Any] | AdaptConfig | None) -> AdaptConfig:

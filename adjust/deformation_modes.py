@@ -480,7 +480,8 @@ class SelfNet(NetMode):
         otherwise get (`InterpMode`'s kriging, with this session's offset covariance) on the
         same masked windows of the fine-tuning's held-out blocks (`net_vs_kriging`)."""
         facts = self.adapt_facts
-        if not bool((a.adapt_cfg or {}).get("require_better", True)):
+        settings = adapt.AdaptConfig.from_any(a.adapt_cfg)
+        if not settings.require_better:
             facts["used"] = True
             return None, {"require_better": False, "checked": False}, None
         blocks = (facts.get("data") or {}).get("val_blocks")
@@ -495,7 +496,9 @@ class SelfNet(NetMode):
         h["net_mm"] = dict(zip(a.body.parts, h["net_mm"]))
         h["interp_mm"] = dict(zip(a.body.parts, h["interp_mm"]))
         figures = (h["net_all_mm"], h["interp_all_mm"], h["windows"])
-        if h["net_all_mm"] < h["interp_all_mm"]:
+        gain = settings.min_gain
+        h["min_gain"] = gain
+        if h["net_all_mm"] < (1.0 - gain) * h["interp_all_mm"]:
             log.info(
                 "deformation=self: the adapted net beats interp's kriging on held-out tokens "
                 "(RMSE %.2f vs %.2f mm over %d windows)",
@@ -504,8 +507,9 @@ class SelfNet(NetMode):
             facts["used"] = True
             return None, h, None
         reason = (
-            "the adapted net predicts held-out tokens no better than interp's kriging (RMSE "
-            f"{h['net_all_mm']:.2f} vs {h['interp_all_mm']:.2f} mm over {h['windows']} windows)"
+            f"the adapted net does not beat interp's kriging by {100 * gain:g}% on held-out "
+            f"tokens (RMSE {h['net_all_mm']:.2f} vs {h['interp_all_mm']:.2f} mm over "
+            f"{h['windows']} windows; adapt.min_gain)"
         )
         log.warning(
             "deformation=self: %s; too little data or time? The tracks are interpolated "

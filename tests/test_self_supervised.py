@@ -349,9 +349,10 @@ def test_shipped_net_is_the_build_scripts_output(tmp_path):
 
 
 def test_self_falls_back_to_interp_when_the_net_does_not_beat_interpolation(scene, tmp_path):
-    """An adapted net that predicts held-out parts no better than the interpolation the run
-    would fall back to (interp's kriging; here: a net trained from scratch for 2 s) is not
-    used: the tracks are the interp adjustment's, and the summary says so, with the figures."""
+    """An adapted net that does not beat the interpolation the run would fall back to (interp's
+    kriging) by ``adapt.min_gain`` on held-out parts (here: a net trained from scratch for 2 s,
+    within 0.5% of kriging) is not used: the tracks are the interp adjustment's, and the
+    summary says so, with the figures."""
     s = _track(
         scene,
         tmp_path / "fb",
@@ -365,7 +366,8 @@ def test_self_falls_back_to_interp_when_the_net_does_not_beat_interpolation(scen
     d = s["deformation"]
     assert d["mode"] == "interp" and d["requested"] == "self", d
     assert d["adapt"]["used"] is False
-    assert d["heldout"]["net_all_mm"] >= d["heldout"]["interp_all_mm"], d["heldout"]
+    h = d["heldout"]  # not better than kriging by adapt.min_gain
+    assert h["net_all_mm"] >= (1 - h["min_gain"]) * h["interp_all_mm"], h
     assert "deformation_sigma_mm_per_part" in s["deformation"]  # interp's facts
     assert s["completeness"] == 1.0
 
