@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from deformnet.confutil import check_fps
 from deformnet.series import interpolate_gaps
 from deformnet.tables import read_csv, read_points3d_table, xyz_parts
 
@@ -263,20 +264,6 @@ def read_tracks(path: str | os.PathLike, body, interpolate: bool = False) -> dic
         "fnum": fnum,
         "pose": pose_source,
     }
-
-
-def check_fps(fps, what: str) -> float | None:
-    """A frame rate from a config (Hz): None stays None; anything not a finite number > 0 is a
-    ValueError naming `what`."""
-    if fps is None:
-        return None
-    try:
-        f = float(fps)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be a frame rate in Hz (a number > 0), got {fps!r}") from None
-    if not (np.isfinite(f) and f > 0):
-        raise ValueError(f"{what} must be a frame rate in Hz (a number > 0), got {fps!r}")
-    return f
 
 
 def same_fps(a: float, b: float) -> bool:
