@@ -158,7 +158,6 @@ def test_training_behavior_events_numbers_equal_the_run_files(demo):
     # from simulator truth), and the demo's own scene is not one of them
     ccfg = OmegaConf.load(out / "classify" / "config.yaml")
     sessions = out.resolve() / "classify" / "sessions"
-    assert ccfg.data.source == "files"
     assert list(ccfg.data.train_tracks) == [str(sessions / "0" / "interp" / "points3d.csv")]
     assert list(ccfg.data.test_labels) == [str(sessions / "20000" / "labels.csv")]
     # with the lock-box context: the labelled sessions' lock box to train, the scene's to predict
