@@ -104,6 +104,7 @@ from deformnet.atomic import atomic_path  # noqa: E402
 from deformnet.body import default_mouse  # noqa: E402
 from deformnet.confutil import compose  # noqa: E402
 from deformnet.paths import CONF_DIR  # noqa: E402
+from deformnet.tables import read_points3d_table  # noqa: E402
 
 log = logging.getLogger("benchmarks.real_motion")
 
@@ -604,8 +605,8 @@ POSE_FLIP_RAD = 0.2  # "a different basin": the body's orientation more than thi
 
 def read_poses(points_csv: Path) -> np.ndarray:
     """(T, 3) rotation vectors (rad) of `points3d.csv`'s ``pose_r*`` columns."""
-    df = pd.read_csv(points_csv, usecols=["pose_rx", "pose_ry", "pose_rz"])
-    return df.to_numpy(float)
+    df = read_points3d_table(points_csv)  # the pose columns are in points3d.extra.csv
+    return df[["pose_rx", "pose_ry", "pose_rz"]].to_numpy(float)
 
 
 def pose_flips(a: np.ndarray, b: np.ndarray) -> float:
