@@ -12,6 +12,9 @@ blocks, frames up to 4 apart: scalar half-bandwidth 29) and solved by banded Cho
 (`banded.py`); rotations are updated multiplicatively, R <- exp(delta) R. Pose covariances are
 the 6 x 6 diagonal blocks of the inverse normal matrix (selected inversion, O(T)), in the
 tangent space of the left increment (rotation part: rad^2 about the global axes).
+
+The problem's pieces (residuals, IRLS weights, cost, normal equations) are in `problem.py`; this
+module runs the loop over them, chunk by chunk, and the per-frame outputs.
 """
 
 from __future__ import annotations
@@ -29,21 +32,25 @@ from torch import Tensor
 from adjust.camera import CameraTensors
 from adjust.lsq import banded
 from adjust.lsq.config import SolverConfig
-from adjust.lsq.constraint import add_track_normal, default_rho, make_grid, track_residuals
+from adjust.lsq.constraint import default_rho, make_grid
 from adjust.lsq.fusion import fuse_points, innovation_gate, prior_inflation
-from adjust.lsq.geometry import (
-    normal_blocks_3d,
-    project_components,
-    retract,
-    rotation_gemm_weights,
-    so3_exp,
-    so3_log,
-)
+from adjust.lsq.geometry import retract, so3_exp, so3_log
 from adjust.lsq.init import initial_poses
 from adjust.lsq.lm import add_ridge, levenberg_marquardt
 from adjust.lsq.memory import release_freed_memory
 from adjust.lsq.observation import ObservationModel, RigidObservation
-from adjust.lsq.robust import kernel_cost, kernel_weight, mixture_weights
+from adjust.lsq.problem import (
+    MaskedRows,
+    Problem,
+    as_stored,
+    as_tensor,
+    deformation_var,
+    evaluate,
+    irls_weights,
+    normal_equations,
+    total_cost,
+)
+from adjust.lsq.robust import kernel_weight
 from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
@@ -125,165 +132,6 @@ TRACK_OUTPUTS = ("points", "point_sd", "weights")
 _FLOAT32_OUTPUTS = ("residuals", "weights")
 
 
-class _MaskedRows:
-    """``x`` where ``mask``, else 0, made per block of frames on indexing (``[a:b]``) in
-    ``dtype``: the problem's inputs without a full-length copy (x: (T, ...) as stored)."""
-
-    def __init__(self, x: Tensor, mask: Tensor, dtype: torch.dtype) -> None:
-        self.x, self.mask, self.dtype = x, mask, dtype
-
-    def __getitem__(self, s: slice) -> Tensor:
-        x = self.x[s].to(self.dtype, copy=True)  # one copy, zeroed in place (no temporaries)
-        return x.masked_fill_(~self.mask[s], 0.0)
-
-    def full(self) -> Tensor:
-        """All frames in the stored dtype (float32 detections stay float32: the initialisation
-        computes in the cameras' dtype, with the same result)."""
-        return self.x.clone().masked_fill_(~self.mask, 0.0)
-
-
-def _as_stored(x, dtype: torch.dtype) -> Tensor:
-    """Inputs as the caller stores them when that is float32 (converted per chunk), else in
-    ``dtype``: float32 detections of a long session are not copied to float64 whole."""
-    if isinstance(x, Tensor) and x.dtype == torch.float32:
-        return x
-    if not isinstance(x, Tensor) and np.asarray(x).dtype == np.float32:
-        return _as_tensor(x, torch.float32)
-    return _as_tensor(x, dtype)
-
-
-@dataclass
-class _Problem:
-    """One (chunk of the) adjustment problem in torch."""
-
-    xy: Tensor  # (T, K, C, 2), zeros where not valid
-    base: Tensor  # (T, K, C) detection weights, 0 where not valid
-    valid: Tensor  # (T, K, C) bool
-    cams: CameraTensors
-    obs: ObservationModel
-    cfg: SolverConfig
-    rho: float
-    grid: Tensor | None
-    focal: Tensor  # (C,) px
-    W6: Tensor | None = None  # (C 6, 9): camera-frame 3x3 (6 unique) -> world, summed over C
-    Wg: Tensor | None = None  # (C 3, 3): camera-frame gradient -> world, summed over C
-    defvar: Tensor | None = None  # (T, K) mm^2 per-part-frame deformation variance (per axis)
-    trusted: Tensor | None = None  # (T, K, C) bool: views of a camera consensus (no gate)
-    inflation: Tensor | None = None  # (K,) prior covariance inflation found by the fusion
-
-    def __post_init__(self) -> None:
-        self.xu, self.xv = self.xy[..., 0], self.xy[..., 1]
-        if self.W6 is None:
-            self.W6, self.Wg = rotation_gemm_weights(self.cams.R)
-
-    @property
-    def track_w(self) -> float:
-        return (
-            self.cfg.track_weight / self.cfg.track_sigma_mm**2
-            if self.cfg.constraint != "none"
-            else 0.0
-        )
-
-
-@dataclass
-class _Lin:
-    """Residuals (and, with `jacobian`, derivatives) at one set of poses."""
-
-    eu: Tensor  # (T, K, C) px, detection minus projection (garbage where not valid)
-    ev: Tensor
-    z: Tensor  # (T, K, C) depth mm
-    r: Tensor  # (R, m) track residuals
-    X: Tensor  # (T, K, 3)
-    A: tuple[Tensor, ...] | None = None  # d(u, v)/dX_cam entries, (T, K, C) each
-    JX: Tensor | None = None  # (T, K, 3, 6)
-    poses: Tensor | None = None  # (T, 6) where linearised
-
-    @property
-    def e2(self) -> Tensor:
-        return self.eu * self.eu + self.ev * self.ev
-
-
-def _evaluate(poses: Tensor, pb: _Problem, jacobian: bool) -> _Lin:
-    X, JX = pb.obs.points(poses, jacobian=jacobian)
-    u, v, z, A = project_components(X, pb.cams, jacobian)
-    eu = pb.xu - u
-    ev = pb.xv - v
-    if pb.cfg.constraint == "none":
-        r = poses.new_zeros((0, 6))
-    elif jacobian:  # computed with the normal equations (`_normal_equations`)
-        r = None
-    else:
-        r, _ = track_residuals(poses, pb.cfg.constraint, rho=pb.rho, grid=pb.grid, jacobian=False)
-    return _Lin(eu, ev, z, r, X, A, JX, poses)
-
-
-def _deformation_var(obs: ObservationModel, poses: Tensor) -> Tensor | None:
-    """(T, K) mean per-axis deformation variance (mm^2) the observation model states for each
-    part-frame (trace / 3 of its `deformation_cov`), or None (then the solver's fixed
-    ``sigma_def_mm`` mixture applies)."""
-    fn = getattr(obs, "deformation_cov", None)
-    cov = fn(poses) if fn is not None else None
-    if cov is None:
-        return None
-    return torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1) / 3.0
-
-
-def _weights(lin: _Lin, pb: _Problem, share: float) -> tuple[Tensor, Tensor, float]:
-    """IRLS weights (T, K, C) px^-2, the stochastic model's inverse variances (T, K, C), the
-    new mixture share.
-
-    With a per-part-frame deformation variance from the observation model (`pb.defvar`,
-    estimated from the data) each detection's variance is sigma_det^2 + (sigma_def f / z)^2
-    (its own part's deformation projected to px); otherwise the two-Gaussian mixture of
-    sigma_det and the solver's single sigma_def_mm (EM responsibilities). Then the robust kernel.
-    """
-    cfg = pb.cfg
-    e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
-    if pb.defvar is not None:
-        s2 = (
-            cfg.sigma_det_px**2
-            + pb.defvar[..., None] * (pb.focal / lin.z.abs().clamp_min(1e-6)) ** 2
-        )
-        wmix = 1.0 / s2
-        u = (e2 * wmix).sqrt()
-        w = pb.base * wmix * kernel_weight(u, cfg.robust, cfg.robust_scale)
-        return w, wmix, 1.0
-    sdef = None
-    if cfg.sigma_def_mm > 0:
-        sdef = cfg.sigma_def_mm * pb.focal / lin.z.abs().clamp_min(1e-6)
-    wmix, _, share = mixture_weights(e2, pb.base, cfg.sigma_det_px, sdef, share)
-    u = (e2 * wmix).sqrt()
-    w = pb.base * wmix * kernel_weight(u, cfg.robust, cfg.robust_scale)  # 0 where not valid
-    return w, wmix, share
-
-
-def _cost(lin: _Lin, pb: _Problem, wmix: Tensor) -> float:
-    e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
-    c = (pb.base * kernel_cost(e2 * wmix, pb.cfg.robust, pb.cfg.robust_scale)).sum()
-    return float(c) + 0.5 * pb.track_w * float((lin.r * lin.r).sum())
-
-
-def _normal_equations(lin: _Lin, w: Tensor, pb: _Problem) -> tuple[np.ndarray, np.ndarray]:
-    """Banded normal matrix (5, T, 6, 6) and right-hand side (T, 6) of the weighted GN step."""
-    T, K, C = lin.eu.shape
-    Hx, gx = normal_blocks_3d(lin.A, lin.eu, lin.ev, w, pb.W6, pb.Wg)
-    Hx = Hx.reshape(T * K, 3, 3)
-    gx = gx.reshape(T, K * 3, 1)
-    JX = lin.JX.reshape(T * K, 3, 6)
-    HJ = torch.bmm(Hx, JX).reshape(T, K * 3, 6)
-    JXt = lin.JX.reshape(T, K * 3, 6).transpose(1, 2)
-    H = torch.bmm(JXt, HJ)  # (T, 6, 6)
-    g = torch.bmm(JXt, gx)[..., 0]
-    blocks = banded.zeros(T)
-    banded.add_diagonal(blocks, H)
-    g = g.detach().cpu().numpy().astype(np.float64)
-    if pb.cfg.constraint != "none":
-        lin.r = add_track_normal(
-            blocks, g, lin.poses, pb.cfg.constraint, pb.track_w, rho=pb.rho, grid=pb.grid
-        )
-    return blocks, g
-
-
 @contextlib.contextmanager
 def _progress(enabled: bool, total: int, label: str) -> Iterator:
     if not enabled:
@@ -305,7 +153,7 @@ def _progress(enabled: bool, total: int, label: str) -> Iterator:
         yield lambda desc: bar.update(task, advance=1, description=desc)
 
 
-def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
+def _solve(poses: Tensor, pb: Problem, progress: bool, label: str) -> dict:
     """Levenberg-Marquardt with IRLS reweighting on one problem; returns poses and stats."""
     cfg = pb.cfg
     T = poses.shape[0]
@@ -313,14 +161,14 @@ def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
 
     def linearise(p: Tensor):
         pb.obs.prepare(p)
-        pb.defvar = _deformation_var(pb.obs, p)
-        lin = _evaluate(p, pb, jacobian=True)
-        w, wmix, state["share"] = _weights(lin, pb, state["share"])
-        blocks, g = _normal_equations(lin, w, pb)
-        return blocks, g, _cost(lin, pb, wmix), wmix
+        pb.defvar = deformation_var(pb.obs, p)
+        lin = evaluate(p, pb, jacobian=True)
+        w, wmix, state["share"] = irls_weights(lin, pb, state["share"])
+        blocks, g = normal_equations(lin, w, pb)
+        return blocks, g, total_cost(lin, pb, wmix), wmix
 
     def cost(p: Tensor, wmix: Tensor) -> float:
-        return _cost(_evaluate(p, pb, jacobian=False), pb, wmix)
+        return total_cost(evaluate(p, pb, jacobian=False), pb, wmix)
 
     def step(p: Tensor, delta: np.ndarray) -> Tensor:
         return retract(p, torch.as_tensor(delta, dtype=p.dtype, device=p.device))
@@ -368,15 +216,6 @@ def _solve(poses: Tensor, pb: _Problem, progress: bool, label: str) -> dict:
     )
 
 
-def _as_tensor(x, dtype: torch.dtype) -> Tensor:
-    if isinstance(x, Tensor):
-        return x.to(dtype)
-    arr = np.asarray(x)
-    if not arr.flags.writeable:  # e.g. BodyModel.points (read-only): copy, torch needs writable
-        arr = arr.copy()
-    return torch.as_tensor(arr, dtype=dtype)
-
-
 def adjust_poses(
     xy: Tensor | np.ndarray,
     weight: Tensor | np.ndarray | None,
@@ -414,11 +253,11 @@ def _adjust_poses(
     xy, weight, cams, body_points, cfg, init_poses, observation, progress, trusted, outputs=None
 ):
     dt = cfg.torch_dtype
-    xy_t = _as_stored(xy, dt)
+    xy_t = as_stored(xy, dt)
     if xy_t.dim() != 4 or xy_t.shape[-1] != 2:
         raise ValueError(f"xy must have shape (T, K, C, 2), got {tuple(xy_t.shape)}")
     T, K, C, _ = xy_t.shape
-    body = _as_tensor(body_points, dt)
+    body = as_tensor(body_points, dt)
     if body.shape != (K, 3):
         raise ValueError(
             f"body_points must have shape ({K}, 3) for xy {tuple(xy_t.shape)}, "
@@ -426,17 +265,17 @@ def _adjust_poses(
         )
     if cams.num_cameras != C:
         raise ValueError(f"xy has {C} cameras, cams has {cams.num_cameras}")
-    w_t = torch.ones((T, K, C), dtype=dt) if weight is None else _as_stored(weight, dt)
+    w_t = torch.ones((T, K, C), dtype=dt) if weight is None else as_stored(weight, dt)
     if w_t.shape != (T, K, C):
         raise ValueError(f"weight must have shape ({T}, {K}, {C}), got {tuple(w_t.shape)}")
     cams = CameraTensors(cams.K.to(dt), cams.R.to(dt), cams.t.to(dt), cams.dist.to(dt), cams.names)
     valid = torch.isfinite(xy_t).all(-1) & torch.isfinite(w_t) & (w_t > cfg.min_weight)
-    xy0 = _MaskedRows(xy_t, valid[..., None], dt)  # xy0[a:b]: one chunk's, made on demand
-    base = _MaskedRows(w_t, valid, dt)
+    xy0 = MaskedRows(xy_t, valid[..., None], dt)  # xy0[a:b]: one chunk's, made on demand
+    base = MaskedRows(w_t, valid, dt)
     obs = observation if observation is not None else RigidObservation(body)
     # initialisation
     if init_poses is not None:
-        p0 = _as_tensor(init_poses, dt)
+        p0 = as_tensor(init_poses, dt)
         if p0.shape != (T, 6):
             raise ValueError(f"init_poses must have shape ({T}, 6), got {tuple(p0.shape)}")
         p0 = torch.nan_to_num(p0)
@@ -453,10 +292,8 @@ def _adjust_poses(
     if trusted_t is not None and trusted_t.shape != (T, K, C):
         raise ValueError(f"trusted must have shape ({T}, {K}, {C}), got {tuple(trusted_t.shape)}")
 
-    def problem(a: int, b: int) -> _Problem:
-        pb = _Problem(
-            xy0[a:b], base[a:b], valid[a:b], cams, obs.window(a, b), cfg, rho, grid, focal
-        )
+    def problem(a: int, b: int) -> Problem:
+        pb = Problem(xy0[a:b], base[a:b], valid[a:b], cams, obs.window(a, b), cfg, rho, grid, focal)
         pb.trusted = None if trusted_t is None else trusted_t[a:b]
         return pb
 
@@ -520,14 +357,14 @@ def _adjust_poses(
     )
 
 
-def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: _Problem, share: float) -> dict:
+def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: float) -> dict:
     """Per-frame outputs at the final poses: residuals, weights, fused points, uncertainties."""
     cfg = pb.cfg
     dt = poses.dtype
     pb.obs.prepare(poses)
-    pb.defvar = _deformation_var(pb.obs, poses)
-    lin = _evaluate(poses, pb, jacobian=False)
-    _, wmix, _ = _weights(lin, pb, share)
+    pb.defvar = deformation_var(pb.obs, poses)
+    lin = evaluate(poses, pb, jacobian=False)
+    _, wmix, _ = irls_weights(lin, pb, share)
     e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
     rob = kernel_weight((e2 * wmix).sqrt(), cfg.robust, cfg.robust_scale)
     cov_t = torch.as_tensor(pose_cov, dtype=dt)
@@ -605,7 +442,7 @@ def normal_matrix(
     rho = cfg.rotation_scale_mm if cfg.rotation_scale_mm is not None else default_rho(body)
     grid = make_grid(body, cfg.grid_size) if cfg.constraint == "grid" else None
     focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs())
-    pb = _Problem(
+    pb = Problem(
         torch.where(valid[..., None], xy, torch.zeros_like(xy)),
         base,
         valid,
@@ -616,6 +453,6 @@ def normal_matrix(
         grid,
         focal,
     )
-    lin = _evaluate(poses, pb, jacobian=True)
-    blocks, _ = _normal_equations(lin, base / cfg.sigma_det_px**2, pb)
+    lin = evaluate(poses, pb, jacobian=True)
+    blocks, _ = normal_equations(lin, base / cfg.sigma_det_px**2, pb)
     return blocks
