@@ -302,6 +302,7 @@ class SessionModel:
     excluded: tuple[str, ...]
     camera_report: dict
     summary: dict
+    mode: Any = None
 
     @property
     def sigma_det_px(self) -> float:
@@ -329,6 +330,15 @@ class ChunkHooks:
         self.cache, self.lo, self.hi, self.only = cache, lo, hi, only
         self.model, self.keep, self.writer = model, keep, writer
         self.learned: SessionModel | None = None
+        self.mode = None
+
+    def deformation_mode(self, mode):
+        """The recipe's deformation mode: the sample's own (its choice of net, a
+        `NetDecision`, made there once) in every chunk."""
+        if self.model is None:
+            self.mode = mode
+            return mode
+        return self.model.mode
 
     def load_scene(
         self, calibration, detections, body, likelihood_threshold=0.5, individual=None, **kw
@@ -356,7 +366,7 @@ class ChunkHooks:
             report = summary.get("camera_check") or {}
             excluded = [*report.get("excluded_by_hand", []), *(report.get("excluded") or {})]
             self.learned = SessionModel(
-                body, solver_cfg, rigid_obs, few_var, tuple(excluded), report, summary
+                body, solver_cfg, rigid_obs, few_var, tuple(excluded), report, summary, self.mode
             )
             return summary
         a, b = self.keep
@@ -547,7 +557,7 @@ def _merge(values: list, weights: list[float], key: str):
     if isinstance(first, (int, float)) and all(isinstance(v, (int, float)) for v in values):
         if key in _MAX_KEYS:
             return max(values)
-        if isinstance(first, int) or "cost" in key:
+        if isinstance(first, int) or "cost" in str(key):
             return sum(values)
         finite = [(v, w) for v, w in zip(values, weights) if math.isfinite(v)]
         if not finite:
@@ -609,16 +619,6 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
     paths = match_files(detections, [c.name for c in cameras], kwargs["pattern"])
     rows = max(_count_rows(Path(p), kwargs["individual"]) for p in paths.values())
     if rows <= chunk:
-        return None
-    if isinstance(mode, NetMode):
-        log.warning(
-            "a long session (%d frames > chunk_frames=%d): deformation=%s needs a net over the "
-            "whole session, so it is tracked whole, its memory growing with its length "
-            "(deformation=interp or rigid are tracked in chunks)",
-            rows,
-            chunk,
-            cfg.get("deformation"),
-        )
         return None
     t_start = time.perf_counter()
     out = output_dir(cfg)
@@ -719,6 +719,12 @@ def _offset_health(health: dict, a: int) -> dict:
     }
 
 
+#: summary.json's ``deformation`` keys of a net mode's choice (`NetDecision`), the sample's
+_DECISION_KEYS = frozenset(
+    {"mode", "requested", "reason", "checkpoint", "window", "step", "adapt", "world_up", "heldout"}
+)
+
+
 def _session_summary(summaries: list[dict], frames: list[int], model: SessionModel, T: int):
     """The session's summary: the chunks' merged (`merge_summaries`), the sample's body model,
     camera check and detector noise."""
@@ -734,6 +740,9 @@ def _session_summary(summaries: list[dict], frames: list[int], model: SessionMod
         merged["stochastic"]["sigma_det_px_per_camera"] = sample["stochastic"][
             "sigma_det_px_per_camera"
         ]
+    if isinstance(model.mode, NetMode):  # the net's choice, made once on the sample
+        chosen = {k: v for k, v in sample["deformation"].items() if k in _DECISION_KEYS}
+        merged["deformation"] = {**merged["deformation"], **chosen, "decided_on": "sample"}
     merged["num_frames"] = T
     merged["time_s"] = {
         k: round(sum(s["time_s"].get(k, 0.0) for s in summaries), 3) for k in first["time_s"]

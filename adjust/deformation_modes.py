@@ -52,6 +52,7 @@ __all__ = [
     "DefaultNet",
     "DeformationMode",
     "InterpMode",
+    "NetDecision",
     "NetMode",
     "RigidMode",
     "SelfNet",
@@ -270,11 +271,29 @@ class InterpMode(DeformationMode):
         return res, {"mode": self.name, **interp_facts(obs, a.body)}
 
 
+@dataclass
+class NetDecision:
+    """A net mode's choice for a session, made once: model, the net the tracks use (None: the
+    interpolation's tracks), net_facts (`NetMode.net`'s), net_parts, heldout and reason
+    (`NetMode.check`'s), up_deg (`check_world_up`'s, or None). A long session's is made on its
+    sample and used in every chunk (`adjust.chunks`)."""
+
+    model: Any
+    net_facts: dict
+    net_parts: Any
+    heldout: dict | None
+    reason: str | None
+    up_deg: float | None
+
+
 class NetMode(DeformationMode):
     """A deformation net: rigid -> interp (with the session's 3D observations) -> the net.
-    Subclasses say where the net comes from (`net`) and how it is checked (`check`)."""
+    Subclasses say where the net comes from (`net`) and how it is checked (`check`); the
+    choice is kept as `decision` (`NetDecision`): a mode that already holds one (a long
+    session's chunk, `adjust.chunks`) uses it instead of choosing again."""
 
     needs_consensus = True
+    decision: NetDecision | None = None
 
     def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
         """(the net, facts about it) for this session; poses (T, 6): the interp poses."""
@@ -302,15 +321,11 @@ class NetMode(DeformationMode):
             res = a.solve(a.solver_cfg, interp_obs, init)
             init = res.poses
             a.timings["interp_s"] = time.perf_counter() - t1
-        model, net_facts = self.net(a, init)
-        up_deg = None
-        if model is not None and init is not None:
-            up_deg = check_world_up(model, init, a.where)
-        net_parts, heldout, reason = None, None, None
-        if model is not None and init is not None:
-            net_parts, heldout, reason = self.check(a, model, init, interp_obs)
-            if reason is not None:
-                model = None  # `res`: the interp adjustment's, outputs complete
+        if self.decision is None:
+            self.decision = self.decide(a, init, interp_obs)
+        d = self.decision
+        model, net_facts, net_parts = d.model, d.net_facts, d.net_parts
+        heldout, reason, up_deg = d.heldout, d.reason, d.up_deg
         observation, def_facts, dcfg = None, {}, a.solver_cfg
         if model is not None:
             observation, def_facts = make_deformable_observation(
@@ -357,6 +372,20 @@ class NetMode(DeformationMode):
         if heldout is not None:
             facts["heldout"] = heldout
         return res, facts
+
+    def decide(self, a: Adjusting, init, interp_obs) -> NetDecision:
+        """The net for this session (`net`), its world up and its check (`check`); a net the
+        check refuses leaves the tracks to the interpolation (model None)."""
+        model, net_facts = self.net(a, init)
+        up_deg = None
+        if model is not None and init is not None:
+            up_deg = check_world_up(model, init, a.where)
+        net_parts, heldout, reason = None, None, None
+        if model is not None and init is not None:
+            net_parts, heldout, reason = self.check(a, model, init, interp_obs)
+            if reason is not None:
+                model = None  # `res`: the interp adjustment's, outputs complete
+        return NetDecision(model, net_facts, net_parts, heldout, reason, up_deg)
 
     #: the measured prior is chosen also when the net is not used
     prior_without_net = False
@@ -405,7 +434,9 @@ class CheckpointNet(NetMode):
         self.model = None
 
     def checkpoint_body(self, body_cfg) -> BodyModel:
-        self.model = model = load_deformation(self.path)
+        if self.model is None:  # (a long session's chunks reuse the sample's mode: loaded once)
+            self.model = load_deformation(self.path)
+        model = self.model
         given = BodyModel.from_config(body_cfg)
         body = model.body
         if given.parts != body.parts or not np.allclose(given.points, body.points):
@@ -439,6 +470,8 @@ class DefaultNet(NetMode):
         self.model = None
 
     def prepare(self, body: BodyModel) -> None:
+        if self.decision is not None:  # a long session's chunk: the sample's net
+            return
         model = pretrained.load_default()  # (the module's: tests replace it)
         # the net predicts in canonical coordinates; it runs on this session's (scaled) body
         # (a part-agnostic net on any skeleton; a net that knows parts by index on its own)

@@ -79,6 +79,8 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
     solver_cfg, fit = tc.solver, tc.body
     auto = fit.auto
     mode = mode_from_config(tc.deformation)
+    if chunk is not None:  # a long session's chunk: the mode (and net) its sample chose
+        mode = chunk.deformation_mode(mode)
     estimate = tc.consensus.estimate
     check_nwb_output(cfg, calibration)
     if mode.needs_consensus and not estimate:

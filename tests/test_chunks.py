@@ -2,12 +2,10 @@
 session no longer than one chunk tracked exactly as before, a longer one tracked in chunks in
 agreement with the whole run (measured on this 1,500-frame scene with 500-frame chunks: points
 0.050 mm apart at the median, 0.26 mm at the 99th percentile, 7.4 mm at most (a part seen by one
-camera); 2.061 mm rms from the truth both; rigid 0.001 / 0.12 / 7.6 mm), its outputs whole, and
-the net modes left whole with a log line."""
+camera); 2.061 mm rms from the truth both; rigid 0.001 / 0.12 / 7.6 mm), its outputs whole (the net
+modes in chunks: tests/test_chunks_net.py)."""
 
 from __future__ import annotations
-
-import logging
 
 import numpy as np
 import pytest
@@ -23,12 +21,11 @@ from adjust.chunks import (
     overlap_frames,
     plan_chunks,
     sample_rows,
-    track_long,
 )
 from adjust.io import InputError, read_dlc, read_points3d, save_calibration, write_dlc_csv
 from adjust.io.dlc import iter_dlc
 from adjust.lsq import synthetic
-from adjust.pipeline import run, track
+from adjust.pipeline import run
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 from deformnet.sessions import SessionTokens
@@ -208,11 +205,3 @@ def test_merge_summaries_rules():
     assert m["counts"] == {"detections": 15, "ncams_histogram": [4, 6]}
     assert m["err"] == {"count": 4, "median": 2.5, "mean": 1.75, "p90": 4.0, "max": 7.0}
     assert m["health"]["status"] == "failed" and m["health"]["frames"] == [12, 13]
-
-
-def test_net_modes_are_tracked_whole_with_a_log_line(scene, tmp_path, caplog):
-    root, _ = scene
-    cfg = _cfg(root, tmp_path / "net", f"chunk_frames={CHUNK}", "deformation=default")
-    with caplog.at_level(logging.WARNING, logger="adjust.chunks"):
-        assert track_long(cfg, track) is None
-    assert "needs a net over the whole session" in caplog.text
