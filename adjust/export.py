@@ -35,6 +35,9 @@ converted the same way) or seconds. The frame rate comes from ``fps`` or the cal
 session_start_time`` (`session_start`); without either the export is refused, naming the setting
 (the export time is never used).
 
+The subject, session start, frame times and interval tables are checked and read by
+`adjust.nwb_metadata`.
+
 Needs the optional extra ``nwb`` (``pip install mousetrack[nwb]``: pynwb, ndx-pose); this module
 imports them only when called.
 """
@@ -46,17 +49,28 @@ import json
 import logging
 import math
 import os
-import re
 import uuid
 from collections.abc import Mapping, Sequence
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 
+from adjust.io import load_calibration, load_calibration_metadata, read_points3d, write_points3d
 from adjust.io.errors import InputError
 from adjust.io.skeleton import resolve_skeleton, spanning_edges
 from adjust.kinematics import BoardFrame, align_tracks
-from deformnet.behavior_labels import POSE_COLUMNS
+from adjust.nwb_metadata import (
+    SUBJECT_KEYS,
+    file_metadata,
+    frame_timing,
+    read_intervals,
+    recording_rate,
+    session_start,
+    subject_metadata,
+)
+from deformnet.atomic import atomic_path
+from deformnet.behavior.tracks import POSE_COLUMNS
 
 log = logging.getLogger(__name__)
 
@@ -80,26 +94,6 @@ BOUTS_COLUMNS = ("start", "stop", "label")
 EVENTS_COLUMNS = ("start", "stop", "part", "mechanism")
 #: positions and sigmas are written in mm with this conversion to NWB's unit, meters
 MM = 0.001
-#: NWB Subject fields the export takes (``subject.<key>``); DANDI requires the first four
-SUBJECT_KEYS = ("subject_id", "species", "sex", "age", "strain", "genotype", "description")
-DANDI_SUBJECT = ("subject_id", "species", "sex", "age")
-SEXES = ("M", "F", "U", "O")
-#: ISO 8601 durations (DANDI's and nwbinspector's form), and a range of two ("P90D/P120D")
-DURATION = re.compile(
-    r"P(?!$)(\d+(?:\.\d+)?Y)?(\d+(?:\.\d+)?M)?(\d+(?:\.\d+)?W)?(\d+(?:\.\d+)?D)?"
-    r"(T(?=\d)(\d+(?:\.\d+)?H)?(\d+(?:\.\d+)?M)?(\d+(?:\.\d+)?S)?)?"
-)
-#: Latin binomial ("Mus musculus") or an NCBI taxonomy link, as DANDI asks
-SPECIES = re.compile(r"([A-Z][a-z]* [a-z]+)|(http://purl\.obolibrary\.org/obo/NCBITaxon_\d+)")
-#: further NWBFile metadata the export takes (nwbinspector suggests them)
-FILE_KEYS = (
-    "experimenter",
-    "institution",
-    "lab",
-    "experiment_description",
-    "keywords",
-    "session_id",
-)
 
 
 def _require_nwb():
@@ -110,49 +104,6 @@ def _require_nwb():
         raise InputError(
             f"NWB export needs pynwb and ndx-pose: pip install 'mousetrack[nwb]' ({exc})"
         ) from None
-
-
-def read_intervals(
-    path: str | os.PathLike, columns: Sequence[str], fps: float, unit: str = "frames"
-) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """A start/stop CSV -> (start_s, stop_s, {other column: values}).
-
-    ``columns``: those that must be present (``start``, ``stop`` first); ``unit``: ``frames``
-    (divided by fps) or ``seconds``. Errors name the file, the column and the row."""
-    import pandas as pd
-
-    from deformnet.tables import read_csv
-
-    path = Path(path)
-    if unit not in ("frames", "seconds"):
-        raise InputError(f"intervals_unit must be 'frames' or 'seconds', got {unit!r}")
-    df = read_csv(path, "intervals file", InputError)
-    df.columns = [str(c).strip() for c in df.columns]
-    missing = [c for c in columns if c not in df.columns]
-    if missing:
-        raise InputError(f"{path}: missing column(s) {missing} (has {list(df.columns)})")
-    times = {}
-    for key in ("start", "stop"):
-        num = pd.to_numeric(df[key], errors="coerce").to_numpy(np.float64)
-        bad = np.flatnonzero(~np.isfinite(num))
-        if bad.size:
-            r = int(bad[0])
-            raise InputError(f"{path}: non-numeric {key} {df[key].iloc[r]!r} at row {r}")
-        times[key] = num / fps if unit == "frames" else num
-    back = np.flatnonzero(times["stop"] < times["start"])
-    if back.size:
-        r = int(back[0])
-        raise InputError(f"{path}: stop before start at row {r}")
-    extra = {}
-    for c in df.columns:
-        if c in ("start", "stop"):
-            continue
-        values = df[c]
-        if pd.api.types.is_numeric_dtype(values) or pd.api.types.is_bool_dtype(values):
-            extra[c] = values.to_numpy()
-        else:  # text, or text mixed with numbers and empty cells: one column of text
-            extra[c] = np.array(["" if pd.isna(v) else str(v) for v in values], dtype=object)
-    return times["start"], times["stop"], extra
 
 
 def _intervals(name: str, description: str, start, stop, extra: dict, docs: dict):
@@ -174,123 +125,6 @@ def _intervals(name: str, description: str, start, stop, extra: dict, docs: dict
             row[col] = v
         table.add_row(start_time=float(start[i]), stop_time=float(stop[i]), **row)
     return table
-
-
-def _fps(fps, calibration_meta: dict) -> float:
-    from adjust.io import recording_fps
-
-    value = recording_fps(fps, calibration_meta)
-    if value is None:
-        raise InputError(
-            "NWB needs times in seconds: set fps=... (the recording's frame rate, Hz), or give a "
-            "calibration whose [metadata] has fps"
-        )
-    return value
-
-
-def _age_ok(age: str) -> bool:
-    parts = age.split("/")
-    if len(parts) == 1:
-        return DURATION.fullmatch(age) is not None
-    return len(parts) == 2 and all(p == "" or DURATION.fullmatch(p) for p in parts) and any(parts)
-
-
-def subject_metadata(subject: Mapping | None) -> dict | None:
-    """pynwb ``Subject`` keyword arguments from ``subject.<key>`` settings (`SUBJECT_KEYS`), or
-    None when none is set. Checked: ``sex`` one of M, F, U, O; ``age`` an ISO 8601 duration
-    (``P90D``, ``P12W``, ``P3M``; a range ``P90D/P120D``); anything else an InputError naming the
-    setting. Nothing is defaulted: each field DANDI requires (subject_id, species, sex, age)
-    that is missing is logged as a warning, as is a species not in Latin binomial form."""
-    given = {}
-    for key, value in dict(subject or {}).items():
-        if key not in SUBJECT_KEYS:
-            raise InputError(f"subject.{key}: unknown setting (known: {list(SUBJECT_KEYS)})")
-        if value is not None and str(value).strip() != "":
-            given[key] = str(value).strip()
-    if not given:
-        log.warning(
-            "no subject metadata: DANDI needs subject.subject_id, subject.species (e.g. "
-            "'Mus musculus'), subject.sex (M/F/U/O) and subject.age (ISO 8601, e.g. P90D)"
-        )
-        return None
-    if "sex" in given:
-        given["sex"] = given["sex"].upper()
-        if given["sex"] not in SEXES:
-            raise InputError(f"subject.sex must be one of {list(SEXES)}, got {subject['sex']!r}")
-    if "age" in given:
-        given["age"] = given["age"].upper()
-        if not _age_ok(given["age"]):
-            raise InputError(
-                f"subject.age must be an ISO 8601 duration (P90D: 90 days, P12W, P3M, P1Y; a "
-                f"range P90D/P120D), got {subject['age']!r}"
-            )
-    if "species" in given and not SPECIES.fullmatch(given["species"]):
-        log.warning(
-            "subject.species %r: DANDI expects a Latin binomial ('Mus musculus') or an NCBI "
-            "taxonomy link (http://purl.obolibrary.org/obo/NCBITaxon_10090)",
-            given["species"],
-        )
-    missing = [k for k in DANDI_SUBJECT if k not in given]
-    if missing:
-        log.warning(
-            "subject: %s not set; DANDI requires them (subject.species is never assumed)",
-            ", ".join(f"subject.{k}" for k in missing),
-        )
-    return given
-
-
-def _parse_time(value, where: str) -> _dt.datetime:
-    if isinstance(value, _dt.datetime):
-        start = value
-    elif isinstance(value, _dt.date):
-        start = _dt.datetime(value.year, value.month, value.day)
-    else:
-        text = str(value).strip()
-        try:
-            start = _dt.datetime.fromisoformat(text[:-1] + "+00:00" if text.endswith("Z") else text)
-        except ValueError:
-            raise InputError(
-                f"{where} must be ISO 8601 (2026-03-01T09:30:00+01:00), got {value!r}"
-            ) from None
-    if start.tzinfo is None:
-        log.info("%s %s has no time zone: taken as UTC", where, start.isoformat())
-        start = start.replace(tzinfo=_dt.UTC)
-    if start > _dt.datetime.now(_dt.UTC) + _dt.timedelta(days=1):
-        raise InputError(f"{where} {start.isoformat()} is in the future")
-    return start
-
-
-def session_start(
-    value, calibration_meta: Mapping | None = None, calibration=None
-) -> tuple[_dt.datetime, str]:
-    """The recording's start (timezone-aware; a naive time is UTC) and where it came from:
-    `value` (the ``session_start_time`` setting: ISO 8601 or a datetime), else the calibration's
-    ``[metadata] session_start_time``, else an InputError saying how to set it. Never the
-    export's own time."""
-    if value is not None and str(value).strip() != "":
-        return _parse_time(value, "session_start_time"), "setting session_start_time"
-    meta = calibration_meta or {}
-    if meta.get("session_start_time") not in (None, ""):
-        where = f"{calibration}: [metadata] session_start_time"
-        return _parse_time(meta["session_start_time"], where), where
-    raise InputError(
-        "NWB needs the recording's start time: set session_start_time=2026-03-01T09:30:00+01:00 "
-        "(ISO 8601), or give a calibration whose [metadata] has session_start_time"
-        + (f" ({calibration} has none)" if calibration is not None else "")
-    )
-
-
-def _timing(fnum: np.ndarray, fps: float, starting_time: float) -> dict:
-    """TimeSeries timing keywords: ``starting_time`` + ``rate`` when the frame numbers are evenly
-    spaced (consecutive frames: rate = fps), else ``timestamps`` (s)."""
-    f = fnum.astype(np.float64)
-    if len(f) > 1:
-        step = np.diff(f)
-        if np.all(step == step[0]) and step[0] > 0:
-            return {"starting_time": float(starting_time) + f[0] / fps, "rate": fps / step[0]}
-        log.info("frame numbers not evenly spaced: NWB timestamps instead of a rate")
-        return {"timestamps": float(starting_time) + f / fps}
-    return {"starting_time": float(starting_time) + (f[0] / fps if len(f) else 0.0), "rate": fps}
 
 
 def _compressed(data: np.ndarray):
@@ -349,10 +183,6 @@ def write_nwb(
     from pynwb import NWBHDF5IO, NWBFile, TimeSeries
     from pynwb.file import Subject
 
-    import adjust
-    from adjust.io import load_calibration, load_calibration_metadata, read_points3d
-    from deformnet.atomic import atomic_path
-
     tracks = Path(tracks)
     d = read_points3d(tracks)  # a file without part columns is an error there
     parts = list(d["parts"])
@@ -361,10 +191,10 @@ def write_nwb(
     if calibration is not None:
         cameras = load_calibration(calibration)
         meta = load_calibration_metadata(calibration)
-    rate = _fps(fps, meta)
+    rate = recording_rate(fps, meta)
     start, start_source = session_start(session_start_time, meta, calibration)
     subject_kwargs = subject_metadata(subject)
-    file_kwargs = _file_metadata(metadata)
+    file_kwargs = file_metadata(metadata)
     fnum = np.asarray(d["fnum"])
     try:
         fnum_s = fnum.astype(np.float64)
@@ -374,7 +204,7 @@ def write_nwb(
         raise InputError(f"{tracks}: non-finite fnum")
     if T > 1 and np.any(np.diff(fnum_s) <= 0):
         raise InputError(f"{tracks}: fnum must increase from row to row")
-    timing = _timing(fnum_s, rate, starting_time)
+    timing = frame_timing(fnum_s, rate, starting_time)
     ncams = d["ncams"]
     num_cams = len(cameras) if cameras else int(np.nanmax(ncams, initial=0))
     if cameras and np.nanmax(ncams, initial=0) > len(cameras):
@@ -500,7 +330,7 @@ def write_nwb(
         pose_estimations=views or None,
         scorer="mousetrack",
         source_software="mousetrack",
-        source_software_version=getattr(adjust, "__version__", None) or _version(),
+        source_software_version=_version(),
         skeleton=skel,
     )
     behavior.add(pose)
@@ -610,25 +440,6 @@ def _time_kwargs(timing: dict, series: list) -> dict:
     return {"timestamps": series[0] if series else _compressed(timing["timestamps"])}
 
 
-def _file_metadata(metadata: Mapping | None) -> dict:
-    """NWBFile keyword arguments from `FILE_KEYS` settings (None or "" skipped); experimenter
-    and keywords may be one string or a list."""
-    out = {}
-    for key, value in dict(metadata or {}).items():
-        if key not in FILE_KEYS:
-            raise InputError(f"unknown NWB metadata setting {key!r} (known: {list(FILE_KEYS)})")
-        if value is None or (isinstance(value, str) and not value.strip()):
-            continue
-        if key in ("experimenter", "keywords"):
-            value = [value] if isinstance(value, str) else [str(v) for v in value]
-            if not value:
-                continue
-        else:
-            value = str(value)
-        out[key] = value
-    return out
-
-
 def write_anipose(
     path: str | os.PathLike,
     tracks: str | os.PathLike,
@@ -642,8 +453,6 @@ def write_anipose(
     `keep_extra`, which writes them to the sidecar ``<stem>.extra.csv`` beside `path`
     (`adjust.io.points3d`): the CSV itself keeps anipose's columns only, which tools that read
     anipose's files (movement's ``from_anipose_file``) require. Returns the path."""
-    from adjust.io import read_points3d, write_points3d
-
     d = align_tracks(read_points3d(tracks), axes, origin)
     extra = d["extra"] if keep_extra else {}
     if d["extra"] and not keep_extra:
@@ -735,8 +544,6 @@ def read_nwb_tracks(path: str | os.PathLike) -> dict:
 
 def _version() -> str:
     try:
-        from importlib.metadata import version
-
         return version("mousetrack")
     except Exception:  # pragma: no cover - not installed as a distribution
         return "unknown"

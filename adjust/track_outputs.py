@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from adjust.export import session_start, write_nwb
+from adjust.export import write_nwb
 from adjust.io import InputError, load_calibration_metadata, recording_fps, write_points3d
+from adjust.nwb_metadata import session_start
 from adjust.summary import TrackColumns
 from adjust.tokenize import session_tokens
 from deformnet.body import BodyModel

@@ -24,9 +24,10 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from adjust.apps.common import hydra_app
-from adjust.export import FILE_KEYS, SUBJECT_KEYS, write_anipose, write_nwb
+from adjust.export import write_anipose, write_nwb
 from adjust.io.errors import InputError
 from adjust.kinematics import alignment_kwargs, angles_csv
+from adjust.nwb_metadata import FILE_KEYS, SUBJECT_KEYS
 from adjust.settings import required
 from deformnet.paths import regular_file
 
