@@ -58,9 +58,6 @@ log = logging.getLogger("adjust.track")
 __all__ = ["AdaptConfig", "adapt_net", "select_device", "starting_model", "fine_tune"]
 
 ACCELERATORS = ("auto", "cpu", "cuda", "gpu")
-#: adapt.forecast's targets: token steps before / after the mid frame (deformnet-train's
-#: forecast.min_shift / max_shift defaults, conf/train.yaml)
-FORECAST_SHIFTS = (10, 45)
 
 
 def _seconds(max_time: Any) -> float | None:
@@ -97,7 +94,6 @@ class AdaptConfig:
     weight_decay: float = 1e-4
     warmup_steps: int = 10
     seed: int = 0
-    forecast: float = 0.0
     step: int = 1
     augment: Augment = dataclasses.field(default_factory=Augment)
     threads: int | None = None
@@ -183,7 +179,7 @@ def mirror_perm(body: BodyModel, augment: Augment) -> list[int] | None:
 
 
 def window_data(
-    tokens, model: DeformationModel, cfg: AdaptConfig, ahead_shift=None
+    tokens, model: DeformationModel, cfg: AdaptConfig
 ) -> tuple[RandomWindowBatches, FixedWindowBatches, dict]:
     """The recording's training windows (random, masked, augmented; `eval_every` per pass)
     and held-out windows (fixed), split by time blocks; and the split's facts."""
@@ -197,7 +193,6 @@ def window_data(
     train_set = RandomWindowBatches(
         bank, int(cfg.batch_size), int(cfg.eval_every), masking, int(cfg.seed),
         augment=cfg.augment, mirror_perm=mirror_perm(model.body, cfg.augment),
-        ahead_shift=ahead_shift,
     )  # fmt: skip
     vbank = WindowBank(val, model.half_window, step)
     val_set = FixedWindowBatches.build(
@@ -314,7 +309,6 @@ def fine_tune(
     val_batches,
     cfg: AdaptConfig,
     device: torch.device,
-    forecast_head=None,
     on_eval=None,
 ) -> dict:
     """Train ``model`` in place on ``train_batches`` (an iterable of window batches, passed
@@ -322,14 +316,12 @@ def fine_tune(
     warm-up then cosine decay over ``cfg.max_steps`` (or ``cfg.max_time``, when that comes
     first); scored before the first step and every ``cfg.eval_every`` steps; stops at
     ``max_steps``, ``max_time`` or after ``patience`` scores that improve the best by less
-    than ``min_improvement`` (relative). forecast_head: a `deformnet.lit.DeformLit` whose
-    forecast term is added (weight ``cfg.forecast``). on_eval(step, scores): called after each
+    than ``min_improvement`` (relative). on_eval(step, scores): called after each
     score. Returns the facts: steps, evaluations, stop reason, best step and scores, history."""
     model.to(device).train()
     params = [p for p in model.parameters() if p.requires_grad]
-    extra = [] if forecast_head is None else list(forecast_head.forecast_head.parameters())
-    decay = [p for p in params + extra if p.ndim >= 2]
-    no_decay = [p for p in params + extra if p.ndim < 2]
+    decay = [p for p in params if p.ndim >= 2]
+    no_decay = [p for p in params if p.ndim < 2]
     opt = AdamW([(decay, float(cfg.weight_decay)), (no_decay, 0.0)])
     total = int(cfg.max_steps)
     warm = max(1, min(int(cfg.warmup_steps), total // 5))
@@ -355,8 +347,6 @@ def fine_tune(
         b = _to(batch, device)
         pred_c, R, t = model.canonical(b["rigid"], b["deformed"], b["observed"])
         loss = masked_mse(pred_c, (b["target"] - t[:, None, :]) @ R, b["target_mask"])
-        if forecast_head is not None:
-            loss = loss + float(cfg.forecast) * forecast_head.forecast_loss(b)[0]
         opt.zero_grad()
         loss.backward()
         opt.step(float(cfg.lr) * factor(step))
@@ -425,23 +415,10 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
         check_track_up(tokens.rigid, tokens.body_points, model.up, tokens.source or "recording")
     with torch_threads(cfg.threads):
         torch.manual_seed(int(cfg.seed))
-        fc = {}
-        if float(cfg.forecast) > 0:
-            lo, hi = FORECAST_SHIFTS
-            fc = {"weight": float(cfg.forecast), "min_shift": lo, "max_shift": hi}
-        train, val, data_facts = window_data(
-            tokens, model, cfg, (fc["min_shift"], fc["max_shift"]) if fc else None
-        )
+        train, val, data_facts = window_data(tokens, model, cfg)
         step = int(cfg.step)
         model.steps = tuple(sorted({step, *(cfg.augment.steps or (step,))}))
         model.step = step
-        head = None
-        if fc:
-            from deformnet.lit import (
-                DeformLit,
-            )  # (its forecasting head; Lightning otherwise unused)
-
-            head = DeformLit(model, forecast=fc).to(device)
         writer = _tensorboard(work / "tb") if cfg.tensorboard else None
         bar = None
         if progress:
@@ -460,7 +437,7 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
             log.debug("adapt step %d: %s", s, scores)
 
         try:
-            facts = fine_tune(model, train, val, cfg, device, head, on_eval)
+            facts = fine_tune(model, train, val, cfg, device, on_eval)
         finally:
             if bar is not None:
                 bar.stop()

@@ -43,7 +43,7 @@ from adjust.io.calibration import load_calibration
 from adjust.io.errors import InputError
 from adjust.triangulate import triangulate
 from deformnet.atomic import atomic_path
-from deformnet.behavior_labels import POSE_COLUMNS
+from deformnet.behavior.tracks import POSE_COLUMNS
 from deformnet.tables import read_csv
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from adjust.metrics import reprojection_errors, stats
-from deformnet.behavior_labels import POSE_COLUMNS
+from deformnet.behavior.tracks import POSE_COLUMNS
 from deformnet.so3 import rodrigues_to_matrix
 
 log = logging.getLogger(__name__)

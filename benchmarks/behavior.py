@@ -22,13 +22,11 @@ Rows:
   ``default`` is `conf/classify.yaml` with only tracks, labels and the rig's mechanism positions
   given; ``mlp_scratch`` the former default (an MLP head on an LSTM from scratch, 60 s).
 ``--candidates all`` runs every candidate (the validation sweep that chose the default).
-``--encoders``: the forest head on the deformation encoder's outputs beside the frame features
-(`head.inputs=all`), pretrained checkpoints (each an independent `deformnet-train` run, e.g.
-`python -m deformnet.pretrained.build --steps 400 --seed S --out encS.pt`) against the same
-architecture's random weights (one initialisation per checkpoint), at `--encoder-fractions`.
+(The pretrained-encoder rows of docs/benchmarks.md were measured with ``--encoders`` at commit
+2e8c1a5: a forest on the encoder's outputs, `head.inputs=all`, deleted since it did not help.)
 
     flock /tmp/mousetrack-cpu.lock .venv/bin/python benchmarks/behavior.py [--quick]
-        [--fractions 0.1,0.01] [--candidates default,mlp_scratch|all] [--encoders a,b,c]
+        [--fractions 0.1,0.01] [--candidates default,mlp_scratch|all]
 
 The default run (6 train, 2 validation, 4 test sessions of 4000 frames; two candidates at two
 label shares: 4 `deformnet-classify` runs, 2-3.5 min each in the measured run beside other
@@ -49,12 +47,12 @@ import pandas as pd
 from sklearn.ensemble import RandomForestClassifier
 
 from deformnet.atomic import finite_or_none, write_text
-from deformnet.behavior_report import evaluate
+from deformnet.behavior.model import load_classifier, predict_session
+from deformnet.behavior.predict import read_session
+from deformnet.behavior.predict import run as classify
+from deformnet.behavior.report import evaluate
 from deformnet.body import default_mouse
-from deformnet.classify import load_classifier, predict_session, read_session
-from deformnet.classify import run as classify
 from deformnet.confutil import compose
-from deformnet.deformation import DeformationModel
 from deformnet.paths import CONF_DIR
 from deformnet.sim import MECHANISMS, SimConfig
 from deformnet.sim.ethogram import ETHOGRAM, annotate, simulate_ethogram
@@ -92,16 +90,6 @@ CANDIDATES = {
     "mlp_scratch": ["net=lstm", "head=mlp", "freeze=false", _CTX, "measurements=false",
                     "pseudo_labels.teacher=none", "trainer.max_time=00:00:01:00"],
 }  # fmt: skip
-#: the forest head on the encoder's outputs beside the frame features and measurements
-ENCODER_HEAD = ["head=forest", "freeze=true", "measurements=true", "head.inputs=all", _CTX,
-                "pseudo_labels.teacher=none"]  # fmt: skip
-
-
-def scratch_like(ckpt: str) -> list[str]:
-    """Overrides for the checkpoint's architecture and window from random weights."""
-    dm = DeformationModel.from_checkpoint(ckpt)
-    name = "lstm_small" if dm.net_config.get("hidden") == 32 else "lstm"
-    return ["pretrained=null", f"net={name}", f"half_window={dm.half_window}"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -332,8 +320,6 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--label-draws", type=int, default=1)
     ap.add_argument("--candidates", default="default,mlp_scratch",
                     help=f"comma-separated, of {','.join(CANDIDATES)}; all: every one")  # fmt: skip
-    ap.add_argument("--encoders", default="", help="comma-separated deformnet-train checkpoints")
-    ap.add_argument("--encoder-fractions", default="0.1")
     ap.add_argument("--work", default="runs/benchmarks/behavior_work")
     ap.add_argument("--out", default="runs/benchmarks/behavior.json")
     args = ap.parse_args(argv)
@@ -349,7 +335,7 @@ def main(argv: list[str] | None = None) -> dict:
     scene = build_scene(SimConfig(), default_mouse())
     mech = scene.mech_pos
     fps = 30.0
-    results: dict = {"rules": {}, "simba_forest": {}, "recipe": {}, "encoders": {}}
+    results: dict = {"rules": {}, "simba_forest": {}, "recipe": {}}
     for split in ("val", "test"):
         pred = [rules_predict(s["points"], s["parts"], fps, mech, scene.free_lo, scene.free_hi)
                 for s in sessions[split]]  # fmt: skip
@@ -360,8 +346,6 @@ def main(argv: list[str] | None = None) -> dict:
     unknown = sorted(set(names) - set(CANDIDATES))
     if unknown:
         ap.error(f"unknown candidates {unknown} (known: {', '.join(CANDIDATES)})")
-    encoders = [e for e in args.encoders.split(",") if e]
-    enc_fracs = [float(f) for f in args.encoder_fractions.split(",") if f]
     for frac in fractions:
         for draw in range(args.label_draws):
             key = f"{frac:g}/{draw}"
@@ -374,19 +358,13 @@ def main(argv: list[str] | None = None) -> dict:
                 results["simba_forest"].setdefault(split, {})[key] = run_simba(
                     sessions["train"], chosen, sessions[split], mech
                 )
-            runs = [(name, CANDIDATES[name]) for name in names]
-            if frac in enc_fracs:
-                for e, ckpt in enumerate(encoders):
-                    runs += [(f"encoder{e}:pretrained", [f"pretrained={ckpt}", *ENCODER_HEAD]),
-                             (f"encoder{e}:random", [*scratch_like(ckpt), f"seed={e}",
-                                                     *ENCODER_HEAD])]  # fmt: skip
-            for name, ov in runs:
+            for name in names:
+                ov = CANDIDATES[name]
                 out = work / "runs" / f"{name.replace(':', '_')}_{tag}"
                 r = run_recipe(out, sessions["train"], files, sessions["val"], sessions["test"],
                                mech, ov)  # fmt: skip
-                where = results["encoders"] if name.startswith("encoder") else results["recipe"]
                 for split in ("val", "test"):
-                    where.setdefault(name, {}).setdefault(split, {})[key] = r[split]
+                    results["recipe"].setdefault(name, {}).setdefault(split, {})[key] = r[split]
                 print(f"{key} {name}: val {r['val']['macro_f1']:.3f} test "
                       f"{r['test']['macro_f1']:.3f} ({r['seconds']} s)", flush=True)  # fmt: skip
     # tables
@@ -403,16 +381,6 @@ def main(argv: list[str] | None = None) -> dict:
             row = results["recipe"][name][split]
             print(f"{'recipe:' + name:28s}" + "".join(f"{mean_of_f(row, f, args):10.3f}"
                                                       for f in fractions))  # fmt: skip
-        for kind in ("pretrained", "random"):
-            rows = [v[split] for k, v in results["encoders"].items() if k.endswith(kind)]
-            if not rows:
-                continue
-            cells = []
-            for f in fractions:
-                v = [r[f"{f:g}/{d}"]["macro_f1"] for r in rows for d in range(args.label_draws)
-                     if f"{f:g}/{d}" in r]  # fmt: skip
-                cells.append(f"{np.mean(v):.3f}±{np.std(v):.3f}" if v else "-")
-            print(f"{'encoders:' + kind:28s}" + "".join(f"{c:>14s}" for c in cells))
     results["settings"] = {**vars(args), "seeds": SEEDS, "seconds": round(time.time() - t0)}
     text = json.dumps(finite_or_none(results), default=str)
     write_text(Path(args.out), text + "\n")

@@ -32,9 +32,7 @@ seen by >= 2 cameras / occluded (< 2) / fraction within 5 mm (missing = miss), a
 - ``sessions``: `deformnet-train data=sessions pretrained=default` on three *other* mouse_b
   sessions (seeds + 1..3, tracked with adjust-track), ``--adapt-minutes`` of training, then
   `adjust-track deformation=CKPT` on this scene (``--no-self`` skips the last three,
-  ``--no-sessions`` this one);
-- ``self_forecast`` (with ``--self-forecast W``): ``self`` with deformnet-train's forecasting
-  term (weight W, `adapt.forecast`) in the fine-tuning.
+  ``--no-sessions`` this one).
 
 Also printed: the scene's rigid floor (generalized Procrustes against the truth), and per
 adjust-track variant the uncertainty calibration ratios rms error / rms ``{part}_sigma`` on seen
@@ -45,7 +43,7 @@ aniposelib's and below interp's. ``self``'s fine-tuning time is reported apart (
 
     .venv/bin/python benchmarks/domain_gap.py [--frames 1500] [--seed 92000] [--checkpoint CKPT]
         [--train-minutes 3] [--adapt-minutes 3] [--no-net] [--no-self] [--no-anipose]
-        [--no-kalman] [--no-disk] [--disk-seconds 180] [--no-sessions] [--self-forecast W]
+        [--no-kalman] [--no-disk] [--disk-seconds 180] [--no-sessions]
         [-o OVERRIDE ...]  (adjust-track overrides for every variant, e.g. -o body.shape=table)
 
 Last line JSON, also written to runs/benchmarks/domain_gap.json.
@@ -202,8 +200,6 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-self", action="store_true")
     ap.add_argument("--adapt-minutes", type=float, default=3.0)
     ap.add_argument("--no-sessions", action="store_true", help="skip the sessions variant")
-    ap.add_argument("--self-forecast", type=float, default=0.0,
-                    help="> 0: also self_forecast, self with adapt.forecast=W")  # fmt: skip
     ap.add_argument(
         "-o", "--override", action="append", default=[], help="adjust-track override (repeat)"
     )
@@ -296,8 +292,6 @@ def main(argv: list[str] | None = None) -> dict:
     if not args.no_self:
         variants["default"] = ["deformation=default"]
         variants["self"] = ["deformation=self", f"adapt.max_time={budget}"]
-        if args.self_forecast > 0:
-            variants["self_forecast"] = [*variants["self"], f"adapt.forecast={args.self_forecast}"]
         if not args.no_sessions:
             ckpt, facts = train_on_sessions(work, args.frames, args.seed, budget)
             extra["sessions_training"] = facts
@@ -371,10 +365,6 @@ def main(argv: list[str] | None = None) -> dict:
             and checks["self_occl_over_aniposelib"] <= 0.7
             and checks["self_occl_over_interp"] < 1.0
         )
-    if "self_forecast" in results:
-        a, b = results["self_forecast"], results["self"]
-        for c in ("rmse_all", "rmse_occluded"):
-            checks[f"self_forecast_over_self_{c}"] = round(a[c] / b[c], 3)
     print("checks: " + ", ".join(f"{k}={v}" for k, v in checks.items()))
     summary = {
         **results,

@@ -3,6 +3,6 @@
 
 from deformnet.quickhelp import console_script
 
-simulate = console_script("simulate", "deformnet.sim.cli:main")
-train = console_script("train", "deformnet.train:main")
-classify = console_script("classify", "deformnet.classify:main")
+simulate = console_script("simulate", "deformnet.apps.simulate:main")
+train = console_script("train", "deformnet.apps.train:main")
+classify = console_script("classify", "deformnet.apps.classify:main")

@@ -7,7 +7,7 @@ frame, see `deformnet.tokens.canonicalize`):
 
 and share `encode(rigid, deformed, observed) -> (B, W, encode_dim) per-frame encoder outputs,
 (B, K, P) interpolation prior`, the part `forward` feeds to its per-part output layer at the mid
-frame (and what behavior heads and the temporal-contrastive pretraining term read).
+frame (and what behavior heads read).
 
 They predict the deformation offset relative to the mid rigid point (residual) with a zero-
 initialised output layer, so an untrained net is the rigid baseline. The mid frame's deformed input

@@ -1,4 +1,4 @@
-"""`deformnet-train`: train a deformation net (Hydra app over `run(cfg)`).
+"""Training a deformation net: `run(cfg)`, behind `deformnet-train` (`deformnet.apps.train`).
 
     deformnet-train net=transformer                 # one net, on simulated mice
     deformnet-train data=sessions data.sessions=[runs/track/a,runs/track/b]   # a lab's own
@@ -14,6 +14,7 @@ Outputs under `deformnet.paths.output_dir(cfg)`: checkpoints/best.ckpt, checkpoi
 
 from __future__ import annotations
 
+import datetime
 import json
 import logging
 import math
@@ -21,16 +22,30 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+import lightning as L
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
 from omegaconf import DictConfig, OmegaConf
 
-from deformnet.apprun import run_app
+from deformnet.atomic import write_text
+from deformnet.body import BodyModel
 from deformnet.confutil import to_plain
-from deformnet.paths import CONF_DIR, output_dir, regular_file
-from deformnet.quiet import quiet_lightning
+from deformnet.data import Augment, DeformDataModule
+from deformnet.deformation import DeformationModel, build_net, check_track_up, frame_up
+from deformnet.lit import DeformLit
+from deformnet.paths import output_dir, regular_file
+from deformnet.pretrained import load_default
+from deformnet.sessions import (
+    check_compatible,
+    load_session_tokens,
+    resolve_sessions,
+    split_sessions,
+)
+from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run", "main", "build_model", "build_datamodule"]
+__all__ = ["run", "build_model", "build_datamodule", "net_config"]
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -52,8 +67,6 @@ def _seconds(max_time: Any) -> float | None:
         d, h, m, s = (float(x) for x in max_time.split(":"))
         return ((d * 24 + h) * 60 + m) * 60 + s
     if OmegaConf.is_config(max_time) or isinstance(max_time, dict):
-        import datetime
-
         return datetime.timedelta(**dict(to_plain(max_time))).total_seconds()
     return None
 
@@ -71,13 +84,9 @@ def net_config(cfg: DictConfig, num_parts: int) -> tuple[str, dict]:
 def load_pretrained(spec) -> Any:
     """``pretrained=``: null, ``default`` (the shipped net, `deformnet.pretrained`) or a
     checkpoint path -> a `DeformationModel` (or None)."""
-    from deformnet.deformation import DeformationModel
-
     if spec is None or str(spec).lower() in ("", "none", "null"):
         return None
     if str(spec).lower() == "default":
-        from deformnet.pretrained import load_default
-
         return load_default()
     p = Path(str(spec))
     if not p.exists():
@@ -91,10 +100,6 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
 
     body: the body model (default: ``cfg.body``); pretrained: a `DeformationModel` whose net
     (config, window and weights) is fine-tuned instead of a fresh ``cfg.net``."""
-    from deformnet.body import BodyModel
-    from deformnet.deformation import DeformationModel, build_net, frame_up
-    from deformnet.lit import DeformLit
-
     body = BodyModel.from_config(cfg.body) if body is None else body
     name, ncfg = net_config(cfg, body.num_parts)
     half_window = int(cfg.half_window)
@@ -121,42 +126,8 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
         warmup_steps=int(cfg.optim.warmup_steps),
         time_budget_s=_seconds(cfg.trainer.get("max_time")),
         hparams=hp,
-        contrast=contrast_config(cfg),
-        forecast=forecast_config(cfg),
     )
     return lit, body, name
-
-
-def contrast_config(cfg: DictConfig) -> dict:
-    """``contrast``: the temporal-contrastive term ({} when off or absent)."""
-    c = dict(to_plain(cfg.get("contrast")) or {})
-    if not float(c.get("weight") or 0.0):
-        return {}
-    if int(c.get("max_shift") or 0) < 1:
-        raise ValueError(f"contrast.max_shift must be >= 1 frame, got {c.get('max_shift')}")
-    return c
-
-
-def forecast_config(cfg: DictConfig) -> dict:
-    """``forecast``: the forecasting term ({} when off or absent)."""
-    f = dict(to_plain(cfg.get("forecast")) or {})
-    if not float(f.get("weight") or 0.0):
-        return {}
-    from deformnet.data import check_ahead_shift
-
-    try:
-        check_ahead_shift((f.get("min_shift"), f.get("max_shift")))
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"forecast.min_shift and forecast.max_shift must be token steps with "
-            f"1 <= min_shift <= max_shift, got {f.get('min_shift')}, {f.get('max_shift')}"
-        ) from None
-    return f
-
-
-def forecast_shift(cfg: DictConfig) -> tuple[int, int] | None:
-    f = forecast_config(cfg)
-    return (int(f["min_shift"]), int(f["max_shift"])) if f else None
 
 
 def data_step(cfg: DictConfig) -> int:
@@ -169,15 +140,11 @@ def data_step(cfg: DictConfig) -> int:
 
 def data_steps(cfg: DictConfig) -> tuple[int, ...] | None:
     """The token steps training draws from (``data.augment.steps``; None: ``data.step``)."""
-    from deformnet.data import Augment
-
     return Augment.from_any(to_plain((cfg.get("data") or {}).get("augment"))).steps
 
 
 def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arrays=None):
     """The data module; ``arrays`` = (train, val) sequences for ``data.source=sessions``."""
-    from deformnet.data import DeformDataModule
-
     data = dict(to_plain(cfg.data))
     for key in ("sessions", "val_fraction", "block_frames", "builder"):
         data.pop(key, None)
@@ -189,8 +156,6 @@ def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arra
         half_window=int(cfg.half_window if half_window is None else half_window),
         sim=to_plain(cfg.get("sim")),
         seed=int(cfg.seed),
-        pair_shift=int(contrast_config(cfg).get("max_shift") or 0),
-        ahead_shift=forecast_shift(cfg),
         **data,
     )
 
@@ -198,14 +163,6 @@ def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arra
 def session_data(cfg: DictConfig, out: Path, window: int, up=None):
     """``data=sessions``: the sessions' tokens, their body model and the train/val split;
     up: the world up of a heading-frame net (each session's world must have it)."""
-    from deformnet.body import BodyModel
-    from deformnet.sessions import (
-        check_compatible,
-        load_session_tokens,
-        resolve_sessions,
-        split_sessions,
-    )
-
     dcfg = cfg.data
     paths = resolve_sessions(list(dcfg.get("sessions") or []))
     if not paths:
@@ -221,8 +178,6 @@ def session_data(cfg: DictConfig, out: Path, window: int, up=None):
     tokens = [load_session_tokens(p, builder) for p in paths]
     check_compatible(tokens)
     if up is not None:
-        from deformnet.deformation import check_track_up
-
         for t in tokens:
             check_track_up(t.rigid, t.body_points, up, t.source or "a session")
     first = tokens[0]
@@ -251,8 +206,6 @@ def session_data(cfg: DictConfig, out: Path, window: int, up=None):
 
 
 def _progress_bar(kind: str):
-    from lightning.pytorch.callbacks import RichProgressBar, TQDMProgressBar
-
     if kind == "rich":
         try:
             return RichProgressBar()
@@ -269,19 +222,11 @@ def run(cfg: DictConfig) -> dict:
     "metrics"} (checkpoint paths None when not written, e.g. under fast_dev_run).
 
     ``threads`` (torch's intra-op threads) applies for the call and is restored after it."""
-    from deformnet.threads import torch_threads
-
     with torch_threads(cfg.get("threads")):
         return _run(cfg)
 
 
 def _run(cfg: DictConfig) -> dict:
-    import lightning as L
-    import torch
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
-    from deformnet.atomic import write_text
-
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = output_dir(cfg)
     write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
@@ -291,8 +236,6 @@ def _run(cfg: DictConfig) -> dict:
     n = int(pretrained.half_window if pretrained is not None else cfg.half_window)
     window = 2 * n * data_step(cfg) + 1  # frames a window spans (wider steps: where they fit)
     if str(cfg.data.get("source")) == "sessions":
-        from deformnet.deformation import frame_up
-
         up = frame_up(to_plain(cfg.get("up")), pretrained, str(cfg.get("pretrained") or ""))
         body, arrays, data_facts = session_data(cfg, out, window, up)
     lit, body, name = build_model(cfg, body, pretrained)
@@ -359,19 +302,3 @@ def _run(cfg: DictConfig) -> dict:
             Path(ckpt_dir),
         )
     return result
-
-
-def _quiet_run(cfg: DictConfig) -> dict:
-    with quiet_lightning():  # no Lightning tips or deprecations on the console
-        return run(cfg)
-
-
-@hydra.main(config_path=str(CONF_DIR), config_name="train", version_base=None)
-def main(cfg: DictConfig) -> None:
-    # one error handler (deformnet.apprun): bad input or config (a refused checkpoint...), an
-    # unusable or busy output.dir: one line, exit 2; Ctrl-C: exit 130
-    run_app(_quiet_run, cfg)
-
-
-if __name__ == "__main__":
-    main()

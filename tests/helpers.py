@@ -50,7 +50,7 @@ def write_bout_labels(path, labels, classes, first: int = 0):
     `deformnet-classify` reads, frame numbers from `first`; returns the path."""
     import pandas as pd
 
-    from deformnet.behavior_labels import bouts
+    from deformnet.behavior.labels import bouts
 
     rows = [
         {"start": a + first, "stop": b + first, "label": classes[c]} for a, b, c in bouts(labels)

@@ -177,26 +177,6 @@ def test_starting_model_for_another_skeleton():
     assert out.shape == (2, 3, 3)
 
 
-def test_forecast_term_is_passed_to_the_fine_tuning(monkeypatch, tmp_path):
-    """adapt.forecast > 0: fine_tune gets deformnet-train's forecasting head with that weight
-    (and batches with forecasting targets); 0: none."""
-    seen = {}
-
-    def fake(model, train, val, cfg, device, forecast_head=None, *args, **kwargs):
-        seen["head"], seen["weight"] = forecast_head, cfg.forecast
-        seen["ahead"] = "ahead" in next(iter(train))
-        raise RuntimeError("stop here")
-
-    monkeypatch.setattr(adapt, "fine_tune", fake)
-    for w in (0.0, 0.5):
-        with pytest.raises(RuntimeError, match="stop here"):
-            adapt_net(_tokens(default_mouse()), tmp_path / f"a{w}", {"forecast": w}, False)
-        assert seen["weight"] == w
-        assert (seen["head"] is not None) == (w > 0) == seen["ahead"]
-        if w > 0:
-            assert seen["head"].forecast_weight == w
-
-
 def test_mirror_rule_is_deformnet_trains():
     """adapt mirrors windows exactly where deformnet-train data=sessions would: a symmetric
     body (the default mouse), not a lopsided one, not without left/right pairs."""

@@ -1,4 +1,4 @@
-"""Labels as labs export them (deformnet.behavior_labels.read_labels): per frame, bouts, BORIS's
+"""Labels as labs export them (deformnet.behavior.labels.read_labels): per frame, bouts, BORIS's
 aggregated events, SimBA's behavior columns; small files."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deformnet.behavior_labels import read_labels
+from deformnet.behavior.labels import read_labels
 
 CLASSES = ["walk", "rear", "groom"]
 FNUM = np.arange(100, 120)  # a track's frames 100..119

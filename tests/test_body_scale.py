@@ -7,17 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-from deformnet.behavior_labels import body_scale
-from deformnet.body import default_mouse
-from deformnet.deformation import build_net
-from deformnet.heads import (
-    BehaviorClassifier,
-    LinearHead,
+from deformnet.behavior.encoder import (
     MechanismFeatures,
     WindowEncoder,
     normalize_size,
     pose_measurements,
 )
+from deformnet.behavior.heads import BehaviorClassifier, LinearHead
+from deformnet.behavior.tracks import body_scale
+from deformnet.body import default_mouse
+from deformnet.deformation import build_net
 from deformnet.so3 import transform_points
 
 LSTM = {"_target_": "deformnet.nets.LSTMPredictor", "hidden": 8, "layers": 1, "embed": 8}

@@ -33,15 +33,20 @@ import torch
 from helpers import tiny_deformation_model, tiny_lstm_config
 
 import adjust.apps.track
-import deformnet.classify
-import deformnet.train
+import deformnet.apps.classify
+import deformnet.apps.train
 from adjust.apps.common import run_or_exit
+from deformnet.behavior.model import build_classifier as _build
+from deformnet.behavior.model import export_classifier, load_classifier
+from deformnet.behavior.sequence import (
+    SequenceEncoder,
+    export_sequence_encoder,
+    load_sequence_encoder,
+)
 from deformnet.body import default_mouse
 from deformnet.checkpoint import load_checkpoint, plain_kwargs
-from deformnet.classify import _build, export_classifier, load_classifier
 from deformnet.deformation import CHECKPOINT_KEY, DeformationModel, build_net
 from deformnet.paths import CONF_DIR
-from deformnet.sequence import SequenceEncoder, export_sequence_encoder, load_sequence_encoder
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANNED = ("adjust", "deformnet", "benchmarks")
@@ -316,7 +321,7 @@ def _apps(tmp_path: Path, ckpt: Path, kind: str):
     out = str(tmp_path / "out")
     if kind == "classifier":
         tracks = tmp_path / "tracks.csv"
-        return [("deformnet-classify mode=predict", deformnet.classify.main, _compose(
+        return [("deformnet-classify mode=predict", deformnet.apps.classify.main, _compose(
             "classify", ["mode=predict", f"checkpoint={ckpt}", f"tracks={tracks}",
                          f"output.dir={out}"]))]  # fmt: skip
     track = functools.partial(run_or_exit, adjust.apps.track.run)  # adjust-track's single run
@@ -325,9 +330,9 @@ def _apps(tmp_path: Path, ckpt: Path, kind: str):
             f"input.calibration={tmp_path / 'calibration.toml'}",
             f"input.detections={tmp_path / 'detections'}", f"deformation={ckpt}",
             f"output.dir={out}", "progress=false"])),
-        ("deformnet-train", deformnet.train.main, _compose("train", [
+        ("deformnet-train", deformnet.apps.train.main, _compose("train", [
             f"pretrained={ckpt}", f"output.dir={out}", f"logger.save_dir={tmp_path / 'tb'}"])),
-        ("deformnet-classify", deformnet.classify.main, _compose("classify", [
+        ("deformnet-classify", deformnet.apps.classify.main, _compose("classify", [
             f"pretrained={ckpt}", f"output.dir={out}"])),
     ]  # fmt: skip
 

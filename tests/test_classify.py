@@ -10,7 +10,8 @@ import torch
 from helpers import pinned, tiny_deformation_model, write_bout_labels
 
 from adjust.io import write_points3d
-from deformnet.behavior_labels import bouts, read_labels, read_tracks, smooth
+from deformnet.behavior.labels import bouts, read_labels, smooth
+from deformnet.behavior.tracks import read_tracks
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import transform_points
@@ -137,31 +138,8 @@ def test_smoothing_and_bouts():
     assert (smooth(probs) == probs.argmax(-1)).all()
 
 
-def test_paired_difference():
-    from deformnet.behavior_report import paired_difference
-
-    # differences 1, 2, 3, 4: mean 2.5, sd sqrt(5/3), t(0.975, 3 dof) = 3.182446
-    r = paired_difference([2.0, 4.0, 6.0, 8.0], [1.0, 2.0, 3.0, 4.0])
-    half = 3.182446305 * np.sqrt(5 / 3) / 2
-    assert r["mean"] == pytest.approx(2.5) and r["units"] == 4
-    assert r["ci"] == pytest.approx([2.5 - half, 2.5 + half], rel=1e-6)
-    assert (r["wins"], r["losses"]) == (4, 0)
-    # exact two-sided signed-rank p with every one of 4 differences positive: 2 / 2^4; the
-    # interval is above 0 but 4 units cannot rule out chance
-    assert r["wilcoxon_p"] == pytest.approx(0.125) and not r["better"]
-    r = paired_difference(np.arange(8) + 1.0, np.zeros(8))  # 8 of 8 ahead: p = 2 / 2^8
-    assert r["wilcoxon_p"] == pytest.approx(2 / 256) and r["better"]
-    r = paired_difference([1.0, 0.0, 1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0, 0.0, 1.0])
-    assert r["mean"] == 0 and (r["wins"], r["losses"]) == (3, 3) and not r["better"]
-    assert paired_difference([1.0, 1.0], [1.0, 1.0])["wilcoxon_p"] == 1.0
-    with pytest.raises(ValueError, match="paired"):
-        paired_difference([1.0, 2.0], [1.0, 2.0, 3.0])
-    with pytest.raises(ValueError, match="finite"):
-        paired_difference([1.0, np.nan], [1.0, 2.0])
-
-
 def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
-    from deformnet.classify import run
+    from deformnet.behavior.predict import run
 
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     val = [_toy_session(tmp_path, "val", 7)]
@@ -244,7 +222,7 @@ def test_fine_tuning_separates_two_behaviors_and_predict_round_trips(tmp_path):
 def _fit_from_pretrained(tmp_path, overrides: list[str], up=None):
     """Fine-tune from a saved tiny deformation net (seed 3; up: its heading frame) on one toy
     session (3 steps an epoch); returns that net, its checkpoint path and the run's result."""
-    from deformnet.classify import run
+    from deformnet.behavior.predict import run
 
     ckpt = tmp_path / "net.ckpt"
     pre = tiny_deformation_model(seed=3, up=up)
@@ -268,7 +246,7 @@ def _fit_from_pretrained(tmp_path, overrides: list[str], up=None):
 
 
 def test_pretrained_frozen_encoder_is_kept(tmp_path):
-    from deformnet.classify import load_classifier
+    from deformnet.behavior.model import load_classifier
 
     pre, ckpt, res = _fit_from_pretrained(tmp_path, ["freeze=true", "trainer.max_epochs=1"])
     model, meta = load_classifier(res["checkpoint"])
@@ -282,7 +260,9 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
     """A net pretrained in the heading frame (up = z): the classifier reads windows in that
     frame, its checkpoint says so, and predicting from the checkpoint gives the same
     probabilities as the trained model."""
-    from deformnet.classify import SessionBank, load_classifier, predict_probs, run
+    from deformnet.behavior.features import SessionBank
+    from deformnet.behavior.model import features_probs, load_classifier
+    from deformnet.behavior.predict import run
 
     pre, ckpt, res = _fit_from_pretrained(
         tmp_path, ["freeze=true", "trainer.max_epochs=1"], up=(0, 0, 1)
@@ -292,13 +272,13 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
     body_frame, _ = load_classifier(res["checkpoint"])
     body_frame.encoder.up = None  # the same weights reading the body frame: other outputs
     test = _toy_session(tmp_path, "test", 9, T=60)
-    from deformnet.classify import read_session
+    from deformnet.behavior.predict import read_session
 
     s = read_session(str(test[0]), model, meta)  # as mode=predict reads it (body scale set)
     assert meta["body_scale"] == "session" and s.scale is not None
     bank = SessionBank([s], model.half_window)
-    p_head = predict_probs(model, bank)
-    assert np.abs(p_head - predict_probs(body_frame, bank)).max() > 1e-4
+    p_head = features_probs(model, bank)[1]
+    assert np.abs(p_head - features_probs(body_frame, bank)[1]).max() > 1e-4
     out = run(
         _compose(
             [
@@ -342,7 +322,7 @@ def test_heading_frame_encoder_is_carried_into_the_classifier_and_predict(tmp_pa
 
 
 def test_pretrained_probe_then_fine_tune_changes_the_encoder(tmp_path):
-    from deformnet.classify import load_classifier
+    from deformnet.behavior.model import load_classifier
 
     pre, _, res = _fit_from_pretrained(tmp_path, ["freeze=false", "trainer.max_epochs=2"])
     assert res["report"]["probe"]["iterations"] > 0  # the head's L-BFGS probe first
@@ -362,8 +342,8 @@ def test_lbfgs_probe_is_logistic_regression():
     (scikit-learn's, class-weighted), on the head's standardised inputs."""
     from sklearn.linear_model import LogisticRegression
 
-    from deformnet.classify import fit_head_lbfgs
-    from deformnet.heads import LinearHead
+    from deformnet.behavior.fit import fit_head_lbfgs
+    from deformnet.behavior.heads import LinearHead
 
     g = np.random.default_rng(0)
     N, D, C = 300, 6, 3
@@ -399,7 +379,8 @@ def test_lbfgs_probe_is_logistic_regression():
 def test_forest_head_on_a_frozen_encoder_and_predict(tmp_path):
     """head=forest (freeze=true): fitted on the labelled frames' features, stored in
     classifier.pt, and mode=predict reloads it and labels the test track."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8)]
@@ -490,7 +471,8 @@ def test_lock_box_context_tells_apart_what_only_the_place_does(tmp_path):
     apart, with it it does; mode=predict on a recording whose lock box stands elsewhere reads
     that recording's positions (mechanisms.calibration) and stays right, while the training
     rig's positions would not be."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     lever, ball = [200.0, 250.0, 12.0], [120.0, 250.0, 10.0]
     away = [80.0, 120.0, 12.0]
@@ -558,8 +540,8 @@ def test_lock_box_context_tells_apart_what_only_the_place_does(tmp_path):
     ],
 )  # fmt: skip
 def test_mechanism_config_errors(overrides, match):
+    from deformnet.behavior.model import mechanism_setup
     from deformnet.body import BodyModel
-    from deformnet.classify import mechanism_setup
 
     cfg = _compose(overrides)
     with pytest.raises(ValueError, match=match):
@@ -569,8 +551,8 @@ def test_mechanism_config_errors(overrides, match):
 def test_mechanism_setup_sources(tmp_path):
     """positions=sim: the default simulator's lock box; a calibration without the table is
     named."""
+    from deformnet.behavior.model import mechanism_setup
     from deformnet.body import BodyModel
-    from deformnet.classify import mechanism_setup
     from deformnet.sim import MECHANISMS, simulate
 
     cfg = _compose(["mechanisms.positions=sim", "mechanisms.parts=[snout]"])
@@ -591,7 +573,8 @@ def test_heights_up_gives_a_body_frame_encoder_the_part_heights(tmp_path):
     has constant part distances): a body-frame encoder's measurements with heights_up reach a
     high F1, without it (no heights) about chance; heights_up is stored and mode=predict uses it
     (and checks the recording's world against it); heights_up without measurements is an error."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     train = [_toy_session(tmp_path, f"train{i}", i, still=True) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8, still=True)]
@@ -629,7 +612,7 @@ def test_feature_range_and_unfamiliar_share():
     """feature_range: each feature's q / 1 - q quantiles over the frames, widened by a margin
     (by default shrinking with the frames); unfamiliar_share: per frame the share of its
     features outside them; shapes and bad input are checked."""
-    from deformnet.classify import feature_range, unfamiliar_share
+    from deformnet.behavior.features import feature_range, unfamiliar_share
 
     x = torch.arange(1000, dtype=torch.float32)[:, None].repeat(1, 4)  # 0..999 in every column
     x[:, 1] *= 2
@@ -659,7 +642,8 @@ def test_predict_warns_on_a_recording_unlike_the_training_data(tmp_path, caplog)
     import json
     import logging
 
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8)]
@@ -679,7 +663,7 @@ def test_predict_warns_on_a_recording_unlike_the_training_data(tmp_path, caplog)
     res = {}
     for name, (tracks, *_) in (("same", same), ("big", big)):
         caplog.clear()
-        with caplog.at_level(logging.WARNING, logger="deformnet.classify"):
+        with caplog.at_level(logging.WARNING, logger="deformnet.behavior"):
             ov = ["mode=predict", f"checkpoint={out / 'classifier.pt'}", f"tracks={tracks}"]
             res[name] = run(_compose([*ov, f"output.dir={tmp_path / name}"]))
         res[name]["log"] = caplog.text
@@ -700,7 +684,8 @@ def test_body_scale_lets_a_classifier_label_a_larger_mouse(tmp_path):
     scale in summary.json. A bad body_scale and a track in metres are errors naming them."""
     import json
 
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8)]
@@ -722,7 +707,7 @@ def test_body_scale_lets_a_classifier_label_a_larger_mouse(tmp_path):
     assert np.mean(same["label"] == big["label"]) >= 0.95
     # the same track posed with another body model (its own axes, as body=auto's): the pose is
     # refitted to the classifier's model, so the labels stay the same
-    from deformnet.behavior_labels import POSE_COLUMNS
+    from deformnet.behavior.tracks import POSE_COLUMNS
 
     other = read_points3d_table(_toy_session(tmp_path, "same", 9)[0])  # with the pose sidecar
     Q = np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]])
@@ -753,7 +738,8 @@ def test_measurements_alone_feed_a_forest_and_predict_round_trips(tmp_path):
     """measurements=true with no other frame features: the forest reads the part speeds and
     distances (walk moves, rear stands), the flag is stored in classifier.pt and mode=predict
     rebuilds the same features."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_toy_session(tmp_path, "test", 8)]
@@ -796,7 +782,7 @@ def test_read_tracks_pose_columns_of_another_body_model(tmp_path, caplog, what):
     """A track whose pose columns belong to another body model (e.g. adjust-track body=auto's:
     its own axes, or the same axes about another origin) is not read with this model's poses
     (silently wrong rigid points): a warning, and the pose fitted to the parts instead."""
-    from deformnet.behavior_labels import POSE_COLUMNS, pose_mismatch
+    from deformnet.behavior.tracks import POSE_COLUMNS, pose_mismatch
 
     tracks, _, _ = _toy_session(tmp_path, "s", 0, T=60)
     body = default_mouse()
@@ -815,7 +801,7 @@ def test_read_tracks_pose_columns_of_another_body_model(tmp_path, caplog, what):
     bad = pose_mismatch(body, df[list(POSE_COLUMNS)].to_numpy(), pts, own["observed"])
     assert bad is not None and bad["frames"] == 60
     assert pose_mismatch(body, poses, pts, own["observed"]) is None
-    with caplog.at_level("WARNING", logger="deformnet.behavior_labels"):
+    with caplog.at_level("WARNING", logger="deformnet.behavior"):
         got = read_tracks(p, body)
     assert "other.csv: the pose columns do not belong to body model 'mouse'" in caplog.text
     assert got["pose"] == "fitted"
@@ -840,7 +826,7 @@ def test_read_tracks_pose_columns_of_another_body_model(tmp_path, caplog, what):
 def test_pose_mismatch_keeps_deformed_tracks():
     """A track posed with its own model is not flagged though its parts deform (6 mm rms, more
     than the demo's simulated mouse) and some are unobserved."""
-    from deformnet.behavior_labels import pose_mismatch
+    from deformnet.behavior.tracks import pose_mismatch
 
     rng = np.random.default_rng(3)
     body = default_mouse()
@@ -860,7 +846,7 @@ def test_the_default_recipe_needs_only_tracks_and_labels(tmp_path):
     """`deformnet-classify tracks=[...] labels=[...]` (the lab's command, nothing else): the
     forest head on the frame features and measurements, taught by the linear teacher; it labels
     a held-out session right. Unequal lists are an error naming both."""
-    from deformnet.classify import run
+    from deformnet.behavior.predict import run
 
     train = [_toy_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = _toy_session(tmp_path, "test", 8)

@@ -13,9 +13,10 @@ import torch
 from helpers import pinned, write_bout_labels
 
 from adjust.io import write_points3d
-from deformnet.behavior_labels import Session, check_fps, resample_session, to_track_frames
+from deformnet.behavior.rates import resample_session, to_track_frames
+from deformnet.behavior.tracks import Session
 from deformnet.body import default_mouse
-from deformnet.confutil import compose
+from deformnet.confutil import check_fps, compose
 from deformnet.so3 import transform_points
 
 CLASSES = ["walk", "scan"]
@@ -110,7 +111,7 @@ def test_antialiasing_removes_what_the_lower_rate_cannot_carry():
     away = np.r_[5:32, 52:116]  # two or more 30 Hz frames from the gap (34..49) and the ends
     assert err[away].max() < 0.2
     assert not d2.observed[34:50, 4].any() and d2.observed[:34, 4].all()
-    from deformnet.behavior_labels import lowpass_in_time
+    from deformnet.behavior.rates import lowpass_in_time
 
     P = lowpass_in_time(np.ones((5, 1, 3)), np.ones((5, 1), bool), np.array([0, 1, 2, 40, 41]), 3)
     np.testing.assert_allclose(P, 1.0)  # a constant stays constant, across the gap too
@@ -191,7 +192,8 @@ def test_a_classifier_labels_a_recording_at_another_frame_rate(tmp_path, caplog)
     recording given fps=90 resampled to 30 Hz: as right as a 30 Hz recording. Without fps=
     the track is taken to be at 30 Hz: its walking looks three times slower and is mislabelled.
     summary.json and report.json say the rates; a bad fps is an error."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     tiny = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
     train = [_speed_track(tmp_path, f"train{i}", i, 30.0) for i in range(2)]
@@ -210,7 +212,7 @@ def test_a_classifier_labels_a_recording_at_another_frame_rate(tmp_path, caplog)
     pred = ["mode=predict", f"checkpoint={out / 'classifier.pt'}", f"tracks={fast_tracks}"]
     got = {}
     for name, rate in (("given", ["fps=90"]), ("assumed", [])):
-        with caplog.at_level("INFO", logger="deformnet.classify"):
+        with caplog.at_level("INFO", logger="deformnet.behavior"):
             res = run(_compose([*pred, *rate, f"output.dir={tmp_path / name}"]))
         summary = json.loads((tmp_path / name / "summary.json").read_text())
         df = pd.read_csv(res["predictions"])
@@ -232,7 +234,7 @@ def test_training_sessions_at_several_frame_rates(tmp_path):
     """data.train_fps: labelled sessions recorded at 30 and at 90 fps, each read resampled to
     fps=30, train one classifier that labels a 30 fps test session right. A list of the wrong
     length, or per-session rates without fps=, are errors naming the setting."""
-    from deformnet.classify import run
+    from deformnet.behavior.predict import run
 
     tiny = ["net.hidden=8", "net.layers=1", "net.embed=8", "half_window=2"]
     train = [_speed_track(tmp_path, "a30", 0, 30.0), _speed_track(tmp_path, "b90", 1, 90.0)]

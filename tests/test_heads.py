@@ -8,9 +8,10 @@ import pytest
 import torch
 from helpers import pinned, quiet_trainer
 
+from deformnet.behavior.encoder import WindowEncoder
+from deformnet.behavior.heads import BehaviorClassifier, LinearHead, MLPHead, build_head
 from deformnet.body import default_mouse
 from deformnet.deformation import build_net
-from deformnet.heads import BehaviorClassifier, LinearHead, MLPHead, WindowEncoder, build_head
 from deformnet.paths import CONF_DIR
 
 TINY = {
@@ -99,7 +100,7 @@ def _sim_session(tmp_path, seed: int, T: int = 120) -> tuple[str, str]:
     """A short simulated session as files: points3d CSV (truth, pose columns), per-frame labels."""
     import pandas as pd
 
-    from deformnet.behavior_labels import POSE_COLUMNS
+    from deformnet.behavior.tracks import POSE_COLUMNS
     from deformnet.sim import simulate
 
     d = simulate(None, num_frames=T, seed=seed)
@@ -115,7 +116,7 @@ def _sim_session(tmp_path, seed: int, T: int = 120) -> tuple[str, str]:
 
 @pytest.mark.parametrize("net", ["lstm", "transformer"])
 def test_fast_dev_run_both_encoders(tmp_path, net):
-    from deformnet.classify import run
+    from deformnet.behavior.predict import run
 
     tiny = [f"net.{k}={v}" for k, v in TINY[net].items() if k != "_target_"]
     (tt, tl), (vt, vl) = _sim_session(tmp_path, 0), _sim_session(tmp_path, 10000)
@@ -151,7 +152,7 @@ def _batches(enc, n: int = 4, B: int = 16):
 
 @pytest.mark.parametrize("freeze", [True, False])
 def test_frozen_encoder_weights_do_not_change(freeze):
-    from deformnet.classify_lit import ClassifyLit
+    from deformnet.behavior.lit import ClassifyLit
 
     torch.manual_seed(0)
     enc = _encoder("lstm")
@@ -196,8 +197,9 @@ def test_temporal_context_pools_the_surrounding_windows(kind):
     """With context (5, 9) and stride 2 the features are the mid window's encoder output plus
     the mean and std of the outputs of the windows at offsets within +-2 and +-4 (step 2), and
     the bank path (`context_features`, one encoder pass per distinct frame) gives the same."""
-    from deformnet.classify import Session, SessionBank, context_features
-    from deformnet.heads import context_offsets
+    from deformnet.behavior.features import SessionBank, context_features
+    from deformnet.behavior.heads import context_offsets
+    from deformnet.behavior.tracks import Session
 
     enc = _encoder(kind).eval()
     assert context_offsets((5, 9), 2) == (-4, -2, 0, 2, 4)
@@ -244,8 +246,8 @@ def test_temporal_context_pools_the_surrounding_windows(kind):
 def test_ensemble_head_averages_its_members_probabilities_and_each_member_is_fitted_alone():
     import copy
 
-    from deformnet.classify import fit_head_lbfgs
-    from deformnet.heads import EnsembleHead
+    from deformnet.behavior.fit import fit_head_lbfgs
+    from deformnet.behavior.heads import EnsembleHead
 
     torch.manual_seed(0)
     ens = build_head({"name": "mlp", "hidden": 8, "ensemble": 3, "dropout": 0.0}, 5, 4)
@@ -284,11 +286,11 @@ def test_ensemble_head_averages_its_members_probabilities_and_each_member_is_fit
 
 def test_forest_head_is_scikit_learns_forest_and_reads_only_the_frame_features():
     """fit_head_forest: the torch evaluation equals RandomForestClassifier.predict_proba on the
-    columns it read (the frame features with inputs=frame); a stored forest reloads into a
-    fresh head; changing the encoder's outputs does not move an inputs=frame forest."""
+    columns it read (the frame features); a stored forest reloads into a fresh head; changing
+    the encoder's outputs does not move the forest."""
     from sklearn.ensemble import RandomForestClassifier
 
-    from deformnet.classify import fit_head_forest
+    from deformnet.behavior.fit import fit_head_forest
 
     enc = _encoder("lstm")
     model = BehaviorClassifier(enc, build_head({"name": "forest", "trees": 15}, enc.out_dim, 3))
@@ -323,8 +325,8 @@ def test_forest_head_is_scikit_learns_forest_and_reads_only_the_frame_features()
     torch.testing.assert_close(fresh(x), model.head(x))
     with pytest.raises(ValueError, match="ensemble must be 1"):
         build_head({"name": "forest", "ensemble": 3}, enc.out_dim, 3)
-    with pytest.raises(ValueError, match="head.inputs"):
-        build_head({"name": "forest", "inputs": "encoder"}, enc.out_dim, 3)
+    with pytest.raises(ValueError, match="cannot build the forest head"):
+        build_head({"name": "forest", "inputs": "all"}, enc.out_dim, 3)  # deleted (no gain)
     no_frame = BehaviorClassifier(_encoder("lstm", frame_features=False), fresh)
     with pytest.raises(ValueError, match="no frame features"):
         no_frame.frame_columns()
@@ -333,7 +335,7 @@ def test_forest_head_is_scikit_learns_forest_and_reads_only_the_frame_features()
 def test_mechanism_features_shape_value_gradient():
     """MechanismFeatures: each chosen part's distance to each mechanism, then the nearest part
     per mechanism, / scale; float64 gradcheck; bad input named."""
-    from deformnet.heads import MechanismFeatures
+    from deformnet.behavior.encoder import MechanismFeatures
 
     pos = [[0.0, 0.0, 0.0], [100.0, 0.0, 0.0]]
     mech = MechanismFeatures(pos, [0, 2], ["lever", "ball"], scale=10.0)
@@ -363,7 +365,7 @@ def test_encoder_appends_mechanism_distances_as_frame_features(kind):
     """The lock-box context comes after the frame features (from the mid frame's points:
     observed where seen, rigid elsewhere), counts among the frame columns, and moves with the
     mouse while the canonical encoder outputs do not."""
-    from deformnet.heads import MechanismFeatures
+    from deformnet.behavior.encoder import MechanismFeatures
 
     body = default_mouse()
     cfg = {**TINY[kind], "num_parts": body.num_parts, "half_window": 2}
@@ -393,7 +395,7 @@ def test_pose_measurements_shape_value_gradient_and_encoder():
     """pose_measurements: pairwise part distances (upper triangle) then part speeds, / scale;
     invariant to a rigid motion of both frames; float64 gradcheck; WindowEncoder appends them
     after the frame features (measurements=True) from the mid frame and the one before."""
-    from deformnet.heads import pose_measurements
+    from deformnet.behavior.encoder import pose_measurements
     from deformnet.so3 import rodrigues_to_matrix
 
     g = torch.Generator().manual_seed(3)

@@ -147,7 +147,7 @@ def _hydra_help(app: str) -> subprocess.Popen:
     scripts = tomllib.loads((REPO_DIR / "pyproject.toml").read_text())["project"]["scripts"]
     module = {
         "adjust-track": "adjust.apps.track",
-        "deformnet-classify": "deformnet.classify",
+        "deformnet-classify": "deformnet.apps.classify",
         "adjust-events": "adjust.apps.events",
     }[app]
     assert scripts[app].split(":")[0] in ("adjust.entry", "deformnet.entry")

@@ -22,7 +22,7 @@ from adjust.kinematics import (
     joint_angles,
     parse_angles,
 )
-from deformnet.behavior_labels import POSE_COLUMNS
+from deformnet.behavior.tracks import POSE_COLUMNS
 from deformnet.paths import CONF_DIR
 
 PARTS = ["hip", "knee", "ankle", "toe"]

@@ -75,6 +75,30 @@ def test_the_library_never_imports_an_app():
     )
 
 
+def test_deformnet_never_imports_its_apps():
+    """deformnet/apps/ holds one thin module per console script; no other deformnet module
+    imports one (the library never imports an app)."""
+    apps = ROOT / "deformnet" / "apps"
+    files = [p for p in sorted((ROOT / "deformnet").rglob("*.py")) if apps not in p.parents]
+    assert len(files) > 20 and (apps / "classify.py").is_file()
+    bad = [
+        f"{p.relative_to(ROOT)}:{line} imports {mod}"
+        for p in files
+        for line, mod in _imported_modules(p)
+        if mod == "deformnet.apps" or mod.startswith("deformnet.apps.")
+    ]
+    assert not bad, "the library (deformnet outside deformnet/apps) must not import an app:\n" + (
+        "\n".join(bad)
+    )
+    import re
+
+    targets = re.findall(
+        r'console_script\("\w+", "([\w.]+):main"\)',
+        (ROOT / "deformnet" / "entry.py").read_text(encoding="utf-8"),
+    )
+    assert len(targets) == 3 and all(t.startswith("deformnet.apps.") for t in targets), targets
+
+
 BEHAVIOR = ("deformnet.behavior", "deformnet.classify", "deformnet.heads", "deformnet.pseudo",
             "deformnet.sequence")  # fmt: skip
 
@@ -91,6 +115,41 @@ def test_the_readers_never_import_behavior_code():
         if mod.startswith(BEHAVIOR)
     ]
     assert not bad, "adjust/io must not import behavior code:\n" + "\n".join(bad)
+
+
+def test_the_windows_never_import_the_simulator():
+    """deformnet.windows (the masked windows adjust-track checks a net on) and the other modules
+    adjust-track loads at run time import no simulator: simulated training sequences are
+    deformnet.data's (`simulate_sequences`, `load_sequences`)."""
+    files = [ROOT / (m.replace(".", "/") + ".py") for m in RUNTIME]
+    files = [p if p.is_file() else p.with_suffix("") / "__init__.py" for p in files]
+    assert all(p.is_file() for p in files), files
+    bad = [
+        f"{p.relative_to(ROOT)}:{line} imports {mod}"
+        for p in files
+        for line, mod in _imported_modules(p)
+        if mod == "deformnet.sim" or mod.startswith("deformnet.sim.")
+    ]
+    assert not bad, "the run-time modules must not import the simulator:\n" + "\n".join(bad)
+
+
+def test_the_deformation_nets_never_import_behavior_code():
+    """The deformation side of deformnet (outside deformnet/behavior/ and the apps; e.g.
+    deformnet.lit, which once imported the behavior heads) uses no behavior module."""
+    skip = (ROOT / "deformnet" / "behavior", ROOT / "deformnet" / "apps")
+    files = [
+        p
+        for p in sorted((ROOT / "deformnet").rglob("*.py"))
+        if not any(s in p.parents for s in skip) and p.name != "entry.py"
+    ]
+    assert (ROOT / "deformnet" / "lit.py") in files
+    bad = [
+        f"{p.relative_to(ROOT)}:{line} imports {mod}"
+        for p in files
+        for line, mod in _imported_modules(p)
+        if mod.startswith(BEHAVIOR)
+    ]
+    assert not bad, "deformation code must not import behavior code:\n" + "\n".join(bad)
 
 
 def test_every_console_script_is_an_app_module():

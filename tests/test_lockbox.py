@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from deformnet.lockbox import calibration_mechanisms, mechanism_table
+from deformnet.behavior.lockbox import calibration_mechanisms, mechanism_table
 
 
 def test_mechanism_table_validates_and_names_the_mechanism():

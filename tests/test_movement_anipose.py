@@ -14,7 +14,7 @@ from movement.io import load_poses
 
 from adjust.export import write_anipose
 from adjust.io import read_points3d
-from deformnet.behavior_labels import POSE_COLUMNS
+from deformnet.behavior.tracks import POSE_COLUMNS
 from deformnet.paths import CONF_DIR
 
 

@@ -9,13 +9,13 @@ import pytest
 import torch
 from test_classify import CLASSES, TINY, _compose, _files, _toy_session
 
-from deformnet.behavior_labels import POSE_COLUMNS
-from deformnet.body import default_mouse
-from deformnet.pseudo import (
+from deformnet.behavior.teachers import (
     class_balanced_pseudo_labels,
     co_training_pseudo_labels,
     pseudo_sample_weights,
 )
+from deformnet.behavior.tracks import POSE_COLUMNS
+from deformnet.body import default_mouse
 
 
 def test_every_class_keeps_its_own_most_confident_share():
@@ -149,7 +149,8 @@ def test_forest_self_training_in_deformnet_classify(tmp_path):
     both and is still right on a held-out session; classifier.pt reloads and mode=predict
     round-trips. A teacher for a head that is not a forest, or a bad share, is an error before
     any data is read."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     base, test = few_label_toy(tmp_path)
     forest = ["head=forest", "head.trees=25", "freeze=true"]
@@ -191,7 +192,8 @@ def test_linear_teacher_in_deformnet_classify(tmp_path):
     the unlabelled training frames (both behaviors), the forest head is refitted on them and is
     right on a held-out session; the teacher is kept in classifier.pt; bins < 2 is an error
     before any data is read."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     base, _ = few_label_toy(tmp_path)
     forest = ["head=forest", "head.trees=25", "freeze=true", "pseudo_labels.teacher=linear"]
@@ -269,7 +271,7 @@ def test_the_teacher_matters_where_the_forest_alone_falls_short(tmp_path):
     forest head alone scores at most 0.85 on a held-out session; taught by the linear teacher
     (a logistic regression on the binned frame features, which adds the weak features up) it
     scores at least 0.04 more."""
-    from deformnet.classify import run
+    from deformnet.behavior.predict import run
 
     train = [_subtle_session(tmp_path, f"train{i}", i) for i in range(2)]
     test = [_subtle_session(tmp_path, "test", 8)]

@@ -327,7 +327,7 @@ def test_write_scene_reads_back(tmp_path, rig, sim):
 
 def test_truth_labels_csv_is_what_classify_reads(tmp_path, rig, sim):
     from adjust.scene import write_scene, write_truth_labels
-    from deformnet.behavior_labels import read_labels
+    from deformnet.behavior.labels import read_labels
 
     det = simulate_scene(sim, rig, None, seed=0)
     res = write_scene(tmp_path / "scene", sim, rig, det)

@@ -266,40 +266,6 @@ def test_heading_frame_training_on_sessions_checks_their_worlds_up(tracked, tmp_
         run(compose("train", [*base, "up=[0,1,0]", f"output.dir={tmp_path / 'y'}"]))
 
 
-def test_forecasting_term_on_sessions_and_in_self_adaptation(tracked, tmp_path, monkeypatch):
-    """forecast.weight on a lab's own tokens (data=sessions: the targets are its observed 3D
-    points beyond each window) trains; adjust-track's adapt.forecast is passed to the
-    fine-tuning."""
-    from deformnet.train import run
-
-    folder = str(tracked["interp"][1])
-    res = run(compose("train", [
-        "data=sessions", f"data.sessions=[{folder}]", "pretrained=default", "logger=none",
-        "progress_bar=none", "trainer.fast_dev_run=true", "data.val_windows=64",
-        "forecast.weight=1.0", f"output.dir={tmp_path / 'f'}",
-    ]))  # fmt: skip
-    assert np.isfinite(res["metrics"]["train/forecast_loss"])
-    assert res["metrics"]["train/forecast_rmse_mm"] > 0
-    import adjust.adapt
-    from adjust.adapt import adapt_net
-
-    seen = {}
-
-    def fake(model, train, val, cfg, device, forecast_head=None, on_eval=None):
-        seen["forecast"] = float(cfg.forecast)
-        seen["head"] = forecast_head
-        raise RuntimeError("stop here")
-
-    monkeypatch.setattr(adjust.adapt, "fine_tune", fake)  # the fine-tuning loop (adapt_net's)
-    tokens = SessionTokens.load(tracked["self"][1] / "tokens.npz")
-    for w in (0.0, 0.5):
-        with pytest.raises(RuntimeError, match="stop here"):
-            adapt_net(tokens, tmp_path / f"a{w}", {"forecast": w, "tensorboard": False}, False)
-        assert seen["forecast"] == w
-        # the forecasting head (its term in the loss) only with a weight
-        assert (seen["head"] is not None) == (w > 0)
-
-
 def test_sessions_glob_that_matches_nothing_is_a_clear_error(tmp_path):
     from deformnet.sessions import resolve_sessions
 

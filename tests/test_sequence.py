@@ -9,17 +9,19 @@ import torch
 from test_classify import _compose, _toy_session
 from test_pseudo import few_label_toy
 
-from deformnet.sequence import (
+from deformnet.behavior.sequence import (
     SequenceEncoder,
-    binned,
-    embedding_teacher_probs,
     embeddings,
     export_sequence_encoder,
-    linear_teacher_probs,
     load_sequence_encoder,
     pooled,
     pretrain_sequences,
     span_mask,
+)
+from deformnet.behavior.teachers import (
+    binned,
+    embedding_teacher_probs,
+    linear_teacher_probs,
     standardised,
 )
 
@@ -219,7 +221,8 @@ def test_sequence_encoder_in_deformnet_classify(tmp_path):
     session; a run that reuses the saved encoder pseudo-labels
     the same frames; one whose per-frame features differ is told so; bad settings are errors
     before any data is read."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     base, unl = _teacher_toy(tmp_path, "cotrain")
     for bad, match in (
@@ -262,7 +265,8 @@ def test_cotrain_teacher_in_deformnet_classify(tmp_path):
     most confident frames (keep, embedding_keep), pooled, conflicts dropped; the classifier is
     right on a held-out session, and the pool holds more frames than one view's share alone.
     A bad embedding_keep is an error before any data is read."""
-    from deformnet.classify import load_classifier, run
+    from deformnet.behavior.model import load_classifier
+    from deformnet.behavior.predict import run
 
     base, unl = _teacher_toy(tmp_path, "cotrain")
     base = [*base, f"data.unlabelled_tracks=[{unl[0]}]"]

@@ -10,9 +10,9 @@ import hydra
 import numpy as np
 import pytest
 
+from deformnet.apps.simulate import run
 from deformnet.paths import CONF_DIR
 from deformnet.sim import load_sim
-from deformnet.sim.cli import run
 
 
 def _compose(overrides):
@@ -73,7 +73,13 @@ def test_body_config_is_used(tmp_path):
 @pytest.mark.slow
 def test_console_script(tmp_path):
     r = subprocess.run(
-        [sys.executable, "-m", "deformnet.sim.cli", "num_frames=300", f"output.dir={tmp_path}"],
+        [
+            sys.executable,
+            "-m",
+            "deformnet.apps.simulate",
+            "num_frames=300",
+            f"output.dir={tmp_path}",
+        ],
         capture_output=True,
         text=True,
         timeout=300,

@@ -14,7 +14,7 @@ import torch
 from adjust.apps.track import run
 from adjust.camera import CameraTensors
 from adjust.io import InputError, load_scene, read_points3d
-from deformnet.behavior_labels import POSE_COLUMNS
+from deformnet.behavior.tracks import POSE_COLUMNS
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR, real_hand_dir
 

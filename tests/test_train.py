@@ -57,12 +57,11 @@ def test_fast_dev_run(tmp_path, net):
 
 
 def test_heading_frame_training_and_its_config(tmp_path):
-    """up=[0,0,1]: the model reads the heading frame (also in the contrastive term), a
-    fast_dev_run trains; a fine-tuned net keeps its checkpoint's frame (a conflicting up is an
-    error)."""
+    """up=[0,0,1]: the model reads the heading frame, a fast_dev_run trains; a fine-tuned net
+    keeps its checkpoint's frame (a conflicting up is an error)."""
     from deformnet.train import build_model
 
-    ov = [*_common(tmp_path, "lstm"), "trainer.fast_dev_run=true", "contrast.weight=1.0"]
+    ov = [*_common(tmp_path, "lstm"), "trainer.fast_dev_run=true"]
     cfg = _compose([*ov, "up=[0,0,1]"])
     lit, _, _ = build_model(cfg)
     assert lit.model.up == (0.0, 0.0, 1.0)
@@ -145,7 +144,7 @@ def test_multirun_trains_both_nets(tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "deformnet.train",
+        "deformnet.apps.train",
         "-m",
         "net=lstm,transformer",
         f"hydra.sweep.dir={tmp_path / 'sweep'}",

@@ -250,7 +250,7 @@ def _run(cfg: DictConfig) -> dict:
     # 5. behavior
     classify = None
     if bool(cfg.behavior):
-        from deformnet import classify as cls_app  # (Lightning, as deformnet.train above)
+        from deformnet.behavior import predict as cls_app  # (Lightning, as deformnet.train above)
 
         sessions = step(
             "classify_sessions",

@@ -30,8 +30,8 @@ from adjust.events import detect_events, first_operated, operations
 from adjust.io import InputError, load_calibration_metadata, read_points3d, recording_fps
 from adjust.settings import required
 from deformnet.atomic import atomic_path, write_text
+from deformnet.behavior.lockbox import mechanism_table
 from deformnet.confutil import to_plain
-from deformnet.lockbox import mechanism_table
 from deformnet.paths import output_dir
 from deformnet.series import interpolate_gaps
 

@@ -35,8 +35,8 @@ from adjust.io import load_calibration, load_calibration_metadata, load_scene, r
 from adjust.metrics import point_errors
 from adjust.plot import camera_axes
 from deformnet.atomic import write_text
-from deformnet.behavior_labels import bouts
-from deformnet.behavior_report import confusion_figure, ethogram_figure, evaluate
+from deformnet.behavior.labels import bouts
+from deformnet.behavior.report import confusion_figure, ethogram_figure, evaluate
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The thin LightningModule that fine-tunes a behavior classifier (`deformnet.heads`).
+"""The thin LightningModule that fine-tunes a behavior classifier (`deformnet.behavior.heads`).
 
 Batches are dicts: rigid, deformed (B, W, K, 3) global mm, observed (B, W, K) bool, label (B,)
 int64 class index. Loss: cross-entropy, optionally class-weighted (imbalance). Metrics:
@@ -19,23 +19,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from deformnet.heads import BehaviorClassifier
+from deformnet.behavior.heads import BehaviorClassifier
+from deformnet.behavior.report import macro_f1
 
-__all__ = ["ClassifyLit", "macro_f1"]
-
-
-def macro_f1(y_true: np.ndarray, y_pred: np.ndarray, num_classes: int) -> tuple[float, np.ndarray]:
-    """Macro-F1 over the classes present in y_true or y_pred, and per-class F1 (num_classes,)
-    (NaN for classes present in neither)."""
-    from sklearn.metrics import f1_score
-
-    present = np.union1d(np.unique(y_true), np.unique(y_pred)).astype(int)
-    per = np.full(num_classes, np.nan)
-    if len(y_true) == 0:
-        return float("nan"), per
-    f = f1_score(y_true, y_pred, labels=present, average=None, zero_division=0)
-    per[present] = f
-    return float(np.mean(f)), per
+__all__ = ["ClassifyLit"]
 
 
 class ClassifyLit(L.LightningModule):

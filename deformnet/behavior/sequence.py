@@ -1,27 +1,16 @@
-"""Behavior-scale masked pretraining, and the teacher it makes for few-label behavior heads.
+"""Behavior-scale masked pretraining, and the teacher it makes for few-label behavior heads
+(`pseudo_labels.teacher=cotrain`).
 
-The deformation net's windows (33 frames, in the body frame) are too short and too local to
-need the behavior, and with about 1% of the frames labelled its features are worth no more to
-a head than a random net's (`benchmarks/behavior_probe.py`). Here the pretraining is at the
-behavior's own scale: each frame of a session is the classifier's per-frame feature vector (the
-frozen deformation encoder's output, the pose, the per-part offsets, the lock-box mechanism
-distances, the SimBA-style measurements; `deformnet.heads.BehaviorClassifier` without temporal
-context), and a temporal convolutional net (`SequenceEncoder`: residual dilated convolutions)
-reads a session's sequence of them with spans of frames hidden and learns to reconstruct the
-hidden frames' frame features (`pretrain_sequences`; the hand-made features labs read, as in
-"task programming", Sun et al., CVPR 2021). No labels: it learns from every training frame and
-from more recordings of the same animals (`deformnet-classify data.unlabelled_tracks=`).
-
-Its per-frame outputs with their mean and standard deviation over centred spans (`embeddings`)
-are a frame's embedding. With few labels it is a teacher (`linear_teacher_probs`): a
-class-weighted logistic regression on the embedding beside the binned frame features (`binned`:
-one-hot quantile bins, so that a linear model can threshold a feature as a tree does) labels
-the unlabelled training frames, and the forest head learns from the labelled and the
-confidently pseudo-labelled ones (`deformnet.pseudo`; `deformnet-classify
-pseudo_labels.teacher=sequence`). At test time the classifier is the forest on the frame
-features; what the encoder adds is in the labels it was fitted on. The same regression on the
-binned frame features alone is `pseudo_labels.teacher=linear`; over 16 simulated test sessions
-at 1% labels it teaches nearly as well (README, Behavior: "Which teacher").
+Each frame of a session is the classifier's per-frame feature vector (the frozen deformation
+encoder's output, the pose, the per-part offsets, the lock-box mechanism distances, the
+SimBA-style measurements), and a temporal convolutional net (`SequenceEncoder`: residual
+dilated convolutions) reads a session's sequence of them with spans of frames hidden and learns
+to reconstruct the hidden frames' frame features (`pretrain_sequences`; "task programming",
+Sun et al., CVPR 2021). No labels: it learns from every training frame and from more
+recordings of the same animals (`deformnet-classify data.unlabelled_tracks=`). Its per-frame
+outputs with their mean and standard deviation over centred spans (`embeddings`) are a frame's
+embedding; a logistic regression on it is the second teacher of co-training
+(`sequence_teacher`, `deformnet.behavior.teachers`).
 
 Shapes: T frames of a session, D per-frame features, N frames of several sessions concatenated
 in order, C classes. Importable without Lightning.
@@ -33,14 +22,21 @@ import hashlib
 import logging
 import time
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
+from deformnet.atomic import atomic_path
+from deformnet.behavior.teachers import embedding_teacher_probs, linear_teacher_probs
 from deformnet.checkpoint import load_checkpoint
 
 log = logging.getLogger(__name__)
+
+__all__ = ["SequenceEncoder", "span_mask", "pretrain_sequences", "pooled", "embeddings",
+           "feature_signature", "export_sequence_encoder", "load_sequence_encoder",
+           "sequence_signature", "sequence_teacher"]  # fmt: skip
 
 CLAMP = 8.0  # standardised per-frame features are clipped to +-CLAMP
 
@@ -255,119 +251,6 @@ def embeddings(model: SequenceEncoder, sessions: Sequence[Tensor], spans: Sequen
     return torch.cat(out) if out else torch.zeros(0, model.channels * (1 + 2 * len(spans)))
 
 
-def standardised(x: np.ndarray) -> np.ndarray:
-    """Columns of x (N, F) standardised by their own mean and std (a (nearly) constant one, std
-    <= 1e-6, is zero)."""
-    mu, sd = x.mean(0), x.std(0)
-    keep = sd > 1e-6
-    return np.where(keep, (x - mu) / np.where(keep, sd, 1.0), 0.0)
-
-
-def quantile_binner(x: np.ndarray, bins: int = 4):
-    """A function that puts features (M, F) beside their one-hot quantile bins: (M, B + F), B
-    the bins in all (``bins`` per feature, fewer where a feature has fewer distinct values; none
-    for a feature constant over x); the edges from x (N, F). A linear model on them can
-    threshold a feature, as a forest's split does."""
-    import warnings
-
-    from sklearn.preprocessing import KBinsDiscretizer
-
-    if int(bins) < 2:
-        raise ValueError(f"bins must be >= 2, got {bins}")
-    x = np.asarray(x)
-    if x.ndim != 2:
-        raise ValueError(f"x must be (N, F), got {x.shape}")
-    F = x.shape[1]
-    varies = np.ptp(x, axis=0) > 1e-6 if len(x) else np.zeros(F, bool)
-    kb = None
-    if varies.any():  # else nothing to bin (a constant feature, e.g. an absent mechanism's)
-        with warnings.catch_warnings():  # a feature with few distinct values gets fewer bins
-            warnings.filterwarnings("ignore", "Bins whose width are too small", UserWarning)
-            kb = KBinsDiscretizer(int(bins), encode="onehot-dense", strategy="quantile")
-            kb.fit(x[:, varies])
-
-    def transform(y: np.ndarray) -> np.ndarray:
-        y = np.asarray(y)
-        if y.ndim != 2 or y.shape[1] != F:
-            raise ValueError(f"features must be (M, {F}), got {y.shape}")
-        if kb is None:
-            return y.copy()
-        return np.hstack([kb.transform(y[:, varies]).astype(y.dtype), y])
-
-    return transform
-
-
-def binned(x: np.ndarray, bins: int = 4) -> np.ndarray:
-    """Features x (N, F) beside their one-hot quantile bins, the edges from x
-    (`quantile_binner`): (N, B + F)."""
-    return quantile_binner(x, bins)(x)
-
-
-def linear_teacher_probs(
-    frame: np.ndarray,
-    idx: np.ndarray,
-    labels: np.ndarray,
-    num_classes: int,
-    class_weights: Sequence[float] | None = None,
-    bins: int = 4,
-    embedding: np.ndarray | None = None,
-) -> np.ndarray:
-    """A teacher's class probabilities (N, C) of every frame: a logistic regression (C=1,
-    scikit-learn) on the standardised frame features ``frame`` (N, F) with their one-hot
-    quantile bins (`binned`), beside the standardised ``embedding`` (N, E) when given (both
-    standardised over all N frames, labelled or not), fitted on the labelled rows ``idx`` (L,)
-    with ``labels`` (L,), class-weighted by ``class_weights`` (C,) (None: unweighted). A class
-    no labelled frame has gets probability 0. `deformnet-classify pseudo_labels.teacher=linear`
-    (no embedding) and ``sequence`` (the sequence encoder's, `embeddings`)."""
-    frame = np.asarray(frame, np.float64)
-    if frame.ndim != 2:
-        raise ValueError(f"frame must be (N, F), got {frame.shape}")
-    parts = [binned(standardised(frame), bins)]
-    if embedding is not None:
-        embedding = np.asarray(embedding, np.float64)
-        if embedding.ndim != 2 or len(embedding) != len(frame):
-            raise ValueError(f"embedding must be ({len(frame)}, E), got {embedding.shape}")
-        parts.append(standardised(embedding))
-    return _logistic_probs(np.hstack(parts), idx, labels, num_classes, class_weights)
-
-
-def embedding_teacher_probs(
-    embedding: np.ndarray,
-    idx: np.ndarray,
-    labels: np.ndarray,
-    num_classes: int,
-    class_weights: Sequence[float] | None = None,
-) -> np.ndarray:
-    """The class probabilities (N, C) of every frame of a teacher that reads only the
-    standardised ``embedding`` (N, E) (the sequence encoder's, `embeddings`): the logistic
-    regression of `linear_teacher_probs`, fitted on the labelled rows ``idx`` (L,) with
-    ``labels`` (L,). The second view of `deformnet-classify pseudo_labels.teacher=cotrain`."""
-    embedding = np.asarray(embedding, np.float64)
-    if embedding.ndim != 2:
-        raise ValueError(f"embedding must be (N, E), got {embedding.shape}")
-    return _logistic_probs(standardised(embedding), idx, labels, num_classes, class_weights)
-
-
-def _logistic_probs(x, idx, labels, num_classes, class_weights) -> np.ndarray:
-    """The class-weighted logistic regression (C=1) on features x (N, D) fitted on the rows
-    idx: every row's probabilities (N, C), 0 for a class no labelled row has."""
-    from sklearn.linear_model import LogisticRegression
-
-    idx, y = np.asarray(idx, np.int64), np.asarray(labels, np.int64)
-    if idx.shape != y.shape or idx.size == 0:
-        raise ValueError(f"idx and labels must be (L,) with L >= 1, got {idx.shape}, {y.shape}")
-    present = np.unique(y)
-    cw = None if class_weights is None else {int(c): float(class_weights[int(c)]) for c in present}
-    P = np.zeros((len(x), int(num_classes)))
-    if present.size == 1:  # one class labelled: it is every frame's
-        P[:, present[0]] = 1.0
-        return P
-    lr = LogisticRegression(C=1.0, max_iter=3000, class_weight=cw)
-    lr.fit(x[idx], y)
-    P[:, lr.classes_] = lr.predict_proba(x)
-    return P
-
-
 def feature_signature(encoder: nn.Module, extra: Mapping) -> dict:
     """What a sequence encoder's inputs are, to tell a reused one from a mismatched one: a
     digest of the frozen deformation encoder's weights and ``extra`` (the frame features'
@@ -415,3 +298,84 @@ def load_sequence_encoder(path: str, signature: Mapping | None = None) -> Sequen
         ) from None
     model.eval()
     return model
+
+
+def frame_feature_columns(model) -> Tensor:
+    """Indices (F,) of the frame features among a frame's own encoder output (the first
+    `model.encoder.out_dim` of its context features; `BehaviorClassifier.frame_columns`)."""
+    cols = model.frame_columns()
+    return cols[cols < model.encoder.out_dim]
+
+
+def sequence_signature(model, mech: Mapping | None, scale_mode: str) -> dict:
+    """What a sequence encoder pretrained on this classifier's per-frame features must match
+    (`feature_signature`)."""
+    enc = model.encoder
+    return feature_signature(enc, {
+        "mechanisms": None if mech is None else mech["names"],
+        "measurements": bool(enc.measurements), "frame_features": bool(enc.frame_features),
+        "body_scale": scale_mode, "out_dim": enc.out_dim,
+    })  # fmt: skip
+
+
+def sequence_teacher(
+    model,
+    train_features: Tensor,
+    lengths: Sequence[int],
+    unlabelled: Sequence[Tensor],
+    idx: np.ndarray,
+    labels: np.ndarray,
+    num_classes: int,
+    class_weights,
+    settings: dict,
+    signature: Mapping,
+    out: Path,
+    bins: int = 4,
+    teach_unlabelled: bool = True,
+) -> tuple[list[np.ndarray], dict]:
+    """`pseudo_labels.teacher=cotrain`: the behavior-scale sequence encoder
+    pretrained by masked-span reconstruction on the training sessions'
+    per-frame features (each frame's own encoder output: the first `encoder.out_dim` columns of
+    ``train_features`` (N, out_dim), every training frame, sessions of ``lengths`` frames) and
+    the ``unlabelled`` sessions' (their features, (T_u, out_dim) each), or loaded
+    (``settings["encoder"]``, checked against ``signature``, `sequence_signature`); it is saved
+    to out/sequence_encoder.pt. Two teachers fitted on the labelled frames ``idx`` (labels
+    ``labels`` (L,), ``num_classes`` C, class weights (C,) or None), one per view: the binned
+    frame features (with context; `linear_teacher_probs`, ``bins`` per feature) and the
+    encoder's embedding (`embedding_teacher_probs`). Returns their probabilities (N + M, C) of
+    every training frame, then every unlabelled session's (M frames in all; M = 0 without
+    ``teach_unlabelled``: then only the pretraining reads them), as a list of two, and facts."""
+    D = model.encoder.out_dim
+    per_frame = train_features[:, :D].float()
+    bounds = np.cumsum([0, *lengths])
+    train_seqs = [per_frame[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    facts: dict = {}
+    if settings["encoder"]:  # the signature holds the feature count (out_dim)
+        seq = load_sequence_encoder(settings["encoder"], signature)
+        facts["encoder"] = str(settings["encoder"])
+        log.info("sequence encoder from %s", settings["encoder"])
+    else:
+        torch.manual_seed(int(settings["seed"]))
+        target = frame_feature_columns(model) if settings["target"] == "frame" else None
+        seq = SequenceEncoder(D, settings["channels"], settings["dilations"], target)
+        seqs = train_seqs + [u[:, :D].float() for u in unlabelled]
+        log.info("sequence pretraining: %d steps on %d sessions (%d unlabelled), %d frames",
+                 settings["steps"], len(seqs), len(unlabelled),
+                 sum(len(s) for s in seqs))  # fmt: skip
+        facts["pretraining"] = pretrain_sequences(
+            seq, seqs, settings["steps"], settings["mask_ratio"], settings["longest_span"],
+            settings["crop"], settings["batch"], settings["lr"], settings["seed"],
+        )  # fmt: skip
+        log.info("sequence pretraining: %s", facts["pretraining"])
+        path = out / "sequence_encoder.pt"
+        with atomic_path(path) as tmp:
+            torch.save(export_sequence_encoder(seq, signature, facts["pretraining"]), tmp)
+        facts["encoder"] = str(path)
+    taught = list(unlabelled) if teach_unlabelled else []  # the frames to label, after training's
+    emb = embeddings(seq, train_seqs + [u[:, :D].float() for u in taught], settings["context"])
+    frame = torch.cat([train_features, *taught])[:, model.frame_columns()].double().numpy()
+    emb = emb.double().numpy()
+    return [
+        linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins),
+        embedding_teacher_probs(emb, idx, labels, num_classes, class_weights),
+    ], facts  # fmt: skip

@@ -2,7 +2,8 @@
 
     deformnet-simulate num_frames=30000 seed=3 sim.arena.size=[400,400] output.dir=runs/mysim
 
-`run(cfg)` does the work (tests call it through Hydra's compose API); `main` is the Hydra app.
+`run(cfg)` does the work (tests call it through Hydra's compose API); `main` is the Hydra app
+(pyproject.toml's console script, through `deformnet.entry`).
 """
 
 from __future__ import annotations

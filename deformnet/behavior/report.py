@@ -1,24 +1,44 @@
 """Behavior classification reports: per-class metrics (scikit-learn), bout statistics, the
-confusion-matrix and ethogram figures (matplotlib, written atomically)."""
+confusion-matrix and ethogram figures (matplotlib, written atomically), and a trained
+classifier's report on its evaluation sessions (`write_report`: report.json and the figures)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import json
+import logging
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from sklearn.metrics import confusion_matrix, f1_score, precision_recall_fscore_support
 
-from deformnet.behavior_labels import bouts
+from deformnet.atomic import atomic_path, finite_or_none, write_text
+from deformnet.behavior.labels import bouts
+from deformnet.behavior.tracks import Session
 
-__all__ = [
-    "bout_stats", "evaluate", "paired_difference", "confusion_figure", "ethogram_figure",
-    "save_figure",
-]  # fmt: skip
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402 (after the backend is chosen)
+from matplotlib.colors import ListedColormap  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+__all__ = ["macro_f1", "bout_stats", "evaluate", "confusion_figure", "ethogram_figure",
+           "save_figure", "write_report"]  # fmt: skip
 
 
-# --------------------------------------------------------------------------------------------
-# reports
-# --------------------------------------------------------------------------------------------
+def macro_f1(y_true: np.ndarray, y_pred: np.ndarray, num_classes: int) -> tuple[float, np.ndarray]:
+    """Macro-F1 over the classes present in y_true or y_pred, and per-class F1 (num_classes,)
+    (NaN for classes present in neither)."""
+    present = np.union1d(np.unique(y_true), np.unique(y_pred)).astype(int)
+    per = np.full(num_classes, np.nan)
+    if len(y_true) == 0:
+        return float("nan"), per
+    f = f1_score(y_true, y_pred, labels=present, average=None, zero_division=0)
+    per[present] = f
+    return float(np.mean(f)), per
+
+
 def bout_stats(labels: np.ndarray, classes: Sequence[str], fps: float) -> dict:
     """Per class: bout count and mean duration (frames and s)."""
     runs = bouts(labels)
@@ -34,10 +54,6 @@ def evaluate(y_true: np.ndarray, y_pred: np.ndarray, classes: Sequence[str]) -> 
     """Per-class precision / recall / F1 / support, macro-F1 (over the classes present in the
     truth or the predictions), accuracy, and the confusion matrix (rows: truth) on the labelled
     frames (y_true >= 0). scikit-learn metrics."""
-    from sklearn.metrics import confusion_matrix, precision_recall_fscore_support
-
-    from deformnet.classify_lit import macro_f1
-
     m = np.asarray(y_true) >= 0
     yt, yp = np.asarray(y_true)[m], np.asarray(y_pred)[m]
     C = len(classes)
@@ -62,44 +78,7 @@ def evaluate(y_true: np.ndarray, y_pred: np.ndarray, classes: Sequence[str]) -> 
     }
 
 
-def paired_difference(a: Sequence[float], b: Sequence[float], level: float = 0.95) -> dict:
-    """Is method a better than method b? Their scores a, b (N,) paired by unit (a label draw, a
-    test session: the same unit for both), N >= 2. Returns the mean difference a - b, its
-    two-sided Student-t confidence interval at ``level`` ("ci", [low, high]), the units where a
-    is ahead / behind ("wins", "losses"; ties are neither), and the two-sided Wilcoxon
-    signed-rank p-value (scipy; 1.0 when every difference is 0). "better" is true when the
-    interval lies above 0 and p < 1 - level: a difference the units' spread cannot explain."""
-    from scipy import stats
-
-    x, y = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    if x.ndim != 1 or x.shape != y.shape or x.size < 2:
-        raise ValueError(f"a and b must be (N >= 2,) paired scores, got {x.shape} and {y.shape}")
-    if not (np.isfinite(x).all() and np.isfinite(y).all()):
-        raise ValueError("paired_difference: the scores must be finite")
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
-    d = x - y
-    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(d.size))
-    half = float(stats.t.ppf(0.5 + level / 2, d.size - 1)) * se
-    p = 1.0 if not np.any(d != 0) else float(stats.wilcoxon(d).pvalue)
-    low, high = mean - half, mean + half
-    return {
-        "mean": mean,
-        "ci": [low, high],
-        "units": int(d.size),
-        "wins": int(np.sum(d > 0)),
-        "losses": int(np.sum(d < 0)),
-        "wilcoxon_p": p,
-        "better": bool(low > 0 and p < 1.0 - level),
-    }
-
-
 def confusion_figure(confusion: Sequence[Sequence[int]], classes: Sequence[str], title: str = ""):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     cm = np.asarray(confusion, dtype=np.float64)
     norm = cm / np.maximum(cm.sum(1, keepdims=True), 1)
     fig, ax = plt.subplots(figsize=(6, 5))
@@ -122,12 +101,6 @@ def confusion_figure(confusion: Sequence[Sequence[int]], classes: Sequence[str],
 
 def ethogram_figure(tracks: dict[str, np.ndarray], classes: Sequence[str], fps: float):
     """One row per named label track (e.g. true, predicted), time in s."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap
-
     names = list(tracks)
     T = max(len(v) for v in tracks.values())
     img = np.full((len(names), T), np.nan)
@@ -149,10 +122,55 @@ def ethogram_figure(tracks: dict[str, np.ndarray], classes: Sequence[str], fps: 
 
 
 def save_figure(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    from deformnet.atomic import atomic_path
-
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
+
+
+def write_report(
+    out: Path,
+    split: str,
+    sessions: Sequence[Session],
+    predictions: Sequence[Mapping],
+    classes: Sequence[str],
+    fps: float | None,
+    facts: Mapping,
+    logger=None,
+    step: int = 0,
+) -> dict:
+    """A trained classifier's report on its evaluation sessions of ``split`` (their labels (T,)
+    against `deformnet.behavior.model.predict_session`'s ``predictions``, raw and smoothed):
+    report.json (per-class metrics, macro-F1, bout counts and mean durations at ``fps``, 30
+    when unknown, and ``facts``), confusion.png and ethogram.png (the first session) in
+    ``out``, also to a TensorBoard ``logger``; returns the report."""
+    bout_fps = fps or 30.0
+    yt = np.concatenate([s.labels for s in sessions])
+    yr = np.concatenate([p["raw"] for p in predictions])
+    ys = np.concatenate([p["labels"] for p in predictions])
+    raw, smoothed = evaluate(yt, yr, classes), evaluate(yt, ys, classes)
+    report = {
+        "split": split,
+        "sessions": [s.name for s in sessions],
+        "raw": raw,
+        "smoothed": smoothed,
+        "bouts": {k: bout_stats(y, classes, bout_fps)
+                  for k, y in (("true", yt), ("predicted", yr), ("smoothed", ys))},
+        "fps": fps,
+        **facts,
+    }  # fmt: skip
+    first = {"true": sessions[0].labels, "predicted": predictions[0]["raw"],
+             "smoothed": predictions[0]["labels"]}  # fmt: skip
+    figures = {
+        "confusion": confusion_figure(raw["confusion"], classes,
+                                      f"{split}: macro-F1 {raw['macro_f1']:.3f}"),
+        "ethogram": ethogram_figure(first, classes, bout_fps),
+    }  # fmt: skip
+    if logger and hasattr(logger, "experiment") and hasattr(logger.experiment, "add_figure"):
+        for name, fig in figures.items():
+            logger.experiment.add_figure(f"{split}/{name}", fig, global_step=step)
+        logger.experiment.flush()
+    for name, fig in figures.items():
+        save_figure(fig, out / f"{name}.png")
+    write_text(out / "report.json", json.dumps(finite_or_none(report), indent=2) + "\n")
+    log.info("%s macro-F1 %.3f (smoothed %.3f)", split, raw["macro_f1"], smoothed["macro_f1"])
+    return report
