@@ -18,7 +18,7 @@ from deformnet.behavior.tracks import Session, body_scale
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SessionBank", "Frames", "context_features", "FeatureBank", "feature_range",
+__all__ = ["SessionBank", "Frames", "context_features", "feature_range",
            "unfamiliar_share", "unfamiliar_settings", "BODY_SCALE_MODES",
            "set_body_scales"]  # fmt: skip
 
@@ -122,21 +122,6 @@ def _context_features(model, bank: SessionBank, idx, batch_size: int) -> Tensor:
         for inv in inverse.split(max(1, int(batch_size) * 8 // max(len(model.offsets), 1)))
     ]
     return torch.cat(out) if out else torch.zeros(0, model.out_dim)
-
-
-class FeatureBank:
-    """Classifier features (N, out_dim) of some frames of a bank, computed once (frozen
-    encoder)."""
-
-    def __init__(self, model, bank: SessionBank, idx: np.ndarray, features: Tensor | None = None):
-        self.features = context_features(model, bank, idx) if features is None else features
-        self.labels = bank.labels[torch.as_tensor(idx, dtype=torch.long)]
-
-    def __len__(self) -> int:
-        return len(self.labels)
-
-    def batch(self, idx: Tensor) -> dict:
-        return {"features": self.features[idx], "label": self.labels[idx]}
 
 
 #: the training frames' range of each classifier feature that a recording's frames are compared

@@ -25,7 +25,6 @@ from omegaconf import DictConfig
 from deformnet.atomic import atomic_path
 from deformnet.behavior.features import (
     BODY_SCALE_MODES,
-    FeatureBank,
     Frames,
     SessionBank,
     context_features,
@@ -264,14 +263,13 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
     probe_facts: dict = {}
     all_features = None  # every training frame's features (the forest's self-training)
     if bool(cfg.freeze) or probe:
-        fbank = FeatureBank(model, bank, idx, train_features)
-        fv = None if val_dl is None else FeatureBank(model, vbank, vidx)
+        labels = bank.labels[torch.as_tensor(idx)]  # the labelled frames' (features: above)
         lit.head_only = True
         if forest:
-            probe_facts = fit_head_forest(model, fbank.features, fbank.labels, weights)
+            probe_facts = fit_head_forest(model, train_features, labels, weights)
             if pseudo is not None:
                 probe_facts["pseudo_labels"], all_features = teach_forest(
-                    model, bank, [len(s) for s in train], idx, fbank.features, unlabelled,
+                    model, bank, [len(s) for s in train], idx, train_features, unlabelled,
                     pseudo, weights, mech, scale_mode, out,
                 )  # fmt: skip
                 pl = probe_facts["pseudo_labels"]
@@ -280,16 +278,16 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
         else:
             probe_facts = fit_head_lbfgs(
                 model,
-                fbank.features,
-                fbank.labels,
+                train_features,
+                labels,
                 weights,
                 float(cfg.get("head_l2", 1.0)),
                 int(cfg.get("head_max_iter", 200)),
             )
-        if fv is not None:  # the probe's validation score: the state to beat
+        if val_dl is not None:  # the probe's validation score: the state to beat
             with torch.no_grad():
-                pv = model.classify(fv.features).argmax(-1).numpy()
-            score, per = macro_f1(fv.labels.numpy(), pv, C)
+                pv = model.classify(context_features(model, vbank, vidx)).argmax(-1).numpy()
+            score, per = macro_f1(vbank.labels.numpy()[vidx], pv, C)
             probe_facts["val_macro_f1"] = score
             lit.best_score = score
             lit.best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
