@@ -1,8 +1,7 @@
 """Sessions of any length in bounded memory: `adjust-track` in chunks of frames (issue 46).
 
 A session longer than ``chunk_frames`` frames (``conf/track.yaml``; 0 or null: never chunked)
-whose deformation mode needs no net (``deformation=rigid``, ``interp``) is tracked in chunks,
-its peak memory independent of its length:
+is tracked in chunks, its peak memory independent of its length (in every deformation mode):
 
 1. Each camera's file is read once, in blocks of rows (`adjust.io.dlc.iter_dlc`; H5 and SLEAP
    files whole, one camera at a time), into a disk cache (`SessionCache`: float64 as read, and
@@ -20,32 +19,37 @@ its peak memory independent of its length:
 4. The interiors' outputs are streamed into the run's output set (`deformnet.outputs.OutputSet`:
    the folder gets every file at once at the end, or keeps the previous run's): points3d.csv
    and its sidecar (byte for byte what `write_points3d` writes), accepted.npz and tokens.npz
-   (written member by member from the disk, `_npz`); summary.json merges the chunks' figures
+   (written member by member from the disk, `adjust.chunk_writer.npz_from_raw`); summary.json merges the chunks' figures
    (`merge_summaries`: counts summed, fractions and means weighted by frames, maxima taken;
    the medians and p90 of the error statistics are the chunks' count-weighted means of them,
    an approximation) and lists every chunk (``chunked``).
 
 A session no longer than one chunk runs the recipe unchanged (identical results). The net
-modes (``deformation=default``, ``self``, a checkpoint) run whole, their memory growing with the
-session; a long session says so in the log (`track_long` returns None). ``output.nwb=true``
-writes the NWB file from the whole points3d.csv (not bounded). A chunk in which fewer than two
-cameras have a usable detection (e.g. the animal away for a whole chunk) stops the run with an
-error naming the chunk's frames (unchunked, such frames are tracked from the model alone): a
-larger ``chunk_frames``, or 0, tracks such a session.
+modes (``deformation=default``, ``self``, a checkpoint) choose their net once, on the sample
+(``self`` fine-tunes it there; the gate that may leave the tracks to the interpolation decides
+and logs once: `adjust.deformation_modes.NetDecision`), and use it in every chunk.
+
+A chunk in which fewer than two cameras have a usable detection (a camera out for an hour,
+the animal away) is not tracked: its frames are left empty in points3d.csv (NaN points,
+``_ncams`` 0; points3d.extra.csv's ``tracked`` column 0, 1 elsewhere), named in summary.json
+(``untracked``: frames and ranges; ``health.untracked_frames``; every chunk's usable
+detections per camera under ``chunked.chunks``) and in the log, and tokens.npz is not written
+(its rows are consecutive frames). The run exits 0: the frames it gives are trustworthy, the
+empty ones named. A session in which fewer than two cameras have any usable detection is
+refused as before (its sample is).
+
+The modules: `adjust.chunk_cache` (the detections on disk), `adjust.chunk_writer` (the outputs,
+chunk by chunk), `adjust.chunk_summary` (summary.json).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
-import math
-import shutil
 import tempfile
 import time
-import zipfile
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -54,24 +58,26 @@ import numpy as np
 from omegaconf import DictConfig
 
 from adjust.body_fit import SHAPE_FRAMES
-from adjust.camera import Camera
 from adjust.camera_check import check_from_config, drop_cameras
+from adjust.chunk_cache import NotChunked, SessionCache, count_rows
+from adjust.chunk_summary import (
+    merge_summaries,
+    offset_health,
+    session_summary,
+    untracked_summary,
+)
+from adjust.chunk_writer import ChunkWriter
 from adjust.deformation_modes import CheckpointNet, NetMode, load_deformation, mode_from_config
 from adjust.export import write_nwb
-from adjust.io import InputError, load_calibration, load_detections, match_files, write_points3d
-from adjust.io.dlc import DLCTable, iter_dlc
-from adjust.io.scene import read_table
-from adjust.io.sleap import is_sleap_file
+from adjust.io import InputError, load_calibration, load_detections, match_files
+from adjust.io.scene import MIN_CAMERAS
 from adjust.lsq.solver import RESULT_ARRAYS
 from adjust.session import with_session
 from adjust.settings import load_kwargs, required
 from adjust.summary import report_result, result_summary, track_health
-from adjust.tokenize import session_tokens
 from deformnet.confutil import to_plain
 from deformnet.outputs import OutputSet
 from deformnet.paths import output_dir
-from deformnet.sessions import VERSION as TOKENS_VERSION
-from deformnet.tables import extra_header, extra_path
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +99,6 @@ DEFAULT_CHUNK_FRAMES = 50_000
 #: the sample the session-wide quantities come from: this many frames in `SAMPLE_BLOCKS` blocks
 SAMPLE_FRAMES = SHAPE_FRAMES
 SAMPLE_BLOCKS = 20
-#: rows of a CSV parsed at a time while the cache is built
-READ_BLOCK_ROWS = 50_000
 #: frames read on either side of a chunk: a tenth of it, within these bounds
 MIN_OVERLAP, MAX_OVERLAP = 64, 1000
 
@@ -150,142 +154,16 @@ def sample_rows(num_frames: int) -> np.ndarray:
     return np.unique((starts[:, None] + np.arange(block)[None]).reshape(-1))
 
 
-# --- the detections' cache ---------------------------------------------------------------
-
-
-class _NotChunked(Exception):
-    """The session cannot be chunked (frames named, not numbered): it runs whole."""
-
-
-@dataclass
-class _CameraCache:
-    """One camera's file on disk: parts, scorer, individual, path, no_likelihood (as its
-    `DLCTable`), rows, frames (rows,) int64 and whether they increase; the arrays in `folder`
-    (xy (rows, K, 2) float64, likelihood (rows, K) float64, unusable (rows, K) uint8)."""
-
-    parts: tuple[str, ...]
-    scorer: str
-    individual: str | None
-    path: Path
-    no_likelihood: tuple[str, ...]
-    rows: int
-    frames: np.ndarray
-    increasing: bool
-    folder: Path
-
-    def _read(self, name: str, dtype, shape: tuple, rows: np.ndarray | slice) -> np.ndarray:
-        if self.rows == 0:
-            return np.zeros((0, *shape), dtype=dtype)
-        mm = np.memmap(self.folder / name, dtype=dtype, mode="r", shape=(self.rows, *shape))
-        out = np.array(mm[rows])
-        del mm
-        return out
-
-    def table(self, lo: int, hi: int, only: np.ndarray | None = None) -> DLCTable:
-        """Its rows with frame numbers in [lo, hi] (`only`: and in that sorted set)."""
-        if self.increasing:
-            a = np.searchsorted(self.frames, lo, side="left")
-            b = np.searchsorted(self.frames, hi, side="right")
-            rows: np.ndarray | slice = slice(int(a), int(b))
-            frames = self.frames[rows]
-            if only is not None:
-                keep = np.isin(frames, only)
-                rows = np.arange(int(a), int(b))[keep]
-                frames = frames[keep]
-        else:
-            keep = (self.frames >= lo) & (self.frames <= hi)
-            if only is not None:
-                keep &= np.isin(self.frames, only)
-            rows = np.flatnonzero(keep)
-            frames = self.frames[rows]
-        K = len(self.parts)
-        unusable = self._read("unusable", np.uint8, (K,), rows).astype(bool)
-        return DLCTable(
-            self.parts,
-            self._read("xy", np.float64, (K, 2), rows),
-            self._read("likelihood", np.float64, (K,), rows),
-            self.scorer,
-            frames,
-            self.individual,
-            self.path,
-            self.no_likelihood,
-            unusable if unusable.any() else None,
-        )
-
-
-class SessionCache:
-    """Every camera's detections on disk under `folder` (one pass over each file, in blocks of
-    `READ_BLOCK_ROWS` rows); `frames`: (T,) the session's frame numbers (the files' union,
-    sorted). `tables(lo, hi)`: the cameras' `DLCTable`s of session rows [lo, hi)."""
-
-    def __init__(self, cameras: Sequence[Camera], paths: dict, individual, folder: Path):
-        self.cameras = [c.name for c in cameras]
-        self.cams: list[_CameraCache] = []
-        for i, name in enumerate(self.cameras):
-            self.cams.append(_cache_camera(Path(paths[name]), individual, folder / f"cam{i}"))
-        frames = [c.frames for c in self.cams]
-        self.frames = np.unique(np.concatenate(frames)) if frames else np.zeros(0, np.int64)
-
-    @property
-    def num_frames(self) -> int:
-        return int(len(self.frames))
-
-    def tables(self, lo: int, hi: int, only: np.ndarray | None = None) -> list[DLCTable]:
-        """The cameras' tables of session rows [lo, hi) (`only`: and in these rows)."""
-        want = None if only is None else self.frames[only]
-        return [c.table(int(self.frames[lo]), int(self.frames[hi - 1]), want) for c in self.cams]
-
-
-def _cache_camera(path: Path, individual, folder: Path) -> _CameraCache:
-    """One camera's file into `folder` (see `_CameraCache`), read in blocks."""
-    folder.mkdir(parents=True)
-    if path.suffix.lower() == ".csv" and not is_sleap_file(path):
-        blocks = iter_dlc(path, individual, READ_BLOCK_ROWS)
-    else:  # H5 / SLEAP: the file whole (one camera at a time)
-        blocks = iter([read_table(path, individual)])
-    frames, first = [], None
-    with (
-        open(folder / "xy", "wb") as fxy,
-        open(folder / "likelihood", "wb") as flik,
-        open(folder / "unusable", "wb") as fbad,
-    ):
-        for t in blocks:
-            if t.frames is not None and t.frames.dtype.kind not in "iu":
-                raise _NotChunked(f"{path}: frames are named (labelled images), not numbered")
-            first = first or t
-            np.ascontiguousarray(t.xy, dtype=np.float64).tofile(fxy)
-            np.ascontiguousarray(t.likelihood, dtype=np.float64).tofile(flik)
-            bad = t.unusable if t.unusable is not None else np.zeros(t.likelihood.shape, bool)
-            bad.astype(np.uint8).tofile(fbad)
-            n0 = sum(len(f) for f in frames)
-            f = t.frames if t.frames is not None else np.arange(t.num_frames)
-            frames.append(np.asarray(f, dtype=np.int64) + (0 if t.frames is not None else n0))
-    f = np.concatenate(frames) if frames else np.zeros(0, np.int64)
-    return _CameraCache(
-        first.parts,
-        first.scorer,
-        first.individual,
-        path,
-        first.no_likelihood,
-        len(f),
-        f,
-        bool(len(f) < 2 or (np.diff(f) > 0).all()),
-        folder,
-    )
-
-
-def _count_rows(path: Path, individual) -> int:
-    """A camera file's data rows, about (a CSV: its lines less its header; else read)."""
-    if path.suffix.lower() == ".csv" and not is_sleap_file(path):
-        n = 0
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 24), b""):
-                n += block.count(b"\n")
-        return max(0, n - 3)
-    return read_table(path, individual).num_frames
-
-
 # --- the recipe's hooks --------------------------------------------------------------------
+
+
+class Untracked(Exception):
+    """A chunk in which fewer than two cameras have a usable detection (after the sample's
+    camera check): its frames are left empty. usable: {camera: its usable detections}."""
+
+    def __init__(self, usable: dict[str, int]) -> None:
+        super().__init__(usable)
+        self.usable = usable
 
 
 @dataclass
@@ -293,7 +171,8 @@ class SessionModel:
     """What a long session's sample estimated once, for every chunk: its body model, the
     solver's settings (``sigma_det_px``, ``sigma_def_mm`` set), the rigid observation (the
     parts' deformation moments), few_var (the spread of parts placed from single views, or
-    None), the cameras excluded and the camera check's report, and the sample's summary."""
+    None), the cameras excluded and the camera check's report, the sample's summary, its
+    deformation mode (with a net's `NetDecision`) and points3d's extra columns."""
 
     body: Any
     solver_cfg: Any
@@ -303,6 +182,8 @@ class SessionModel:
     camera_report: dict
     summary: dict
     mode: Any = None
+    #: points3d's extra columns: name -> the shape of a frame's values (`ChunkWriter.add_empty`)
+    columns: dict = field(default_factory=dict)
 
     @property
     def sigma_det_px(self) -> float:
@@ -325,12 +206,13 @@ class ChunkHooks:
         only: np.ndarray | None = None,
         model: SessionModel | None = None,
         keep: tuple[int, int] | None = None,
-        writer: _ChunkWriter | None = None,
+        writer: ChunkWriter | None = None,
     ) -> None:
         self.cache, self.lo, self.hi, self.only = cache, lo, hi, only
         self.model, self.keep, self.writer = model, keep, writer
         self.learned: SessionModel | None = None
         self.mode = None
+        self.usable: dict[str, int] = {}
 
     def deformation_mode(self, mode):
         """The recipe's deformation mode: the sample's own (its choice of net, a
@@ -357,6 +239,11 @@ class ChunkHooks:
         if self.model is None:
             return check_from_config(cameras, det, input_cfg)
         cams, det = drop_cameras(cameras, det, self.model.excluded)
+        a, b = self.keep
+        counts = det.observed[a:b].sum(axis=(0, 1))
+        self.usable = {c: int(n) for c, n in zip(det.cameras, counts)}
+        if sum(n > 0 for n in self.usable.values()) < MIN_CAMERAS:
+            raise Untracked(self.usable)
         return cams, det, self.model.camera_report
 
     def take(self, summary: dict, *, res, cols, det, cons, body, solver_cfg, rigid_obs, few_var):
@@ -368,6 +255,7 @@ class ChunkHooks:
             self.learned = SessionModel(
                 body, solver_cfg, rigid_obs, few_var, tuple(excluded), report, summary, self.mode
             )
+            self.learned.columns = {n: np.shape(v)[1:] for n, v in cols.extra.items()}
             return summary
         a, b = self.keep
         part = _interior(res, a, b)
@@ -392,6 +280,7 @@ class ChunkHooks:
             poses=part.poses,
         )
         summary["num_frames"] = b - a
+        summary["usable_per_camera"] = self.usable
         self.writer.add(det_i, cols, a, b, part, body, cons_i)
         return summary
 
@@ -403,208 +292,13 @@ def _interior(res, a: int, b: int):
     return dataclasses.replace(res, **{n: v[a:b] for n, v in arrays.items() if v is not None})
 
 
-# --- the outputs, chunk by chunk ----------------------------------------------------------
-
-
-class _ChunkWriter:
-    """The chunks' interiors appended, in order, to points3d.csv in the staged output set and
-    to raw arrays under `tmp` (its sidecar's rows, accepted.npz's and tokens.npz's arrays);
-    `finish` writes the sidecar and the npz files from them."""
-
-    def __init__(self, staged: OutputSet, tmp: Path) -> None:
-        self.staged, self.tmp = staged, tmp
-        self.points = staged.path("points3d.csv")
-        self.extra_rows = tmp / "extra.rows"
-        self.rows = 0
-        self.shape: tuple[int, int] | None = None
-        self.tokens = False
-        self.body = None
-        self.hash = hashlib.sha256()
-
-    def add(self, det, cols, a: int, b: int, res, body, cons) -> None:
-        part = self.tmp / "chunk.csv"
-        extra = {n: np.asarray(v)[a:b] for n, v in cols.extra.items()}
-        write_points3d(
-            part,
-            det.parts,
-            cols.points[a:b],
-            cols.error[a:b],
-            cols.ncams[a:b],
-            cols.score[a:b],
-            extra=extra,
-            fnum=det.frames,
-        )
-        first = self.rows == 0
-        _append_lines(part, self.points, skip=0 if first else 1)
-        _append_lines(extra_path(part), self.extra_rows, skip=1 if first else 2)
-        observed = cols.observed[a:b]
-        self.shape = observed.shape[1:]
-        with open(self.tmp / "accepted", "ab") as fh:
-            np.ascontiguousarray(observed, dtype=bool).tofile(fh)
-        if cons is not None:
-            t = session_tokens(res.poses, body.points, cons, body.parts, body.name)
-            deformed = np.where(t.observed[..., None], t.deformed, np.nan)
-            for name, v in (
-                ("rigid", t.rigid.astype(np.float32)),
-                ("deformed", deformed.astype(np.float32)),
-                ("observed", t.observed.astype(bool)),
-            ):
-                with open(self.tmp / f"tokens.{name}", "ab") as fh:
-                    np.ascontiguousarray(v).tofile(fh)
-            self.tokens = True
-        self.body = body
-        self.rows += b - a
-
-    def finish(self, parts, cameras, summary: dict) -> None:
-        """The sidecar (its first line names points3d.csv's bytes), accepted.npz, tokens.npz."""
-        out = self.staged
-        side = out.path(extra_path(self.points).name)
-        with open(side, "w", encoding="utf-8", newline="") as fh:
-            fh.write(extra_header(self.points, "points3d.csv"))
-        _append_lines(self.extra_rows, side, skip=0)
-        T, (K, C) = self.rows, self.shape
-        _npz(
-            out.path("accepted.npz"),
-            [("accepted", self.tmp / "accepted", np.bool_, (T, K, C))],
-            {"parts": np.asarray(parts), "cameras": np.asarray(cameras)},
-        )
-        final = summary["outputs"]
-        final["accepted"] = str(out.final("accepted.npz"))
-        if self.tokens:
-            _npz(
-                out.path("tokens.npz"),
-                [
-                    ("rigid", self.tmp / "tokens.rigid", np.float32, (T, K, 3)),
-                    ("deformed", self.tmp / "tokens.deformed", np.float32, (T, K, 3)),
-                    ("observed", self.tmp / "tokens.observed", np.bool_, (T, K)),
-                ],
-                {  # deformnet.sessions.SessionTokens.save's other members
-                    "parts": np.asarray(self.body.parts),
-                    "body_points": np.asarray(self.body.points, dtype=np.float64),
-                    "body_name": np.asarray(self.body.name),
-                    "fps": np.asarray(float("nan")),
-                    "version": np.asarray(TOKENS_VERSION),
-                },
-            )
-            final["tokens"] = str(out.final("tokens.npz"))
-        final["extra"] = str(out.final(side.name))
-
-
-def _append_lines(src: Path, dst: Path, skip: int) -> None:
-    """Append `src`'s bytes after its first `skip` lines to `dst`."""
-    with open(src, "rb") as fi, open(dst, "ab") as fo:
-        for _ in range(skip):
-            fi.readline()
-        shutil.copyfileobj(fi, fo, 1 << 20)
-
-
-def _npz(path: Path, raw: list[tuple[str, Path, Any, tuple]], small: dict) -> None:
-    """A compressed .npz (as `np.savez_compressed` writes it) whose large members are copied
-    from raw C-order files in blocks (never whole in memory), then the `small` arrays."""
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
-        for name, src, dtype, shape in raw:
-            header = {
-                "descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
-                "fortran_order": False,
-                "shape": tuple(int(s) for s in shape),
-            }
-            with zf.open(f"{name}.npy", "w", force_zip64=True) as fo, open(src, "rb") as fi:
-                np.lib.format.write_array_header_2_0(fo, header)
-                shutil.copyfileobj(fi, fo, 1 << 22)
-        for name, value in small.items():
-            with zf.open(f"{name}.npy", "w", force_zip64=True) as fo:
-                np.lib.format.write_array(fo, np.asanyarray(value), allow_pickle=False)
-
-
-# --- the summary ---------------------------------------------------------------------------
-
-#: summary keys merged by their maximum (iterations are the most any chunk took)
-_MAX_KEYS = frozenset({"iterations", "rigid_iterations", "max", "limit_px"})
-_STATS_KEYS = frozenset({"count", "median", "mean", "p90", "max"})
-
-
-def merge_summaries(parts: Sequence[dict], frames: Sequence[int]) -> dict:
-    """One summary of the chunks' summaries `parts` (each of its own `frames`, the interior):
-    booleans all true, ``iterations`` the largest, other whole numbers summed, costs summed,
-    other numbers weighted by frames; error statistics (count, median, mean, p90, max): counts
-    summed, means weighted by count, maxima taken, median and p90 the count-weighted means of
-    the chunks' (an approximation); ``health`` the worst status with its frames (rows of the
-    session); lists of numbers element by element; anything else the first chunk's."""
-    return _merge(list(parts), [float(f) for f in frames], "")
-
-
-def _merge(values: list, weights: list[float], key: str):
-    pairs = [(v, w) for v, w in zip(values, weights) if v is not None]
-    if not pairs:
-        return None
-    values, weights = [v for v, _ in pairs], [w for _, w in pairs]
-    first = values[0]
-    if key == "health":
-        return _merge_health(values)
-    if key == "cost_history":
-        return list(values)
-    if isinstance(first, dict):
-        if set(first) == _STATS_KEYS:
-            return _merge_stats(values)
-        keys = dict.fromkeys(k for v in values if isinstance(v, dict) for k in v)
-        return {
-            k: _merge([v.get(k) for v in values], weights, k)
-            for k in keys
-            if all(isinstance(v, dict) for v in values)
-        }
-    if isinstance(first, bool):
-        return all(bool(v) for v in values)
-    if isinstance(first, (int, float)) and all(isinstance(v, (int, float)) for v in values):
-        if key in _MAX_KEYS:
-            return max(values)
-        if isinstance(first, int) or "cost" in str(key):
-            return sum(values)
-        finite = [(v, w) for v, w in zip(values, weights) if math.isfinite(v)]
-        if not finite:
-            return first
-        return float(sum(v * w for v, w in finite) / max(sum(w for _, w in finite), 1e-300))
-    if (
-        isinstance(first, list)
-        and first
-        and all(isinstance(v, list) and len(v) == len(first) for v in values)
-        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for v in values for x in v)
-    ):
-        columns = [list(c) for c in zip(*values)]
-        return [_merge(c, weights, key) for c in columns]
-    return first
-
-
-def _merge_stats(values: list[dict]) -> dict:
-    have = [v for v in values if v.get("count")]
-    if not have:
-        return values[0]
-    n = sum(v["count"] for v in have)
-    out = {"count": n, "max": max(v["max"] for v in have)}
-    for k in ("median", "mean", "p90"):
-        out[k] = float(sum(v[k] * v["count"] for v in have) / n)
-    return {k: out[k] for k in ("count", "median", "mean", "p90", "max")}
-
-
-def _merge_health(values: list[dict]) -> dict:
-    order = {"ok": 0, "suspect": 1, "failed": 2}
-    worst = max(values, key=lambda h: order.get(h.get("status"), 0))
-    out = dict(worst)
-    for k in ("bad_frames", "nonfinite_frames", "turn_frames_count"):
-        out[k] = int(sum(h.get(k, 0) for h in values))
-    for k in ("frames", "turn_frames"):
-        out[k] = [f for h in values for f in h.get(k, [])][:20]
-    out["limit_px"] = max(h["limit_px"] for h in values)
-    return out
-
-
 # --- the run -------------------------------------------------------------------------------
 
 
 def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
     """Track the session of `cfg` in chunks (see the module doc) and return its summary; None
     when the recipe is to run it whole: ``chunk_frames`` 0 or null, a session no longer than
-    one chunk, a deformation mode that needs a net (said in the log), frames named rather
-    than numbered. track: the recipe, `adjust.pipeline.track` (``track(cfg, chunk=hooks)``)."""
+    one chunk, frames named rather than numbered. track: the recipe, `adjust.pipeline.track` (``track(cfg, chunk=hooks)``)."""
     chunk = ChunkConfig.from_config(cfg).chunk_frames
     if not chunk:
         return None
@@ -617,7 +311,7 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
     kwargs = load_kwargs(cfg.input)
     cameras = load_calibration(calibration)
     paths = match_files(detections, [c.name for c in cameras], kwargs["pattern"])
-    rows = max(_count_rows(Path(p), kwargs["individual"]) for p in paths.values())
+    rows = max(count_rows(Path(p), kwargs["individual"]) for p in paths.values())
     if rows <= chunk:
         return None
     t_start = time.perf_counter()
@@ -627,7 +321,7 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
         t0 = time.perf_counter()
         try:
             cache = SessionCache(cameras, paths, kwargs["individual"], tmp / "cache")
-        except _NotChunked as exc:
+        except NotChunked as exc:
             log.info("%s: tracked whole", exc)
             return None
         T = cache.num_frames
@@ -649,46 +343,22 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
         track(cfg, chunk=sample)
         model = sample.learned
         sample_s = time.perf_counter() - t0
-        summaries, frames, chunks_facts = [], [], []
         with OutputSet(out) as staged:
-            writer = _ChunkWriter(staged, tmp)
-            for i, (a, b, ra, rb) in enumerate(plan):
-                log.info(
-                    "chunk %d/%d: frames %d..%d",
-                    i + 1,
-                    len(plan),
-                    cache.frames[a],
-                    cache.frames[b - 1],
-                )
-                hooks = ChunkHooks(cache, ra, rb, model=model, keep=(a - ra, b - ra), writer=writer)
-                try:
-                    s = track(cfg, chunk=hooks)
-                except InputError as exc:  # e.g. a chunk without two cameras' detections
-                    raise InputError(
-                        f"chunk {i + 1}/{len(plan)} (frames {cache.frames[ra]}.."
-                        f"{cache.frames[rb - 1]}): {exc}"
-                    ) from None
-                s["health"] = _offset_health(s["health"], a)
-                summaries.append(s)
-                frames.append(b - a)
-                chunks_facts.append(
-                    {
-                        "frames": [int(cache.frames[a]), int(cache.frames[b - 1])],
-                        "rows_read": [int(cache.frames[ra]), int(cache.frames[rb - 1])],
-                        "iterations": s.get("iterations"),
-                        "rigid_iterations": s.get("rigid_iterations"),
-                        "converged": s.get("converged"),
-                        "health": s["health"]["status"],
-                        "time_s": s["time_s"].get("total_s"),
-                    }
-                )
-            summary = _session_summary(summaries, frames, model, T)
+            writer = ChunkWriter(staged, tmp)
+            summaries, frames, facts, untracked = _track_chunks(
+                cfg, track, cache, plan, model, writer
+            )
+            summary = session_summary(
+                summaries, frames, model.summary, isinstance(model.mode, NetMode), T
+            )
             summary["chunked"] = {
                 "chunk_frames": chunk,
                 "overlap_frames": overlap_frames(chunk),
                 "sample_frames": int(len(sample_rows(T))),
-                "chunks": chunks_facts,
+                "chunks": facts,
             }
+            if untracked:
+                _report_untracked(summary, untracked, cache.frames)
             writer.finish(summary["parts"], summary["cameras"], summary)
             if cfg.output.get("nwb", False):
                 log.warning("output.nwb=true: the NWB file is written from the whole points3d.csv")
@@ -710,41 +380,82 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
         return summary
 
 
-def _offset_health(health: dict, a: int) -> dict:
-    """A chunk's health with its frames as rows of the session (the chunk starts at row a)."""
-    return {
-        **health,
-        "frames": [f + a for f in health.get("frames", [])],
-        "turn_frames": [f + a for f in health.get("turn_frames", [])],
+def _track_chunks(cfg, track, cache: SessionCache, plan, model: SessionModel, writer):
+    """Every chunk of `plan` tracked with the sample's `model`, its interior handed to
+    `writer`; a chunk in which fewer than two cameras have a usable detection is left empty
+    (`ChunkWriter.add_empty`). Returns (the chunks' summaries, their frames, summary.json's
+    ``chunked.chunks``, the untracked chunks' row ranges [a, b))."""
+    summaries, frames, facts, untracked = [], [], [], []
+    for i, (a, b, ra, rb) in enumerate(plan):
+        log.info(
+            "chunk %d/%d: frames %d..%d", i + 1, len(plan), cache.frames[a], cache.frames[b - 1]
+        )
+        hooks = ChunkHooks(cache, ra, rb, model=model, keep=(a - ra, b - ra), writer=writer)
+        try:
+            s = track(cfg, chunk=hooks)
+        except Untracked as why:
+            log.warning(
+                "chunk %d/%d (frames %d..%d): fewer than %d cameras have a usable detection "
+                "(usable detections per camera: %s): its %d frames are left EMPTY in "
+                "points3d.csv (points3d.extra.csv: tracked 0; summary.json 'untracked')",
+                i + 1,
+                len(plan),
+                cache.frames[a],
+                cache.frames[b - 1],
+                MIN_CAMERAS,
+                ", ".join(f"'{c}' {n}" for c, n in why.usable.items()),
+                b - a,
+            )
+            writer.add_empty(cache.frames[a:b], model)
+            s = untracked_summary(b - a, why.usable, model.summary["health"]["limit_px"])
+            untracked.append((a, b))
+        except InputError as exc:
+            raise InputError(
+                f"chunk {i + 1}/{len(plan)} (frames {cache.frames[ra]}..{cache.frames[rb - 1]}): "
+                f"{exc}"
+            ) from None
+        s["health"] = offset_health(s["health"], a)
+        summaries.append(s)
+        frames.append(b - a)
+        facts.append(
+            {
+                "frames": [int(cache.frames[a]), int(cache.frames[b - 1])],
+                "rows_read": [int(cache.frames[ra]), int(cache.frames[rb - 1])],
+                "tracked": (a, b) not in untracked,
+                "usable_per_camera": s["usable_per_camera"],
+                "iterations": s.get("iterations"),
+                "rigid_iterations": s.get("rigid_iterations"),
+                "converged": s.get("converged"),
+                "health": s["health"]["status"],
+                "time_s": s["time_s"].get("total_s"),
+            }
+        )
+    if len(untracked) == len(plan):
+        raise InputError(
+            f"{cfg.input.detections}: no chunk of {plan[0][1] - plan[0][0]} frames has two "
+            "cameras with usable detections (summary.json would be empty); a larger "
+            "chunk_frames, or 0, tracks the session whole"
+        )
+    return summaries, frames, facts, untracked
+
+
+def _report_untracked(summary: dict, untracked: list[tuple[int, int]], fnum: np.ndarray):
+    """summary.json's ``untracked`` (and ``health.untracked``): the frames left empty."""
+    ranges = [[int(fnum[a]), int(fnum[b - 1])] for a, b in untracked]
+    n = int(sum(b - a for a, b in untracked))
+    summary["health"]["untracked"] = ranges
+    summary["untracked"] = {
+        "frames": n,
+        "ranges": ranges,
+        "reason": f"fewer than {MIN_CAMERAS} cameras with a usable detection in the chunk",
+        "policy": "left empty (NaN points, _ncams 0; points3d.extra.csv tracked 0): the rest "
+        "of the output can be trusted; tokens.npz is not written (a gap in time)",
     }
-
-
-#: summary.json's ``deformation`` keys of a net mode's choice (`NetDecision`), the sample's
-_DECISION_KEYS = frozenset(
-    {"mode", "requested", "reason", "checkpoint", "window", "step", "adapt", "world_up", "heldout"}
-)
-
-
-def _session_summary(summaries: list[dict], frames: list[int], model: SessionModel, T: int):
-    """The session's summary: the chunks' merged (`merge_summaries`), the sample's body model,
-    camera check and detector noise."""
-    merged = merge_summaries(summaries, frames)
-    first = summaries[0]
-    for key in ("inputs", "cameras", "parts", "settings", "outputs"):
-        merged[key] = first[key]
-    sample = model.summary
-    merged["body"] = sample["body"]
-    merged["camera_check"] = sample["camera_check"]
-    if merged.get("stochastic") is not None and sample.get("stochastic") is not None:
-        merged["stochastic"]["sigma_det_px"] = sample["stochastic"]["sigma_det_px"]
-        merged["stochastic"]["sigma_det_px_per_camera"] = sample["stochastic"][
-            "sigma_det_px_per_camera"
-        ]
-    if isinstance(model.mode, NetMode):  # the net's choice, made once on the sample
-        chosen = {k: v for k, v in sample["deformation"].items() if k in _DECISION_KEYS}
-        merged["deformation"] = {**merged["deformation"], **chosen, "decided_on": "sample"}
-    merged["num_frames"] = T
-    merged["time_s"] = {
-        k: round(sum(s["time_s"].get(k, 0.0) for s in summaries), 3) for k in first["time_s"]
-    }
-    return merged
+    log.warning(
+        "%d of %d frames left EMPTY (frames %s): fewer than %d cameras saw the animal in "
+        "their chunks (summary.json 'untracked')",
+        n,
+        summary["num_frames"],
+        ", ".join(f"{a}..{b}" for a, b in ranges),
+        MIN_CAMERAS,
+    )

@@ -7,6 +7,8 @@ modes in chunks: tests/test_chunks_net.py)."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import torch
@@ -150,7 +152,8 @@ def test_chunked_run_agrees_with_the_whole_run(scene, runs):
     a = read_points3d(tmp / "whole" / "points3d.csv")
     b = read_points3d(tmp / "chunked" / "points3d.csv")
     np.testing.assert_array_equal(a["fnum"], b["fnum"])
-    assert set(a["extra"]) == set(b["extra"])  # the sidecar belongs to the chunked file's bytes
+    # the sidecar belongs to the chunked file's bytes; `tracked`: every frame was
+    assert set(b["extra"]) == set(a["extra"]) | {"tracked"} and (b["extra"]["tracked"] == 1).all()
     d = np.linalg.norm(a["points"] - b["points"], axis=-1)
     assert np.median(d) < 0.2 and np.percentile(d, 99) < 1.0, (np.median(d), d.max())
     err_a = np.sqrt(np.mean(np.sum((a["points"] - truth) ** 2, -1)))
@@ -205,3 +208,43 @@ def test_merge_summaries_rules():
     assert m["counts"] == {"detections": 15, "ncams_histogram": [4, 6]}
     assert m["err"] == {"count": 4, "median": 2.5, "mean": 1.75, "p90": 4.0, "max": 7.0}
     assert m["health"]["status"] == "failed" and m["health"]["frames"] == [12, 13]
+
+
+def test_a_chunk_without_two_cameras_is_left_empty_and_named(scene, tmp_path, caplog):
+    """Cameras 1 and 2 out for the middle chunk (frames 500..999): those frames are left empty
+    and named (points3d.extra.csv tracked 0, summary.json untracked, per-chunk camera counts),
+    the run exits normally and its other frames are tracked as with every camera."""
+    root, truth = scene
+    gap = tmp_path / "gap"
+    (gap / "detections").mkdir(parents=True)
+    (gap / "calibration.toml").write_bytes((root / "calibration.toml").read_bytes())
+    for c, f in enumerate(sorted((root / "detections").iterdir())):
+        t = read_dlc(f)
+        xy, lik = t.xy.copy(), t.likelihood.copy()
+        if c > 0:
+            xy[CHUNK : 2 * CHUNK], lik[CHUNK : 2 * CHUNK] = np.nan, 0.0
+        write_dlc_csv(gap / "detections" / f.name, t.parts, xy, lik, frames=t.frames)
+    with caplog.at_level(logging.WARNING, logger="adjust"):
+        s = run(_cfg(gap, tmp_path / "out", f"chunk_frames={CHUNK}"))
+    assert "left EMPTY" in caplog.text and "frames 500..999" in caplog.text
+    u = s["untracked"]
+    assert u["frames"] == CHUNK and u["ranges"] == [[CHUNK, 2 * CHUNK - 1]]
+    assert s["health"]["untracked_frames"] == CHUNK and s["health"]["status"] == "ok"
+    chunks = s["chunked"]["chunks"]
+    assert [c["tracked"] for c in chunks] == [True, False, True]
+    middle = chunks[1]["usable_per_camera"]
+    assert sorted(middle.values())[:2] == [0, 0] and max(middle.values()) > 0
+    assert all(min(c["usable_per_camera"].values()) > 0 for c in (chunks[0], chunks[2]))
+    d = read_points3d(tmp_path / "out" / "points3d.csv")
+    gap_rows = slice(CHUNK, 2 * CHUNK)
+    assert np.isnan(d["points"][gap_rows]).all() and (d["ncams"][gap_rows] == 0).all()
+    np.testing.assert_array_equal(d["extra"]["tracked"], np.repeat([1, 0, 1], CHUNK))
+    assert np.isnan(d["extra"]["pose_rx"][gap_rows]).all()
+    kept = np.r_[0:CHUNK, 2 * CHUNK : FRAMES]
+    assert np.isfinite(d["points"][kept]).all()
+    rms = np.sqrt(np.mean(np.sum((d["points"][kept] - truth[kept]) ** 2, -1)))
+    assert rms < 3.0, rms  # 2.06 mm with every camera
+    assert s["completeness"] == pytest.approx(2 / 3, abs=0.01)
+    assert not (tmp_path / "out" / "tokens.npz").exists() and "tokens" not in s["outputs"]
+    with np.load(tmp_path / "out" / "accepted.npz") as z:
+        assert z["accepted"].shape[0] == FRAMES and not z["accepted"][gap_rows].any()
