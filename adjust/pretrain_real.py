@@ -69,6 +69,9 @@ FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")  # the floor's plane (as rea
 TRAIN_FRAMES = (0, 2400)
 HELD_OUT_START = 2400
 SEED = 0
+TARGET_CHOICES = ("measured", "truth")
+#: the training targets (`build`)
+TARGETS = "measured"
 
 
 @dataclass(frozen=True)
@@ -155,7 +158,7 @@ def track_scene(scene: Path, out: Path) -> Path:
 
 def scene_tokens(data: Path, frames: tuple[int, int], scenes, work: Path) -> list[SessionTokens]:
     """Film and track each scene of `frames` [start, stop) of the recording (cached in
-    `work`); returns their tokens."""
+    `work`); returns their tokens (`scene_truths`: the filmed motion's true positions)."""
     start, stop = frames
     if stop > HELD_OUT_START:
         raise ValueError(
@@ -181,6 +184,27 @@ def scene_tokens(data: Path, frames: tuple[int, int], scenes, work: Path) -> lis
                  time.perf_counter() - t0)  # fmt: skip
         out.append(tok)
     return out
+
+
+def scene_truths(frames: tuple[int, int], scenes, work: Path, tokens) -> list[np.ndarray]:
+    """The true positions (T, K, 3) mm of the scenes `scene_tokens` filmed into `work`, in
+    their tokens' parts and frames."""
+    start, stop = frames
+    return [scene_truth(work / "scenes" / f"f{start}-{stop}_{spec.name}" / "truth.npz", tok)
+            for spec, tok in zip(scenes, tokens)]  # fmt: skip
+
+
+def scene_truth(path: Path, tok: SessionTokens) -> np.ndarray:
+    """A filmed scene's true positions (T, K, 3) mm in the order of its tokens' parts."""
+    tr = np.load(path)
+    names = [str(p) for p in tr["parts"]]
+    missing = [p for p in tok.parts if p not in names]
+    if missing or tr["points"].shape[0] != tok.num_frames:
+        raise ValueError(
+            f"{path}: its truth ({tr['points'].shape[0]} frames, parts {names}) does not "
+            f"cover the tokens ({tok.num_frames} frames, {missing} missing)"
+        )
+    return np.asarray(tr["points"], np.float64)[:, [names.index(p) for p in tok.parts]]
 
 
 def token_slice(tok: SessionTokens, start: int, stop: int, offset: int) -> SessionTokens:
@@ -222,11 +246,17 @@ def build(
     data: Path = DATA,
     train_frames: tuple[int, int] | None = None,
     eval_frames: tuple[int, int] | None = None,
+    targets: str = TARGETS,
 ) -> dict:
     """Film and track `frames` of the recording in each scene, train on `train_frames` of
     the tracks (default: all of `frames`), export; with `eval_frames` (frames of the tracks
     not trained on, e.g. the validation segment 1200-2200 when training on 0-1200) the net is
-    evaluated on them (`evaluate`). Returns {"checkpoint", "sha256", "facts"}."""
+    evaluated on them (`evaluate`). targets: ``measured`` (`deformation=self`'s objective: the
+    mid frame's measured parts) or ``truth`` (the filmed motion's true positions of every part
+    of the mid frame, `deformnet.pretrained.fit.TruthWindowBank`). Returns {"checkpoint",
+    "sha256", "facts"}."""
+    if targets not in TARGET_CHOICES:
+        raise ValueError(f"targets must be one of {', '.join(TARGET_CHOICES)}, got {targets!r}")
     out = Path(out) if out is not None else DEFAULT_CHECKPOINT
     train_frames = tuple(frames) if train_frames is None else tuple(train_frames)
     if eval_frames is not None and max(train_frames[0], eval_frames[0]) < min(
@@ -237,8 +267,12 @@ def build(
         wdir = Path(work) if work is not None else Path(tmp)
         tokens = scene_tokens(Path(data), frames, scenes, wdir)
         train = [token_slice(t, *train_frames, frames[0]) for t in tokens]
+        truths = None
+        if targets == "truth":
+            a, b = train_frames[0] - frames[0], train_frames[1] - frames[0]
+            truths = [t[a:b] for t in scene_truths(frames, scenes, wdir, tokens)]
         t0 = time.perf_counter()
-        model, facts = fit_sessions(train, recipe, seed)
+        model, facts = fit_sessions(train, recipe, seed, truths=truths)
         facts["train_s"] = round(time.perf_counter() - t0, 1)
         out.parent.mkdir(parents=True, exist_ok=True)
         model.save(out)
@@ -248,7 +282,8 @@ def build(
             facts["eval_frames"] = list(eval_frames)
     sha = weights_sha256(DeformationModel.from_checkpoint(out))
     facts.update(frames=list(frames), train_frames=list(train_frames),
-                 scenes=[s.name for s in scenes], seed=int(seed))  # fmt: skip
+                 scenes=[s.name for s in scenes], seed=int(seed), targets=targets,
+                 real_masks=recipe.real_masks)  # fmt: skip
     return {"checkpoint": str(out), "sha256": sha, "facts": facts}
 
 
@@ -281,6 +316,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--data", default=str(DATA))
     ap.add_argument("--report", default=None, help="also write the result's JSON here")
     ap.add_argument(
+        "--targets",
+        choices=TARGET_CHOICES,
+        default=TARGETS,
+        help="the mid frame's measured parts or the filmed motion's truth",
+    )
+    ap.add_argument(
+        "--real-masks",
+        type=float,
+        default=RECIPE.real_masks,
+        help="with --targets truth: the windows with the recording's own masks only",
+    )
+    ap.add_argument(
         "--net",
         action="append",
         default=[],
@@ -294,10 +341,10 @@ def main(argv: list[str] | None = None) -> dict:
     for item in args.net:
         key, _, value = item.partition("=")
         net[key] = json.loads(value.lower() if value.lower() in ("true", "false") else value)
-    recipe = replace(RECIPE, steps=int(args.steps), net=net)
+    recipe = replace(RECIPE, steps=int(args.steps), net=net, real_masks=float(args.real_masks))
     res = build(args.frames, scenes, recipe, args.seed,
                 args.out, args.work, Path(args.data), args.train_frames,
-                args.eval_frames)  # fmt: skip
+                args.eval_frames, args.targets)  # fmt: skip
     text = json.dumps(res, indent=2)
     print(text)
     if args.report:

@@ -81,3 +81,57 @@ def test_pretrain_real_fit_is_seeded(tmp_path):
     b, _ = fit_sessions(toks, cfg, seed=3)
     c, _ = fit_sessions(toks, cfg, seed=4)
     assert weights_sha256(a) == weights_sha256(b) != weights_sha256(c)
+
+
+def test_truth_window_bank_targets_every_part_with_the_recordings_own_masks():
+    """`TruthWindowBank`: the inputs are the measured tokens, the targets the true mid-frame
+    positions of every part (measured or not); with real_masks=1 a window hides only what the
+    recording did not measure and the mid frame; a mirrored window's target is mirrored too."""
+    from deformnet.pretrained.fit import TruthWindowBank
+    from deformnet.windows import MaskConfig, make_masks, mirror_permutation
+
+    tok = _real_tokens(PARTS15[:8], seed=2)
+    X, names = load_motion(DATA)
+    truth = X[START : START + FRAMES][:, [names.index(p) for p in tok.parts]]
+    seq = tok.to_sequence()
+    gen = torch.Generator().manual_seed(0)
+    n = 6
+    bank = TruthWindowBank([seq], [truth], n, real_masks=1.0)
+    idx = torch.arange(0, len(bank), 37)
+    hide = make_masks(len(idx), bank.W, bank.K, MaskConfig(dropout=(0.9, 0.9)), gen)
+    b = bank.batch(idx, hide, gen=gen)
+    mids = bank.mids[idx]
+    np.testing.assert_allclose(b["target"].numpy(), truth[mids.numpy()], atol=1e-4)
+    assert bool(b["target_mask"].all())
+    own = torch.as_tensor(seq.observed)[mids[:, None] + torch.arange(-n, n + 1)]
+    own[:, n] = False
+    assert torch.equal(b["observed"], own)  # the recording's own missing frames only
+    measured = torch.as_tensor(seq.deformed)[mids[:, None] + torch.arange(-n, n + 1)]
+    assert torch.allclose(b["deformed"][own], measured[own])  # inputs: the measurements
+    perm = mirror_permutation(tok.parts)
+    assert perm is not None
+    flip = torch.ones(len(idx), dtype=torch.bool)
+    f = bank.batch(idx, hide, gen=gen, flip=flip, perm=perm)
+    sign = torch.tensor([-1.0, 1.0, 1.0])
+    assert torch.allclose(f["target"], (b["target"] * sign)[:, perm])
+    assert torch.allclose(f["rigid"], (b["rigid"] * sign)[:, :, perm])
+    # without real_masks the extra hidden flags stay
+    plain = TruthWindowBank([seq], [truth], n).batch(idx, hide, gen=gen)
+    assert int(plain["observed"].sum()) < int(b["observed"].sum())
+
+
+def test_fit_sessions_learns_from_the_truth_when_given():
+    """``truths``: the targets are the true positions (a different net from the same seed)."""
+    from dataclasses import replace
+
+    from adjust.pretrain_real import RECIPE
+    from deformnet.pretrained.build import weights_sha256
+    from deformnet.pretrained.fit import fit_sessions
+
+    tok = _real_tokens(PARTS15[:8], seed=1)
+    X, names = load_motion(DATA)
+    truth = X[START : START + FRAMES][:, [names.index(p) for p in tok.parts]]
+    cfg = replace(RECIPE, steps=4, batch_size=16, log_every=0, real_masks=0.5)
+    a, _ = fit_sessions([tok], cfg, seed=3)
+    b, _ = fit_sessions([tok], cfg, seed=3, truths=[truth])
+    assert weights_sha256(a) != weights_sha256(b)

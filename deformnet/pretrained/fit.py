@@ -11,6 +11,12 @@ mid frame's canonical coordinates, `deformnet.tokens.masked_mse`), with the same
 Sessions with the same parts share a window bank; each optimiser step draws its batch from one
 bank, in a fixed round-robin weighted by the banks' sizes, so the run is reproducible from its
 seed (one thread: bit for bit on the same CPU). No Lightning (no trainer state to strip).
+
+With ``truths`` (filmed motion whose true positions are known, `adjust.pretrain_real`), a
+session's targets are its true positions at every part of the mid frame, measured or not
+(`TruthWindowBank`): the net learns what the tracker asks of it, the parts a recording did not
+measure, with the neighbours it really has (``FitConfig.real_masks``: the fraction of windows
+with no masks beyond the recording's own missing part-frames and the mid frame).
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ from deformnet.windows import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FitConfig", "fit_sessions", "session_body"]
+__all__ = ["FitConfig", "TruthWindowBank", "fit_sessions", "session_body"]
 
 
 @dataclass(frozen=True)
@@ -46,7 +52,9 @@ class FitConfig:
     part-agnostic for several skeletons); steps: optimiser steps (fixed: no time budget);
     batch_size; lr, weight_decay, warmup_steps: AdamW, linear warm-up then cosine decay to
     2% of lr; masking, augment: as `deformnet.windows`; noise_mm: Gaussian noise on the
-    observed deformed inputs; log_every: steps between progress lines."""
+    observed deformed inputs; real_masks: with true targets (`TruthWindowBank`), the fraction
+    of windows that keep the recording's own missing part-frames only (no `masking` on top:
+    the tracker's windows); log_every: steps between progress lines."""
 
     net: dict = field(
         default_factory=lambda: {"_target_": "deformnet.nets.PartTransformer", "half_window": 12}
@@ -59,6 +67,7 @@ class FitConfig:
     masking: MaskConfig = MaskConfig()
     augment: Augment = Augment(mirror=0.5, reverse=0.5, steps=(1, 1, 2, 3))
     noise_mm: float = 0.0
+    real_masks: float = 0.0
     log_every: int = 250
 
 
@@ -70,14 +79,76 @@ def session_body(tokens) -> BodyModel:
     )
 
 
-def _banks(sessions, half_window: int, cfg: FitConfig, seed: int) -> list[dict]:
-    """One window bank per skeleton (sessions with the same parts), with its batch stream."""
+class TruthWindowBank(WindowBank):
+    """A `WindowBank` whose targets are true positions: the inputs are the sequences' measured
+    tokens as usual, the target of every part of the mid frame is its true position
+    (target_mask all true), measured or not.
+
+    truths: one (T, K, 3) global mm array per sequence (the sequences' frames and parts);
+    real_masks: the probability that a window keeps only the sequence's own missing
+    part-frames and the mid frame (its extra hidden flags dropped), so that the net sees the
+    neighbours a tracked recording has."""
+
+    def __init__(
+        self,
+        sequences: Sequence[SequenceArrays],
+        truths: Sequence[np.ndarray],
+        half_window: int,
+        step: int = 1,
+        real_masks: float = 0.0,
+    ) -> None:
+        if len(truths) != len(sequences):
+            raise ValueError(f"{len(truths)} truths for {len(sequences)} sequences")
+        for s, tr in zip(sequences, truths):
+            if np.shape(tr) != s.rigid.shape:
+                raise ValueError(f"truth {np.shape(tr)} does not match tokens {s.rigid.shape}")
+        if not 0.0 <= float(real_masks) <= 1.0:
+            raise ValueError(f"real_masks must be a probability, got {real_masks}")
+        super().__init__(sequences, half_window, step)
+        span = self.n * self.step
+        kept = [np.asarray(t, np.float32) for s, t in zip(sequences, truths)
+                if s.rigid.shape[0] >= 2 * span + 1]  # fmt: skip
+        self.truth = torch.from_numpy(np.concatenate(kept))
+        if not bool(torch.isfinite(self.truth).all()):
+            raise ValueError("truth holds non-finite positions")
+        self.real_masks = float(real_masks)
+
+    def batch(self, idx, hide, noise_mm=0.0, gen=None, step=None, flip=None, reverse=None,
+              perm=None) -> dict:  # fmt: skip
+        """`WindowBank.batch` with the true mid-frame positions as targets (all parts)."""
+        if self.real_masks > 0:
+            own = torch.rand(hide.shape[0], generator=gen) < self.real_masks
+            mid_only = torch.zeros_like(hide)
+            mid_only[:, self.n] = True
+            hide = torch.where(own[:, None, None], mid_only, hide)
+        out = super().batch(idx, hide, noise_mm, gen, step, flip, reverse, perm)
+        step = self.step if step is None else int(step)
+        mid = self.mids_for(step)[idx]  # the mid frame (reversal keeps it)
+        target = self.truth[mid]  # (B, K, 3)
+        if flip is not None and perm is not None and bool(flip.any()):
+            sign = torch.tensor([-1.0, 1.0, 1.0], dtype=target.dtype)
+            p = torch.as_tensor(list(perm), dtype=torch.long)
+            target = torch.where(flip[:, None, None], (target * sign)[:, p], target)
+        out["target"] = target
+        out["target_mask"] = torch.ones(target.shape[:2], dtype=torch.bool)
+        return out
+
+
+def _banks(sessions, half_window: int, cfg: FitConfig, seed: int, truths=None) -> list[dict]:
+    """One window bank per skeleton (sessions with the same parts), with its batch stream;
+    with `truths` (one (T, K, 3) array per session), `TruthWindowBank`s."""
     groups: dict[tuple[str, ...], list] = {}
-    for t in sessions:
-        groups.setdefault(tuple(t.parts), []).append(t)
+    for i, t in enumerate(sessions):
+        groups.setdefault(tuple(t.parts), []).append(i)
     out = []
-    for g, (parts, toks) in enumerate(sorted(groups.items(), key=lambda kv: (len(kv[0]), kv[0]))):
-        bank = WindowBank([t.to_sequence() for t in toks], half_window)
+    for g, (parts, ids) in enumerate(sorted(groups.items(), key=lambda kv: (len(kv[0]), kv[0]))):
+        toks = [sessions[i] for i in ids]
+        seqs = [t.to_sequence() for t in toks]
+        if truths is None:
+            bank = WindowBank(seqs, half_window)
+        else:
+            bank = TruthWindowBank(seqs, [truths[i] for i in ids], half_window, 1,
+                                   cfg.real_masks)  # fmt: skip
         stream = RandomWindowBatches(
             bank, cfg.batch_size, cfg.steps, cfg.masking, seed + 101 * g, cfg.noise_mm,
             cfg.augment, mirror_permutation(parts),
@@ -102,11 +173,17 @@ def _schedule(steps: int, weights: Sequence[float]) -> list[int]:
 
 
 def fit_sessions(
-    sessions: Sequence, cfg: FitConfig = FitConfig(), seed: int = 0, extra: Sequence = ()
+    sessions: Sequence,
+    cfg: FitConfig = FitConfig(),
+    seed: int = 0,
+    extra: Sequence = (),
+    truths: Sequence[np.ndarray] | None = None,
 ) -> tuple[DeformationModel, dict]:
     """Train `cfg.net` on the sessions' tokens (and `extra`: (body, [SequenceArrays]) pairs,
     e.g. simulated mice with their truth as measurements); returns (the model on the largest
-    skeleton's body, facts: windows per skeleton, the final training losses)."""
+    skeleton's body, facts: windows per skeleton, the final training losses). truths: one
+    (T, K, 3) array of true positions per session (its frames and parts): the targets
+    (`TruthWindowBank`) instead of the measured mid frame."""
     torch.manual_seed(int(seed))
     net_cfg = dict(cfg.net)
     half_window = int(net_cfg.get("half_window", 12))
@@ -114,7 +191,9 @@ def fit_sessions(
     net = build_net(net_cfg)
     if not getattr(net, "part_agnostic", False) and len({tuple(t.parts) for t in sessions}) > 1:
         raise ValueError(f"{net_cfg['_target_']} knows parts by index: one skeleton only")
-    banks = _banks(sessions, half_window, cfg, int(seed))
+    if truths is not None and len(truths) != len(sessions):
+        raise ValueError(f"{len(truths)} truths for {len(sessions)} sessions")
+    banks = _banks(sessions, half_window, cfg, int(seed), truths)
     for g, (body, seqs) in enumerate(extra):
         bank = WindowBank([SequenceArrays.of(s) for s in seqs], half_window)
         stream = RandomWindowBatches(
