@@ -21,7 +21,71 @@ from deformnet.tables import extra_header, extra_path
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ChunkWriter", "append_lines", "npz_from_raw"]
+__all__ = ["ChunkWriter", "TracksOnDisk", "append_lines", "npz_from_raw"]
+
+
+class TracksOnDisk:
+    """points3d.csv's numbers, appended block by block to raw float64 files under `folder`;
+    `tracks` reads them back memory-mapped, as `adjust.io.read_points3d` reads the CSV (the
+    CSV's floats round-trip exactly), for an NWB file written block by block
+    (`adjust.export.write_nwb`'s ``table``)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.rows = 0
+        self.K = 0
+        self.extra: list[str] = []
+
+    def append(self, parts, points, error, ncams, score, extra: dict) -> None:
+        """Rows: points (n, K, 3), error, ncams, score (n, K), extra {name: (n,) or (n, K)}
+        (a name with ``{part}``: one column per part, as `write_points3d` writes them)."""
+        cols = []
+        for name, v in extra.items():
+            v = _as_written(v)
+            if "{part}" in name:
+                cols += [(name.format(part=p), v[:, k]) for k, p in enumerate(parts)]
+            else:
+                cols.append((name, v))
+        self.extra, self.K = [n for n, _ in cols], len(parts)
+        for name, v in (
+            ("points", points),
+            ("error", error),
+            ("ncams", ncams),
+            ("score", score),
+            ("extra", np.stack([v for _, v in cols], -1)),
+        ):
+            with open(self.folder / f"tracks.{name}", "ab") as fh:
+                np.ascontiguousarray(_as_written(v)).tofile(fh)
+        self.rows += len(points)
+
+    def tracks(self, parts, fnum: np.ndarray) -> dict:
+        """`read_points3d`'s dict of the rows appended, its arrays memory-mapped."""
+        T, K = self.rows, self.K
+
+        def mm(name, shape):
+            return np.memmap(self.folder / f"tracks.{name}", np.float64, "r", shape=shape)
+
+        extra = mm("extra", (T, len(self.extra)))
+        return {
+            "parts": tuple(parts),
+            "points": mm("points", (T, K, 3)),
+            "error": mm("error", (T, K)),
+            "ncams": mm("ncams", (T, K)),
+            "score": mm("score", (T, K)),
+            "fnum": np.asarray(fnum),
+            "M": np.eye(3),
+            "center": np.zeros(3),
+            "extra": {n: extra[:, e] for e, n in enumerate(self.extra)},
+        }
+
+
+def _as_written(v) -> np.ndarray:
+    """float64 values as the CSV gives them back: float32 ones through their shortest decimal
+    (as pandas writes them), others as they are (float64 decimals round-trip exactly)."""
+    v = np.asarray(v)
+    if v.dtype == np.float32:
+        return v.astype(str).astype(np.float64)
+    return v.astype(np.float64)
 
 
 class ChunkWriter:
@@ -38,6 +102,7 @@ class ChunkWriter:
         self.tokens = False
         self.body = None
         self.empty = 0  # frames left untracked (add_empty)
+        self.table = TracksOnDisk(tmp)
 
     def add(self, det, cols, a: int, b: int, res, body, cons) -> None:
         part = self.tmp / "chunk.csv"
@@ -54,6 +119,9 @@ class ChunkWriter:
             fnum=det.frames,
         )
         self._append(part, cols.observed[a:b])
+        self.table.append(
+            det.parts, cols.points[a:b], cols.error[a:b], cols.ncams[a:b], cols.score[a:b], extra
+        )
         if cons is not None:
             t = session_tokens(res.poses, body.points, cons, body.parts, body.name)
             deformed = np.where(t.observed[..., None], t.deformed, np.nan)
@@ -89,6 +157,7 @@ class ChunkWriter:
             fnum=np.asarray(fnum),
         )
         self._append(part, np.zeros((n, K, C), dtype=bool))
+        self.table.append(parts, np.full((n, K, 3), np.nan), nan, np.zeros((n, K)), nan, extra)
         self.rows += n
         self.empty += n
 

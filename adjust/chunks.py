@@ -19,10 +19,12 @@ is tracked in chunks, its peak memory independent of its length (in every deform
 4. The interiors' outputs are streamed into the run's output set (`deformnet.outputs.OutputSet`:
    the folder gets every file at once at the end, or keeps the previous run's): points3d.csv
    and its sidecar (byte for byte what `write_points3d` writes), accepted.npz and tokens.npz
-   (written member by member from the disk, `adjust.chunk_writer.npz_from_raw`); summary.json merges the chunks' figures
-   (`merge_summaries`: counts summed, fractions and means weighted by frames, maxima taken;
-   the medians and p90 of the error statistics are the chunks' count-weighted means of them,
-   an approximation) and lists every chunk (``chunked``).
+   (written member by member from the disk, `adjust.chunk_writer.npz_from_raw`); summary.json
+   merges the chunks' figures (`merge_summaries`: counts summed, fractions and means weighted
+   by frames, maxima taken; the medians and p90 of the error statistics are the chunks'
+   count-weighted means of them, an approximation) and lists every chunk (``chunked``).
+   ``output.nwb=true``: the NWB file is written from the chunks' numbers on disk, block by
+   block of rows (`adjust.chunk_writer.TracksOnDisk`, `adjust.export.write_nwb`'s ``table``).
 
 A session no longer than one chunk runs the recipe unchanged (identical results). The net
 modes (``deformation=default``, ``self``, a checkpoint) choose their net once, on the sample
@@ -298,7 +300,8 @@ def _interior(res, a: int, b: int):
 def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
     """Track the session of `cfg` in chunks (see the module doc) and return its summary; None
     when the recipe is to run it whole: ``chunk_frames`` 0 or null, a session no longer than
-    one chunk, frames named rather than numbered. track: the recipe, `adjust.pipeline.track` (``track(cfg, chunk=hooks)``)."""
+    one chunk, frames named rather than numbered. track: the recipe, `adjust.pipeline.track`
+    (``track(cfg, chunk=hooks)``)."""
     chunk = ChunkConfig.from_config(cfg).chunk_frames
     if not chunk:
         return None
@@ -361,8 +364,7 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
                 _report_untracked(summary, untracked, cache.frames)
             writer.finish(summary["parts"], summary["cameras"], summary)
             if cfg.output.get("nwb", False):
-                log.warning("output.nwb=true: the NWB file is written from the whole points3d.csv")
-                write_nwb(
+                write_nwb(  # from the chunks' numbers on disk, block by block of rows
                     staged.path("tracks.nwb"),
                     staged.path("points3d.csv"),
                     calibration,
@@ -370,6 +372,7 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
                     session_start_time=cfg.output.get("session_start_time"),
                     subject=to_plain(cfg.output.get("subject")) or None,
                     detections=detections,
+                    table=writer.table.tracks(summary["parts"], cache.frames),
                 )
                 summary["outputs"]["nwb"] = str(staged.final("tracks.nwb"))
             summary["time_s"]["read_s"] = round(read_s, 3)

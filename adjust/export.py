@@ -155,6 +155,7 @@ def write_nwb(
     axes: Mapping[str, Sequence] | BoardFrame | None = None,
     origin=None,
     metadata: Mapping | None = None,
+    table: Mapping | None = None,
 ) -> Path:
     """Write the tracks of ``points3d.csv`` (and the optional calibration, bouts and events) as
     an NWB file at ``path`` (atomically). Returns the path. See the module doc for the layout.
@@ -169,6 +170,9 @@ def write_nwb(
     (`adjust.kinematics.align_tracks`: named points, or a calibration board's `BoardFrame`,
     whose fit is recorded in the file's notes). metadata: further NWBFile fields (`FILE_KEYS`:
     experimenter, institution, lab, experiment_description, keywords, session_id).
+    table: the tracks already read (`read_points3d`'s mapping; memory-mapped arrays, e.g. a
+    long session's, `adjust.chunk_writer.TracksOnDisk`): written block by block of rows, never
+    whole in memory; `tracks` then only names them.
     identifier: default a fresh UUID. Raises `InputError` for unreadable or inconsistent inputs
     (naming the file) and missing required metadata (naming the setting)."""
     _require_nwb()
@@ -183,8 +187,13 @@ def write_nwb(
     from pynwb import NWBHDF5IO, NWBFile, TimeSeries
     from pynwb.file import Subject
 
+    # (hdmf comes with pynwb, the optional nwb extra: imported with it)
+    from adjust.nwb_blocks import nanmax_rows, rows_data
+
     tracks = Path(tracks)
-    d = read_points3d(tracks)  # a file without part columns is an error there
+    # a file without part columns is an error there
+    d = read_points3d(tracks) if table is None else dict(table)
+    blocks = table is not None  # memory-mapped columns: written block by block of rows
     parts = list(d["parts"])
     T, K = d["points"].shape[:2]
     cameras, meta = [], {}
@@ -206,11 +215,11 @@ def write_nwb(
         raise InputError(f"{tracks}: fnum must increase from row to row")
     timing = frame_timing(fnum_s, rate, starting_time)
     ncams = d["ncams"]
-    num_cams = len(cameras) if cameras else int(np.nanmax(ncams, initial=0))
-    if cameras and np.nanmax(ncams, initial=0) > len(cameras):
+    most = nanmax_rows(ncams)
+    num_cams = len(cameras) if cameras else int(most)
+    if cameras and most > len(cameras):
         raise InputError(
-            f"{tracks}: up to {int(np.nanmax(ncams))} cameras per part, but {calibration} has "
-            f"{len(cameras)}"
+            f"{tracks}: up to {int(most)} cameras per part, but {calibration} has {len(cameras)}"
         )
     pairs, skeleton_source = resolve_skeleton(parts, d["points"], edges, skeleton, detections)
     if len(parts) > MAX_SKELETON_NODES and len(pairs):  # ndx-pose: edges are uint8 indices
@@ -291,19 +300,23 @@ def write_nwb(
     else:
         frame = "world frame of the camera calibration (x_cam = R X + t)"
     series = []
-    with np.errstate(invalid="ignore", divide="ignore"):
-        conf = np.where(np.isfinite(ncams), ncams / max(num_cams, 1), 0.0)
+
+    def conf(a: int, b: int, k: int) -> np.ndarray:
+        n = np.asarray(ncams[a:b, k], dtype=np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(np.isfinite(n), n / max(num_cams, 1), 0.0)
+
     for k, part in enumerate(parts):
         series.append(
             PoseEstimationSeries(
                 name=part,
                 description=f"3D position of {part} (x, y, z; data in mm, conversion to meters)",
-                data=_compressed(points[:, k]),
+                data=rows_data(lambda a, b, k=k: points[a:b, k], (T, 3), np.float64, blocks),
                 unit="meters",
                 conversion=MM,
                 reference_frame=frame,
                 **_time_kwargs(timing, series),
-                confidence=_compressed(conf[:, k]),
+                confidence=rows_data(lambda a, b, k=k: conf(a, b, k), (T,), np.float64, blocks),
                 confidence_definition=(
                     f"share of the {num_cams} cameras with an accepted detection of the part "
                     "({part}_ncams / cameras); 0: placed by the body model alone. The 3D standard "
@@ -337,10 +350,10 @@ def write_nwb(
 
     # --- quality columns ---------------------------------------------------------------
     cols = ", ".join(parts)
-    quality = [
-        ("reprojection_error_px", d["error"], "pixels", 1.0, "mean reprojection error"),
-        ("ncams", ncams, "cameras", 1.0, "cameras with an accepted detection"),
-        ("score", d["score"], "likelihood", 1.0, "lowest detection likelihood used"),
+    quality = [  # (name, rows a..b-1 of its (T, K) data, unit, conversion, description)
+        ("reprojection_error_px", d["error"].__getitem__, "pixels", 1.0, "mean reprojection error"),
+        ("ncams", ncams.__getitem__, "cameras", 1.0, "cameras with an accepted detection"),
+        ("score", d["score"].__getitem__, "likelihood", 1.0, "lowest detection likelihood used"),
     ]
     extra = d["extra"]
     sig = [f"{p}_sigma" for p in parts]
@@ -348,7 +361,7 @@ def write_nwb(
         quality.append(
             (
                 "sigma_mm",
-                np.stack([extra[s] for s in sig], -1),
+                lambda rows: np.stack([extra[s][rows] for s in sig], -1),
                 "meters",
                 MM,
                 "3D standard error (root of the trace of the 3x3 covariance; data in mm)",
@@ -359,7 +372,7 @@ def write_nwb(
             TimeSeries(
                 name=name,
                 description=f"{what}; columns: {cols}",
-                data=_compressed(np.asarray(data, dtype=np.float64)),
+                data=rows_data(lambda a, b, f=data: f(slice(a, b)), (T, K), np.float64, blocks),
                 unit=unit,
                 conversion=conversion,
                 **_time_kwargs(timing, series),
@@ -371,8 +384,11 @@ def write_nwb(
                 name="body_pose",
                 description="body model pose, model -> the points' frame: Rodrigues vector "
                 "(rad) rx, ry, rz and translation (mm) tx, ty, tz",
-                data=_compressed(
-                    np.stack([np.asarray(extra[c], np.float64) for c in POSE_COLUMNS], -1)
+                data=rows_data(
+                    lambda a, b: np.stack([extra[c][a:b] for c in POSE_COLUMNS], -1),
+                    (T, len(POSE_COLUMNS)),
+                    np.float64,
+                    blocks,
                 ),
                 unit="rad, mm",
                 **_time_kwargs(timing, series),
@@ -383,7 +399,14 @@ def write_nwb(
             TimeSeries(
                 name="body_pose_sigma",
                 description="pose standard errors: rotation (rad), translation (mm)",
-                data=_compressed(np.stack([extra["pose_sigma_r"], extra["pose_sigma_t"]], -1)),
+                data=rows_data(
+                    lambda a, b: np.stack(
+                        [extra["pose_sigma_r"][a:b], extra["pose_sigma_t"][a:b]], -1
+                    ),
+                    (T, 2),
+                    None,
+                    blocks,
+                ),
                 unit="rad, mm",
                 **_time_kwargs(timing, series),
             )

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import hydra
 import numpy as np
 import nwbinspector
@@ -14,6 +15,7 @@ import pynwb
 import pytest
 from movement.io import load_poses
 
+import adjust.export
 from adjust.io import InputError, load_calibration, read_points3d
 from deformnet.paths import CONF_DIR
 
@@ -427,3 +429,72 @@ def test_nwb_axes_alignment_keeps_the_cameras_consistent(tracked, tmp_path):
             project(d["points"], c.R, c.tvec, c),
             atol=1e-6,
         )
+
+
+def _datasets(path: Path) -> dict[str, np.ndarray]:
+    """Every dataset of an NWB file under /processing and /general/devices, read whole."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        for root in ("processing", "general/devices"):
+            f[root].visititems(
+                lambda name, obj, r=root: (
+                    out.__setitem__(f"{r}/{name}", obj[()])
+                    if isinstance(obj, h5py.Dataset)
+                    else None
+                )
+            )
+    return out
+
+
+def test_chunked_track_writes_the_nwb_block_by_block(tmp_path, monkeypatch):
+    """A session tracked in chunks (output.nwb=true): the NWB file is written from the chunks'
+    numbers on disk, block by block (points3d.csv is never read back whole), and holds exactly
+    what the whole-file writer makes of the same points3d.csv."""
+    from adjust.apps.simulate import run as simulate
+    from adjust.apps.track import run as track
+
+    scene = tmp_path / "scene"
+    simulate(_cfg("scene", [f"output.dir={scene}", "num_frames=300", "seed=3"]))
+    calib = scene / "calibration.toml"
+    calib.write_text(
+        calib.read_text().replace("[metadata]\n", f'[metadata]\nsession_start_time = "{START}"\n')
+    )
+
+    def whole_file(*a, **k):
+        raise AssertionError("points3d.csv read back whole")
+
+    monkeypatch.setattr(adjust.export, "read_points3d", whole_file)
+    out = tmp_path / "chunked"
+    s = track(
+        _cfg(
+            "track",
+            [
+                f"input.session={scene}",
+                f"output.dir={out}",
+                "progress=false",
+                "chunk_frames=128",
+                "output.nwb=true",
+                f"output.fps={FPS}",
+            ],
+        )
+    )
+    monkeypatch.undo()
+    assert len(s["chunked"]["chunks"]) == 3 and s["outputs"]["nwb"] == str(out / "tracks.nwb")
+    ref = adjust.export.write_nwb(
+        tmp_path / "ref.nwb", out / "points3d.csv", calib, fps=FPS, detections=scene / "detections"
+    )
+    a, b = _datasets(out / "tracks.nwb"), _datasets(ref)
+    assert set(a) == set(b) and len(a) > 20
+    for name in a:
+        x, y = np.asarray(a[name]), np.asarray(b[name])
+        assert x.shape == y.shape, name
+        if x.dtype.kind == "f":
+            np.testing.assert_array_equal(x, y, err_msg=name)  # NaN == NaN here
+        else:
+            assert (x == y).all(), name
+    d = read_points3d(out / "points3d.csv")
+    with pynwb.NWBHDF5IO(str(out / "tracks.nwb"), "r") as io:
+        pose = io.read().processing["behavior"]["PoseEstimation"]
+        series = pose.pose_estimation_series[d["parts"][0]]
+        np.testing.assert_array_equal(series.data[:], d["points"][:, 0])
+    assert list(pynwb.validate(path=str(out / "tracks.nwb"))) == []
