@@ -39,6 +39,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from adjust.camera import Camera
+from adjust.io import read_points3d
 from adjust.io.calibration import load_calibration
 from adjust.io.errors import InputError
 from adjust.triangulate import triangulate
@@ -535,8 +536,6 @@ def angles_csv(
 ) -> Path:
     """``angles.csv`` (anipose's) of a points3d file: `joint_angles` of the named triplets,
     then ``fnum``. No triplet is a ValueError saying how to give them."""
-    from adjust.io import read_points3d
-
     spec = parse_angles(angles)
     if not spec:
         raise ValueError(

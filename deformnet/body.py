@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from deformnet.confutil import to_plain
+from deformnet.paths import CONF_DIR
 from deformnet.so3 import kabsch
 
 log = logging.getLogger(__name__)
@@ -150,8 +152,6 @@ class BodyModel:
     @classmethod
     def from_config(cls, cfg) -> BodyModel:
         """From a Hydra/OmegaConf node or dict with keys name, parts, aliases."""
-        from deformnet.confutil import to_plain
-
         cfg = dict(to_plain(cfg))
         return cls.from_mapping(cfg["parts"], cfg.get("aliases"), cfg.get("name", "body"))
 
@@ -363,8 +363,6 @@ def _align_to(X: np.ndarray, w: np.ndarray, ref: np.ndarray) -> np.ndarray:
 def default_mouse() -> BodyModel:
     """The default mouse (Table 1, left/right X negated), from conf/body/mouse.yaml."""
     import yaml
-
-    from deformnet.paths import CONF_DIR
 
     with open(CONF_DIR / "body" / "mouse.yaml", encoding="utf-8") as fh:
         return BodyModel.from_config(yaml.safe_load(fh))

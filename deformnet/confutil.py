@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from deformnet.paths import CONF_DIR
+
 
 def to_plain(cfg: Any) -> Any:
     """OmegaConf node -> plain dicts/lists (interpolations resolved); anything else unchanged."""
@@ -22,8 +24,6 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> Any:
     config search path is the project's) or from plain Python (a temporary initialisation)."""
     import hydra
     from hydra.core.global_hydra import GlobalHydra
-
-    from deformnet.paths import CONF_DIR
 
     if GlobalHydra.instance().is_initialized():
         return hydra.compose(name, overrides=list(overrides))

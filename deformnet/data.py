@@ -8,6 +8,7 @@ windows of `deformnet.windows` (which needs no Lightning; its names are re-expor
 from __future__ import annotations
 
 import logging
+import os
 import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -18,6 +19,8 @@ from torch.utils.data import DataLoader
 
 from deformnet import windows
 from deformnet.body import BodyModel
+from deformnet.sim import simulate
+from deformnet.sim.dataset import load_sim
 from deformnet.windows import (  # noqa: F401  (re-exported)
     Augment,
     FixedWindowBatches,
@@ -27,17 +30,32 @@ from deformnet.windows import (  # noqa: F401  (re-exported)
     WindowBank,
     check_ahead_shift,
     gap_masks,
-    load_sequences,
     make_masks,
     mirror_asymmetry,
     mirror_permutation,
-    simulate_sequences,
     toy_sequence,
 )
 
 log = logging.getLogger(__name__)
 
-__all__ = [*windows.__all__, "DeformDataModule"]
+__all__ = [*windows.__all__, "DeformDataModule", "load_sequences", "simulate_sequences"]
+
+
+def simulate_sequences(
+    sim_cfg: Any, body: BodyModel, num_frames: int, seeds: Sequence[int]
+) -> list[SequenceArrays]:
+    """Simulate one sequence per seed with `deformnet.sim.simulate` (the simulator is
+    training's input, not the windows': `deformnet.windows` imports no simulator)."""
+    out = []
+    for s in seeds:
+        data = simulate(sim_cfg, num_frames=int(num_frames), seed=int(s), body=body)
+        out.append(SequenceArrays.of(data))
+    return out
+
+
+def load_sequences(paths: Sequence[str | os.PathLike]) -> list[SequenceArrays]:
+    """Load simulator files with `deformnet.sim.dataset.load_sim`."""
+    return [SequenceArrays.of(load_sim(p)) for p in paths]
 
 
 def _identity(x):

@@ -28,9 +28,11 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from deformnet.atomic import atomic_path
 from deformnet.body import BodyModel
 from deformnet.checkpoint import load_checkpoint, plain_kwargs
 from deformnet.nets import NETS, is_part_agnostic
+from deformnet.so3 import kabsch
 from deformnet.tokens import canonicalize, check_window, uncanonicalize
 
 log = logging.getLogger(__name__)
@@ -146,7 +148,6 @@ def check_track_up(rigid, body_points, up: Sequence[float] | None, where: str) -
     value ignored) of the body model `body_points` (K, 3): its rotations by Kabsch."""
     if up is None:
         return None
-    from deformnet.so3 import kabsch
 
     rigid = np.array(rigid, dtype=float)  # a writable copy
     ok = np.isfinite(rigid).all((1, 2))
@@ -299,8 +300,6 @@ class DeformationModel(nn.Module):
 
     def save(self, path: str | os.PathLike) -> None:
         """Write a minimal checkpoint (atomic) that `from_checkpoint` reads."""
-        from deformnet.atomic import atomic_path
-
         with atomic_path(path) as tmp:
             torch.save({CHECKPOINT_KEY: self.export()}, tmp)
 

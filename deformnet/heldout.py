@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from deformnet.tokens import linear_baseline, offset_baseline
+from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank
 
 __all__ = ["window_sums", "heldout_errors", "MIN_TARGETS"]
 
@@ -76,8 +77,6 @@ def heldout_errors(
     "rigid_mm", "targets" (lists per part; NaN where a part has no target), "net_all_mm",
     "interp_all_mm", "linear_all_mm", "windows"}. ValueError if the recording is shorter
     than one window."""
-    from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank
-
     parts = tuple(tokens.parts)
     if parts != tuple(model.body.parts):
         raise ValueError(

@@ -41,6 +41,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from deformnet.atomic import file_digest, finite_or_none, write_text
+from deformnet.paths import output_dir
 
 log = logging.getLogger(__name__)
 
@@ -233,8 +234,6 @@ def prepare_output(cfg) -> Path:
     """The app's output folder (`deformnet.paths.output_dir`), checked before any computing:
     a file in its place, a folder that cannot be created or written is a ValueError naming it
     (`deformnet.apprun.run_app` then locks a given ``output.dir``: `hold_output`)."""
-    from deformnet.paths import output_dir
-
     given = (
         OmegaConf.select(cfg, "output.dir", default=None) if isinstance(cfg, DictConfig) else None
     )

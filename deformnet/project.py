@@ -38,6 +38,8 @@ from pathlib import Path
 
 import yaml
 
+from deformnet.paths import CONF_DIR
+
 log = logging.getLogger(__name__)
 
 FILE_NAME = "mousetrack.yaml"
@@ -193,8 +195,6 @@ def _compose(config_name: str, overrides: list[str], config_dir: str | None):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.initialize import get_gh_backup, restore_gh_from_backup
-
-    from deformnet.paths import CONF_DIR
 
     extra = [f"hydra.searchpath=[file://{Path(config_dir).resolve()}]"] if config_dir else []
     plain = [o for o in overrides if not _is_sweep(o)]  # a sweep (`-m`) does not compose

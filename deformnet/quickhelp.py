@@ -17,7 +17,7 @@ import logging
 import sys
 from collections.abc import Callable
 
-from deformnet import project
+from deformnet import paths, project
 
 log = logging.getLogger(__name__)
 
@@ -28,9 +28,7 @@ def help_page(config_name: str) -> str | None:
     substitutes Hydra's variables (then only Hydra can make the page)."""
     from omegaconf import OmegaConf
 
-    from deformnet.paths import CONF_DIR
-
-    path = CONF_DIR / "hydra" / "help" / f"{config_name}.yaml"
+    path = paths.CONF_DIR / "hydra" / "help" / f"{config_name}.yaml"
     template = OmegaConf.load(path).get("template")
     if not isinstance(template, str) or "$" in template:
         return None

@@ -35,6 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
+from deformnet.atomic import atomic_path
+from deformnet.windows import SequenceArrays
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -81,8 +84,6 @@ class SessionTokens:
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write ``tokens.npz`` atomically."""
-        from deformnet.atomic import atomic_path
-
         path = Path(path)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
@@ -128,8 +129,6 @@ class SessionTokens:
     def to_sequence(self, start: int = 0, stop: int | None = None):
         """Frames start..stop-1 as a `deformnet.windows.SequenceArrays` (unmeasured deformed values
         replaced by the rigid points; they are masked)."""
-        from deformnet.windows import SequenceArrays
-
         s = slice(start, stop)
         obs = self.observed[s]
         deformed = np.where(obs[..., None], self.deformed[s], self.rigid[s])

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from deformnet.body import BodyModel, _align_to
+from deformnet.paths import real_mouse_poses_dir
 
 #: the paper's 8 parts: real-data keypoint name -> default mouse model part name
 REAL_TO_MOUSE: dict[str, str] = {
@@ -128,8 +129,6 @@ def load_real_poses(path: str | Path | None = None) -> tuple[tuple[str, ...], np
     a missing value. Raises ValueError naming the file, row and column on bad content.
     """
     if path is None:
-        from deformnet.paths import real_mouse_poses_dir
-
         path = real_mouse_poses_dir()
     path = Path(path)
     if path.is_dir():

@@ -26,7 +26,6 @@ A batch is a dict of float32 / bool tensors:
 from __future__ import annotations
 
 import dataclasses
-import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +36,7 @@ from torch import Tensor, nn
 from torch.utils.data import Dataset, IterableDataset
 
 from deformnet.body import BodyModel
+from deformnet.so3 import kabsch, transform_points
 from deformnet.tokens import canonicalize
 
 __all__ = [
@@ -47,14 +47,12 @@ __all__ = [
     "mirror_asymmetry",
     "mirror_permutation",
     "toy_sequence",
-    "load_sequences",
     "make_masks",
     "gap_masks",
     "WindowBank",
     "RandomWindowBatches",
     "FixedWindowBatches",
     "check_ahead_shift",
-    "simulate_sequences",
 ]
 
 
@@ -94,8 +92,6 @@ def toy_sequence(
 ) -> SequenceArrays:
     """A small stand-in for the simulator: the rigid model moved along a smooth curve with a
     smoothly turning heading, plus smooth sinusoidal per-part offsets in the body frame."""
-    from deformnet.so3 import transform_points
-
     rng = np.random.default_rng(seed)
     T, K = int(num_frames), body.num_parts
     t = np.arange(T) / fps
@@ -121,26 +117,6 @@ def toy_sequence(
     ).numpy()
     observed = rng.random((T, K)) > 0.02
     return SequenceArrays(rigid.astype(np.float32), (rigid + off).astype(np.float32), observed)
-
-
-def simulate_sequences(
-    sim_cfg: Any, body: BodyModel, num_frames: int, seeds: Sequence[int]
-) -> list[SequenceArrays]:
-    """Simulate one sequence per seed with `deformnet.sim.simulate`."""
-    from deformnet import sim
-
-    out = []
-    for s in seeds:
-        data = sim.simulate(sim_cfg, num_frames=int(num_frames), seed=int(s), body=body)
-        out.append(SequenceArrays.of(data))
-    return out
-
-
-def load_sequences(paths: Sequence[str | os.PathLike]) -> list[SequenceArrays]:
-    """Load simulator files with `deformnet.sim.dataset.load_sim`."""
-    from deformnet.sim.dataset import load_sim
-
-    return [SequenceArrays.of(load_sim(p)) for p in paths]
 
 
 def mirror_permutation(parts: Sequence[str]) -> list[int] | None:
@@ -174,8 +150,6 @@ def mirror_asymmetry(points: np.ndarray, perm: Sequence[int]) -> float:
     """How far a body model is from bilateral symmetry: the rms distance (mm) between its points
     and its mirror image (x -> -x, parts permuted by `perm`) moved onto them by the best rigid
     motion (`deformnet.so3.kabsch`); 0 for a body symmetric about any plane."""
-    from deformnet.so3 import kabsch
-
     P = torch.tensor(np.array(points, dtype=np.float64))
     M = (P * torch.tensor([-1.0, 1.0, 1.0], dtype=P.dtype))[list(perm)]
     R, t = kabsch(P, M)

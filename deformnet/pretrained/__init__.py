@@ -25,6 +25,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from deformnet.deformation import DeformationModel
+
 __all__ = ["DEFAULT_CHECKPOINT", "SIM_CHECKPOINT", "default_checkpoint", "load_default"]
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "real_mouse_parts.pt"
@@ -43,6 +45,4 @@ def default_checkpoint() -> Path:
 
 def load_default():
     """The shipped net as a `DeformationModel` (eval mode, float32, CPU)."""
-    from deformnet.deformation import DeformationModel
-
     return DeformationModel.from_checkpoint(default_checkpoint())

@@ -23,6 +23,10 @@ import logging
 import tempfile
 from pathlib import Path
 
+from deformnet.confutil import compose
+from deformnet.deformation import DeformationModel
+from deformnet.pretrained import SIM_CHECKPOINT
+
 log = logging.getLogger("deformnet.pretrained.build")
 
 STEPS = 3000
@@ -62,9 +66,7 @@ def weights_sha256(model) -> str:
 
 def build(steps: int = STEPS, seed: int = SEED, out: Path | None = None, work=None) -> dict:
     """Train and export; returns {"checkpoint", "sha256", "metrics"}."""
-    from deformnet.confutil import compose
-    from deformnet.deformation import DeformationModel
-    from deformnet.pretrained import SIM_CHECKPOINT
+    # Lightning, on demand: adjust.pretrain_real imports weights_sha256 from here without it
     from deformnet.train import run
 
     out = Path(out) if out is not None else SIM_CHECKPOINT

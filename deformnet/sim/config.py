@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from deformnet.confutil import to_plain
+from deformnet.paths import CONF_DIR
 
 BEHAVIORS: tuple[str, ...] = ("walk", "scan", "rear", "groom", "lever", "splint", "ball", "slider")
 MECHANISMS: tuple[str, ...] = ("lever", "splint", "ball", "slider")
@@ -325,8 +326,6 @@ def _merge(base: dict, over: Mapping) -> dict:
 
 def _load_named(name: str, chain: tuple[str, ...]) -> dict:
     import yaml
-
-    from deformnet.paths import CONF_DIR
 
     path = CONF_DIR / "sim" / f"{name}.yaml"
     if name in chain:
