@@ -11,7 +11,7 @@ download, another format) and one whose contents cannot be read are each one Val
 the path (the apps turn a ValueError into one logged line and exit status 2).
 
 What a checkpoint names is looked up in allow-lists of this project's own classes (the nets,
-`deformnet.nets.NETS`; the behavior heads, `deformnet.heads.HEADS`) and built from plain
+`deformnet.nets.NETS`; the behavior heads, `deformnet.behavior.heads.HEADS`) and built from plain
 keyword values only (`plain_kwargs`): nothing a file names is imported or instantiated.
 """
 

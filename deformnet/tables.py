@@ -1,5 +1,5 @@
 """CSV tables read with one-line errors, and the points3d layout's part columns: shared by the
-readers of both halves (`adjust.io.points3d`, `adjust.export`, `deformnet.classify`).
+readers of both halves (`adjust.io.points3d`, `adjust.export`, `deformnet.behavior.tracks`).
 
 A points3d file keeps anipose's columns only (so anipose's readers, movement's
 ``from_anipose_file`` among them, take it as it is); our further per-frame columns (body pose,

@@ -1,5 +1,5 @@
 """deformnet.tables: the one CSV reader with one-line errors and the points3d part columns,
-shared by adjust.io.points3d, adjust.export and deformnet.classify."""
+shared by adjust.io.points3d, adjust.export and deformnet.behavior.tracks."""
 
 from __future__ import annotations
 
