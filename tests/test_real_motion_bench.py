@@ -43,6 +43,10 @@ def test_tiny_run(tmp_path, one_thread):
     assert rows["dlt"]["completeness"] < 1.0
     assert rows["rigid"]["completeness"] == 1.0
     assert rows["rigid"]["diverged"] is False
+    per = rows["rigid"]["calib_per_part"]  # the calibration part by part
+    assert list(per) == list(rm.MOTION_PAPER8)
+    seen = [d["seen"] for d in per.values() if d["seen"] is not None]
+    assert len(seen) >= 4 and all(0.1 < v < 10 for v in seen)
     assert "c3_p8" in res["aggregate"]
     assert res["stability"] is None
 
@@ -61,3 +65,13 @@ def test_part_sets_and_constraints():
     assert all(a in rm.MOTION_PARTS22 and b in rm.MOTION_PARTS22 for a, b in strong + weak)
     assert rm.target_ratio(2, 8) == 0.6 and rm.target_ratio(4, 8) == 0.8
     assert rm.target_ratio(3, 22) == 0.8
+
+
+def test_calibrated_parts_counts_the_parts_within_the_range():
+    rm = _load()
+    per = {
+        "a": {"seen": 1.0, "occluded": 0.5, "unseen": float("nan")},
+        "b": {"seen": 1.3, "occluded": 1.1, "unseen": 1.0},
+        "c": {"seen": 0.9, "occluded": float("nan"), "unseen": float("nan")},
+    }
+    assert rm.calibrated_parts(per) == {"seen": [2, 3], "occluded": [1, 2]}
