@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +45,7 @@ from adjust.io.errors import InputError
 from adjust.triangulate import triangulate
 from deformnet.atomic import atomic_path
 from deformnet.behavior.tracks import POSE_COLUMNS
+from deformnet.confutil import checked_fields
 from deformnet.tables import read_csv
 
 log = logging.getLogger(__name__)
@@ -270,11 +271,7 @@ class BoardConfig:
     @classmethod
     def from_mapping(cls, node: Mapping | None) -> BoardConfig:
         """From a config mapping (unknown keys and a board without detections: ValueError)."""
-        node = dict(node or {})
-        known = [f.name for f in fields(cls)]
-        unknown = [k for k in node if k not in known]
-        if unknown:
-            raise ValueError(f"axes.board: unknown setting(s) {unknown} (known: {known})")
+        node = checked_fields(cls, node, "axes.board")
         cfg = cls(**{k: v for k, v in node.items() if v is not None})
         if cfg.detections is None:
             return cfg

@@ -16,7 +16,6 @@ different values, a ValueError names both.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from adjust.io import InputError
 from adjust.lsq.config import SolverConfig
+from deformnet.confutil import checked_fields
 
 log = logging.getLogger(__name__)
 
@@ -87,17 +87,7 @@ def resolve_deprecated(cfg: DictConfig) -> DictConfig:
 
 def _typed(cls, node: Mapping | None, prefix: str, ignore: tuple[str, ...] = ()):
     """`cls` from a config node: unknown keys (but `ignore`) a ValueError naming them."""
-    data = (
-        {}
-        if node is None
-        else dict(OmegaConf.to_container(node) if OmegaConf.is_config(node) else node)
-    )
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names - set(ignore))
-    if unknown:
-        keys = [f"{prefix}.{k}" for k in unknown]
-        raise ValueError(f"unknown {prefix} settings {keys}; known: {sorted(names)}")
-    return cls(**{k: v for k, v in data.items() if k in names})
+    return cls(**checked_fields(cls, node, prefix, ignore))
 
 
 @dataclass(frozen=True)

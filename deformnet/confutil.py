@@ -1,10 +1,12 @@
 """Config helpers for code that accepts both Hydra/OmegaConf nodes and plain mappings: plain
-values (`to_plain`), a project config (`compose`), an integer setting (`int_setting`), a frame
-rate (`check_fps`)."""
+values (`to_plain`), a config block's checked fields (`checked_fields`), a project config
+(`compose`), an integer setting (`int_setting`), a frame rate (`check_fps`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Iterable
 from typing import Any
 
 from deformnet.paths import CONF_DIR
@@ -17,6 +19,19 @@ def to_plain(cfg: Any) -> Any:
     except ImportError:  # pragma: no cover - omegaconf ships with hydra-core
         return cfg
     return OmegaConf.to_container(cfg, resolve=True) if OmegaConf.is_config(cfg) else cfg
+
+
+def checked_fields(cls: type, cfg: Any, what: str, ignore: Iterable[str] = ()) -> dict[str, Any]:
+    """A config block (OmegaConf node, mapping or None) as a plain dict of the dataclass `cls`'s
+    fields: a key that is no field of `cls` (nor in `ignore`: read elsewhere) is a ValueError
+    naming it as ``what.key`` and the known ones (`what`: the block, e.g. ``data.augment``)."""
+    data = {} if cfg is None else dict(to_plain(cfg))
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names - set(ignore))
+    if unknown:
+        keys = [f"{what}.{k}" for k in unknown]
+        raise ValueError(f"unknown {what} settings {keys}; known: {sorted(names)}")
+    return {k: v for k, v in data.items() if k in names}
 
 
 def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> Any:

@@ -25,7 +25,6 @@ A batch is a dict of float32 / bool tensors:
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -36,6 +35,7 @@ from torch import Tensor, nn
 from torch.utils.data import Dataset, IterableDataset
 
 from deformnet.body import BodyModel
+from deformnet.confutil import checked_fields
 from deformnet.so3 import kabsch, transform_points
 from deformnet.tokens import canonicalize
 
@@ -174,10 +174,7 @@ class Augment:
     def from_any(cls, cfg: Mapping[str, Any] | Augment | None) -> Augment:
         if isinstance(cfg, Augment):
             return cfg
-        d = dict(cfg or {})
-        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown data.augment options {sorted(unknown)}")
+        d = checked_fields(cls, cfg, "data.augment")
         steps = d.get("steps")
         if steps is not None:
             steps = tuple(int(x) for x in steps)
@@ -215,10 +212,7 @@ class MaskConfig:
     def from_any(cls, cfg: Mapping[str, Any] | MaskConfig | None) -> MaskConfig:
         if isinstance(cfg, MaskConfig):
             return cfg
-        d = dict(cfg or {})
-        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown masking options {sorted(unknown)}")
+        d = checked_fields(cls, cfg, "data.masking")
         if "dropout" in d:
             lo, hi = (float(x) for x in d["dropout"])
             d["dropout"] = (lo, hi)

@@ -48,15 +48,20 @@ def _imported_modules(path: Path) -> list[tuple[int, str]]:
     return out
 
 
-def test_deformnet_never_imports_adjust():
-    files = sorted((ROOT / "deformnet").rglob("*.py"))
-    assert files
-    bad = [
+def _imports_where(files: list[Path], wanted) -> list[str]:
+    """``path:line imports module`` for each import in `files` whose module is `wanted`."""
+    return [
         f"{p.relative_to(ROOT)}:{line} imports {mod}"
         for p in files
         for line, mod in _imported_modules(p)
-        if mod == "adjust" or mod.startswith("adjust.")
+        if wanted(mod)
     ]
+
+
+def test_deformnet_never_imports_adjust():
+    files = sorted((ROOT / "deformnet").rglob("*.py"))
+    assert files
+    bad = _imports_where(files, lambda mod: mod == "adjust" or mod.startswith("adjust."))
     assert not bad, "deformnet must never import adjust:\n" + "\n".join(bad)
 
 
@@ -64,12 +69,7 @@ def test_the_library_never_imports_an_app():
     apps = ROOT / "adjust" / "apps"
     files = [p for p in sorted((ROOT / "adjust").rglob("*.py")) if apps not in p.parents]
     assert len(files) > 20 and (apps / "track.py").is_file()
-    bad = [
-        f"{p.relative_to(ROOT)}:{line} imports {mod}"
-        for p in files
-        for line, mod in _imported_modules(p)
-        if mod == "adjust.apps" or mod.startswith("adjust.apps.")
-    ]
+    bad = _imports_where(files, lambda mod: mod == "adjust.apps" or mod.startswith("adjust.apps."))
     assert not bad, "the library (adjust outside adjust/apps) must not import an app:\n" + (
         "\n".join(bad)
     )
@@ -81,12 +81,9 @@ def test_deformnet_never_imports_its_apps():
     apps = ROOT / "deformnet" / "apps"
     files = [p for p in sorted((ROOT / "deformnet").rglob("*.py")) if apps not in p.parents]
     assert len(files) > 20 and (apps / "classify.py").is_file()
-    bad = [
-        f"{p.relative_to(ROOT)}:{line} imports {mod}"
-        for p in files
-        for line, mod in _imported_modules(p)
-        if mod == "deformnet.apps" or mod.startswith("deformnet.apps.")
-    ]
+    bad = _imports_where(
+        files, lambda mod: mod == "deformnet.apps" or mod.startswith("deformnet.apps.")
+    )
     assert not bad, "the library (deformnet outside deformnet/apps) must not import an app:\n" + (
         "\n".join(bad)
     )
@@ -108,12 +105,7 @@ def test_the_readers_never_import_behavior_code():
     rate check from deformnet.behavior_labels; now deformnet.confutil.check_fps)."""
     files = sorted((ROOT / "adjust" / "io").rglob("*.py"))
     assert files
-    bad = [
-        f"{p.relative_to(ROOT)}:{line} imports {mod}"
-        for p in files
-        for line, mod in _imported_modules(p)
-        if mod.startswith(BEHAVIOR)
-    ]
+    bad = _imports_where(files, lambda mod: mod.startswith(BEHAVIOR))
     assert not bad, "adjust/io must not import behavior code:\n" + "\n".join(bad)
 
 
@@ -124,12 +116,9 @@ def test_the_windows_never_import_the_simulator():
     files = [ROOT / (m.replace(".", "/") + ".py") for m in RUNTIME]
     files = [p if p.is_file() else p.with_suffix("") / "__init__.py" for p in files]
     assert all(p.is_file() for p in files), files
-    bad = [
-        f"{p.relative_to(ROOT)}:{line} imports {mod}"
-        for p in files
-        for line, mod in _imported_modules(p)
-        if mod == "deformnet.sim" or mod.startswith("deformnet.sim.")
-    ]
+    bad = _imports_where(
+        files, lambda mod: mod == "deformnet.sim" or mod.startswith("deformnet.sim.")
+    )
     assert not bad, "the run-time modules must not import the simulator:\n" + "\n".join(bad)
 
 
@@ -143,12 +132,7 @@ def test_the_deformation_nets_never_import_behavior_code():
         if not any(s in p.parents for s in skip) and p.name != "entry.py"
     ]
     assert (ROOT / "deformnet" / "lit.py") in files
-    bad = [
-        f"{p.relative_to(ROOT)}:{line} imports {mod}"
-        for p in files
-        for line, mod in _imported_modules(p)
-        if mod.startswith(BEHAVIOR)
-    ]
+    bad = _imports_where(files, lambda mod: mod.startswith(BEHAVIOR))
     assert not bad, "deformation code must not import behavior code:\n" + "\n".join(bad)
 
 
