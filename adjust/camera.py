@@ -36,6 +36,13 @@ __all__ = [
 ]
 
 
+def _check_shape(name: str, key: str, arr: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """`arr`, or a ValueError naming the camera and the matrix when it is not of `shape`."""
+    if arr.shape != shape:
+        raise ValueError(f"camera '{name}': {key} must have shape {shape}, got {arr.shape}")
+    return arr
+
+
 @dataclass(frozen=True)
 class Camera:
     """One calibrated camera (numpy, float64).
@@ -57,10 +64,7 @@ class Camera:
             arr = np.asarray(getattr(self, key), dtype=np.float64)
             if key == "dist" and arr.ndim == 1 and arr.size < 5:
                 arr = np.concatenate([arr, np.zeros(5 - arr.size)])
-            if arr.shape != shape:
-                raise ValueError(
-                    f"camera '{self.name}': {key} must have shape {shape}, got {arr.shape}"
-                )
+            _check_shape(self.name, key, arr, shape)
             if not np.all(np.isfinite(arr)):
                 raise ValueError(
                     f"camera '{self.name}': {key} has non-finite values: {arr.tolist()}"
@@ -93,9 +97,7 @@ class Camera:
         size: tuple[int, int] = (0, 0),
     ) -> Camera:
         """Camera from K (3, 3), a rotation matrix R (3, 3), t (3,) and optional dist (5,)."""
-        R = np.asarray(R, dtype=np.float64)
-        if R.shape != (3, 3):
-            raise ValueError(f"camera '{name}': R must have shape (3, 3), got {R.shape}")
+        R = _check_shape(name, "R", np.asarray(R, dtype=np.float64), (3, 3))
         rvec = matrix_to_rodrigues(torch.as_tensor(R)).numpy()
         return cls(name, K, np.zeros(5) if dist is None else dist, rvec, t, size)
 
@@ -108,9 +110,7 @@ class Camera:
         size: tuple[int, int] = (0, 0),
     ) -> Camera:
         """Camera from a (3, 4) projection matrix by RQ decomposition (paper eq. 2)."""
-        P = np.asarray(P, dtype=np.float64)
-        if P.shape != (3, 4):
-            raise ValueError(f"camera '{name}': P must have shape (3, 4), got {P.shape}")
+        P = _check_shape(name, "P", np.asarray(P, dtype=np.float64), (3, 4))
         K, R, t = decompose_projection_matrix(torch.as_tensor(P))
         return cls.from_matrices(name, K.numpy(), R.numpy(), t.numpy(), dist, size)
 

@@ -187,6 +187,17 @@ def read_points3d(path: str | os.PathLike) -> dict:
     return out
 
 
+_BEYOND = f"is beyond the int64 range (|frame| <= {MAX_FRAME})"
+_NOT_A_FRAME = f"is not a frame number (an integer up to {MAX_FRAME})"
+
+
+def _refuse_fnum(path: Path, values, rows, why: str, show=str) -> None:
+    """An InputError at the first of `rows` (if any), naming its fnum value and row."""
+    if len(rows):
+        r = int(rows[0])
+        raise InputError(f"{path}: fnum {show(values[r])} at row {r} {why}")
+
+
 def _fnum(path: Path, col: pd.Series) -> np.ndarray:
     """The ``fnum`` column: int64 frame numbers, or strings (labelled images' names); an empty
     cell, a fraction or a number beyond int64 is an InputError naming the row."""
@@ -196,32 +207,17 @@ def _fnum(path: Path, col: pd.Series) -> np.ndarray:
     if col.dtype.kind == "i":
         return col.to_numpy(np.int64)
     if col.dtype.kind == "u":  # beyond int64, below 2**64
-        big = np.flatnonzero(col.to_numpy() > MAX_FRAME)
-        if big.size:
-            r = int(big[0])
-            raise InputError(
-                f"{path}: fnum {col.iloc[r]} at row {r} is beyond the int64 range (|frame| <= "
-                f"{MAX_FRAME})"
-            )
+        _refuse_fnum(path, col.iloc, np.flatnonzero(col.to_numpy() > MAX_FRAME), _BEYOND)
         return col.to_numpy(np.int64)
     if col.dtype.kind == "f":
         v = col.to_numpy(np.float64)
         bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)) | (np.abs(v) > MAX_FRAME))
-        if bad.size:
-            r = int(bad[0])
-            raise InputError(
-                f"{path}: fnum {col.iloc[r]!r} at row {r} is not a frame number (an integer "
-                f"up to {MAX_FRAME})"
-            )
+        _refuse_fnum(path, col.iloc, bad, _NOT_A_FRAME, repr)
         return v.astype(np.int64)
     values = col.tolist()
+    # integers beyond int64 (pandas keeps them as Python ints)
     big = [i for i, v in enumerate(values) if isinstance(v, int) and abs(v) > MAX_FRAME]
-    if big:  # integers beyond int64 (pandas keeps them as Python ints)
-        r = big[0]
-        raise InputError(
-            f"{path}: fnum {values[r]} at row {r} is beyond the int64 range (|frame| <= "
-            f"{MAX_FRAME})"
-        )
+    _refuse_fnum(path, values, big, _BEYOND)
     return np.array([str(v) for v in values], dtype=object)
 
 
