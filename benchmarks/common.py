@@ -1,5 +1,6 @@
 """What the benchmarks share: their start (`start`: arguments, logging, torch's thread count),
-a comma-separated choice among options (`subset`) and their last line (`emit`). A benchmark
+a comma-separated choice among options (`subset`), a table cell (`cell`) and their last line
+(`emit`). A benchmark
 runs as a script, so ``from common import ...`` (imports inside the functions: a benchmark's
 child processes load nothing more for them)."""
 
@@ -8,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 from pathlib import Path
 
 
@@ -30,6 +32,19 @@ def subset(ap: argparse.ArgumentParser, text: str, allowed, flag: str) -> list[s
     if bad or not chosen:
         ap.error(f"{flag}: unknown {bad}; choose from {', '.join(allowed)}")
     return chosen
+
+
+def cell(v, digits: int = 3, large_digits: int | None = 2, missing: str = "n/a") -> str:
+    """A printed table's cell: a finite float with `digits` decimals (`large_digits` from 10 up;
+    None: `digits` throughout), a non-finite float or None as `missing`, anything else as text."""
+    if v is None:
+        return missing
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return missing
+        d = digits if large_digits is None or abs(v) < 10 else large_digits
+        return f"{v:.{d}f}"
+    return str(v)
 
 
 def emit(summary: dict, out: str | Path) -> dict:

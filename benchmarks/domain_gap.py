@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import os
 import sys
 import time
@@ -64,6 +63,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from common import cell, start  # noqa: E402
 from peers.anipose import (  # noqa: E402
     MOUSE_CONSTRAINTS,
     MOUSE_CONSTRAINTS_WEAK,
@@ -180,12 +180,6 @@ def train_on_sessions(work: Path, frames: int, seed: int, budget: str) -> tuple[
     return str(ckpt), facts
 
 
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return "n/a" if not math.isfinite(v) else f"{v:.3f}" if abs(v) < 10 else f"{v:.2f}"
-    return "n/a" if v is None else str(v)
-
-
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1500)
@@ -205,9 +199,8 @@ def main(argv: list[str] | None = None) -> dict:
     )
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "domain_gap"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "domain_gap.json"))
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(1)
+    ap.set_defaults(threads=1)  # one torch thread (`start`)
+    args = start(ap, argv)
     work = Path(args.work)
     scene = make_scene(work / f"scene_mouse_b_{args.frames}_{args.seed}", args.frames, args.seed)
     tr = np.load(scene / "truth.npz")
@@ -334,7 +327,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     print(f"{'method':<12}" + "".join(f"{h:>12}" for _, h in cols))
     for name, r in results.items():
-        print(f"{name:<12}" + "".join(f"{_fmt(r.get(k)):>12}" for k, _ in cols))
+        print(f"{name:<12}" + "".join(f"{cell(r.get(k)):>12}" for k, _ in cols))
     checks: dict = {}
     if "aniposelib" in results:
         a, b = results["interp"], results["aniposelib"]

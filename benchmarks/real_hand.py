@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import os
 import time
 import warnings
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import emit, start
+from common import cell, emit, start
 
 from adjust.camera import CameraTensors
 from adjust.io import load_scene, read_points3d
@@ -131,7 +130,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     print(f"{'method':<13}" + "".join(f"{h:>13}" for _, h in cols))
     for name, r in results.items():
-        print(f"{name:<13}" + "".join(f"{_fmt(r[k]):>13}" for k, _ in cols))
+        print(f"{name:<13}" + "".join(f"{cell(r[k], large_digits=None):>13}" for k, _ in cols))
     summary = {
         **results,
         "data": str(dets),
@@ -139,10 +138,6 @@ def main(argv: list[str] | None = None) -> dict:
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
     return emit(summary, args.out)
-
-
-def _fmt(v) -> str:
-    return f"{v:.3f}" if isinstance(v, float) and math.isfinite(v) else "n/a"
 
 
 if __name__ == "__main__":

@@ -61,6 +61,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from common import cell, start  # noqa: E402
 from peers.anipose import run_anipose  # noqa: E402
 from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from peers.disk import fit_disk, impute  # noqa: E402
@@ -241,12 +242,6 @@ def loco(
     return out
 
 
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return "n/a" if not math.isfinite(v) else f"{v:.2f}"
-    return "n/a" if v is None else str(v)
-
-
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", default="hand,fly,mouse_sleap")
@@ -258,9 +253,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-self", action="store_true")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_loco"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "real_loco.json"))
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(1)
+    ap.set_defaults(threads=1)  # one torch thread (`start`)
+    args = start(ap, argv)
     anipose = anipose_wanted(args.no_anipose)
     kalman = kalman_wanted(args.no_kalman)
     work = Path(args.work)
@@ -287,7 +281,7 @@ def main(argv: list[str] | None = None) -> dict:
                     failures += 1
                     print(f"{left:<12}{m:<12}FAILED: {res[m]['error']}")
                     continue
-                print(f"{left:<12}{m:<12}" + "".join(f"{_fmt(res[m].get(c)):>18}" for c in cols))
+                print(f"{left:<12}{m:<12}" + "".join(f"{cell(res[m].get(c), 2):>18}" for c in cols))
     # medians over all leave-outs of each method's common-subset median
     overall = {}
     for m in METHODS:

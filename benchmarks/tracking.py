@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import emit, start
+from common import cell, emit, start
 
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
@@ -138,12 +138,6 @@ def evaluate(est: np.ndarray, truth: np.ndarray, nviews: np.ndarray, dltable: np
     }
 
 
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return "   n/a" if not math.isfinite(v) else f"{v:6.3f}" if abs(v) < 10 else f"{v:6.2f}"
-    return str(v)
-
-
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1500)
@@ -224,7 +218,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     print(f"{'method':<11}" + "".join(f"{h:>13}" for _, h in cols))
     for name, r in results.items():
-        print(f"{name:<11}" + "".join(f"{_fmt(r.get(k)):>13}" for k, _ in cols))
+        print(f"{name:<11}" + "".join(f"{cell(r.get(k)):>13}" for k, _ in cols))
     checks = {
         "complete": all(results[m]["completeness"] == 1.0 for m in results if m != "dlt"),
         "rigid_beats_dlt_on_dltable": results["rigid"]["rmse_dltable"]
