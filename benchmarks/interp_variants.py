@@ -18,6 +18,9 @@ for both, without changing the library: each is patched into one process around
   prediction instead of the part's mean.
 - ``shape_fused``: the kriging and the shape space's prediction fused (product of Gaussians)
   on the unobserved part-frames only.
+- ``no_mean``: inside a gap the interpolation between its ends, never the part's mean (the
+  kriging's fallback where the interpolation's variance exceeds the sill).
+- ``blend``: inside a gap the interpolation and the mean fused as independent Gaussians.
 - ``inflation_clip9``, ``inflation_clip16``, ``inflation_median``: the solver's per-part
   inflation of the prior from the single views (`adjust.lsq.fusion.prior_inflation`: the
   mean squared Mahalanobis distance, each clipped at 30, at most 2) with each distance clipped
@@ -36,6 +39,7 @@ per variant the mean over the scenes and the seed change at 3 cameras (seeds 0 a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -54,7 +58,7 @@ from tracking import run_track  # noqa: E402
 import adjust.lsq.observation as observation  # noqa: E402
 from adjust.lsq import fusion  # noqa: E402
 from adjust.lsq.geometry import so3_exp  # noqa: E402
-from adjust.lsq.stochastic import OffsetCovariance, krige_offsets  # noqa: E402
+from adjust.lsq.stochastic import OffsetCovariance, _neighbours, krige_offsets  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = (
@@ -62,6 +66,8 @@ VARIANTS = (
     "cv_calibration",
     "shape_drift",
     "shape_fused",
+    "no_mean",
+    "blend",
     "inflation_clip9",
     "inflation_clip16",
     "inflation_median",
@@ -291,6 +297,35 @@ def _krige_fused(offsets, observed, cov, skip_self=True):
     return np.where(g, pk, w * pk + (1 - w) * pd), np.where(g, vk, vk * vd / (vk + vd))
 
 
+def _krige_no_mean(offsets, observed, cov, skip_self=True):
+    """Inside a gap (an observation on both sides) the interpolation between its ends, never
+    the part's mean (its variance the interpolation's, beyond the sill in long gaps): a part
+    hidden away from its usual place is nearer its gap's ends than its mean."""
+    pred, var = krige_offsets(offsets, observed, cov, skip_self=skip_self)
+    wide = dataclasses.replace(cov, sill=np.full_like(cov.sill, 1e12))
+    p2, v2 = krige_offsets(offsets, observed, wide, skip_self=skip_self)
+    m = np.asarray(observed, dtype=bool) & np.isfinite(offsets).all(-1)
+    prev, nxt = _neighbours(m, skip_self)
+    inside = ((prev >= 0) & (nxt < m.shape[0]))[..., None]
+    return np.where(inside, p2, pred), np.where(inside, v2, var)
+
+
+def _krige_blend(offsets, observed, cov, skip_self=True):
+    """Inside a gap the interpolation between its ends and the part's mean fused as
+    independent Gaussians (variances: the interpolation's, the sill): a smooth version of the
+    kriging's switch to the mean where the interpolation's variance exceeds the sill."""
+    pred, var = krige_offsets(offsets, observed, cov, skip_self=skip_self)
+    wide = dataclasses.replace(cov, sill=np.full_like(cov.sill, 1e12))
+    p2, v2 = krige_offsets(offsets, observed, wide, skip_self=skip_self)
+    sill = cov.sill[None]
+    pb = (sill * p2 + v2 * cov.mean[None]) / (sill + v2)
+    vb = sill * v2 / (sill + v2)
+    m = np.asarray(observed, dtype=bool) & np.isfinite(offsets).all(-1)
+    prev, nxt = _neighbours(m, skip_self)
+    inside = ((prev >= 0) & (nxt < m.shape[0]))[..., None]
+    return np.where(inside, pb, pred), np.where(inside, vb, var)
+
+
 def _inflation(stat):
     """`fusion.prior_inflation` with another statistic of the single views' squared
     Mahalanobis distances d2 (stat(d2) <= 2 is the target)."""
@@ -330,7 +365,9 @@ def _median(d2) -> float:
 def patch(variant: str) -> None:
     """Put `variant` in place (and undo any other: ``base`` restores the library's)."""
     krige = {"cv_calibration": _krige_cv, "shape_drift": _krige_drift,
-             "shape_fused": _krige_fused}.get(variant, krige_offsets)  # fmt: skip
+             "shape_fused": _krige_fused, "no_mean": _krige_no_mean,
+             "blend": _krige_blend}.get(
+                 variant, krige_offsets)  # fmt: skip
     observation.krige_offsets = krige
     infl = {
         "inflation_clip9": _inflation(_clipped(9.0)),
