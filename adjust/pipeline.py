@@ -82,7 +82,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
     if chunk is not None:  # a long session's chunk: the mode (and net) its sample chose
         mode = chunk.deformation_mode(mode)
     estimate = tc.consensus.estimate
-    check_nwb_output(cfg, calibration)
+    check_nwb_output(tc.output, calibration)
     if mode.needs_consensus and not estimate:
         raise ValueError(
             f"deformation={mode.name} needs consensus.estimate=true (its 3D observations)"
@@ -279,7 +279,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
         kept = {"body": body, "solver_cfg": solver_cfg, "rigid_obs": rigid_obs, "few_var": few_var}
         return chunk.take(summary, res=res, cols=cols, det=det, cons=cons, **kept)
     summary = write_outputs(
-        out, summary, det, cols, res.poses, body, cons, cfg.output, calibration, detections
+        out, summary, det, cols, res.poses, body, cons, tc.output, calibration, detections
     )
     report_result(summary, where, out, fnum)
     return summary

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -34,6 +34,7 @@ __all__ = [
     "BodyFitConfig",
     "ConsensusConfig",
     "DeformConfig",
+    "OutputConfig",
     "TrackConfig",
     "resolve_deprecated",
 ]
@@ -180,9 +181,25 @@ class BodyFitConfig:
 
 
 @dataclass(frozen=True)
+class OutputConfig:
+    """``output:``: the run folder (``dir``, read by `deformnet.paths.output_dir`) and the NWB
+    file written beside points3d.csv (conf/track.yaml documents each key)."""
+
+    dir: str | None = None
+    nwb: bool = False  # also OUT/tracks.nwb (adjust.export.write_nwb)
+    fps: float | None = None  # Hz; None: the calibration's [metadata] fps
+    session_start_time: str | None = None  # ISO 8601; None: the calibration's
+    subject: dict | None = None  # NWB subject fields (adjust.nwb_metadata.SUBJECT_KEYS)
+
+    @classmethod
+    def from_config(cls, node) -> OutputConfig:
+        return _typed(cls, node, "output")
+
+
+@dataclass(frozen=True)
 class TrackConfig:
-    """adjust-track's settings the library reads (the ``input`` and ``output`` blocks are the
-    apps' own, `adjust.settings`)."""
+    """adjust-track's settings the library reads (the ``input`` block is the apps' own,
+    `adjust.settings`)."""
 
     deformation: str | None
     body: BodyFitConfig
@@ -196,6 +213,7 @@ class TrackConfig:
     sigma_def_mm: float | None
     progress: bool = True
     threads: int | None = 1
+    output: OutputConfig = field(default_factory=OutputConfig)
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> TrackConfig:
@@ -222,4 +240,5 @@ class TrackConfig:
             sigma_def_mm=None if sigma_def is None else float(sigma_def),
             progress=bool(cfg.get("progress", True)),
             threads=cfg.get("threads"),
+            output=OutputConfig.from_config(cfg.get("output")),
         )

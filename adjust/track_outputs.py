@@ -6,34 +6,33 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
 
 from adjust.export import write_nwb
 from adjust.io import InputError, load_calibration_metadata, recording_fps, write_points3d
 from adjust.nwb_metadata import session_start
 from adjust.summary import TrackColumns
 from adjust.tokenize import session_tokens
+from adjust.track_config import OutputConfig
 from deformnet.body import BodyModel
-from deformnet.confutil import to_plain
 from deformnet.outputs import OutputSet
 from deformnet.tables import extra_path
 
 __all__ = ["check_nwb_output", "write_outputs"]
 
 
-def check_nwb_output(cfg: DictConfig, calibration: str) -> None:
+def check_nwb_output(output: OutputConfig, calibration: str) -> None:
     """``output.nwb=true`` needs the recording's frame rate and start time: checked before
     any computing."""
-    if not cfg.output.get("nwb", False):
+    if not output.nwb:
         return
     meta = load_calibration_metadata(calibration)
-    if recording_fps(cfg.output.get("fps"), meta) is None:
+    if recording_fps(output.fps, meta) is None:
         raise InputError(
             f"output.nwb=true needs the recording's frame rate: set output.fps=... (Hz), or "
             f"give a calibration whose [metadata] has fps ({calibration} has none)"
         )
     try:
-        session_start(cfg.output.get("session_start_time"), meta, calibration)
+        session_start(output.session_start_time, meta, calibration)
     except InputError as exc:
         raise InputError(f"output.nwb=true: {exc} (output.session_start_time=...)") from None
 
@@ -46,14 +45,14 @@ def write_outputs(
     poses: np.ndarray,
     body: BodyModel,
     cons,
-    output_cfg,
+    output: OutputConfig,
     calibration: str,
     detections: str,
 ) -> dict:
     """Write a tracked session's outputs into `out` as one set and return the summary as
     committed (with every file's sha256). det: the `adjust.io.Detections`; cols: the result's
     points3d columns (`adjust.summary.track_columns`); poses (T, 6) the adjusted poses; cons:
-    the session's `adjust.estimate.Consensus` (None: no tokens); output_cfg: the ``output``
+    the session's `adjust.estimate.Consensus` (None: no tokens); output: the ``output``
     block (nwb, fps, session_start_time, subject)."""
     points_path = out / "points3d.csv"
     fnum = det.frames
@@ -87,14 +86,14 @@ def write_outputs(
         )
         staged.path(extra_path(points_path).name)  # its sidecar (pose, sigmas) joins the set
         summary["outputs"]["extra"] = str(extra_path(points_path))
-        if output_cfg.get("nwb", False):  # the same tracks as NWB (ndx-pose), adjust.export
+        if output.nwb:  # the same tracks as NWB (ndx-pose), adjust.export
             write_nwb(
                 staged.path("tracks.nwb"),
                 staged.path("points3d.csv"),
                 calibration,
-                fps=output_cfg.get("fps"),
-                session_start_time=output_cfg.get("session_start_time"),
-                subject=to_plain(output_cfg.get("subject")) or None,
+                fps=output.fps,
+                session_start_time=output.session_start_time,
+                subject=output.subject or None,
                 detections=detections,
             )
             summary["outputs"]["nwb"] = str(out / "tracks.nwb")
