@@ -238,7 +238,7 @@ class TrackConfig:
             solver=SolverConfig.from_config(solver, num_threads=0, **defaults).resolved(),
             sigma_det_px=None if sigma_det is None else float(sigma_det),
             sigma_def_mm=None if sigma_def is None else float(sigma_def),
-            progress=bool(cfg.get("progress", True)),
+            progress=bool(cfg.progress),
             threads=cfg.get("threads"),
             output=OutputConfig.from_config(cfg.get("output")),
         )
