@@ -276,13 +276,24 @@ def test_triangulate_killed_at_any_moment_leaves_one_whole_run(scene, tmp_path):
         assert now["likelihood_threshold"] in (0.5, 0.3, 0.4, 0.6)
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_exits_130_with_the_folder_whole(scene, tmp_path):
     out = tmp_path / "out"
     r = subprocess.run(_track_args(scene, out), capture_output=True, text=True, env=ENV)
     assert r.returncode == 0, r.stdout[-2000:]
     first = _whole(out)
     args = _track_args(scene, out, "solver.max_iterations=30")
-    p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    p = subprocess.Popen(  # SIGINT as at a terminal (a pytest-xdist worker ignores it, and a
+        args,  # child inherits an ignored signal across exec)
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=ENV,
+        preexec_fn=_default_sigint,
+    )
     for line in p.stdout:  # interrupted while it computes
         if "read 400 frames" in line:
             break
