@@ -1,6 +1,6 @@
 """What the benchmarks share: their start (`start`: arguments, logging, torch's thread count),
-a comma-separated choice among options (`subset`), a table cell (`cell`) and their last line
-(`emit`). A benchmark
+a comma-separated choice among options (`subset`), a printed table (`print_table`, its cells
+`cell`) and their last line (`emit`). A benchmark
 runs as a script, so ``from common import ...`` (imports inside the functions: a benchmark's
 child processes load nothing more for them)."""
 
@@ -45,6 +45,16 @@ def cell(v, digits: int = 3, large_digits: int | None = 2, missing: str = "n/a")
         d = digits if large_digits is None or abs(v) < 10 else large_digits
         return f"{v:.{d}f}"
     return str(v)
+
+
+def print_table(rows: dict, cols, width: int, **cell_args) -> None:
+    """`rows` (method -> {key: value}) as a table: one column per (key, heading) of `cols`,
+    `width` characters each (the method's too), cells by `cell` (`cell_args`: its options)."""
+    print(f"{'method':<{width}}" + "".join(f"{h:>{width}}" for _, h in cols))
+    for name, r in rows.items():
+        print(
+            f"{name:<{width}}" + "".join(f"{cell(r.get(k), **cell_args):>{width}}" for k, _ in cols)
+        )
 
 
 def emit(summary: dict, out: str | Path) -> dict:

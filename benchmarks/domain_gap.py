@@ -63,7 +63,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import cell, start  # noqa: E402
+from common import print_table, start  # noqa: E402
 from peers.anipose import (  # noqa: E402
     MOUSE_CONSTRAINTS,
     MOUSE_CONSTRAINTS_WEAK,
@@ -325,9 +325,7 @@ def main(argv: list[str] | None = None) -> dict:
         + ", ".join(f"{p} {v:.1f}" for p, v in zip(parts, floor.per_part))
         + ")"
     )
-    print(f"{'method':<12}" + "".join(f"{h:>12}" for _, h in cols))
-    for name, r in results.items():
-        print(f"{name:<12}" + "".join(f"{cell(r.get(k)):>12}" for k, _ in cols))
+    print_table(results, cols, 12)
     checks: dict = {}
     if "aniposelib" in results:
         a, b = results["interp"], results["aniposelib"]

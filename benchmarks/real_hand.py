@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import cell, emit, start
+from common import emit, print_table, start
 
 from adjust.camera import CameraTensors
 from adjust.io import load_scene, read_points3d
@@ -128,9 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"{det.num_cameras} cameras (reprojection error px, per point, over its accepted "
         "detections; DLTable = part-frames DLT triangulated)"
     )
-    print(f"{'method':<13}" + "".join(f"{h:>13}" for _, h in cols))
-    for name, r in results.items():
-        print(f"{name:<13}" + "".join(f"{cell(r[k], large_digits=None):>13}" for k, _ in cols))
+    print_table(results, cols, 13, large_digits=None)
     summary = {
         **results,
         "data": str(dets),

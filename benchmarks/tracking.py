@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import cell, emit, start
+from common import emit, print_table, start
 
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
@@ -216,9 +216,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"{fractions['seen_1']:.3f}, by none {fractions['seen_0']:.3f}; DLT-able "
         f"{dltable.mean():.3f} (RMSE in mm; occl = seen by < 2 cameras)"
     )
-    print(f"{'method':<11}" + "".join(f"{h:>13}" for _, h in cols))
-    for name, r in results.items():
-        print(f"{name:<11}" + "".join(f"{cell(r.get(k)):>13}" for k, _ in cols))
+    print_table(results, cols, 13)
     checks = {
         "complete": all(results[m]["completeness"] == 1.0 for m in results if m != "dlt"),
         "rigid_beats_dlt_on_dltable": results["rigid"]["rmse_dltable"]
