@@ -95,6 +95,25 @@ class BodyModel:
         hits = {p for n, p in self._loose_names() if n == want}
         return hits.pop() if len(hits) == 1 else None
 
+    def match(self, names: Sequence[str]) -> tuple[dict[str, int], list[str]]:
+        """The model's parts named in `names` (by name or alias, `resolve`) -> the index of the
+        name that names each, and the names that name no part. Two names of one part: a
+        ValueError naming both."""
+        found: dict[str, int] = {}
+        unknown: list[str] = []
+        for k, name in enumerate(names):
+            part = self.resolve(name)
+            if part is None:
+                unknown.append(name)
+            elif part in found:
+                raise ValueError(
+                    f"parts '{names[found[part]]}' and '{name}' both map to body part '{part}' "
+                    f"of model '{self.name}' (keep one, or rename the other)"
+                )
+            else:
+                found[part] = k
+        return found, unknown
+
     def _loose_names(self) -> list[tuple[str, str]]:
         """(part_key of a part name or alias, the part) for every part and alias."""
         return [(part_key(p), p) for p in self.parts] + [

@@ -229,19 +229,10 @@ def _map_parts(
     """Target part order and, for each target part, the file's column (None if absent)."""
     where = f"{table.path} (camera '{camera}')"
     if body is not None:
-        resolved: dict[str, int] = {}
-        unknown = []
-        for k, name in enumerate(table.parts):
-            target = body.resolve(name)
-            if target is None:
-                unknown.append(name)
-                continue
-            if target in resolved:
-                raise InputError(
-                    f"{where}: parts '{table.parts[resolved[target]]}' and '{name}' both map to "
-                    f"body part '{target}' of model '{body.name}'"
-                )
-            resolved[target] = k
+        try:
+            resolved, unknown = body.match(table.parts)
+        except ValueError as exc:  # two of the file's parts name one part of the model
+            raise InputError(f"{where}: {exc}") from None
         if unknown:
             msg = (
                 f"{where}: unknown parts {unknown} for body model '{body.name}' (parts: "
