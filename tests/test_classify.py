@@ -398,7 +398,7 @@ def test_forest_head_on_a_frozen_encoder_and_predict(tmp_path):
     ]
     with pytest.raises(ValueError, match="freeze=true"):
         run(_compose([*base, "freeze=false", f"output.dir={tmp_path / 'no'}"]))
-    with pytest.raises(ValueError, match="needs frame_features=true"):
+    with pytest.raises(ValueError, match="head=forest reads the frame features"):
         run(
             _compose(
                 [*base, "freeze=true", "frame_features=false", f"output.dir={tmp_path / 'no'}"]
@@ -479,10 +479,8 @@ def test_lock_box_context_tells_apart_what_only_the_place_does(tmp_path):
     calib = _calibration(tmp_path / "calibration.toml", {"lever": lever, "ball": ball})
     train = [_box_session(tmp_path, f"train{i}", i, lever, away) for i in range(2)]
     test = [_box_session(tmp_path, "test", 5, lever, away)]
-    base = [
+    common = [
         *TINY,
-        "head=forest",
-        "head.trees=25",
         "freeze=true",
         "frame_features=false",
         "classes=[walk,lever]",
@@ -493,9 +491,11 @@ def test_lock_box_context_tells_apart_what_only_the_place_does(tmp_path):
         "smoothing.median=0",
         "smoothing.min_bout=0",
     ]
-    with pytest.raises(ValueError, match="needs frame_features=true or lock-box context"):
+    base = [*common, "head=forest", "head.trees=25"]
+    with pytest.raises(ValueError, match="head=forest reads the frame features"):
         run(_compose([*base, f"output.dir={tmp_path / 'none'}"]))
-    blind = run(_compose([*base, "head.inputs=all", f"output.dir={tmp_path / 'blind'}"]))
+    # a linear head reads the encoder's canonical outputs (no pose, no place)
+    blind = run(_compose([*common, "head=linear", f"output.dir={tmp_path / 'blind'}"]))
     assert blind["report"]["raw"]["macro_f1"] < 0.8, blind["report"]["raw"]
     out = tmp_path / "box"
     res = run(_compose([*base, f"mechanisms.calibration={calib}", f"output.dir={out}"]))
