@@ -91,9 +91,10 @@ def _as_written(v) -> np.ndarray:
 class ChunkWriter:
     """The chunks' interiors appended, in order, to points3d.csv in the staged output set and
     to raw arrays under `tmp` (its sidecar's rows, accepted.npz's and tokens.npz's arrays);
-    `finish` writes the sidecar and the npz files from them."""
+    `finish` writes the sidecar and the npz files from them; with `nwb`, the numbers also to a
+    `TracksOnDisk` (`table`) for the NWB file."""
 
-    def __init__(self, staged: OutputSet, tmp: Path) -> None:
+    def __init__(self, staged: OutputSet, tmp: Path, nwb: bool = False) -> None:
         self.staged, self.tmp = staged, tmp
         self.points = staged.path("points3d.csv")
         self.extra_rows = tmp / "extra.rows"
@@ -102,7 +103,7 @@ class ChunkWriter:
         self.tokens = False
         self.body = None
         self.empty = 0  # frames left untracked (add_empty)
-        self.table = TracksOnDisk(tmp)
+        self.table = TracksOnDisk(tmp) if nwb else None  # for the NWB file (output.nwb)
 
     def add(self, det, cols, a: int, b: int, res, body, cons) -> None:
         part = self.tmp / "chunk.csv"
@@ -119,9 +120,15 @@ class ChunkWriter:
             fnum=det.frames,
         )
         self._append(part, cols.observed[a:b])
-        self.table.append(
-            det.parts, cols.points[a:b], cols.error[a:b], cols.ncams[a:b], cols.score[a:b], extra
-        )
+        if self.table is not None:
+            self.table.append(
+                det.parts,
+                cols.points[a:b],
+                cols.error[a:b],
+                cols.ncams[a:b],
+                cols.score[a:b],
+                extra,
+            )
         if cons is not None:
             t = session_tokens(res.poses, body.points, cons, body.parts, body.name)
             deformed = np.where(t.observed[..., None], t.deformed, np.nan)
@@ -157,7 +164,8 @@ class ChunkWriter:
             fnum=np.asarray(fnum),
         )
         self._append(part, np.zeros((n, K, C), dtype=bool))
-        self.table.append(parts, np.full((n, K, 3), np.nan), nan, np.zeros((n, K)), nan, extra)
+        if self.table is not None:
+            self.table.append(parts, np.full((n, K, 3), np.nan), nan, np.zeros((n, K)), nan, extra)
         self.rows += n
         self.empty += n
 

@@ -347,7 +347,7 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
         model = sample.learned
         sample_s = time.perf_counter() - t0
         with OutputSet(out) as staged:
-            writer = ChunkWriter(staged, tmp)
+            writer = ChunkWriter(staged, tmp, nwb=bool(cfg.output.get("nwb", False)))
             summaries, frames, facts, untracked = _track_chunks(
                 cfg, track, cache, plan, model, writer
             )

@@ -26,10 +26,13 @@ file, nothing in the working directory. Last line JSON (counts), also written to
 runs/benchmarks/robustness.json.
 
     .venv/bin/python benchmarks/robustness.py [--jobs 2] [--frames 100] [--only 'NAME;...']
-        [--groups inputs,scripts,lost]
+        [--groups inputs,scripts,lost,chunks]
 
 ``--groups``: ``inputs`` (the defective sessions through adjust-triangulate and adjust-track),
-``scripts`` (the other console scripts), ``lost`` (killed, interrupted and concurrent runs).
+``scripts`` (the other console scripts), ``lost`` (killed, interrupted and concurrent runs),
+``chunks`` (adjust-track on a 300-frame session in 128-frame chunks: NWB output, two of three
+cameras out for a chunk, one camera throughout, a net mode, bad NWB settings, killed and
+interrupted re-runs).
 """
 
 from __future__ import annotations
@@ -72,7 +75,7 @@ SCRIPTS = (
     "deformnet-train",
     "deformnet-classify",
 )
-GROUPS = ("inputs", "scripts", "lost")
+GROUPS = ("inputs", "scripts", "lost", "chunks")
 TRACK_FAST = ["progress=false", "solver.max_iterations=8"]
 CAMERAS = ("top", "side", "front")  # the default rig's
 ENV = {**os.environ, "HYDRA_FULL_ERROR": "0"}
@@ -115,9 +118,12 @@ def _rewrite(folder: Path, cam: str, edit: Callable[[list[list[str]]], list[list
     _write(p, edit(_read(p)))
 
 
-def _no_detections(rows: list[list[str]]) -> list[list[str]]:
-    """The rows with every frame's detections empty (frame index kept)."""
-    return rows[:3] + [[r[0]] + [""] * (len(r) - 1) for r in rows[3:]]
+def _no_detections(rows: list[list[str]], a: int = 0, b: int | None = None) -> list[list[str]]:
+    """The rows with the detections of frames a..b-1 (default: every frame) empty (frame
+    index kept)."""
+    b = len(rows) - 3 if b is None else b
+    blank = [[r[0]] + [""] * (len(r) - 1) for r in rows[3 + a : 3 + b]]
+    return rows[: 3 + a] + blank + rows[3 + b :]
 
 
 def _cell(folder: Path, cam: str, row: int, col: int, value: str) -> None:
@@ -739,6 +745,85 @@ def script_jobs(work: Path, base: Path) -> list[Job]:
     return jobs
 
 
+#: a long session's frames and chunk size for the chunked cases (three chunks)
+LONG_FRAMES, CHUNK = 300, 128
+
+
+def _summary(out: Path) -> dict:
+    try:
+        return json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _chunked_ok(out: Path, truth: dict, gap: tuple[int, int] | None = None) -> bool:
+    """A chunked adjust-track run sound: summary.json says chunked, every frame outside `gap`
+    finite and within 25 mm rms of the truth, every frame in [gap) empty, ``tracked`` 0 there
+    and named in summary.json ``untracked``."""
+    from adjust.io import read_points3d
+
+    s = _summary(out)
+    if not s.get("chunked") or not (out / "points3d.csv").is_file():
+        return False
+    d = read_points3d(out / "points3d.csv")
+    fnum = np.asarray(d["fnum"]).astype(int)
+    inside = np.zeros(len(fnum), bool) if gap is None else (fnum >= gap[0]) & (fnum < gap[1])
+    P = d["points"]
+    if not np.isfinite(P[~inside]).all() or np.isfinite(P[inside]).any():
+        return False
+    e = np.linalg.norm(P[~inside] - truth["points"][fnum[~inside]], axis=-1)
+    if np.sqrt(np.mean(e**2)) > 25.0:
+        return False
+    if gap is None:
+        return "untracked" not in s
+    named = s.get("untracked", {}).get("ranges") == [[gap[0], gap[1] - 1]]
+    return named and bool((d["extra"]["tracked"][inside] == 0).all())
+
+
+def chunk_jobs(work: Path) -> list[Job]:
+    """adjust-track on a session longer than ``chunk_frames`` (issue 46): chunks with NWB
+    output, a chunk in which two of the three cameras are out, one camera for the whole
+    session, a net mode, NWB output without a frame rate."""
+    long = simulate(work / "long", LONG_FRAMES)
+    truth = dict(np.load(long / "truth.npz"))
+    gap = work / "long-gap"
+    shutil.copytree(long, gap)
+    for cam in CAMERAS[1:]:  # side and front out for the middle chunk
+        _rewrite(gap, cam, lambda rows: _no_detections(rows, CHUNK, 2 * CHUNK))
+    one = work / "long-one"
+    shutil.copytree(long, one)
+    for cam in CAMERAS[1:]:
+        _rewrite(one, cam, _no_detections)
+    nwb = ["output.nwb=true", "output.fps=100", "output.session_start_time=2026-01-01T00:00:00"]
+    jobs = []
+
+    def job(name, folder, extra, expect="ok", check=None):
+        out = work / "chunks" / name.split(":")[0].replace(" ", "-")
+        args = [f"input.session={folder}", f"output.dir={out}", f"chunk_frames={CHUNK}"]
+        jobs.append(Job(f"chunked: {name}", "adjust-track", [*args, *TRACK_FAST, *extra],
+                        expect, out=out, check=check and (lambda: check(out))))  # fmt: skip
+
+    job("clean, NWB", long, nwb,
+        check=lambda o: _chunked_ok(o, truth) and (o / "tracks.nwb").is_file())  # fmt: skip
+    job("two cameras out for a chunk, NWB", gap, nwb,
+        check=lambda o: _chunked_ok(o, truth, (CHUNK, 2 * CHUNK))
+        and (o / "tracks.nwb").is_file())  # fmt: skip
+    job("one camera in the whole session", one, [], "error")
+    job("deformation=default", long, ["deformation=default"],
+        check=lambda o: _chunked_ok(o, truth)
+        and _summary(o)["deformation"].get("decided_on") == "sample")  # fmt: skip
+    job("NWB without a frame rate", long, ["output.nwb=true", "output.fps=null"], "error")
+    job("NWB with a bad start time", long, [*nwb, "output.session_start_time=soon"], "error")
+    for mode, n in (("kill", 2), ("sigint", 1)):  # an earlier chunked run's folder kept whole
+        for i in range(n):
+            out = work / "chunks" / f"lost-{mode}-{i}"
+            args = [f"input.session={long}", f"output.dir={out}", f"chunk_frames={CHUNK}"]
+            jobs.append(Job(f"chunked: re-run {mode} {i}", "adjust-track",
+                            [*args, *TRACK_FAST, *nwb], "lost", out=out, mode=mode,
+                            again=["solver.max_iterations=5"]))  # fmt: skip
+    return jobs
+
+
 def lost_jobs(work: Path, base: Path) -> list[Job]:
     """Killed, interrupted and concurrent re-runs of adjust-triangulate and adjust-track into
     a folder holding a complete earlier run."""
@@ -934,6 +1019,8 @@ def main(argv: list[str] | None = None) -> dict:
         todo += [j for j in script_jobs(work, base) if not only or j.name in only]
     if "lost" in groups:
         todo += [j for j in lost_jobs(work, base) if not only or j.name in only]
+    if "chunks" in groups:
+        todo += [j for j in chunk_jobs(work) if not only or j.name in only]
     marker = Path("/tmp/mousetrack-robustness-pwned")
     marker.unlink(missing_ok=True)
     rng = random.Random(46)
