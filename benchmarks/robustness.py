@@ -798,7 +798,7 @@ def chunk_jobs(work: Path) -> list[Job]:
     jobs = []
 
     def job(name, folder, extra, expect="ok", check=None):
-        out = work / "chunks" / name.split(":")[0].replace(" ", "-")
+        out = work / "chunks" / "".join(c if c.isalnum() else "-" for c in name)
         args = [f"input.session={folder}", f"output.dir={out}", f"chunk_frames={CHUNK}"]
         jobs.append(Job(f"chunked: {name}", "adjust-track", [*args, *TRACK_FAST, *extra],
                         expect, out=out, check=check and (lambda: check(out))))  # fmt: skip
