@@ -13,12 +13,13 @@ Each run is `adjust.pipeline.run` on the session in its own process (``--child``
 resident set size is the kernel's VmHWM of that process at its end (interpreter, torch, the
 whole run: reading, the sample, every chunk, the outputs), ``before_rss_mb`` its size before
 the run. ``--chunk-frames 0`` runs the session whole (the recipe without chunks, for the
-comparison at sizes it can hold). ``--profile`` samples the resident size every 0.1 s and
+comparison at sizes it can hold). ``--nwb`` writes the NWB file too (``output.nwb=true``,
+block by block in a chunked run). ``--profile`` samples the resident size every 0.1 s and
 reports the largest per log message (where the memory goes).
 
     flock /tmp/mousetrack-cpu.lock .venv/bin/python benchmarks/long_session.py \
         [--frames 100000 300000 1000000] [--chunk-frames 50000] [--work runs/benchmarks/long]
-        [--out runs/benchmarks/long_session.json] [--profile]
+        [--out runs/benchmarks/long_session.json] [--profile] [--nwb]
 
 Prints one line per size and the JSON summary as the last line (also written to ``--out``).
 """
@@ -165,7 +166,11 @@ class _Profile(logging.Handler):
         self.peak = _status_kb("VmRSS")
 
 
-def child(session: Path, out: Path, chunk_frames: int, profile: bool) -> dict:
+#: ``--nwb``: the NWB file too (issue 46: written block by block in a chunked run)
+NWB = ["output.nwb=true", "output.fps=100", "output.session_start_time=2026-01-01T00:00:00"]
+
+
+def child(session: Path, out: Path, chunk_frames: int, profile: bool, nwb: bool = False) -> dict:
     """One adjust-track run in this process: its JSON row."""
     torch.set_num_threads(1)
     overrides = [
@@ -175,6 +180,7 @@ def child(session: Path, out: Path, chunk_frames: int, profile: bool) -> dict:
         "body=auto",
         "progress=false",
         f"chunk_frames={chunk_frames}",
+        *(NWB if nwb else []),
     ]
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = compose("track", overrides)
@@ -189,6 +195,7 @@ def child(session: Path, out: Path, chunk_frames: int, profile: bool) -> dict:
     row = {
         "frames": int(summary["num_frames"]),
         "chunk_frames": chunk_frames,
+        "nwb": nwb,
         "chunks": len((summary.get("chunked") or {}).get("chunks", [])) or 1,
         "peak_rss_mb": round(_status_kb("VmHWM") / 1024, 1),
         "before_rss_mb": round(before / 1024, 1),
@@ -207,9 +214,10 @@ def child(session: Path, out: Path, chunk_frames: int, profile: bool) -> dict:
     return row
 
 
-def measure(session: Path, out: Path, chunk_frames: int, profile: bool) -> dict:
+def measure(session: Path, out: Path, chunk_frames: int, profile: bool, nwb: bool = False) -> dict:
     cmd = [sys.executable, __file__, "--child", str(session), "--child-out", str(out)]
     cmd += ["--chunk-frames", str(chunk_frames)] + (["--profile"] if profile else [])
+    cmd += ["--nwb"] if nwb else []
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), *sys.path]))
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
     if res.returncode != 0:
@@ -224,19 +232,21 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "benchmarks" / "long")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmarks" / "long_session.json")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--nwb", action="store_true", help="write the NWB file too (output.nwb)")
     ap.add_argument("--keep-outputs", action="store_true")
     ap.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--child-out", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.child is not None:
-        print(json.dumps(child(args.child, args.child_out, args.chunk_frames, args.profile)))
+        row = child(args.child, args.child_out, args.chunk_frames, args.profile, args.nwb)
+        print(json.dumps(row))
         return {}
     rows = []
     for T in args.frames:
         session = ensure_session(args.work, T)
         out = args.work / f"out_{T}_{args.chunk_frames}"
-        row = measure(session, out, args.chunk_frames, args.profile)
+        row = measure(session, out, args.chunk_frames, args.profile, args.nwb)
         if not args.keep_outputs:
             shutil.rmtree(out, ignore_errors=True)
         log.info(
