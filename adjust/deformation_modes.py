@@ -268,7 +268,13 @@ class InterpMode(DeformationMode):
     def adjust(self, a: Adjusting) -> tuple[Any, dict]:
         obs = a.interp_observation()
         res = a.solve(a.deform_solver_cfg, obs, a.rigid.poses)
-        return res, {"mode": self.name, **interp_facts(obs, a.body)}
+        facts = {}
+        if a.deform.single_views:  # again, the single views anchoring the gaps
+            views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
+            obs = obs.anchored(res.points, res.point_sd, views)
+            res = a.solve(a.deform_solver_cfg, obs, res.poses)
+            facts["single_view_anchors"] = int(obs.anchors.sum())
+        return res, {"mode": self.name, **interp_facts(obs, a.body), **facts}
 
 
 @dataclass

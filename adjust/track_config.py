@@ -124,6 +124,7 @@ class DeformConfig:
     rigid_first: bool = True
     max_iterations: int | None = 10
     require_better: str = "auto"
+    single_views: bool = True
 
     def __post_init__(self) -> None:
         if self.measured not in MEASURED:

@@ -7,7 +7,7 @@ error is on parts no camera sees, in gaps of up to 300 frames). This script trie
 for both, without changing the library: each is patched into one process around
 `adjust-track`'s defaults.
 
-- ``base``: the defaults.
+- ``base``: the defaults before issue 45's stop (``deform.single_views=false``).
 - ``cv_calibration``: the kriging variance of the unobserved part-frames scaled per part by the
   recording's own cross-validation (`calibrate_kriging`: observed stretches hidden in blocks
   whose lengths follow the session's real gap lengths, the held-out error against the
@@ -21,6 +21,11 @@ for both, without changing the library: each is patched into one process around
 - ``no_mean``: inside a gap the interpolation between its ends, never the part's mean (the
   kriging's fallback where the interpolation's variance exceeds the sill).
 - ``blend``: inside a gap the interpolation and the mean fused as independent Gaussians.
+- ``single_views``: the defaults since issue 45's stop (``deform.single_views=true``): interp
+  solved twice, the second time with the part-frames one camera saw (at the first pass's fused
+  points, their fused variance as noise) among the observations the gaps are interpolated from
+  (`InterpObservation.anchored`). Every other variant runs with ``deform.single_views=false``
+  (the defaults before).
 - ``inflation_clip9``, ``inflation_clip16``, ``inflation_median``: the solver's per-part
   inflation of the prior from the single views (`adjust.lsq.fusion.prior_inflation`: the
   mean squared Mahalanobis distance, each clipped at 30, at most 2) with each distance clipped
@@ -68,6 +73,7 @@ VARIANTS = (
     "shape_fused",
     "no_mean",
     "blend",
+    "single_views",
     "inflation_clip9",
     "inflation_clip16",
     "inflation_median",
@@ -465,7 +471,8 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
         rec = Recorder()
         rec.install()
         try:
-            est, _, summ = run_track(scene, out, [f"threads={args.threads}"])
+            ov = [] if variant == "single_views" else ["deform.single_views=false"]
+            est, _, summ = run_track(scene, out, [f"threads={args.threads}", *ov])
         finally:
             rec.uninstall()
         est = rm.align(est, summ["parts"], parts)

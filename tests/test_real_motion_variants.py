@@ -1,6 +1,8 @@
-"""benchmarks/interp_variants.py's estimators (issue 45): the body's shape space as a
-conditional Gaussian (`PartCovariance`), the session's gap lengths and the cross-validated
-calibration of a predictor's variance (`calibrate_kriging`)."""
+"""Imputing parts no camera sees in 3D (issue 45): interp's gaps anchored by the part-frames one
+camera saw (`InterpObservation.anchored`, the default); benchmarks/interp_variants.py's
+estimators: the body's shape space as a conditional Gaussian (`PartCovariance`), the session's
+gap lengths and the cross-validated calibration of a predictor's variance
+(`calibrate_kriging`)."""
 
 from __future__ import annotations
 
@@ -9,7 +11,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+import torch
 
+from adjust.lsq.observation import InterpObservation
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -83,3 +88,48 @@ def test_cross_validation_finds_a_variance_off_by_a_factor():
     f4 = iv.calibrate_kriging(o, m, overconfident, nug).factor
     assert np.all((f1 > 0.6) & (f1 < 1.6)), f1
     assert np.all((f4 > 2.5) & (f4 < 6.0)), f4
+
+
+def _gap_scene(T=300, K=3, seed=0):
+    """Offsets of K parts (identity poses, so global = body frame + rest points): small noise
+    about 0, but part 0 sits 20 mm off along x through a 120-frame gap of its 3D observations
+    (hidden away from its usual place)."""
+    rng = np.random.default_rng(seed)
+    body = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 30.0, 0.0]])[:K]
+    off = 0.5 * rng.normal(size=(T, K, 3))
+    gap = slice(90, 210)
+    off[gap, 0, 0] += 20.0
+    X = body[None] + off
+    observed = np.ones((T, K), dtype=bool)
+    observed[gap, 0] = False
+    return body, X, observed, gap
+
+
+def test_single_view_anchors_pull_a_gap_off_the_mean():
+    """Across a long gap the interpolation reverts to the part's mean (0); with the part-frames
+    one camera saw in the gap as anchors (at their fused points, 3 mm sd) the prediction in the
+    gap follows them, its variance no smaller than an anchor's own; the anchors, their noise
+    and the 3D observations are kept apart."""
+    body, X, observed, gap = _gap_scene()
+    T, K = observed.shape
+    noise = torch.full((T, K), 0.25, dtype=torch.float64)
+    obs = InterpObservation(
+        torch.tensor(body), torch.tensor(np.where(observed[..., None], X, np.nan)),
+        torch.tensor(observed), noise,
+    )  # fmt: skip
+    poses = torch.zeros(T, 6, dtype=torch.float64)
+    obs.prepare(poses)
+    mid = (gap.start + gap.stop) // 2
+    assert abs(float(obs._M[mid, 0, 0]) - body[0, 0]) < 5.0  # the mean, far from the truth
+    ncams = np.where(observed, 2, 0)
+    ncams[gap.start + 5 : gap.stop - 5 : 10, 0] = 1  # one view every 10 frames in the gap
+    sd = np.full((T, K), 3.0)
+    anchored = obs.anchored(torch.tensor(X), torch.tensor(sd), torch.tensor(ncams))
+    assert int(anchored.anchors.sum()) == int((ncams == 1).sum())
+    assert torch.equal(anchored.anchors | obs.observed, anchored.observed)
+    anchored.prepare(poses)
+    assert abs(float(anchored._M[mid, 0, 0]) - (body[0, 0] + 20.0)) < 4.0
+    a = anchored.anchors.numpy()
+    assert np.all(anchored._var.numpy()[a] >= 9.0 - 1e-9)  # an anchor's prior: >= its own
+    with pytest.raises(ValueError, match="point_sd"):
+        obs.anchored(torch.tensor(X), torch.tensor(sd[:, :2]), torch.tensor(ncams))

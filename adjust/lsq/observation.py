@@ -161,6 +161,8 @@ class InterpObservation:
             raise ValueError(f"few_var must be ({K}, 3), got {tuple(few_var.shape)}")
         self.few_var = few_var
         self.cov = None  # the last OffsetCovariance
+        self.anchors = None  # (T, K) part-frames observed through one view (`anchored`)
+        self.anchor_var = None  # (T, K) their noise variance per body axis, mm^2
         self.outlier_rounds = 2
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
         self.neighbours = None  # (T, K, 3) body-frame prediction from the neighbouring frames
@@ -186,26 +188,38 @@ class InterpObservation:
         m = self.observed.cpu().numpy()
         B = self.body.cpu().numpy().astype(np.float64)
         o = np.einsum("tji,tkj->tki", Rn, X - tn[:, None, :]) - B[None]
+        anchor = None if self.anchors is None else self.anchors.cpu().numpy()
+        m3 = m if anchor is None else m & ~anchor  # the 3D observations
         nugget = None
-        if self.noise_var is not None and m.any():  # per part: the mean over its observations
+        if self.noise_var is not None and m3.any():  # per part: the mean over its observations
             nv = self.noise_var.cpu().numpy().astype(np.float64)
-            per = np.where(m, nv, 0.0).sum(0) / np.maximum(m.sum(0), 1)
+            per = np.where(m3, nv, 0.0).sum(0) / np.maximum(m3.sum(0), 1)
             nugget = np.repeat(per[:, None], 3, axis=1)
         # robust: an observation its own neighbours contradict (chi-square, 3 dof, p = 0.001)
         # is a mis-detection, not deformation; re-estimate without it
         few = None if self.few_var is None else self.few_var.cpu().numpy().astype(np.float64)
         good = m
         for _ in range(self.outlier_rounds + 1):
+            # single-view anchors (`anchored`) count in the covariance too (they show where a
+            # part goes while it is hidden) and are interpolated from with their own noise
             self.cov = OffsetCovariance.estimate(o, good, nugget=nugget, few_var=few)
-            pred, var = krige_offsets(o, good, self.cov, skip_self=True)
+            noise = None
+            if anchor is not None:
+                av = self.anchor_var.cpu().numpy().astype(np.float64)
+                noise = np.where(anchor[..., None], av[..., None], self.cov.nugget[None])
+            pred, var = krige_offsets(o, good, self.cov, skip_self=True, noise=noise)
             if _ == self.outlier_rounds:
                 break
-            d2 = ((o - pred) ** 2 / (var + self.cov.nugget[None])).sum(-1)
+            own = self.cov.nugget[None] if noise is None else noise
+            d2 = ((o - pred) ** 2 / (var + own)).sum(-1)
             new = m & ~(d2 > 16.3)
             if (new == good).all():
                 break
             good = new
         self.outliers = torch.as_tensor(m & ~good)
+        if anchor is not None:  # an anchor's prior is no surer than the anchor itself (its
+            # neighbours' single views were fused with the same first-pass prediction)
+            var = np.where(anchor[..., None], np.maximum(var, av[..., None]), var)
         dt = poses.dtype
         # the neighbours' prediction, also where the rigid point replaces it (diagnostics)
         self.neighbours = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
@@ -215,6 +229,38 @@ class InterpObservation:
             var = np.where(good[..., None], mv[None], var)
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
+
+    def anchored(self, points, point_sd, ncams) -> InterpObservation:
+        """This observation with the part-frames one camera saw among the observations too.
+
+        points (T, K, 3) global mm and point_sd (T, K) mm (root of the trace of the covariance)
+        from an adjustment with this observation, ncams (T, K) the views it accepted per
+        part-frame: a part-frame without a 3D observation whose one view was accepted is
+        observed at its fused point, with noise variance point_sd^2 per body axis (the whole
+        trace: the error lies mostly along the camera's ray, in no known body axis). Inside a
+        gap a single view is the only evidence of where the part is, and a part is hidden most
+        when it is away from its usual place (its offsets in the gaps stray 1.5-3x further than
+        where it is seen, `benchmarks/interp_variants.py`): the kriging across the gap then
+        rests on these anchors instead of reverting to the part's mean, and the offsets'
+        covariance (`prepare`) counts them too (the nugget: the 3D observations' noise). The
+        anchors are kept as ``anchors`` (T, K) and ``anchor_var`` (T, K)."""
+        pts = torch.as_tensor(points, dtype=self.data.dtype)
+        sd = torch.as_tensor(point_sd, dtype=self.data.dtype)
+        T, K = self.observed.shape
+        if tuple(pts.shape) != (T, K, 3) or tuple(sd.shape) != (T, K):
+            raise ValueError(
+                f"points (T, K, 3) and point_sd (T, K) must match the observation's "
+                f"{(T, K)}, got {tuple(pts.shape)}, {tuple(sd.shape)}"
+            )
+        one = torch.as_tensor(ncams) == 1
+        one = one & ~self.observed & torch.isfinite(pts).all(-1) & torch.isfinite(sd)
+        data = torch.where(self.observed[..., None], self.data, torch.nan_to_num(pts))
+        out = InterpObservation(
+            self.body, data, self.observed | one, self.noise_var, self.few_var, self.measured_var
+        )
+        out.anchors = one
+        out.anchor_var = torch.where(one, sd * sd, torch.zeros_like(sd))
+        return out
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:
         """Switch the measured part-frames' prior: the rigid model point with this (K, 3)
@@ -245,7 +291,7 @@ class InterpObservation:
         if start == 0 and stop == self.observed.shape[0]:
             return self
         nc = None if self.noise_var is None else self.noise_var[start:stop]
-        return InterpObservation(
+        out = InterpObservation(
             self.body,
             self.data[start:stop],
             self.observed[start:stop],
@@ -253,3 +299,7 @@ class InterpObservation:
             self.few_var,
             self.measured_var,
         )
+        if self.anchors is not None:
+            out.anchors = self.anchors[start:stop]
+            out.anchor_var = self.anchor_var[start:stop]
+        return out

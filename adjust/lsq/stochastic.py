@@ -202,7 +202,11 @@ def _neighbours(observed: np.ndarray, skip_self: bool) -> tuple[np.ndarray, np.n
 
 
 def krige_offsets(
-    offsets: np.ndarray, observed: np.ndarray, cov: OffsetCovariance, skip_self: bool = True
+    offsets: np.ndarray,
+    observed: np.ndarray,
+    cov: OffsetCovariance,
+    skip_self: bool = True,
+    noise: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Predict every part-frame's offset from its nearest observed neighbours in time.
 
@@ -216,6 +220,9 @@ def krige_offsets(
     2 (l_p g(d_p) + l_n g(d_n)) - 2 l_p l_n g(d_p + d_n) + (l_p^2 + l_n^2) nugget.
     Where that exceeds the part's variance about its mean (far from any observation), the mean
     is the better prediction and is used, with variance = sill; so is it with no neighbour.
+    noise (T, K, 3) mm^2, optional: each observation's own noise variance per body axis (e.g.
+    a part-frame seen by one camera, `InterpObservation.anchored`), in place of the nugget:
+    l_p^2 noise_p + l_n^2 noise_n.
     """
     o = np.asarray(offsets, dtype=np.float64)
     m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
@@ -238,7 +245,14 @@ def krige_offsets(
     gpn = sill - cov.covariance(dp + dn)
     lp3, ln3 = lp[..., None], ln[..., None]
     pred = lp3 * op + ln3 * on
-    var = 2 * (lp3 * gp + ln3 * gn) - 2 * lp3 * ln3 * gpn + (lp3**2 + ln3**2) * cov.nugget[None]
+    if noise is None:
+        obs_var = (lp3**2 + ln3**2) * cov.nugget[None]
+    else:
+        nz = np.asarray(noise, dtype=np.float64)
+        n_p = np.where(has_p[..., None], nz[np.clip(prev, 0, T - 1), kk], 0.0)
+        n_n = np.where(has_n[..., None], nz[np.clip(nxt, 0, T - 1), kk], 0.0)
+        obs_var = lp3**2 * n_p + ln3**2 * n_n
+    var = 2 * (lp3 * gp + ln3 * gn) - 2 * lp3 * ln3 * gpn + obs_var
     use_mean = ~(has_p | has_n)[..., None] | (var > sill)
     pred = np.where(use_mean, cov.mean[None], pred)
     var = np.where(use_mean, np.broadcast_to(sill, var.shape), var)
