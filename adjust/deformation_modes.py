@@ -226,6 +226,21 @@ class Adjusting:
             few_var=self.few_var,
         )
 
+    def interp_solve(self, cfg, init) -> tuple[Any, InterpObservation, dict]:
+        """``deformation=interp``'s adjustment from the poses ``init`` with the solver settings
+        ``cfg``: (the result, its observation, summary facts). With ``deform.single_views``
+        it runs twice, the second time with the part-frames one camera saw among the
+        observations its gaps are interpolated from (`InterpObservation.anchored`)."""
+        obs = self.interp_observation()
+        res = self.solve(cfg, obs, init)
+        facts = {}
+        if self.deform.single_views:
+            views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
+            obs = obs.anchored(res.points, res.point_sd, views)
+            res = self.solve(cfg, obs, res.poses)
+            facts["single_view_anchors"] = int(obs.anchors.sum())
+        return res, obs, facts
+
 
 class DeformationMode:
     """One choice of ``deformation=``. name: its summary.json ``mode``."""
@@ -266,14 +281,7 @@ class InterpMode(DeformationMode):
     needs_consensus = True
 
     def adjust(self, a: Adjusting) -> tuple[Any, dict]:
-        obs = a.interp_observation()
-        res = a.solve(a.deform_solver_cfg, obs, a.rigid.poses)
-        facts = {}
-        if a.deform.single_views:  # again, the single views anchoring the gaps
-            views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
-            obs = obs.anchored(res.points, res.point_sd, views)
-            res = a.solve(a.deform_solver_cfg, obs, res.poses)
-            facts["single_view_anchors"] = int(obs.anchors.sum())
+        res, obs, facts = a.interp_solve(a.deform_solver_cfg, a.rigid.poses)
         return res, {"mode": self.name, **interp_facts(obs, a.body), **facts}
 
 
@@ -319,12 +327,11 @@ class NetMode(DeformationMode):
         return cons is not None or bool(deform.rigid_first)
 
     def adjust(self, a: Adjusting) -> tuple[Any, dict]:
-        res, interp_obs = a.rigid, None
+        res, interp_obs, interp_extra = a.rigid, None, {}
         init = None if res is None else res.poses
         if a.cons is not None:  # the net starts from the interp poses
-            interp_obs = a.interp_observation()
             t1 = time.perf_counter()
-            res = a.solve(a.solver_cfg, interp_obs, init)
+            res, interp_obs, interp_extra = a.interp_solve(a.solver_cfg, init)
             init = res.poses
             a.timings["interp_s"] = time.perf_counter() - t1
         if self.decision is None:
@@ -360,7 +367,12 @@ class NetMode(DeformationMode):
                 a, res, observation if observation is not None else interp_obs, dcfg
             )
         if model is None:  # the interpolation's tracks
-            facts = {"mode": "interp", **interp_facts(interp_obs, a.body), **net_facts}
+            facts = {
+                "mode": "interp",
+                **interp_facts(interp_obs, a.body),
+                **interp_extra,
+                **net_facts,
+            }
             if reason is not None:
                 facts.update({"requested": self.name, "reason": reason})
         else:
