@@ -119,7 +119,7 @@ class DeformConfig:
     step: int | None = None
     far_steps: Any = "auto"
     refresh: int = 2
-    beyond_window: str = "interp"
+    beyond_window: str = "net"
     measured: str = "cv"
     rigid_first: bool = True
     max_iterations: int | None = 10
