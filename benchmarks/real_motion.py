@@ -40,7 +40,9 @@ adjust-track rows the calibration ratios rms error / rms ``{part}_sigma`` on see
 part-frames, ``converged``, the body scale, the median reprojection error, whether the net was
 used (``adapt_used`` for self, ``net_parts`` for net / default's net check) and ``diverged``
 (non-finite or incomplete points, RMSE all > 50 mm or median reprojection error > 10 px).
-Tables: per (cameras, parts) the mean over seeds (RMSE all's min-max beside it).
+Tables: per (cameras, parts) the mean over seeds (RMSE all's min-max beside it), and the
+defaults' calibration ratios part by part (seen >= 2 / occluded / unseen by any camera;
+``calib_per_part``; how many parts are within range in the checks, not a target).
 
 Targets (``default`` against aniposelib, ratios of the seed means): RMSE all and occluded
 <= 0.6x at 2 and 3 cameras and <= 0.8x at 4 (8 parts), <= 0.8x with 22 and 34 parts; seen >= 2
