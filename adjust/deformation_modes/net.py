@@ -1,28 +1,14 @@
-"""``adjust-track deformation=``: how the body deforms, one object per choice.
-
-- `RigidMode` (``rigid``): the rigid body model only.
-- `InterpMode` (``interp``, the default): each part's body-frame offset interpolated (kriged)
-  from its own 3D observations across its gaps (`adjust.lsq.observation.InterpObservation`).
-- `NetMode`: a deformation net (`adjust.lsq.net_observation.NetObservation`) after rigid ->
-  interp; its three sources are `CheckpointNet` (a deformnet-train checkpoint, ``net``),
-  `DefaultNet` (the shipped pretrained net, ``default``) and `SelfNet` (that net fine-tuned on
-  this recording's own tokens, ``self``, `adjust.adapt`). A net that does not beat the
-  interpolation on the recording's held-out parts (`adjust.net_gate`) leaves the tracks to
-  the interpolation, and summary.json says ``mode: interp`` with the reason.
-
-`mode_from_config` picks the object once from ``deformation=``; `adjust.pipeline` then asks it
-what it needs (`needs_consensus`, `checkpoint_body`, `prepare`) and lets it adjust the session
-after the rigid adjustment (`adjust`, on an `Adjusting`): it returns the result and its facts,
-summary.json's ``deformation`` block.
-"""
+"""``deformation=`` with a deformation net (`adjust.lsq.net_observation.NetObservation`) after
+rigid -> interp: `NetMode` and its three sources, `CheckpointNet` (a deformnet-train checkpoint),
+`DefaultNet` (the shipped pretrained net) and `SelfNet` (that net fine-tuned on this recording's
+own tokens, `adjust.adapt`); the choice made once per session (`NetDecision`), the held-out check
+(`adjust.net_gate`) and the summary's facts of the net's use."""
 
 from __future__ import annotations
 
 import logging
-import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -31,38 +17,24 @@ import torch
 
 from adjust import adapt
 from adjust.body_fit import check_world_up, triangulate_points
-from adjust.camera import CameraTensors
+from adjust.deformation_modes.base import (
+    Adjusting,
+    DeformationMode,
+    deform_step,
+    far_steps,
+    interp_facts,
+)
 from adjust.io import Detections, InputError
 from adjust.lsq.net_observation import NetObservation
-from adjust.lsq.observation import InterpObservation
 from adjust.net_gate import heldout_check, net_vs_kriging
 from adjust.tokenize import session_tokens
-from adjust.track_config import MEASURED, ConsensusConfig, DeformConfig
+from adjust.track_config import DeformConfig
 from adjust.validate import choose_measured_prior
 from deformnet import pretrained
 from deformnet.body import BodyModel
 from deformnet.deformation import DeformationModel
 
 log = logging.getLogger(__name__)
-
-__all__ = [
-    "MEASURED",
-    "Adjusting",
-    "CheckpointNet",
-    "DefaultNet",
-    "DeformationMode",
-    "InterpMode",
-    "NetDecision",
-    "NetMode",
-    "RigidMode",
-    "SelfNet",
-    "deform_step",
-    "far_steps",
-    "interp_facts",
-    "load_deformation",
-    "make_deformable_observation",
-    "mode_from_config",
-]
 
 
 def load_deformation(path: str):
@@ -127,162 +99,6 @@ def make_deformable_observation(
         net_parts=None if net_parts is None else torch.as_tensor(net_parts, dtype=torch.bool),
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
-
-
-def _deform(cfg_def) -> DeformConfig:
-    """A `DeformConfig` (as given, or from a mapping of ``deform`` settings)."""
-    return cfg_def if isinstance(cfg_def, DeformConfig) else DeformConfig.from_config(cfg_def)
-
-
-def deform_step(model, cfg_def) -> int:
-    """Frames between the net's window tokens: ``deform.step`` (null: the step the net was
-    trained with, `DeformationModel.step`)."""
-    step = _deform(cfg_def).step
-    if step is None:
-        return int(getattr(model, "step", 1))
-    return int(step)
-
-
-def far_steps(model, cfg_def) -> tuple[int, ...]:
-    """``deform.far_steps``: wider token steps for part-frames the window does not reach
-    (``auto``: the larger steps the net was trained with, `DeformationModel.steps`; a list;
-    ``[]``: none)."""
-    spec = _deform(cfg_def).far_steps
-    if spec is None or str(spec) == "auto":
-        base = deform_step(model, cfg_def)
-        return tuple(s for s in getattr(model, "steps", ()) if s > base)
-    try:
-        steps = tuple(int(s) for s in spec)
-    except (TypeError, ValueError):
-        msg = f"deform.far_steps must be auto or a list of integers, got {spec}"
-        raise InputError(msg) from None
-    if any(s < 1 for s in steps):
-        raise InputError(f"deform.far_steps must be integers >= 1, got {list(steps)}")
-    return steps
-
-
-def interp_facts(observation, body: BodyModel) -> dict:
-    """The estimated offset covariance of ``deformation=interp`` for the summary."""
-    cov = observation.cov
-    if cov is None:
-        return {}
-    return {
-        "deformation_sigma_mm_per_part": {p: float(v) for p, v in zip(body.parts, cov.sigma_mm)},
-        "mean_offset_mm_per_part": {p: [float(c) for c in m] for p, m in zip(body.parts, cov.mean)},
-        "nugget_mm_per_part": {
-            p: float(math.sqrt(v)) for p, v in zip(body.parts, cov.nugget.sum(-1))
-        },
-    }
-
-
-@dataclass
-class Adjusting:
-    """A session after its body model and (when it ran) its rigid adjustment: what a
-    deformation mode adjusts.
-
-    solve(config, observation, init_poses) -> an `adjust.lsq.AdjustmentResult` of this
-    session; rigid: the rigid adjustment's (None when none ran); cons: the session's 3D
-    observations (`adjust.estimate.Consensus`, None with ``consensus.estimate=false``);
-    rigid_obs: the rigid observation with the parts' deformation moments (None without cons);
-    few_var: (K, 3) torch, the spread of parts placed from their single views (else NaN);
-    deform: the ``deform`` settings; adapt_cfg: the ``adapt`` block (`adjust.adapt`'s to read);
-    consensus: the consensus triangulation's settings; timings: summary.json's time_s, added
-    to."""
-
-    det: Detections
-    weight: np.ndarray
-    cams: CameraTensors
-    body: BodyModel
-    cons: Any
-    rigid_obs: Any
-    few_var: Any
-    solver_cfg: Any
-    solve: Callable
-    rigid: Any
-    deform: DeformConfig
-    adapt_cfg: Any
-    consensus: ConsensusConfig
-    where: str
-    out: Path
-    progress: bool
-    timings: dict = field(default_factory=dict)
-
-    @property
-    def deform_solver_cfg(self):
-        """The solver settings of the deformable adjustment (``deform.max_iterations`` where
-        set)."""
-        if self.deform.max_iterations is None:
-            return self.solver_cfg
-        return self.solver_cfg.replace(max_iterations=int(self.deform.max_iterations))
-
-    def interp_observation(self) -> InterpObservation:
-        """``deformation=interp``'s observation of this session."""
-        c = self.cons
-        return InterpObservation(
-            torch.tensor(np.array(self.body.points)),
-            torch.as_tensor(c.points),
-            torch.as_tensor(c.observed),
-            torch.as_tensor(c.noise_var),
-            few_var=self.few_var,
-        )
-
-    def interp_solve(self, cfg, init) -> tuple[Any, InterpObservation, dict]:
-        """``deformation=interp``'s adjustment from the poses ``init`` with the solver settings
-        ``cfg``: (the result, its observation, summary facts). With ``deform.single_views``
-        it runs twice, the second time with the part-frames one camera saw among the
-        observations its gaps are interpolated from (`InterpObservation.anchored`)."""
-        obs = self.interp_observation()
-        res = self.solve(cfg, obs, init)
-        facts = {}
-        if self.deform.single_views:
-            views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
-            obs = obs.anchored(res.points, res.point_sd, views)
-            res = self.solve(cfg, obs, res.poses)
-            facts["single_view_anchors"] = int(obs.anchors.sum())
-        return res, obs, facts
-
-
-class DeformationMode:
-    """One choice of ``deformation=``. name: its summary.json ``mode``."""
-
-    name = "rigid"
-    #: needs the session's 3D observations (``consensus.estimate=true``)
-    needs_consensus = False
-
-    def checkpoint_body(self, body_cfg) -> BodyModel | None:
-        """The body model the mode brings (a checkpoint's), else None (the ``body`` group's)."""
-        return None
-
-    def prepare(self, body: BodyModel) -> None:
-        """Anything the mode needs once the session's body model is final."""
-
-    def rigid_first(self, deform: DeformConfig, cons) -> bool:
-        """Whether the rigid adjustment runs before `adjust`."""
-        return True
-
-    def adjust(self, a: Adjusting) -> tuple[Any, dict]:
-        """(the session's result, summary.json's ``deformation`` block)."""
-        raise NotImplementedError
-
-
-class RigidMode(DeformationMode):
-    """``deformation=rigid``: the rigid adjustment is the result."""
-
-    name = "rigid"
-
-    def adjust(self, a: Adjusting) -> tuple[Any, dict]:
-        return a.rigid, {"mode": self.name}
-
-
-class InterpMode(DeformationMode):
-    """``deformation=interp``: interpolated body-frame offsets, from the rigid poses."""
-
-    name = "interp"
-    needs_consensus = True
-
-    def adjust(self, a: Adjusting) -> tuple[Any, dict]:
-        res, obs, facts = a.interp_solve(a.deform_solver_cfg, a.rigid.poses)
-        return res, {"mode": self.name, **interp_facts(obs, a.body), **facts}
 
 
 @dataclass
@@ -615,20 +431,3 @@ def net_use_facts(observation: NetObservation, body: BodyModel) -> dict:
             for s in (observation.step, *observation.far_steps)
         },
     }
-
-
-def mode_from_config(deformation) -> DeformationMode:
-    """``deformation=``: null / ``rigid`` (the rigid model), ``interp`` (each part's body-frame
-    offset interpolated from its own observations, `InterpObservation`), ``default`` (the
-    shipped pretrained net, `deformnet.pretrained`), ``self`` (that net fine-tuned on this
-    recording's own tokens, `adapt_net`), else a checkpoint (``net``)."""
-    key = "" if deformation is None else str(deformation).lower()
-    if key in ("", "none", "null", "rigid"):
-        return RigidMode()
-    if key == "interp":
-        return InterpMode()
-    if key == "default":
-        return DefaultNet()
-    if key == "self":
-        return SelfNet()
-    return CheckpointNet(str(deformation))
