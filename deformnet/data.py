@@ -28,7 +28,6 @@ from deformnet.windows import (  # noqa: F401  (re-exported)
     RandomWindowBatches,
     SequenceArrays,
     WindowBank,
-    check_ahead_shift,
     gap_masks,
     make_masks,
     mirror_asymmetry,
@@ -96,12 +95,8 @@ class DeformDataModule(L.LightningDataModule):
         augment: Mapping[str, Any] | Augment | None = None,
         train_data: Sequence[SequenceArrays] | None = None,
         val_data: Sequence[SequenceArrays] | None = None,
-        pair_shift: int = 0,
-        ahead_shift: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
-        self.pair_shift = int(pair_shift)
-        self.ahead_shift = check_ahead_shift(ahead_shift)
         if source not in ("sim", "files", "toy", "arrays"):
             raise ValueError(
                 f"data.source must be 'sim', 'files', 'toy' or 'arrays', got '{source}'"
@@ -170,8 +165,6 @@ class DeformDataModule(L.LightningDataModule):
                 self.noise_mm,
                 self.augment,
                 self.mirror_perm,
-                self.pair_shift,
-                self.ahead_shift,
             )
             log.info("training windows: %d mid frames, %d parts", len(bank), bank.K)
         if self.val_set is None and stage in (None, "fit", "validate"):

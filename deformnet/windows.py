@@ -12,15 +12,7 @@ A batch is a dict of float32 / bool tensors:
                                                 are zeroed),
     observed (B, W, K)                          input flags (mid frame false),
     target (B, K, 3), target_mask (B, K)        the mid frame's deformed positions and whether
-                                                they were observed (the loss uses only those),
-    pair (with pair_shift > 0)                  {rigid, deformed, observed} of windows a few
-                                                frames away in the same sequence (positives of
-                                                the temporal-contrastive term, `DeformLit`).
-    ahead (with ahead_shift)                    {points (B, K, 3) global mm, mask (B, K), shift
-                                                (B,)}: the true positions of the frame `shift`
-                                                token steps from each window's mid frame (signed:
-                                                > 0 later; 0 where the sequence has no such frame,
-                                                mask false), the targets of the forecasting term.
+                                                they were observed (the loss uses only those).
 """
 
 from __future__ import annotations
@@ -52,7 +44,6 @@ __all__ = [
     "WindowBank",
     "RandomWindowBatches",
     "FixedWindowBatches",
-    "check_ahead_shift",
 ]
 
 
@@ -294,7 +285,6 @@ class WindowBank:
             self._pieces.append((off, s.rigid.shape[0]))
             off += s.rigid.shape[0]
         self._mids: dict[int, Tensor] = {}
-        self._mid_seq: dict[int, Tensor] = {}
         self.mids = self.mids_for(self.step)  # global frame index of every valid mid frame
 
     def mids_for(self, step: int) -> Tensor:
@@ -303,31 +293,9 @@ class WindowBank:
         step = int(step)
         if step not in self._mids:
             span = self.n * step
-            m, q = [], []
-            for i, (o, T) in enumerate(self._pieces):
-                if T > 2 * span:
-                    m.append(torch.arange(o + span, o + T - span))
-                    q.append(torch.full((T - 2 * span,), i, dtype=torch.long))
+            m = [torch.arange(o + span, o + T - span) for o, T in self._pieces if T > 2 * span]
             self._mids[step] = torch.cat(m) if m else torch.zeros(0, dtype=torch.long)
-            self._mid_seq[step] = torch.cat(q) if q else torch.zeros(0, dtype=torch.long)
         return self._mids[step]
-
-    def shifted(self, idx: Tensor, shift: Tensor, step: int | None = None) -> Tensor:
-        """Indices into mids_for(step) of the mid frames `shift` (B,) frames after those of
-        `idx` (B,) in the same sequence; where that leaves the sequence's valid mids, `shift`
-        frames before; where that does too, `idx` itself."""
-        step = self.step if step is None else int(step)
-        self.mids_for(step)
-        seq = self._mid_seq[step]
-        M = len(seq)
-
-        def inside(j: Tensor) -> Tensor:
-            ok = (j >= 0) & (j < M)
-            return ok & (seq[j.clamp(0, max(M - 1, 0))] == seq[idx])
-
-        j = idx + shift
-        j = torch.where(inside(j), j, idx - shift)
-        return torch.where(inside(j), j, idx)
 
     def __len__(self) -> int:
         return len(self.mids)
@@ -375,16 +343,6 @@ class WindowBank:
         }
 
 
-def check_ahead_shift(ahead_shift: Sequence[int] | None) -> tuple[int, int] | None:
-    """(lo, hi) token steps, 1 <= lo <= hi, or None (no forecasting targets)."""
-    if ahead_shift is None:
-        return None
-    lo, hi = (int(x) for x in ahead_shift)
-    if not 1 <= lo <= hi:
-        raise ValueError(f"ahead_shift must be (lo, hi) with 1 <= lo <= hi, got {ahead_shift}")
-    return lo, hi
-
-
 class RandomWindowBatches(IterableDataset):
     """`steps` random batches per pass (epoch), freshly masked each time; seeded by
     (seed, rank, pass)."""
@@ -399,60 +357,14 @@ class RandomWindowBatches(IterableDataset):
         noise_mm: float = 0.0,
         augment: Augment | None = None,
         mirror_perm: Sequence[int] | None = None,
-        pair_shift: int = 0,
-        ahead_shift: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self.bank, self.batch_size, self.steps = bank, int(batch_size), int(steps)
-        self.ahead_shift = check_ahead_shift(ahead_shift)
         self.masking, self.seed, self.noise_mm = masking, int(seed), float(noise_mm)
         self.augment = augment or Augment()
         self.mirror_perm = None if mirror_perm is None else list(mirror_perm)
-        self.pair_shift = int(pair_shift)
-        if self.pair_shift < 0:
-            raise ValueError(f"pair_shift must be >= 0, got {pair_shift}")
         self.rank = 0
         self._pass = 0
-
-    def _with_pair(self, out: dict, idx: Tensor, gen, step, flip=None, rev=None) -> dict:
-        """With `pair_shift`: add out["pair"], the windows 1..pair_shift frames (either way,
-        same sequence) from each window, independently masked, same mirror / reversal (the
-        positives of a temporal-contrastive objective)."""
-        if self.pair_shift <= 0:
-            return out
-        b, B = self.bank, len(idx)
-        shift = torch.randint(1, self.pair_shift + 1, (B,), generator=gen)
-        shift = torch.where(torch.rand(B, generator=gen) < 0.5, shift, -shift)
-        j = b.shifted(idx, shift, step)
-        hide = make_masks(B, b.W, b.K, self.masking, gen)
-        pair = b.batch(j, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
-        out["pair"] = {k: pair[k] for k in ("rigid", "deformed", "observed")}
-        return out
-
-    def _with_ahead(self, out: dict, idx: Tensor, gen, step, flip=None, rev=None) -> dict:
-        """With `ahead_shift` (lo, hi): add out["ahead"], the true positions of the frame lo..hi
-        token steps before or after each window's mid frame (same sequence, same mirror; a
-        reversed window's shift changes sign)."""
-        if self.ahead_shift is None:
-            return out
-        b, B = self.bank, len(idx)
-        step = b.step if step is None else int(step)
-        lo, hi = self.ahead_shift
-        shift = torch.randint(lo, hi + 1, (B,), generator=gen)
-        shift = torch.where(torch.rand(B, generator=gen) < 0.5, shift, -shift)
-        j = b.shifted(idx, shift * step, step)
-        mids = b.mids_for(step)
-        actual = torch.div(mids[j] - mids[idx], step, rounding_mode="trunc")
-        if rev is not None:
-            actual = torch.where(rev, -actual, actual)
-        none = torch.zeros(B, b.W, b.K, dtype=torch.bool)
-        far = b.batch(j, none, 0.0, gen, step, flip, None, self.mirror_perm)
-        out["ahead"] = {
-            "points": far["target"],
-            "mask": far["target_mask"] & (actual != 0)[:, None],
-            "shift": actual.to(far["target"].dtype),
-        }
-        return out
 
     def __len__(self) -> int:
         return self.steps
@@ -467,8 +379,7 @@ class RandomWindowBatches(IterableDataset):
             if a.mirror <= 0 and a.reverse <= 0 and a.steps is None:  # the plain windows
                 idx = torch.randint(0, len(b), (self.batch_size,), generator=gen)
                 hide = make_masks(self.batch_size, b.W, b.K, self.masking, gen)
-                out = self._with_pair(b.batch(idx, hide, self.noise_mm, gen), idx, gen, None)
-                yield self._with_ahead(out, idx, gen, None)
+                yield b.batch(idx, hide, self.noise_mm, gen)
                 continue
             step = None
             if steps is not None:  # a step some sequence is long enough for
@@ -479,9 +390,7 @@ class RandomWindowBatches(IterableDataset):
             B = self.batch_size
             flip = torch.rand(B, generator=gen) < a.mirror
             rev = torch.rand(B, generator=gen) < a.reverse
-            out = b.batch(idx, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
-            out = self._with_pair(out, idx, gen, step, flip, rev)
-            yield self._with_ahead(out, idx, gen, step, flip, rev)
+            yield b.batch(idx, hide, self.noise_mm, gen, step, flip, rev, self.mirror_perm)
 
 
 class FixedWindowBatches(Dataset):
