@@ -38,8 +38,7 @@ from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.deformation import DeformationModel, build_net, check_track_up
 from deformnet.heldout import window_sums
-from deformnet.paths import regular_file
-from deformnet.pretrained import load_default
+from deformnet.pretrained import load_default, load_net
 from deformnet.sessions import split_sessions
 from deformnet.threads import torch_threads
 from deformnet.tokens import masked_mse
@@ -147,20 +146,6 @@ def select_device(accelerator: str) -> torch.device:
     if acc == "auto":
         return torch.device("cpu")
     raise ValueError(f"adapt.accelerator={accelerator}: torch sees no CUDA device on this machine")
-
-
-def load_start(spec: str | None) -> DeformationModel | None:
-    """``adapt.pretrained``: None (from scratch), ``default`` (the shipped net,
-    `deformnet.pretrained.load_default`) or a checkpoint path."""
-    if spec is None:
-        return None
-    if str(spec).lower() == "default":
-        return load_default()
-    p = Path(str(spec))
-    if not p.exists():
-        raise ValueError(f"adapt.pretrained={spec}: no such checkpoint")
-    regular_file(p, f"adapt.pretrained={spec}: the checkpoint")
-    return DeformationModel.from_checkpoint(p)
 
 
 def mirror_perm(body: BodyModel, augment: Augment) -> list[int] | None:
@@ -401,7 +386,7 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
     device = select_device(cfg.accelerator)
     work = Path(out) / "adapt"
     work.mkdir(parents=True, exist_ok=True)
-    pre = load_start(cfg.pretrained)
+    pre = load_net(cfg.pretrained, "adapt.pretrained")  # None: from scratch
     body = _body_of(tokens)
     model, how = starting_model(pre, body)
     if how == "scratch" and pre is not None:

@@ -33,8 +33,8 @@ from deformnet.confutil import to_plain
 from deformnet.data import Augment, DeformDataModule
 from deformnet.deformation import DeformationModel, build_net, check_track_up, frame_up
 from deformnet.lit import DeformLit
-from deformnet.paths import output_dir, regular_file
-from deformnet.pretrained import load_default
+from deformnet.paths import output_dir
+from deformnet.pretrained import load_net
 from deformnet.sessions import (
     check_compatible,
     load_session_tokens,
@@ -82,17 +82,11 @@ def net_config(cfg: DictConfig, num_parts: int) -> tuple[str, dict]:
 
 
 def load_pretrained(spec) -> Any:
-    """``pretrained=``: null, ``default`` (the shipped net, `deformnet.pretrained`) or a
-    checkpoint path -> a `DeformationModel` (or None)."""
-    if spec is None or str(spec).lower() in ("", "none", "null"):
-        return None
-    if str(spec).lower() == "default":
-        return load_default()
-    p = Path(str(spec))
-    if not p.exists():
-        raise ValueError(f"pretrained={spec}: no such checkpoint")
-    regular_file(p, f"pretrained={spec}: the checkpoint")  # a folder, FIFO or device: refused
-    return DeformationModel.from_checkpoint(p)
+    """``pretrained=``: null (or "", "none", "null" as text), ``default`` (the shipped net) or a
+    checkpoint path -> a `DeformationModel` (or None), by `deformnet.pretrained.load_net`."""
+    if spec is not None and str(spec).lower() in ("", "none", "null"):
+        spec = None
+    return load_net(spec, "pretrained")
 
 
 def build_model(cfg: DictConfig, body=None, pretrained=None):

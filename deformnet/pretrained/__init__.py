@@ -26,8 +26,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from deformnet.deformation import DeformationModel
+from deformnet.paths import regular_file
 
-__all__ = ["DEFAULT_CHECKPOINT", "SIM_CHECKPOINT", "default_checkpoint", "load_default"]
+__all__ = [
+    "DEFAULT_CHECKPOINT",
+    "SIM_CHECKPOINT",
+    "default_checkpoint",
+    "load_default",
+    "load_net",
+]
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "real_mouse_parts.pt"
 SIM_CHECKPOINT = Path(__file__).resolve().parent / "mouse_lstm_small.pt"
@@ -46,3 +53,19 @@ def default_checkpoint() -> Path:
 def load_default():
     """The shipped net as a `DeformationModel` (eval mode, float32, CPU)."""
     return DeformationModel.from_checkpoint(default_checkpoint())
+
+
+def load_net(spec, setting: str) -> DeformationModel | None:
+    """The net a setting names (``deformnet-train pretrained=``, ``adjust-track
+    adapt.pretrained=``): None -> None (from scratch), ``default`` -> the shipped net
+    (`load_default`), else a checkpoint path. A missing path, or one that is not a regular file
+    (a folder, FIFO or device), is a ValueError naming ``<setting>=<spec>``."""
+    if spec is None:
+        return None
+    if str(spec).lower() == "default":
+        return load_default()
+    p = Path(str(spec))
+    if not p.exists():
+        raise ValueError(f"{setting}={spec}: no such checkpoint")
+    regular_file(p, f"{setting}={spec}: the checkpoint")
+    return DeformationModel.from_checkpoint(p)
