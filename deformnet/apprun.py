@@ -14,6 +14,7 @@
 
 The per-project settings the console script added are logged first (`deformnet.project`), and a
 given ``output.dir`` is checked and locked (`deformnet.outputs.prepare_output`) before `run`.
+`hydra_app(run, config_name)` is a console script's Hydra entry point over `run_app`.
 """
 
 from __future__ import annotations
@@ -25,11 +26,14 @@ import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import hydra
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from deformnet import project
 from deformnet.outputs import hold_output, prepare_output, release_output
+from deformnet.paths import CONF_DIR
+from deformnet.quiet import quiet_lightning
 
 log = logging.getLogger(__name__)
 
@@ -95,3 +99,24 @@ def run_app(
     finally:
         if locked is not None:
             release_output(locked)
+
+
+def hydra_app(
+    run: Callable[[DictConfig], dict],
+    config_name: str,
+    check: Callable[[DictConfig], None] | None = None,
+    quiet: bool = False,
+) -> Callable[[], None]:
+    """An app's console-script entry point: Hydra composes ``conf/<config_name>.yaml`` with the
+    command line, then `run_app` calls ``run`` (after ``check``); ``quiet``: within
+    `deformnet.quiet.quiet_lightning` (no Lightning tips or deprecations on the console)."""
+
+    def quiet_run(cfg: DictConfig) -> dict:
+        with quiet_lightning():
+            return run(cfg)
+
+    def main(cfg: DictConfig) -> None:
+        run_app(quiet_run if quiet else run, cfg, check)
+
+    main.__wrapped__ = run  # Hydra names the job (and its log file) after run's module
+    return hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)(main)

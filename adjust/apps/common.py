@@ -8,11 +8,10 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
-import hydra
 from omegaconf import DictConfig
 
 from adjust.settings import check_settings
-from deformnet.apprun import run_app
+from deformnet import apprun
 from deformnet.atomic import finite_or_none  # noqa: F401  (apps: adjust.apps.common.*)
 from deformnet.outputs import (  # noqa: F401  (apps: adjust.apps.common.*; registers ${output_or:...})
     OutputBusy,
@@ -21,7 +20,6 @@ from deformnet.outputs import (  # noqa: F401  (apps: adjust.apps.common.*; regi
     prepare_output,
     recover_outputs,
 )
-from deformnet.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
 
@@ -34,18 +32,14 @@ def run_or_exit(run: Callable[[DictConfig], dict], cfg: DictConfig) -> dict:
     130, never a traceback. Settings (`check_settings`) and ``output.dir`` (`prepare_output`,
     which locks it) are checked before `run`; the per-project settings the console script added
     are logged first (`deformnet.project`)."""
-    return run_app(run, cfg, check_settings)
+    return apprun.run_app(run, cfg, check_settings)
 
 
 def hydra_app(run: Callable[[DictConfig], dict], config_name: str) -> Callable[[], None]:
-    """An app's console-script entry point: Hydra composes ``conf/<config_name>.yaml`` with
-    the command line, then `run_or_exit` calls `run`."""
-
-    def main(cfg: DictConfig) -> None:
-        run_or_exit(run, cfg)
-
-    main.__wrapped__ = run  # Hydra names the job (and its log file) after run's module
-    return hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)(main)
+    """An app's console-script entry point (`deformnet.apprun.hydra_app`): Hydra composes
+    ``conf/<config_name>.yaml`` with the command line, then `run` is called as `run_or_exit`
+    calls it."""
+    return apprun.hydra_app(run, config_name, check_settings)
 
 
 def write_outputs(

@@ -8,27 +8,14 @@ deformnet-train -m net=lstm,transformer         # both, sequentially (multirun)
 
 from __future__ import annotations
 
-import hydra
-from omegaconf import DictConfig
-
-from deformnet.apprun import run_app
-from deformnet.paths import CONF_DIR
-from deformnet.quiet import quiet_lightning
+from deformnet.apprun import hydra_app
 from deformnet.train import run
 
 __all__ = ["main"]
 
-
-def _quiet_run(cfg: DictConfig) -> dict:
-    with quiet_lightning():  # no Lightning tips or deprecations on the console
-        return run(cfg)
-
-
-@hydra.main(config_path=str(CONF_DIR), config_name="train", version_base=None)
-def main(cfg: DictConfig) -> None:
-    # one error handler (deformnet.apprun): bad input or config (a refused checkpoint...), an
-    # unusable or busy output.dir: one line, exit 2; Ctrl-C: exit 130
-    run_app(_quiet_run, cfg)
+# one error handler (deformnet.apprun): bad input or config (a refused checkpoint...), an
+# unusable or busy output.dir: one line, exit 2; Ctrl-C: exit 130; no Lightning tips
+main = hydra_app(run, "train", quiet=True)
 
 
 if __name__ == "__main__":
