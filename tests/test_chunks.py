@@ -183,25 +183,28 @@ def test_chunked_run_agrees_with_the_whole_run(scene, runs):
     assert {"points3d.csv", "points3d.extra.csv", "accepted.npz", "tokens.npz"} <= set(files)
 
 
+def _chunk_summary(iterations, converged, completeness, detections, ncams, cost, err, frames):
+    """A chunk's summary (the fields `merge_summaries` combines): err = (count, median, mean,
+    p90, max); frames: its bad frames (health failed when any)."""
+    return {
+        "iterations": iterations,
+        "converged": converged,
+        "completeness": completeness,
+        "counts": {"detections": detections, "ncams_histogram": ncams},
+        "final_cost": cost,
+        "err": dict(zip(("count", "median", "mean", "p90", "max"), err)),
+        "health": {
+            "status": "failed" if frames else "ok",
+            "limit_px": 100.0,
+            "bad_frames": len(frames),
+            "frames": frames,
+        },
+    }
+
+
 def test_merge_summaries_rules():
-    s1 = {
-        "iterations": 4,
-        "converged": True,
-        "completeness": 1.0,
-        "counts": {"detections": 10, "ncams_histogram": [1, 2]},
-        "final_cost": 2.0,
-        "err": {"count": 1, "median": 1.0, "mean": 1.0, "p90": 1.0, "max": 1.0},
-        "health": {"status": "ok", "limit_px": 100.0, "bad_frames": 0, "frames": []},
-    }
-    s2 = {
-        "iterations": 9,
-        "converged": False,
-        "completeness": 0.5,
-        "counts": {"detections": 5, "ncams_histogram": [3, 4]},
-        "final_cost": 3.0,
-        "err": {"count": 3, "median": 3.0, "mean": 2.0, "p90": 5.0, "max": 7.0},
-        "health": {"status": "failed", "limit_px": 100.0, "bad_frames": 2, "frames": [12, 13]},
-    }
+    s1 = _chunk_summary(4, True, 1.0, 10, [1, 2], 2.0, (1, 1.0, 1.0, 1.0, 1.0), [])
+    s2 = _chunk_summary(9, False, 0.5, 5, [3, 4], 3.0, (3, 3.0, 2.0, 5.0, 7.0), [12, 13])
     m = merge_summaries([s1, s2], [100, 300])
     assert m["iterations"] == 9 and m["converged"] is False and m["final_cost"] == 5.0
     assert m["completeness"] == pytest.approx(0.625)

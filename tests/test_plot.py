@@ -154,23 +154,20 @@ def scene_with_videos(tmp_path_factory):
     return calib, root / "dlt" / "points3d.csv", videos
 
 
+def _plot_scene(scene, out, *overrides) -> dict:
+    """adjust-plot's `run` on the scene's tracks and calibration, with `overrides`, into `out`."""
+    from adjust.apps.plot import run  # (as in the tests here: the app imported where it runs)
+
+    calib, tracks, _ = scene
+    base = [f"tracks={tracks}", f"input.calibration={calib}"]
+    return run(_compose("plot", [*base, *overrides, f"output.dir={out}"]))
+
+
 def test_video_overlay_and_clip(scene_with_videos, tmp_path):
-    from adjust.apps.plot import COLORS, _project, run
+    from adjust.apps.plot import COLORS, _project
 
     calib, tracks, videos = scene_with_videos
-    res = run(
-        _compose(
-            "plot",
-            [
-                f"tracks={tracks}",
-                f"input.calibration={calib}",
-                f"video={videos}",
-                "frames=[4]",
-                "clip=2:9",
-                f"output.dir={tmp_path}",
-            ],
-        )
-    )
+    res = _plot_scene(scene_with_videos, tmp_path, f"video={videos}", "frames=[4]", "clip=2:9")
     png = tmp_path / "video_frame4.png"
     assert res["files"]["video_frame4"] == str(png) and _is_png(png)
     img = cv2.imread(str(png))
@@ -190,26 +187,20 @@ def test_video_overlay_and_clip(scene_with_videos, tmp_path):
 
 
 def test_missing_video_frame_is_a_clear_error(scene_with_videos, tmp_path):
-    from adjust.apps.plot import match_videos, run
+    from adjust.apps.plot import match_videos
 
-    calib, tracks, videos = scene_with_videos
+    calib, _, videos = scene_with_videos
     assert set(match_videos(videos, load_calibration(calib))) == {"top", "side", "front"}
     short = tmp_path / "short"
     short.mkdir()
     (short / "top.mp4").write_bytes((videos / "session1_top.mp4").read_bytes())
     with pytest.raises(InputError, match=r"no frame 11 \(camera 'top'\)"):
-        run(
-            _compose(
-                "plot",
-                [
-                    f"tracks={tracks}",
-                    f"input.calibration={calib}",
-                    f"video={short}",
-                    "frames=[11]",
-                    "video_first_frame=-5",
-                    f"output.dir={tmp_path / 'o'}",
-                ],
-            )
+        _plot_scene(
+            scene_with_videos,
+            tmp_path / "o",
+            f"video={short}",
+            "frames=[11]",
+            "video_first_frame=-5",
         )
     with pytest.raises(InputError, match="no video"):
         match_videos(tmp_path / "o", load_calibration(calib))
@@ -255,20 +246,6 @@ def test_input_pattern_chooses_the_detection_files(scene_with_videos, tmp_path):
 
 def test_video3d_writes_the_labelled_3d_video(scene_with_videos, tmp_path):
     """adjust-plot video3d=true: tracks3d.mp4, one frame per row of the clip."""
-    from adjust.apps.plot import run
-
-    calib, tracks, videos = scene_with_videos
-    res = run(
-        _compose(
-            "plot",
-            [
-                f"tracks={tracks}",
-                f"input.calibration={calib}",
-                "video3d=true",
-                "clip=1:6",
-                f"output.dir={tmp_path}",
-            ],
-        )
-    )
+    res = _plot_scene(scene_with_videos, tmp_path, "video3d=true", "clip=1:6")
     assert res["files"]["video3d"] == str(tmp_path / "tracks3d.mp4")
     assert _frames(res["files"]["video3d"]) == 5
