@@ -189,45 +189,28 @@ def test_export_bad_inputs(tracked, tmp_path):
 
     scene, out, _ = tracked
     tracks = out / "points3d.csv"
-    with pytest.raises(InputError, match="fps"):
-        write_nwb(tmp_path / "a.nwb", tracks, scene / "calibration.toml")
+
+    def refused(match: str, **settings) -> None:
+        """write_nwb of the track at FPS from START with `settings` raises `match`."""
+        settings = {"fps": FPS, "session_start_time": START, **settings}
+        with pytest.raises(InputError, match=match):
+            write_nwb(tmp_path / "a.nwb", tracks, **settings)
+
+    refused("fps", calibration=scene / "calibration.toml", fps=None, session_start_time=None)
     # no start time from a setting or the calibration: refused, naming the setting
-    with pytest.raises(InputError, match="set session_start_time="):
-        write_nwb(tmp_path / "a.nwb", tracks, fps=FPS)
-    with pytest.raises(InputError, match="ISO 8601"):
-        write_nwb(tmp_path / "a.nwb", tracks, fps=FPS, session_start_time="1 March 2026")
-    with pytest.raises(InputError, match="in the future"):
-        write_nwb(tmp_path / "a.nwb", tracks, fps=FPS, session_start_time="2999-01-01")
-    with pytest.raises(InputError, match=r"subject.sex must be one of \['M', 'F', 'U', 'O'\]"):
-        write_nwb(
-            tmp_path / "a.nwb", tracks, fps=FPS, session_start_time=START, subject={"sex": "x"}
-        )
-    with pytest.raises(InputError, match="subject.age must be an ISO 8601 duration"):
-        write_nwb(
-            tmp_path / "a.nwb",
-            tracks,
-            fps=FPS,
-            session_start_time=START,
-            subject={"age": "90 days"},
-        )
+    refused("set session_start_time=", session_start_time=None)
+    refused("ISO 8601", session_start_time="1 March 2026")
+    refused("in the future", session_start_time="2999-01-01")
+    refused(r"subject.sex must be one of \['M', 'F', 'U', 'O'\]", subject={"sex": "x"})
+    refused("subject.age must be an ISO 8601 duration", subject={"age": "90 days"})
     bad = tmp_path / "bouts.csv"
     bad.write_text("start,end,label\n0,3,rear\n")
-    with pytest.raises(InputError, match=r"bouts\.csv: missing column\(s\) \['stop'\]"):
-        write_nwb(tmp_path / "a.nwb", tracks, fps=FPS, session_start_time=START, bouts=bad)
+    refused(r"bouts\.csv: missing column\(s\) \['stop'\]", bouts=bad)
     bad.write_text("start,stop,label\n0,3,rear\n9,4,groom\n")
-    with pytest.raises(InputError, match="stop before start at row 1"):
-        write_nwb(tmp_path / "a.nwb", tracks, fps=FPS, session_start_time=START, bouts=bad)
+    refused("stop before start at row 1", bouts=bad)
     bad.write_text("start,stop,part,mechanism\nx,3,nose_tip,lever\n")
-    with pytest.raises(InputError, match="non-numeric start 'x' at row 0"):
-        write_nwb(tmp_path / "a.nwb", tracks, fps=FPS, session_start_time=START, events=bad)
-    with pytest.raises(InputError, match="unknown part 'tail'"):
-        write_nwb(
-            tmp_path / "a.nwb",
-            tracks,
-            fps=FPS,
-            session_start_time=START,
-            edges=[["tail", "nose_tip"]],
-        )
+    refused("non-numeric start 'x' at row 0", events=bad)
+    refused("unknown part 'tail'", edges=[["tail", "nose_tip"]])
     assert not (tmp_path / "a.nwb").exists()  # nothing half-written
 
 
