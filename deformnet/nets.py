@@ -31,11 +31,21 @@ __all__ = [
     "TransformerPredictor",
     "PartTransformer",
     "PartHead",
+    "zero_linear",
     "rest_features",
     "is_part_agnostic",
     "sinusoidal_encoding",
     "NETS",
 ]
+
+
+def zero_linear(d_in: int, d_out: int) -> nn.Linear:
+    """A Linear layer with zero weight and bias (an output layer whose untrained net predicts
+    zero offsets: the rigid baseline)."""
+    layer = nn.Linear(d_in, d_out)
+    nn.init.zeros_(layer.weight)
+    nn.init.zeros_(layer.bias)
+    return layer
 
 
 class PartHead(nn.Module):
@@ -64,9 +74,7 @@ class PartHead(nn.Module):
         self.ctx = nn.Linear(ctx_dim, self.num_parts * self.hidden)
         self.local = nn.Linear(PRIOR_FEATURES + d_part, self.hidden, bias=False)
         self.mlp = nn.Sequential(nn.GELU(), nn.Linear(self.hidden, self.hidden), nn.GELU())
-        self.out = nn.Linear(self.hidden, 3)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
+        self.out = zero_linear(self.hidden, 3)
 
     def forward(self, ctx: Tensor, prior: Tensor) -> Tensor:
         """ctx (B, C), prior (B, K, P) -> offsets (B, K, 3) in units of offset_scale."""
@@ -81,15 +89,15 @@ class PartHead(nn.Module):
 
 
 class _Base(nn.Module):
+    """What every net shares: the window (half_window n, W = 2n + 1), the input scales, the
+    token features of a window (`_features`) and the offset back to mm (`_finish`). num_parts:
+    K (None for a part-agnostic net)."""
+
     def __init__(
-        self, num_parts: int, half_window: int, pos_scale: float, offset_scale: float
+        self, num_parts: int | None, half_window: int, pos_scale: float, offset_scale: float
     ) -> None:
         super().__init__()
-        if num_parts < 1 or half_window < 0:
-            raise ValueError(
-                f"need num_parts >= 1 and half_window >= 0, got {num_parts}, {half_window}"
-            )
-        self.num_parts = int(num_parts)
+        self.num_parts = None if num_parts is None else int(num_parts)
         self.half_window = int(half_window)
         self.window = 2 * self.half_window + 1
         self.pos_scale = float(pos_scale)
@@ -110,7 +118,20 @@ class _Base(nn.Module):
         return rigid[:, self.half_window] + offset * self.offset_scale
 
 
-class LSTMPredictor(_Base):
+class _FixedParts(_Base):
+    """A net for one keypoint set of num_parts K >= 1 parts (by index)."""
+
+    def __init__(
+        self, num_parts: int, half_window: int, pos_scale: float, offset_scale: float
+    ) -> None:
+        if num_parts < 1 or half_window < 0:
+            raise ValueError(
+                f"need num_parts >= 1 and half_window >= 0, got {num_parts}, {half_window}"
+            )
+        super().__init__(num_parts, half_window, pos_scale, offset_scale)
+
+
+class LSTMPredictor(_FixedParts):
     """Bidirectional LSTM over time; each frame's K tokens are embedded jointly; the output at the
     mid frame, with the interpolation prior of `token_features`, predicts the K offsets.
 
@@ -170,7 +191,7 @@ def sinusoidal_encoding(length: int, dim: int, offset: int = 0) -> Tensor:
     return pe.float()
 
 
-class TransformerPredictor(_Base):
+class TransformerPredictor(_FixedParts):
     """Transformer encoder over time.
 
     Each token (t, i) is embedded by a shared MLP from its features plus a learned embedding of the
@@ -261,7 +282,7 @@ def rest_features(rest: Tensor) -> Tensor:
     return torch.cat((r, r[..., :1].abs(), side, torch.sin(ang), torch.cos(ang)), -1)
 
 
-class PartTransformer(nn.Module):
+class PartTransformer(_Base):
     """One net for any keypoint set: parts are identified by where they sit on the body.
 
     Each part's identity is an embedding of its rest-shape coordinates (`rest_features`: the
@@ -300,14 +321,9 @@ class PartTransformer(nn.Module):
         offset_scale: float = 10.0,
         prior_residual: bool = False,
     ) -> None:
-        super().__init__()
         if half_window < 0 or layers < 0:
             raise ValueError(f"need half_window, layers >= 0, got {half_window}, {layers}")
-        self.num_parts = None if num_parts is None else int(num_parts)  # (not used)
-        self.half_window = int(half_window)
-        self.window = 2 * self.half_window + 1
-        self.pos_scale = float(pos_scale)
-        self.offset_scale = float(offset_scale)
+        super().__init__(num_parts, half_window, pos_scale, offset_scale)  # num_parts: not used
         self.prior_residual = bool(prior_residual)
         d, h = int(d_model), int(hidden)
         self.window_mlp = nn.Sequential(
@@ -331,28 +347,26 @@ class PartTransformer(nn.Module):
             self.part_encoder = nn.Identity()
         self.norm = nn.LayerNorm(d)
         self.head = nn.Sequential(nn.Linear(d + PRIOR_FEATURES, h), nn.GELU())
-        self.out = nn.Linear(h, 3)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
+        self.out = zero_linear(h, 3)
         self.encode_dim = d  # per-frame outputs of `encode`
 
-    def _features(self, rigid: Tensor, deformed: Tensor, observed: Tensor):
+    def _check(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> None:
+        check_window(rigid, deformed, observed, self.window, rigid.shape[-2])  # any K
+
+    def _part_features(self, rigid: Tensor, deformed: Tensor, observed: Tensor):
         """Token features (B, W, K, F), the prior (B, K, P), rest features (B, K, R)."""
-        check_window(rigid, deformed, observed, self.window, rigid.shape[-2])
-        feats, prior, _ = token_features(
-            rigid, deformed, observed, self.half_window, self.pos_scale, self.offset_scale
-        )
+        feats, prior = self._features(rigid, deformed, observed)
         return feats, prior, rest_features(rigid[:, self.half_window])
 
     def encode(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
         """Per-frame outputs (B, W, d_model) (the tokens' embeddings plus their parts' rest
         embeddings, averaged over the parts, normalised) and the interpolation prior (B, K, P)."""
-        feats, prior, rest = self._features(rigid, deformed, observed)
+        feats, prior, rest = self._part_features(rigid, deformed, observed)
         x = self.token_embed(feats) + self.rest_embed(rest)[:, None]  # (B, W, K, d)
         return self.norm(x.mean(2)), prior
 
     def forward(self, rigid: Tensor, deformed: Tensor, observed: Tensor) -> Tensor:
-        feats, prior, rest = self._features(rigid, deformed, observed)
+        feats, prior, rest = self._part_features(rigid, deformed, observed)
         B, W, K, F = feats.shape
         win = feats.permute(0, 2, 1, 3).reshape(B, K, W * F)
         x = self.window_mlp(torch.cat((win, prior, rest), -1)) + self.rest_embed(rest)
@@ -360,7 +374,7 @@ class PartTransformer(nn.Module):
         out = self.out(self.head(torch.cat((h, prior), -1)))
         if self.prior_residual:  # on top of the interpolation prior's offset (its first 3)
             out = out + prior[..., :3]
-        return rigid[:, self.half_window] + out * self.offset_scale
+        return self._finish(out, rigid)
 
 
 def is_part_agnostic(net: nn.Module) -> bool:
