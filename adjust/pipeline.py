@@ -123,7 +123,6 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             auto = True
             body_facts["other_parts"] = list(exc.parts)
         frame_of = body
-    estimated = not from_checkpoint and (auto or fit.shape == "data")
     check = check_from_config if chunk is None else chunk.check_cameras
     cameras, det, camera_report = check(cameras, det, cfg.get("input"))
     check_cameras_usable(det, where)  # one camera: depth unobserved, refused
@@ -154,7 +153,6 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             cons,
             solver_cfg,
             auto=auto,
-            estimated=estimated,
             frame_of=frame_of,
             from_checkpoint=from_checkpoint,
             facts=body_facts,
