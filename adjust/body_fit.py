@@ -305,11 +305,13 @@ def fit_body(
     """The session's body model: its shape estimated from the data (`body=auto` or
     ``body.shape=data``, unless the model comes from a net's checkpoint; a named model too short
     of data falls back to its own shape), moved into the frame of the named model `frame_of`;
-    then sized (`scale_body`, `scale_factor`) unless it comes from a net's checkpoint. body: the named (or the checkpoint's) model, None
-    for ``body=auto``; facts: summary.json's ``body`` block, added to; sigma_def_mm:
-    ``solver.sigma_def_mm`` (None: the data's rms deviation from the rigid model where the shape
-    is estimated); max_error_px: ``consensus.max_error_px``. Returns (body, the solver config
-    with the deformation std applied, whether the shape was estimated)."""
+    then sized (`scale_body`, `scale_factor`) unless it comes from a net's checkpoint.
+
+    body: the named (or the checkpoint's) model, None for ``body=auto``; facts: summary.json's
+    ``body`` block, added to; sigma_def_mm: ``solver.sigma_def_mm`` (None: the data's rms
+    deviation from the rigid model where the shape is estimated); max_error_px:
+    ``consensus.max_error_px``. Returns (body, the solver config with the deformation std
+    applied, whether the shape was estimated)."""
     estimated = not from_checkpoint and (auto or fit.shape == "data")
     if estimated:
         try:
