@@ -32,9 +32,13 @@ lint: $(STAMP)
 
 # Rebuild the shipped default net (deformnet/pretrained/real_mouse_parts.pt: a part-agnostic net
 # trained on filmed and tracked real motion, adjust.pretrain_real; ~15 min on 2 cores; bit for
-# bit on the same machine). The simulator-only LSTM: $(PY) -m deformnet.pretrained.build
+# bit on the same machine). The filmed scenes and their tracks are cached under
+# runs/pretrain_real/ (the tracks keyed by adjust-track's settings and the scene's files); the
+# weights' SHA-256 goes to runs/benchmarks/pretrain_real_build.json.
+# The simulator-only LSTM: $(PY) -m deformnet.pretrained.build
 pretrained: $(STAMP)
-	$(PY) -m adjust.pretrain_real
+	$(PY) -m adjust.pretrain_real --targets truth --work runs/pretrain_real \
+		--report runs/benchmarks/pretrain_real_build.json
 
 # The documentation site (mkdocs.yml, docs/), built as CI builds it, into runs/site/ (browse it with
 # `.venv/bin/mkdocs serve`); mkdocs and mkdocs-material come with the test extra (or '.[docs]').

@@ -36,6 +36,7 @@ val``); the shipped net is trained on 0-2399.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import tempfile
@@ -44,6 +45,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
 from adjust.pipeline import run as track_run
 from adjust.scene.motion import (
@@ -66,7 +68,7 @@ from deformnet.threads import torch_threads
 
 log = logging.getLogger("adjust.pretrain_real")
 
-__all__ = ["SceneSpec", "SCENES", "RECIPE", "build", "track_scene", "main"]
+__all__ = ["SceneSpec", "SCENES", "RECIPE", "build", "track_key", "track_scene", "main"]
 
 DATA = real_mouse_motion_dir() / "poses3d.csv"
 FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")  # the floor's plane (as real_motion.py)
@@ -147,18 +149,49 @@ def part_set(n: int, parts: tuple[str, ...]) -> tuple[list[str], list[str]]:
     raise ValueError(f"part set must be 8, 22 or {len(parts)}, got {n}")
 
 
+#: the track settings that do not change the tokens (left out of the cache's key)
+UNKEYED = ("input.calibration", "input.detections", "output.dir", "progress", "threads")
+
+
+def track_config(scene: Path, out: Path, overrides=()) -> DictConfig:
+    """``adjust-track``'s configuration for a scene folder: its defaults (with `overrides`),
+    one thread."""
+    return compose("track", [
+        f"input.calibration={scene / 'calibration.toml'}",
+        f"input.detections={scene / 'detections'}",
+        f"output.dir={out}", "progress=false", "threads=1", *overrides,
+    ])  # fmt: skip
+
+
+def track_key(scene: Path, overrides=()) -> str:
+    """The tracks' cache key: SHA-256 (12 hex digits) of adjust-track's resolved settings (all
+    but `UNKEYED`) and of the scene's calibration and detection files, so a changed default
+    (e.g. ``deform.single_views``) or a re-filmed scene never reuses stale tokens. The
+    tracker's code is not in the key: after a change of code that keeps the settings, use a
+    fresh ``--work``."""
+    cfg = OmegaConf.to_container(track_config(scene, Path("-"), overrides), resolve=True)
+    for dotted in UNKEYED:
+        *head, last = dotted.split(".")
+        node = cfg
+        for k in head:
+            node = node[k]
+        node.pop(last, None)
+    h = hashlib.sha256(json.dumps(cfg, sort_keys=True, default=str).encode())
+    files = [scene / "calibration.toml", *sorted((scene / "detections").iterdir())]
+    for f in files:
+        h.update(f.name.encode() + b"\0" + hashlib.sha256(f.read_bytes()).digest())
+    return h.hexdigest()[:12]
+
+
 def track_scene(scene: Path, out: Path) -> Path:
     """``adjust-track`` with its defaults on a scene folder (through its ``run(cfg)``);
-    returns its tokens.npz (cached: kept if it is there)."""
+    returns its tokens.npz (cached: kept if it is there; `scene_tokens` keys `out` by
+    `track_key`)."""
 
     tokens = out / TOKENS_FILE
     if tokens.is_file():
         return tokens
-    track_run(compose("track", [
-        f"input.calibration={scene / 'calibration.toml'}",
-        f"input.detections={scene / 'detections'}",
-        f"output.dir={out}", "progress=false", "threads=1",
-    ]))  # fmt: skip
+    track_run(track_config(scene, out))
     if not tokens.is_file():
         raise ValueError(f"adjust-track wrote no {TOKENS_FILE} into {out}")
     return tokens
@@ -180,16 +213,17 @@ def scene_tokens(data: Path, frames: tuple[int, int], scenes, work: Path) -> lis
     out = []
     for spec in scenes:
         key = f"f{start}-{stop}_{spec.name}"
-        scene, run_dir = work / "scenes" / key, work / "track" / key
+        scene = work / "scenes" / key
         t0 = time.perf_counter()
         if not (scene / "truth.npz").is_file():
             src, names = part_set(spec.parts, parts)
             write_motion_scene(scene, points[start:stop], parts, motion_rig(floor, spec.cameras),
                                src, dict(zip(src, names)), seed=spec.seed)  # fmt: skip
+        run_dir = work / "track" / f"{key}_{track_key(scene)}"
         tok = SessionTokens.load(track_scene(scene, run_dir))
-        log.info("scene %s: %d frames, %d parts, %.0f%% of part-frames measured (%.0f s)",
-                 key, tok.num_frames, len(tok.parts), 100 * tok.observed.mean(),
-                 time.perf_counter() - t0)  # fmt: skip
+        log.info("scene %s: %d frames, %d parts, %.0f%% of part-frames measured, tracks %s "
+                 "(%.0f s)", key, tok.num_frames, len(tok.parts), 100 * tok.observed.mean(),
+                 run_dir.name, time.perf_counter() - t0)  # fmt: skip
         out.append(tok)
     return out
 

@@ -135,3 +135,21 @@ def test_fit_sessions_learns_from_the_truth_when_given():
     a, _ = fit_sessions([tok], cfg, seed=3)
     b, _ = fit_sessions([tok], cfg, seed=3, truths=[truth])
     assert weights_sha256(a) != weights_sha256(b)
+
+
+def test_pretrain_real_track_cache_is_keyed_by_the_trackers_settings_and_the_scene(tmp_path):
+    """The build's cached tracks (``--work``) are keyed by adjust-track's resolved settings and
+    the scene's files: a changed default (here ``deform.single_views``) or a re-filmed
+    detection file gives another key; where the output goes does not."""
+    from adjust.pretrain_real import track_key
+
+    scene = tmp_path / "scene"
+    (scene / "detections").mkdir(parents=True)
+    (scene / "calibration.toml").write_text("[cam_0]\n", encoding="utf-8")
+    (scene / "detections" / "cam_0.csv").write_text("a,b\n1,2\n", encoding="utf-8")
+    base = track_key(scene)
+    assert track_key(scene) == base
+    assert track_key(scene, ["output.dir=/elsewhere"]) == base
+    assert track_key(scene, ["deform.single_views=false"]) != base
+    (scene / "detections" / "cam_0.csv").write_text("a,b\n1,3\n", encoding="utf-8")
+    assert track_key(scene) != base
