@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 from common import emit
 
+from adjust.scene.defective import defective_tracks, tracks_file
 from deformnet.paths import CONF_DIR, shared_dir
 
 log = logging.getLogger("benchmarks.robustness")
@@ -539,15 +540,6 @@ class Job:
     again: list[str] = field(default_factory=list)  # lost data: the second run's overrides
 
 
-def _tracks_file(path: Path, parts: int, T: int = 30, fnum=None, names=None) -> Path:
-    from adjust.io import write_points3d
-
-    rng = np.random.default_rng(parts)
-    names = names or [f"p{k}" for k in range(parts)]
-    return write_points3d(path, names, rng.normal(0, 20, (T, parts, 3)), np.zeros((T, parts)),
-                          np.full((T, parts), 2), np.ones((T, parts)), fnum=fnum)  # fmt: skip
-
-
 def _calibrate_inputs(base: Path, folder: Path, points: int = 10, plane: bool = False) -> None:
     """Known 3D points and their images in each camera of `base`'s calibration (name,x,y,z and
     one name,u,v CSV per camera)."""
@@ -580,19 +572,13 @@ def script_jobs(work: Path, base: Path) -> list[Job]:
     d = work / "scripts"
     d.mkdir()
     (d / "afile").write_text("x")
-    tracks = _tracks_file(
-        d / "tracks.csv", 8, T=60, names=list(np.load(base / "truth.npz")["parts"])
+    tracks = tracks_file(
+        d / "tracks.csv", 8, T=60, names=list(np.load(base / "truth.npz")["parts"]), seed=8
     )
-    empty = d / "empty.csv"
-    empty.write_text(tracks.read_text().splitlines()[0] + "\n")
-    big = _tracks_file(d / "big.csv", 300)
-    labelled = _tracks_file(d / "labelled.csv", 3, fnum=[f"img{i:03d}.png" for i in range(30)])
-    huge = d / "huge.csv"
-    lines = tracks.read_text().splitlines()
-    lines[-1] = lines[-1].rsplit(",", 1)[0] + ",99999999999999999999999"
-    huge.write_text("\n".join(lines) + "\n")
-    bouts = d / "bouts.csv"
-    bouts.write_text("start,stop,label,score\n0,5,walk,0.5\n6,9,,high\n10,12,3,\n")
+    bad = defective_tracks(d, tracks, T=30)
+    empty, big, labelled, huge, bouts = (
+        bad[k] for k in ("empty", "big", "labelled", "huge", "bouts")
+    )
     ckpt = _payload_checkpoint(d)
     nwb = ["fps=100", "session_start_time=2026-01-01T00:00:00", "subject.subject_id=m1",
            "subject.species=Mus musculus", "subject.sex=F", "subject.age=P90D"]  # fmt: skip

@@ -8,34 +8,20 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from adjust.io import write_points3d
+from adjust.export import read_nwb_tracks
+from adjust.scene.defective import defective_tracks, tracks_file
 
 BIN = Path(sys.executable).parent
 NWB = ["fps=100", "session_start_time=2026-01-01T00:00:00", "subject.subject_id=m1",
        "subject.species=Mus musculus", "subject.sex=F", "subject.age=P90D"]  # fmt: skip
 
 
-def _tracks(path: Path, parts: int, fnum=None, T: int = 20) -> Path:
-    rng = np.random.default_rng(0)
-    names = [f"p{k}" for k in range(parts)]
-    return write_points3d(path, names, rng.normal(0, 20, (T, parts, 3)), np.zeros((T, parts)),
-                          np.full((T, parts), 2), np.ones((T, parts)), fnum=fnum)  # fmt: skip
-
-
 def test_the_tracebacks_of_issue_46_are_one_line(tmp_path):
-    good = _tracks(tmp_path / "good.csv", 3)
-    empty = tmp_path / "empty.csv"
-    empty.write_text(good.read_text().splitlines()[0] + "\n")  # a header, no rows
-    big = _tracks(tmp_path / "big.csv", 300)  # more parts than ndx-pose's uint8 edges index
-    labelled = _tracks(tmp_path / "labelled.csv", 3, fnum=[f"img{i:03d}.png" for i in range(20)])
-    huge = tmp_path / "huge.csv"
-    lines = good.read_text().splitlines()
-    lines[-1] = lines[-1].rsplit(",", 1)[0] + ",99999999999999999999999"
-    huge.write_text("\n".join(lines) + "\n")
-    bouts = tmp_path / "bouts.csv"
-    bouts.write_text("start,stop,label,score\n0,5,walk,0.5\n6,9,,high\n10,12,3,\n")
+    good = tracks_file(tmp_path / "good.csv", 3, T=20)
+    bad = defective_tracks(tmp_path, good, T=20)
+    empty, big, labelled, huge, bouts = (
+        bad[k] for k in ("empty", "big", "labelled", "huge", "bouts")
+    )
     (tmp_path / "afile").write_text("x")
     out = tmp_path / "out"
     cwd = tmp_path / "lab"
@@ -92,8 +78,6 @@ def test_the_tracebacks_of_issue_46_are_one_line(tmp_path):
     assert not list(cwd.iterdir())  # nothing in the working directory
     assert "edges left out" not in outs["export_mixed_bouts"]
     assert "NWB skeleton lists the parts without edges" in outs["export_300_parts"]
-    from adjust.export import read_nwb_tracks
-
     assert read_nwb_tracks(out / "big.nwb")["points"].shape == (20, 300, 3)
     files = sorted(p.name for p in (out / "pl").iterdir() if p.suffix == ".png")
     assert files == ["body3d.png", "confidence.png", "reprojection_error.png"]
