@@ -60,6 +60,7 @@ def make_deformable_observation(
     few_var=None,
     net_parts=None,
     max_error_px: float = 20.0,
+    interp=None,
 ):
     """The solver's deformable observation for this data: the net's ``deformed`` inputs for
     observed tokens are the parts triangulated (robustly) from the detections (the session's
@@ -67,7 +68,8 @@ def make_deformable_observation(
     (`deform.gate_mm`). few_var: (K, 3) torch, the spread of parts with too few 3D observations
     (`refine_body`; NaN: unknown). net_parts: (K,) bool, the parts that take the net's
     prediction (`heldout_check`; None: all); max_error_px: ``consensus.max_error_px`` (the
-    robust triangulation without `cons`)."""
+    robust triangulation without `cons`); interp: the interp stage's observation (its
+    single-view anchors), used with ``deform.beyond_window=anchored``."""
     if cons is not None:
         X = torch.as_tensor(cons.points, dtype=torch.float64)
     else:
@@ -97,6 +99,7 @@ def make_deformable_observation(
         step=deform_step(model, cfg_def),
         far_steps=far_steps(model, cfg_def),
         net_parts=None if net_parts is None else torch.as_tensor(net_parts, dtype=torch.bool),
+        interp=interp if str(cfg_def.beyond_window) == "anchored" else None,
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
@@ -167,6 +170,7 @@ class NetMode(DeformationMode):
                 few_var=a.few_var,
                 net_parts=net_parts,
                 max_error_px=a.consensus.max_error_px,
+                interp=interp_obs,
             )
             def_facts.update(net_facts)
             if up_deg is not None:  # a heading-frame net: how far the mouse's up is from its up

@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import Tensor
 
@@ -162,6 +164,19 @@ def _both_sides(observed_win: Tensor) -> Tensor:
     return observed_win[:, :n].any(1) & observed_win[:, n + 1 :].any(1)
 
 
+def _near(flags: Tensor, reach: int) -> Tensor:
+    """(T, K) bool -> (T, K): a flag of the part within `reach` frames of the frame."""
+    if reach <= 0 or flags.shape[0] == 0:
+        return flags.clone()
+    x = flags.to(torch.float32).T[:, None]  # (K, 1, T)
+    pooled = torch.nn.functional.max_pool1d(x, 2 * reach + 1, stride=1, padding=reach)
+    return pooled[:, 0].T > 0.5
+
+
+#: ``deform.beyond_window``: where the net's window does not see a part on both sides
+BEYOND_WINDOW = ("net", "interp", "anchored")
+
+
 class NetObservation(DeformableObservation):
     """``deformation=CKPT|self|default``: the learned net inside the observation function, a
     `DeformableObservation` whose ``deformed`` window inputs are measurements.
@@ -186,9 +201,14 @@ class NetObservation(DeformableObservation):
     ``half_window`` frames to each side; ``beyond_window="interp"`` (default): a part-frame
     whose window holds no observation of the part on one side of the mid frame takes the
     interpolation's prediction too (kriged across the whole gap, `InterpObservation`);
-    ``"net"``: the net there as well. ``net_parts`` (K,) bool: only those parts take the net's
-    prediction, the others interp's everywhere (`adjust-track`'s held-out check,
-    ``deform.require_better``; None: every part). `use_net` (T, K) says where the net was used.
+    ``"net"``: the net there as well; ``"anchored"``: there the interpolation where the part
+    has a single-view anchor within the window's reach of the frame (`anchored`), the net
+    where it has none. ``interp``: the interpolation's observation to use (e.g. interp's
+    stage with its single-view anchors, `InterpObservation.anchored`; a copy is prepared
+    here); None: one built from ``data`` and ``observed``. ``net_parts`` (K,) bool: only
+    those parts take the net's prediction, the others interp's everywhere (`adjust-track`'s
+    held-out check, ``deform.require_better``; None: every part). `use_net` (T, K) says where
+    the net was used.
 
     `deformation_cov`: the interpolation's kriging variance (how uncertainty grows with the
     distance to the part's observations; conservative for the net in gaps, where it is the
@@ -218,6 +238,7 @@ class NetObservation(DeformableObservation):
         step: int = 1,
         far_steps: tuple[int, ...] = (),
         net_parts: Tensor | None = None,
+        interp: InterpObservation | None = None,
     ):
         super().__init__(model, body_points, window, observed, batch_size, step)
         K = observed.shape[-1]
@@ -236,8 +257,11 @@ class NetObservation(DeformableObservation):
         self.use_net: Tensor | None = None  # (T, K) where the net's prediction is the model
         if jacobian not in JACOBIANS:
             raise ValueError(f"deform.jacobian must be one of {list(JACOBIANS)}, got {jacobian!r}")
-        if beyond_window not in ("interp", "net"):
-            raise ValueError(f"deform.beyond_window must be interp or net, got {beyond_window!r}")
+        if beyond_window not in BEYOND_WINDOW:
+            raise ValueError(
+                f"deform.beyond_window must be one of {', '.join(BEYOND_WINDOW)}, "
+                f"got {beyond_window!r}"
+            )
         if int(refresh) < 1:
             raise ValueError(f"deform.refresh must be >= 1, got {refresh}")
         self.data = data
@@ -247,8 +271,16 @@ class NetObservation(DeformableObservation):
         self.refresh = int(refresh)
         self.beyond_window = beyond_window
         self.few_var = few_var
-        self.interp = InterpObservation(
-            body_points, data, observed, noise_var, few_var, measured_var
+        if interp is not None and tuple(interp.observed.shape) != tuple(observed.shape):
+            raise ValueError(
+                f"interp must observe {tuple(observed.shape)} part-frames, "
+                f"got {tuple(interp.observed.shape)}"
+            )
+        self._given_interp = interp is not None
+        self.interp = (
+            InterpObservation(body_points, data, observed, noise_var, few_var, measured_var)
+            if interp is None
+            else copy.copy(interp)
         )
         self.evaluations = 0  # net passes over the whole sequence so far
         self.factor: Tensor | None = None  # (K,) net / interp held-out mean-square error
@@ -315,7 +347,10 @@ class NetObservation(DeformableObservation):
         Mi = self.interp._M.to(M.dtype)
         # held-out errors on the measured part-frames (the net's and the kriging's)
         data = self.data.to(M.dtype)
+        anchors = self.interp.anchors
         m = self.interp.observed & ~self.interp.outliers.to(torch.bool)
+        if anchors is not None:  # the 3D observations only
+            m = m & ~anchors
         d_net = ((data - X) ** 2).sum(-1)
         Mn = self.interp.neighbours.to(M.dtype)  # the kriging, not the rigid point
         Xi = torch.einsum("tij,tkj->tki", R, Mn) + poses[:, None, 3:].detach()
@@ -329,6 +364,9 @@ class NetObservation(DeformableObservation):
             use = use & ~m
         if self.beyond_window == "interp":
             use = use & self.reach.to(m.device)
+        elif self.beyond_window == "anchored" and anchors is not None:
+            near = _near(anchors.to(m.device), (self.W // 2) * self.step)
+            use = use & (self.reach.to(m.device) | ~near)
         if self.net_parts is not None:
             use = use & self.net_parts.to(m.device)[None, :]
         self.use_net = use
@@ -410,4 +448,5 @@ class NetObservation(DeformableObservation):
             step=self.step,
             far_steps=self.far_steps,
             net_parts=self.net_parts,
+            interp=self.interp.window(start, stop) if self._given_interp else None,
         )
