@@ -48,14 +48,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from adjust.pipeline import run as track_run
-from adjust.scene.motion import (
-    MOTION_PAPER8,
-    MOTION_PARTS22,
-    floor_frame,
-    load_motion,
-    motion_rig,
-    write_motion_scene,
-)
+from adjust.scene.motion import MOTION_FEET, film_part_set, floor_frame, load_motion
 from deformnet.confutil import compose
 from deformnet.deformation import DeformationModel
 from deformnet.heldout import heldout_errors
@@ -71,7 +64,6 @@ log = logging.getLogger("adjust.pretrain_real")
 __all__ = ["SceneSpec", "SCENES", "RECIPE", "build", "track_key", "track_scene", "main"]
 
 DATA = real_mouse_motion_dir() / "poses3d.csv"
-FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")  # the floor's plane (as real_motion.py)
 #: frames the shipped net trains on; the last third (2400-3599) is never trained on
 TRAIN_FRAMES = (0, 2400)
 HELD_OUT_START = 2400
@@ -137,18 +129,6 @@ RECIPE = FitConfig(
 )
 
 
-def part_set(n: int, parts: tuple[str, ...]) -> tuple[list[str], list[str]]:
-    """The recording's names of the `n`-part set and the scene's names for them (8 parts: the
-    default mouse's names, so ``adjust-track``'s default body applies; else the recording's)."""
-    if n == 8:
-        return list(MOTION_PAPER8.values()), list(MOTION_PAPER8)
-    if n == 22:
-        return list(MOTION_PARTS22), list(MOTION_PARTS22)
-    if n == len(parts):
-        return list(parts), list(parts)
-    raise ValueError(f"part set must be 8, 22 or {len(parts)}, got {n}")
-
-
 #: the track settings that do not change the tokens (left out of the cache's key)
 UNKEYED = ("input.calibration", "input.detections", "output.dir", "progress", "threads")
 
@@ -209,16 +189,15 @@ def scene_tokens(data: Path, frames: tuple[int, int], scenes, work: Path) -> lis
     points, parts = load_motion(data)
     if not 0 <= start < stop <= len(points):
         raise ValueError(f"frames {start}-{stop} are not inside {data} ({len(points)} frames)")
-    floor = floor_frame(points, parts, FEET)
+    floor = floor_frame(points, parts, MOTION_FEET)
     out = []
     for spec in scenes:
         key = f"f{start}-{stop}_{spec.name}"
         scene = work / "scenes" / key
         t0 = time.perf_counter()
         if not (scene / "truth.npz").is_file():
-            src, names = part_set(spec.parts, parts)
-            write_motion_scene(scene, points[start:stop], parts, motion_rig(floor, spec.cameras),
-                               src, dict(zip(src, names)), seed=spec.seed)  # fmt: skip
+            film_part_set(scene, points[start:stop], parts, floor, spec.cameras, spec.parts,
+                          seed=spec.seed)  # fmt: skip
         run_dir = work / "track" / f"{key}_{track_key(scene)}"
         tok = SessionTokens.load(track_scene(scene, run_dir))
         log.info("scene %s: %d frames, %d parts, %.0f%% of part-frames measured, tracks %s "

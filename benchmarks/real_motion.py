@@ -95,12 +95,10 @@ from tracking import run_track, scene_inputs, view_fractions  # noqa: E402
 
 from adjust.io import load_scene, read_points3d  # noqa: E402
 from adjust.scene.motion import (  # noqa: E402
-    MOTION_PAPER8,
-    MOTION_PARTS22,
+    MOTION_FEET,
+    film_part_set,
     floor_frame,
     load_motion,
-    motion_rig,
-    write_motion_scene,
 )
 from deformnet.atomic import atomic_path  # noqa: E402
 from deformnet.body import default_mouse  # noqa: E402
@@ -116,7 +114,6 @@ DATA = CONF_DIR.parent.parent / "shared" / "data" / "real-mouse-motion-3d" / "po
 #: the split, fixed before any choice: segment start frames (1000 frames each)
 SPLITS = {"val": 1200, "test": 2400}
 SEGMENT_FRAMES = 1000
-FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")  # the floor's plane (floor_frame)
 PART_SETS = (8, 22, 34)
 CAMERA_COUNTS = (2, 3, 4)
 #: beyond 8 parts, the scenes' camera count (the default grid: 22 and 34 parts at 3 cameras)
@@ -152,24 +149,13 @@ def target_ratio(cameras: int, parts: int) -> float:
 # --- scenes ---------------------------------------------------------------------------------
 
 
-def part_set(n: int, parts: tuple[str, ...]) -> tuple[list[str], list[str]]:
-    """The recording's names of the `n`-part set and the scene's names for them (the 8 parts:
-    the default mouse's, `MOTION_PAPER8`'s keys; otherwise the recording's own)."""
-    if n == 8:
-        return list(MOTION_PAPER8.values()), list(MOTION_PAPER8)
-    src = list(MOTION_PARTS22) if n == 22 else list(parts) if n == 34 else None
-    if src is None:
-        raise ValueError(f"part set must be one of {PART_SETS}, got {n}")
-    return src, src
-
-
 class Motion:
     """The recording (`load_motion`) and its floor frame (`floor_frame`, from the paws)."""
 
     def __init__(self, path: Path):
         self.path = Path(path)
         self.points, self.parts = load_motion(self.path)
-        self.floor = floor_frame(self.points, self.parts, FEET)
+        self.floor = floor_frame(self.points, self.parts, MOTION_FEET)
         st = self.path.stat()
         self.tag = hashlib.sha1(f"{self.path.resolve()}:{st.st_size}".encode()).hexdigest()[:8]
 
@@ -187,10 +173,8 @@ def film_scene(
     if (out / "truth.npz").exists():
         return out
     t0 = time.perf_counter()
-    src, names = part_set(parts, motion.parts)
-    cams = motion_rig(motion.floor, cameras)
     X = motion.points[start : start + frames]
-    write_motion_scene(out, X, motion.parts, cams, src, dict(zip(src, names)), seed=seed)
+    film_part_set(out, X, motion.parts, motion.floor, cameras, parts, seed=seed)
     log.info(
         "scene %s: %d frames, %d cameras, %d parts, seed %d (%.1f s)",
         out.name,

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from adjust.scene.motion import MOTION_PAPER8, MOTION_PARTS22, part_set
+
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "benchmarks" / "real_motion.py"
 
@@ -44,7 +46,7 @@ def test_tiny_run(tmp_path, one_thread):
     assert rows["rigid"]["completeness"] == 1.0
     assert rows["rigid"]["diverged"] is False
     per = rows["rigid"]["calib_per_part"]  # the calibration part by part
-    assert list(per) == list(rm.MOTION_PAPER8)
+    assert list(per) == list(MOTION_PAPER8)
     seen = [d["seen"] for d in per.values() if d["seen"] is not None]
     assert len(seen) >= 4 and all(0.1 < v < 10 for v in seen)
     assert "c3_p8" in res["aggregate"]
@@ -54,15 +56,17 @@ def test_tiny_run(tmp_path, one_thread):
 def test_part_sets_and_constraints():
     rm = _load()
     parts = tuple(f"p{i}" for i in range(34))
-    src, names = rm.part_set(8, parts)
-    assert names == list(rm.MOTION_PAPER8) and src == list(rm.MOTION_PAPER8.values())
-    assert rm.part_set(22, parts)[0] == list(rm.MOTION_PARTS22)
-    assert rm.part_set(34, parts)[1] == list(parts)
+    src, names = part_set(8, parts)
+    assert names == list(MOTION_PAPER8) and src == list(MOTION_PAPER8.values())
+    assert part_set(22, parts)[0] == list(MOTION_PARTS22)
+    assert part_set(34, parts)[1] == list(parts)
+    with pytest.raises(ValueError, match="part set must be 8, 22 or 34"):
+        part_set(12, parts)
     skeleton = Path(rm.DATA).parent / "skeleton.csv"
-    strong, weak = rm.skeleton_constraints(skeleton, list(rm.MOTION_PARTS22))
+    strong, weak = rm.skeleton_constraints(skeleton, list(MOTION_PARTS22))
     assert set(strong) == set(rm.HEAD_TRIANGLE)
     assert ("Neck", "Trunk") in weak or not skeleton.is_file()
-    assert all(a in rm.MOTION_PARTS22 and b in rm.MOTION_PARTS22 for a, b in strong + weak)
+    assert all(a in MOTION_PARTS22 and b in MOTION_PARTS22 for a, b in strong + weak)
     assert rm.target_ratio(2, 8) == 0.6 and rm.target_ratio(4, 8) == 0.8
     assert rm.target_ratio(3, 22) == 0.8
 

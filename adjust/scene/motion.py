@@ -33,13 +33,16 @@ from deformnet.body import default_mouse
 from deformnet.so3 import kabsch, matrix_to_rodrigues
 
 __all__ = [
+    "MOTION_FEET",
     "MOTION_PAPER8",
     "MOTION_PARTS22",
     "FilmedMotion",
     "film_motion",
+    "film_part_set",
     "floor_frame",
     "load_motion",
     "motion_rig",
+    "part_set",
     "write_motion_scene",
 ]
 
@@ -61,6 +64,9 @@ MOTION_PARTS22 = (
     "Forepaw_L", "Wrist_L", "Elbow_L", "Shoulder_L", "Forepaw_R", "Wrist_R", "Elbow_R",
     "Shoulder_R", "MTP_L", "Heel_L", "Knee_L", "MTP_R", "Heel_R", "Knee_R",
 )  # fmt: skip
+
+#: the paws that define the floor's plane (`floor_frame`) in the recording
+MOTION_FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")
 
 #: rig cameras by number of cameras (names as in conf/rig/default.yaml, plus "back")
 RIG_CAMERAS = {
@@ -236,3 +242,33 @@ def write_motion_scene(
     sim = SimpleNamespace(deformed=fm.deformed[:, idx], poses=fm.poses, parts=names, fps=fps)
     res = write_scene(out, sim, cameras, det, metadata={"fps": float(fps), "seed": str(seed)})
     return {**res, "fractions": det.fractions(), "scale": fm.scale}
+
+
+def part_set(n: int, parts: Sequence[str]) -> tuple[list[str], list[str]]:
+    """The recording's names of its `n`-part set and the scene's names for them: 8, the paper's
+    (`MOTION_PAPER8`, named as the default mouse so ``adjust-track``'s default body applies);
+    22 (`MOTION_PARTS22`) or all of `parts`, under the recording's own names."""
+    if n == 8:
+        return list(MOTION_PAPER8.values()), list(MOTION_PAPER8)
+    if n == 22:
+        return list(MOTION_PARTS22), list(MOTION_PARTS22)
+    if n == len(parts):
+        return list(parts), list(parts)
+    raise ValueError(f"part set must be 8, 22 or {len(parts)}, got {n}")
+
+
+def film_part_set(
+    out: str | Path,
+    points: np.ndarray,
+    parts: Sequence[str],
+    floor: np.ndarray,
+    cameras: int,
+    num_parts: int,
+    seed: int = 0,
+) -> dict:
+    """`write_motion_scene` of the recording's frames `points` (T, P, 3) mm filmed by the
+    `cameras`-camera `motion_rig` on `floor` (`floor_frame`'s frame), keeping its
+    `num_parts`-part set (`part_set`) under the scene's names; detector seed `seed`."""
+    src, names = part_set(num_parts, parts)
+    rig = motion_rig(floor, cameras)
+    return write_motion_scene(out, points, parts, rig, src, dict(zip(src, names)), seed=seed)
