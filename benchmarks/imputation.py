@@ -72,7 +72,6 @@ REAL_TRAIN = (0, 2400)
 REAL_HELD_OUT = (2400, 3600)
 REAL_GAPS = (1, 5, 15, 45)
 REAL_METHODS = ("net", "linear", "kriging", "disk", "rigid")
-FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")  # the floor's plane (floor_frame)
 MIN_CONTEXT = 4  # tokens a window keeps on each side of a gap (gap_step)
 REAL_TARGET = 0.7  # the net / linear interpolation at gaps 15 and 45
 
@@ -186,12 +185,12 @@ def real_tokens(path: Path, parts) -> tuple:
     frame (z up, mm) as a `deformnet.windows.SequenceArrays` (rigid: the default mouse's model
     fitted, `rigid_fit` with its scale from frames REAL_TRAIN; deformed: the truth; every
     part-frame observed), the body model and the scale."""
-    from adjust.scene.motion import MOTION_PAPER8, floor_frame, load_motion
+    from adjust.scene.motion import MOTION_FEET, MOTION_PAPER8, floor_frame, load_motion
     from deformnet.body import BodyModel, default_mouse
     from deformnet.windows import SequenceArrays
 
     X, names = load_motion(path)
-    A = floor_frame(X, names, FEET)
+    A = floor_frame(X, names, MOTION_FEET)
     X = X @ A[:3, :3].T + A[:3, 3]
     idx = [names.index(MOTION_PAPER8[p]) for p in parts]
     X = X[:, idx]

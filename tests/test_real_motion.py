@@ -14,6 +14,7 @@ from adjust.apps.track import run
 from adjust.io import read_points3d
 from adjust.metrics import point_errors
 from adjust.scene.motion import (
+    MOTION_FEET,
     MOTION_PAPER8,
     floor_frame,
     load_motion,
@@ -25,13 +26,12 @@ from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, real_mouse_motion_dir
 
 DATA = real_mouse_motion_dir() / "poses3d.csv"
-FEET = ("MTP_L", "MTP_R", "Forepaw_L", "Forepaw_R")
 START, FRAMES = 1200, 400  # the benchmark's validation segment (benchmarks/real_motion.py)
 
 
 def _scene(out: Path, cameras: int, seed: int = 0) -> Path:
     X, parts = load_motion(DATA)
-    rig = motion_rig(floor_frame(X, parts, FEET), cameras)
+    rig = motion_rig(floor_frame(X, parts, MOTION_FEET), cameras)
     rename = {v: k for k, v in MOTION_PAPER8.items()}
     write_motion_scene(
         out, X[START : START + FRAMES], parts, rig, list(MOTION_PAPER8.values()), rename, seed=seed
@@ -172,3 +172,26 @@ def test_single_views_anchor_the_gaps(scenes, tmp_path):
         est = read_points3d(out / "points3d.csv")["points"]
         rmse[flag] = point_errors(est, tr["points"], tr["nviews"])["rmse_occluded"]
     assert rmse["true"] < 0.985 * rmse["false"], rmse  # 6.79 vs 6.99 mm when written
+
+
+def test_gap_sigma_changes_the_reported_sigma_of_the_gaps_only(scenes, tmp_path):
+    """deform.gap_sigma=leave_runs_out: interp's second pass reports its gaps' sigma with the
+    inflation measured on the single views against a prediction that left their runs out; the
+    points are the defaults' to the bit, and so is the sigma of every part-frame the cameras'
+    consensus saw; on the gaps it differs (larger where the check finds the kriging too sure)."""
+    scene = scenes[3]
+    res = {}
+    for name in ("solver", "leave_runs_out"):
+        out = tmp_path / name
+        _run(scene / "calibration.toml", scene / "detections", out, [f"deform.gap_sigma={name}"])
+        res[name] = read_points3d(out / "points3d.csv")
+    a, b = res["solver"], res["leave_runs_out"]
+    assert np.array_equal(a["points"], b["points"], equal_nan=True)
+    parts = a["parts"]
+    sa = np.stack([np.asarray(a["extra"][f"{p}_sigma"], float) for p in parts], 1)
+    sb = np.stack([np.asarray(b["extra"][f"{p}_sigma"], float) for p in parts], 1)
+    nviews = np.load(scene / "truth.npz")["nviews"]
+    assert np.array_equal(sa[nviews >= 3], sb[nviews >= 3])  # seen by every camera: unchanged
+    changed = ~np.isclose(sa, sb, rtol=1e-6)
+    assert changed[nviews < 2].sum() > 50, changed.sum()
+    assert (sb[changed] > sa[changed]).mean() > 0.9
