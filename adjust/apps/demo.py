@@ -281,7 +281,6 @@ def _run(cfg: DictConfig) -> dict:
                 f"data.steps_per_epoch={int(p.classify_steps_per_epoch)}",
                 f"trainer.max_time={max_time(p.classify_minutes)}",
                 f"trainer.max_epochs={int(p.classify_max_epochs)}",
-                f"probe_epochs={int(p.probe_epochs)}",
                 # every frame labelled: one MLP (the ensemble is for few labels; five L-BFGS
                 # fits on 12000 frames would take the demo several more minutes)
                 "head.ensemble=1",
