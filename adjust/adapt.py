@@ -94,7 +94,10 @@ class AdaptConfig:
     warmup_steps: int = 10
     seed: int = 0
     step: int = 1
-    augment: Augment = dataclasses.field(default_factory=Augment)
+    #: as conf/track.yaml's (a config without the key: still augmented, as the YAML says)
+    augment: Augment = dataclasses.field(
+        default_factory=lambda: Augment(mirror=0.5, reverse=0.5, steps=(1, 1, 2, 3))
+    )
     threads: int | None = None
     tensorboard: bool = False
     require_better: bool = True
@@ -114,8 +117,11 @@ class AdaptConfig:
             d["max_time"] = _seconds(d["max_time"])
         if "augment" in d:
             d["augment"] = Augment.from_any(d["augment"])
-        p = d.get("pretrained", "default")
-        d["pretrained"] = None if p is None or str(p).lower() in ("", "none", "null") else str(p)
+        if "pretrained" in d:  # absent: the field's default
+            p = d["pretrained"]
+            d["pretrained"] = (
+                None if p is None or str(p).lower() in ("", "none", "null") else str(p)
+            )
         out = cls(**d)
         for key in ("max_steps", "eval_every", "batch_size", "val_windows", "step"):
             if int(getattr(out, key)) < 1:

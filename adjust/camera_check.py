@@ -44,6 +44,7 @@ import torch
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import Detections, InputError
 from adjust.resection import resect
+from adjust.settings import InputConfig
 from adjust.triangulate import triangulate
 
 log = logging.getLogger(__name__)
@@ -354,18 +355,9 @@ def check_cameras(
 def check_from_config(
     cameras: Sequence[Camera], det: Detections, inp
 ) -> tuple[list[Camera], Detections, dict]:
-    """`check_cameras` with the settings of an app's ``input`` node: ``camera_check``
-    (error|warn|off, default warn) and ``exclude_cameras`` (a list of names, or one name)."""
-    get = inp.get if inp is not None and hasattr(inp, "get") else (lambda k, d=None: d)
-    mode = get("camera_check", "warn")
-    mode = "off" if mode is False else str(mode)
-    exclude = get("exclude_cameras", None) or []
-    if isinstance(exclude, str | int):
-        exclude = [exclude]
-    try:
-        exclude = [str(n) for n in exclude]
-    except TypeError:
-        raise InputError(
-            f"input.exclude_cameras must be a list of camera names, got {exclude!r}"
-        ) from None
+    """`check_cameras` with the settings of an app's ``input`` node (an
+    `adjust.settings.InputConfig` or the node it is read from): ``camera_check`` (error|warn|
+    off) and ``exclude_cameras`` (a list of names, or one name)."""
+    ic = InputConfig.from_config(inp)
+    mode, exclude = ic.camera_check, list(ic.exclude_cameras)
     return check_cameras(cameras, det, mode, exclude)

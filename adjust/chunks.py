@@ -75,9 +75,9 @@ from adjust.io import InputError, load_calibration, load_detections, match_files
 from adjust.io.scene import MIN_CAMERAS
 from adjust.lsq.solver import RESULT_ARRAYS
 from adjust.session import with_session
-from adjust.settings import load_kwargs, required
+from adjust.settings import required
 from adjust.summary import report_result, result_summary, track_health
-from deformnet.confutil import to_plain
+from adjust.track_config import DEFAULT_CHUNK_FRAMES, MIN_CHUNK_FRAMES, ChunkConfig, TrackConfig
 from deformnet.outputs import OutputSet
 from deformnet.paths import output_dir
 
@@ -96,35 +96,11 @@ __all__ = [
     "track_long",
 ]
 
-#: ``chunk_frames``'s default: frames tracked at a time (conf/track.yaml)
-DEFAULT_CHUNK_FRAMES = 50_000
 #: the sample the session-wide quantities come from: this many frames in `SAMPLE_BLOCKS` blocks
 SAMPLE_FRAMES = SHAPE_FRAMES
 SAMPLE_BLOCKS = 20
 #: frames read on either side of a chunk: a tenth of it, within these bounds
-MIN_OVERLAP, MAX_OVERLAP = 64, 1000
-
-
-@dataclass(frozen=True)
-class ChunkConfig:
-    """``chunk_frames``: a session longer than this many frames is tracked in chunks of it
-    (None or 0: never)."""
-
-    chunk_frames: int | None = DEFAULT_CHUNK_FRAMES
-
-    @classmethod
-    def from_config(cls, cfg) -> ChunkConfig:
-        value = cfg.get("chunk_frames", DEFAULT_CHUNK_FRAMES)
-        if value is None:
-            return cls(None)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ValueError(
-                f"chunk_frames must be a whole number of frames >= 0 (0 or null: never chunk), "
-                f"got {value!r}"
-            )
-        if 0 < value < 2 * MIN_OVERLAP:
-            raise ValueError(f"chunk_frames must be 0 or at least {2 * MIN_OVERLAP}, got {value}")
-        return cls(int(value) or None)
+MIN_OVERLAP, MAX_OVERLAP = MIN_CHUNK_FRAMES // 2, 1000  # (a chunk holds twice the least)
 
 
 def overlap_frames(chunk_frames: int) -> int:
@@ -302,16 +278,17 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
     when the recipe is to run it whole: ``chunk_frames`` 0 or null, a session no longer than
     one chunk, frames named rather than numbered. track: the recipe, `adjust.pipeline.track`
     (``track(cfg, chunk=hooks)``)."""
-    chunk = ChunkConfig.from_config(cfg).chunk_frames
+    tc = TrackConfig.from_config(cfg)
+    chunk = tc.chunk.chunk_frames
     if not chunk:
         return None
-    mode = mode_from_config(cfg.get("deformation"))
+    mode = mode_from_config(tc.deformation)
     if isinstance(mode, CheckpointNet):  # a user's checkpoint is checked before any input
         load_deformation(mode.path)
     cfg = with_session(cfg)
     calibration = required(cfg, "input.calibration", "track")
     detections = required(cfg, "input.detections", "track")
-    kwargs = load_kwargs(cfg.input)
+    kwargs = tc.input.load_kwargs()
     cameras = load_calibration(calibration)
     paths = match_files(detections, [c.name for c in cameras], kwargs["pattern"])
     rows = max(count_rows(Path(p), kwargs["individual"]) for p in paths.values())
@@ -347,7 +324,7 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
         model = sample.learned
         sample_s = time.perf_counter() - t0
         with OutputSet(out) as staged:
-            writer = ChunkWriter(staged, tmp, nwb=bool(cfg.output.get("nwb", False)))
+            writer = ChunkWriter(staged, tmp, nwb=tc.output.nwb)
             summaries, frames, facts, untracked = _track_chunks(
                 cfg, track, cache, plan, model, writer
             )
@@ -363,14 +340,14 @@ def track_long(cfg: DictConfig, track: Callable[..., dict]) -> dict | None:
             if untracked:
                 _report_untracked(summary, untracked, cache.frames)
             writer.finish(summary["parts"], summary["cameras"], summary)
-            if cfg.output.get("nwb", False):
+            if tc.output.nwb:
                 write_nwb(  # from the chunks' numbers on disk, block by block of rows
                     staged.path("tracks.nwb"),
                     staged.path("points3d.csv"),
                     calibration,
-                    fps=cfg.output.get("fps"),
-                    session_start_time=cfg.output.get("session_start_time"),
-                    subject=to_plain(cfg.output.get("subject")) or None,
+                    fps=tc.output.fps,
+                    session_start_time=tc.output.session_start_time,
+                    subject=tc.output.subject or None,
                     detections=detections,
                     table=writer.table.tracks(summary["parts"], cache.frames),
                 )

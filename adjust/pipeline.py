@@ -35,7 +35,7 @@ from adjust.io import (
 )
 from adjust.lsq.solver import TRACK_OUTPUTS, adjust_poses
 from adjust.session import with_session
-from adjust.settings import load_kwargs, required
+from adjust.settings import required
 from adjust.summary import report_result, result_summary, track_columns, track_health
 from adjust.track_config import TrackConfig, resolve_deprecated
 from adjust.track_outputs import check_nwb_output, write_outputs
@@ -53,7 +53,7 @@ def run(cfg: DictConfig) -> dict:
     call and restored after it, values under deprecated names moved to their new ones first
     (`adjust.track_config.resolve_deprecated`); returns the summary."""
     cfg = resolve_deprecated(cfg)
-    with torch_threads(cfg.get("threads")):
+    with torch_threads(TrackConfig.from_config(cfg).threads):
         summary = track_long(cfg, track)  # a long session, in chunks (adjust.chunks)
         return summary if summary is not None else track(cfg)
 
@@ -68,14 +68,14 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
     calibration = required(cfg, "input.calibration", "track")
     detections = required(cfg, "input.detections", "track")
     where = str(detections)
-    kwargs = load_kwargs(cfg.input)
-    body_cfg = cfg.get("body")
-    if body_cfg is None:
+    if "body" not in cfg or cfg.body is None:
         raise ValueError(
             "adjust-track needs a body model: body=mouse, body=auto (estimated from the data) or "
             "your own conf/body/<name>.yaml"
         )
+    body_cfg = cfg.body  # the model's node (`BodyModel.from_config`; its fit: `tc.body`)
     tc = TrackConfig.from_config(cfg)
+    kwargs = tc.input.load_kwargs()
     solver_cfg, fit = tc.solver, tc.body
     auto = fit.auto
     mode = mode_from_config(tc.deformation)
@@ -124,7 +124,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             body_facts["other_parts"] = list(exc.parts)
         frame_of = body
     check = check_from_config if chunk is None else chunk.check_cameras
-    cameras, det, camera_report = check(cameras, det, cfg.get("input"))
+    cameras, det, camera_report = check(cameras, det, tc.input)
     check_cameras_usable(det, where)  # one camera: depth unobserved, refused
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     timings["load_s"] = time.perf_counter() - t0
@@ -222,7 +222,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             solve=solve,
             rigid=rigid,
             deform=tc.deform,
-            adapt_cfg=cfg.get("adapt"),
+            adapt_cfg=tc.adapt,
             consensus=tc.consensus,
             where=where,
             out=out,

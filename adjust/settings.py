@@ -1,18 +1,22 @@
 """Typed settings of the adjust apps: each read and checked once, a bad value a ValueError
 naming the setting and what it accepts (`setting`, `check_settings`), required keys
-(`required`), the detections' input block (`load_kwargs`)."""
+(`required`), the detections' input block (`InputConfig`, `load_kwargs`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
 import os
+from dataclasses import dataclass
 
 from omegaconf import DictConfig, OmegaConf
 
+from adjust.io import InputError
 from adjust.lsq.config import SolverConfig
+from deformnet.confutil import checked_fields
 
 __all__ = [
+    "InputConfig",
     "MAX_THREADS",
     "MIN_SIGMA_PX",
     "SETTINGS",
@@ -174,17 +178,72 @@ def required(cfg: DictConfig, key: str, config_name: str) -> str:
     return str(value)
 
 
-def load_kwargs(inp: DictConfig) -> dict:
+#: the input block's typed settings: key -> (kind, lo, hi) (`setting`)
+_INPUT_SETTINGS = {
+    "likelihood_threshold": ("float", 0.0, 1.0),
+    "ignore_unknown_parts": ("bool", None, None),
+    "allow_missing_parts": ("bool", None, None),
+}
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """The detections' ``input`` block (``conf/input/default.yaml`` documents each key; the
+    files themselves, ``calibration`` / ``detections`` / ``session``, are read by `required`
+    and `adjust.session.with_session`). A missing key keeps its default here, the one copy of
+    the YAML's; a bad value is a ValueError naming ``input.<key>``."""
+
+    likelihood_threshold: float = 0.5
+    individual: str | None = None
+    pattern: str | None = None
+    ignore_unknown_parts: bool = False
+    allow_missing_parts: bool = False
+    camera_check: str = "warn"  # error | warn | off (adjust.camera_check)
+    exclude_cameras: tuple[str, ...] = ()
+
+    @classmethod
+    def from_config(cls, node) -> InputConfig:
+        """From an app's ``input`` node (OmegaConf or a mapping; None: the defaults)."""
+        if isinstance(node, InputConfig):
+            return node
+        d = checked_fields(cls, node, "input", ignore=("calibration", "detections", "session"))
+        d = {k: v for k, v in d.items() if v is not None}  # null: the default
+        for key, (kind, lo, hi) in _INPUT_SETTINGS.items():
+            if key in d:
+                d[key] = setting(d, key, kind, lo=lo, hi=hi, prefix="input.")
+        for key in ("individual", "pattern"):
+            if key in d:
+                d[key] = str(d[key])
+        if "camera_check" in d:  # YAML reads a bare `off` as false
+            d["camera_check"] = "off" if d["camera_check"] is False else str(d["camera_check"])
+        if "exclude_cameras" in d:
+            d["exclude_cameras"] = _names(d["exclude_cameras"])
+        return cls(**d)
+
+    def load_kwargs(self) -> dict:
+        """`adjust.io.load_scene`'s keyword arguments."""
+        return {
+            "likelihood_threshold": self.likelihood_threshold,
+            "individual": self.individual,
+            "pattern": self.pattern,
+            "ignore_unknown_parts": self.ignore_unknown_parts,
+            "allow_missing_parts": self.allow_missing_parts,
+        }
+
+
+def _names(value) -> tuple[str, ...]:
+    """``input.exclude_cameras``: a list of camera names, or one name."""
+    if isinstance(value, str | int):
+        value = [value]
+    try:
+        return tuple(str(n) for n in value)
+    except TypeError:
+        raise InputError(
+            f"input.exclude_cameras must be a list of camera names, got {value!r}"
+        ) from None
+
+
+def load_kwargs(inp) -> dict:
     """`adjust.io.load_scene` keyword arguments from an app's `input` config node (settings of
-    the wrong type or range are a ValueError naming them)."""
-    individual = inp.get("individual")
-    pattern = inp.get("pattern")
-    return {
-        "likelihood_threshold": setting(inp, "likelihood_threshold", "float", 0.5, lo=0.0, hi=1.0),
-        "individual": None if individual is None else str(individual),
-        "pattern": None if pattern is None else str(pattern),
-        "ignore_unknown_parts": setting(
-            inp, "ignore_unknown_parts", "bool", False, prefix="input."
-        ),
-        "allow_missing_parts": setting(inp, "allow_missing_parts", "bool", False, prefix="input."),
-    }
+    the wrong type or range are a ValueError naming them; `InputConfig`)."""
+    return InputConfig.from_config(inp).load_kwargs()

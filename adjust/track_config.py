@@ -5,9 +5,14 @@
   the robust triangulation's of a body estimated without them and of a net's inputs.
 - `DeformConfig` (``deform:``): the deformation modes' settings (`adjust.deformation_modes`).
 - `BodyFitConfig` (the ``body`` group's estimator settings, `adjust.body_fit`).
+- `ChunkConfig` (``chunk_frames``): a long session in chunks (`adjust.chunks`).
 - `TrackConfig`: the above, the solver's (`adjust.lsq.SolverConfig`, ``solver.sigma_det_px``
-  and ``solver.sigma_def_mm`` null: from the data) and ``threads`` (the one thread setting:
-  torch's threads for the whole run, the solver's and the net's included).
+  and ``solver.sigma_def_mm`` null: from the data), the ``input`` block
+  (`adjust.settings.InputConfig`), the ``adapt`` block (`adjust.adapt.AdaptConfig`), the
+  ``output`` block and ``threads`` (the one thread setting: torch's threads for the whole run,
+  the solver's and the net's included). A key absent from the config keeps its dataclass
+  default: the code holds one copy of each YAML default, never a second in a
+  ``.get(key, default)``.
 
 Deprecated names (`DEPRECATED`, kept for one release): a value given under an old name is used
 for its new key, with a logged warning (`resolve_deprecated`); given under both names with
@@ -23,15 +28,19 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from adjust.adapt import AdaptConfig
 from adjust.io import InputError
 from adjust.lsq.config import SolverConfig
-from deformnet.confutil import checked_fields
+from adjust.settings import InputConfig
+from deformnet.confutil import checked_fields, to_plain
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "DEPRECATED",
+    "DEFAULT_CHUNK_FRAMES",
     "BodyFitConfig",
+    "ChunkConfig",
     "ConsensusConfig",
     "DeformConfig",
     "OutputConfig",
@@ -197,6 +206,44 @@ class OutputConfig:
         return _typed(cls, node, "output")
 
 
+#: ``chunk_frames``' default (conf/track.yaml)
+DEFAULT_CHUNK_FRAMES = 50_000
+#: the least frames a chunk may have: twice the least overlap read on either side of it
+MIN_CHUNK_FRAMES = 128
+
+
+@dataclass(frozen=True)
+class ChunkConfig:
+    """``chunk_frames``: a session longer than this many frames is tracked in chunks of it
+    (None or 0: never)."""
+
+    chunk_frames: int | None = DEFAULT_CHUNK_FRAMES
+
+    def __post_init__(self) -> None:
+        value = self.chunk_frames
+        if value is None:
+            return
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(
+                f"chunk_frames must be a whole number of frames >= 0 (0 or null: never chunk), "
+                f"got {value!r}"
+            )
+        if 0 < value < MIN_CHUNK_FRAMES:
+            raise ValueError(f"chunk_frames must be 0 or at least {MIN_CHUNK_FRAMES}, got {value}")
+        object.__setattr__(self, "chunk_frames", int(value) or None)
+
+    @classmethod
+    def from_config(cls, cfg) -> ChunkConfig:
+        """From adjust-track's config (or a mapping): its ``chunk_frames``."""
+        return cls(**_given(cfg, ("chunk_frames",)))
+
+
+def _given(cfg, keys: tuple[str, ...]) -> dict:
+    """The top-level `keys` that `cfg` (an OmegaConf node or a mapping) holds: those absent
+    keep their dataclass defaults."""
+    return {k: cfg[k] for k in keys if k in cfg}
+
+
 @dataclass(frozen=True)
 class TrackConfig:
     """adjust-track's settings the library reads (the ``input`` block is the apps' own,
@@ -215,11 +262,16 @@ class TrackConfig:
     progress: bool = True
     threads: int | None = 1
     output: OutputConfig = field(default_factory=OutputConfig)
+    input: InputConfig = field(default_factory=InputConfig)
+    adapt: AdaptConfig = field(default_factory=AdaptConfig)
+    chunk: ChunkConfig = field(default_factory=ChunkConfig)
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> TrackConfig:
         """From adjust-track's composed config (after `resolve_deprecated`)."""
-        solver = cfg.get("solver")
+        blocks = {k: cfg[k] for k in ("solver", "body", "consensus", "deform", "output", "input",
+                                      "adapt") if k in cfg}  # fmt: skip
+        solver = blocks.get("solver")  # (plain dict: the blocks given)
         solver = {} if solver is None else OmegaConf.to_container(solver, resolve=True)
         sigma_det = solver.pop("sigma_det_px", None)
         sigma_def = solver.pop("sigma_def_mm", None)
@@ -229,17 +281,23 @@ class TrackConfig:
             defaults["sigma_det_px"] = float(sigma_det)
         if sigma_def is not None:
             defaults["sigma_def_mm"] = float(sigma_def)
-        deformation = cfg.get("deformation")
+        top = _given(cfg, ("deformation", "progress", "threads"))
+        if top.get("deformation") is not None:
+            top["deformation"] = str(top["deformation"])
+        if "progress" in top:
+            top["progress"] = bool(top["progress"])
         return cls(
-            deformation=None if deformation is None else str(deformation),
-            body=BodyFitConfig.from_config(cfg.get("body")),
-            consensus=ConsensusConfig.from_config(cfg.get("consensus")),
-            deform=DeformConfig.from_config(cfg.get("deform")),
+            deformation=top.pop("deformation", None),
+            body=BodyFitConfig.from_config(blocks.get("body")),
+            consensus=ConsensusConfig.from_config(blocks.get("consensus")),
+            deform=DeformConfig.from_config(blocks.get("deform")),
             # num_threads 0: the solver runs in the app's threads (`threads`)
             solver=SolverConfig.from_config(solver, num_threads=0, **defaults).resolved(),
             sigma_det_px=None if sigma_det is None else float(sigma_det),
             sigma_def_mm=None if sigma_def is None else float(sigma_def),
-            progress=bool(cfg.progress),
-            threads=cfg.get("threads"),
-            output=OutputConfig.from_config(cfg.get("output")),
+            output=OutputConfig.from_config(blocks.get("output")),
+            input=InputConfig.from_config(blocks.get("input")),
+            adapt=AdaptConfig.from_any(to_plain(blocks.get("adapt"))),
+            chunk=ChunkConfig.from_config(cfg),
+            **top,
         )

@@ -170,9 +170,11 @@ class BodyModel:
 
     @classmethod
     def from_config(cls, cfg) -> BodyModel:
-        """From a Hydra/OmegaConf node or dict with keys name, parts, aliases."""
+        """From a Hydra/OmegaConf node or dict with keys parts and optionally aliases, name
+        (absent: `from_mapping`'s defaults; other keys, such as the fit's settings in
+        adjust-track's ``body`` group, are not the model's)."""
         cfg = dict(to_plain(cfg))
-        return cls.from_mapping(cfg["parts"], cfg.get("aliases"), cfg.get("name", "body"))
+        return cls.from_mapping(**{k: cfg[k] for k in ("parts", "aliases", "name") if k in cfg})
 
     def scaled(self, scale: float) -> BodyModel:
         """The same model with every coordinate multiplied by `scale` (> 0)."""

@@ -10,7 +10,16 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from adjust.track_config import DEPRECATED, DeformConfig, TrackConfig, resolve_deprecated
+from adjust.adapt import AdaptConfig
+from adjust.settings import InputConfig
+from adjust.track_config import (
+    DEPRECATED,
+    ChunkConfig,
+    DeformConfig,
+    OutputConfig,
+    TrackConfig,
+    resolve_deprecated,
+)
 from deformnet.paths import CONF_DIR
 
 
@@ -30,6 +39,28 @@ def test_defaults_are_typed_and_each_setting_has_one_name():
     cfg = _cfg([])
     for old in DEPRECATED:
         assert OmegaConf.select(cfg, old, default=None) in (None, 0), old
+
+
+def test_the_blocks_read_typed_and_an_absent_key_keeps_the_dataclass_default():
+    """The YAML's defaults are the dataclasses' (the input, adapt, output blocks and
+    chunk_frames); a config without a key gets the dataclass's, the one copy in the code."""
+    tc = TrackConfig.from_config(resolve_deprecated(_cfg([])))
+    assert tc.input == InputConfig() and tc.adapt == AdaptConfig()
+    assert tc.chunk == ChunkConfig() and not any(tc.output.subject.values())
+    assert tc.output == OutputConfig(subject=tc.output.subject)  # (the YAML lists the fields)
+    given = {"input": {"likelihood_threshold": 0.7, "exclude_cameras": "side",
+                       "camera_check": False},
+             "chunk_frames": 0, "adapt": {"max_steps": 7}}  # fmt: skip
+    tc = TrackConfig.from_config(OmegaConf.create(given))
+    assert tc.input.likelihood_threshold == 0.7 and tc.input.exclude_cameras == ("side",)
+    assert tc.input.camera_check == "off"  # YAML's bare `off` is false
+    assert tc.chunk.chunk_frames is None and tc.adapt.max_steps == 7
+    assert tc.threads == 1 and tc.progress and tc.deformation is None  # absent: the defaults
+    assert tc.input.load_kwargs()["likelihood_threshold"] == 0.7
+    with pytest.raises(ValueError, match="input.likelihood_threshold=2"):
+        InputConfig.from_config({"likelihood_threshold": 2})
+    with pytest.raises(ValueError, match="input.typo"):
+        InputConfig.from_config({"typo": 1})
 
 
 @pytest.mark.parametrize(

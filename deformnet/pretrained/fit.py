@@ -186,9 +186,9 @@ def fit_sessions(
     (`TruthWindowBank`) instead of the measured mid frame."""
     torch.manual_seed(int(seed))
     net_cfg = dict(cfg.net)
-    half_window = int(net_cfg.get("half_window", 12))
     net_cfg.setdefault("num_parts", None)
     net = build_net(net_cfg)
+    half_window = int(net.half_window)  # the net's own (its config's, else its default)
     if not getattr(net, "part_agnostic", False) and len({tuple(t.parts) for t in sessions}) > 1:
         raise ValueError(f"{net_cfg['_target_']} knows parts by index: one skeleton only")
     if truths is not None and len(truths) != len(sessions):
