@@ -5,6 +5,7 @@
 - The library never imports an app: no module of `adjust` outside `adjust/apps/` (one module
   per console script) imports `adjust.apps`, and `adjust/entry.py` names only app modules;
   `adjust/io` imports no behavior code.
+- At most 40 function-local imports of adjust / deformnet, each with its reason in a comment.
 - Every module of `adjust` and of `deformnet.sim` imports without Lightning (only training,
   `deformnet.lit` / `deformnet.train` / ..., needs it), and so do the `deformnet` modules that
   `adjust-track` loads at run time outside training (`RUNTIME`).
@@ -163,6 +164,60 @@ def test_the_scan_sees_every_kind_of_import(tmp_path):
         "adjust.lsq",
         "adjust.track",
     ]
+
+
+#: the most function-local imports of adjust / deformnet in the two packages (issue 50)
+MAX_LOCAL_IMPORTS = 40
+
+
+def _local_first_party_imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import of adjust or deformnet (or a relative one) that stands
+    inside a function body of the file."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    out = set()
+    for fn in ast.walk(tree):
+        if not isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, ast.Import):
+                mods = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                mods = [node.module or ""] if node.level == 0 else ["."]
+            else:
+                continue
+            out |= {(node.lineno, m) for m in mods if m == "." or m.split(".")[0] in FIRST_PARTY}
+    return sorted(out)
+
+
+FIRST_PARTY = ("adjust", "deformnet")
+
+
+def test_function_local_first_party_imports_are_few_and_give_their_reason():
+    """At most `MAX_LOCAL_IMPORTS` imports of adjust / deformnet inside functions (they hid
+    import circles: 150 before issue 50), each with a comment on its line or the line above
+    saying why it is not at the top (Lightning or torch kept off a light path, an optional
+    package)."""
+    found, silent = [], []
+    for pkg in FIRST_PARTY:
+        for p in sorted((ROOT / pkg).rglob("*.py")):
+            lines = p.read_text(encoding="utf-8").splitlines()
+            for line, mod in _local_first_party_imports(p):
+                where = f"{p.relative_to(ROOT)}:{line} imports {mod}"
+                found.append(where)
+                if "#" not in lines[line - 1] and not lines[line - 2].strip().startswith("#"):
+                    silent.append(where)
+    assert len(found) <= MAX_LOCAL_IMPORTS, "\n".join(found)
+    assert not silent, "function-local imports without a reason:\n" + "\n".join(silent)
+
+
+def test_the_local_import_count_sees_nested_and_relative_imports(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text(
+        "import adjust.camera\n"
+        "def g():\n    import numpy\n    from deformnet import body\n"
+        "    def h():\n        from . import sibling\n        import adjust.lsq\n"
+    )
+    assert _local_first_party_imports(f) == [(4, "deformnet"), (6, "."), (7, "adjust.lsq")]
 
 
 _IMPORT_ALL = f"""
