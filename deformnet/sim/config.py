@@ -15,7 +15,7 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from deformnet.confutil import to_plain
 from deformnet.paths import CONF_DIR
@@ -67,27 +67,46 @@ class GaitConfig:
 
 
 @dataclass(frozen=True)
-class HeadConfig:
-    yaw: tuple[float, float] = (-15.0, 15.0)
-    pitch: tuple[float, float] = (-10.0, 10.0)
-    roll: tuple[float, float] = (-8.0, 8.0)
-    period: tuple[float, float, float] = (1.6, 1.2, 2.0)
+class SwayConfig:
+    """The head swept back and forth about the ears' midpoint: yaw, pitch, roll intervals (deg,
+    in [-90, 90], each containing 0), run linearly back and forth over `period` (s, a full cycle
+    of each). One shape for two groups: ``head`` (while walking; `HeadConfig`) and ``scan``
+    (stopped, larger intervals; `ScanConfig`); their defaults are `SimConfig`'s."""
+
+    GROUP: ClassVar[str] = ""
+
+    yaw: tuple[float, float]
+    pitch: tuple[float, float]
+    roll: tuple[float, float]
+    period: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        for k in ("yaw", "pitch", "roll"):
+            iv = getattr(self, k)
+            _interval(iv, f"{self.GROUP}.{k}", -90.0, 90.0)
+            _check(iv[0] <= 0.0 <= iv[1], f"{self.GROUP}.{k}", "the interval must contain 0", iv)
+        _check(min(self.period) > 0, f"{self.GROUP}.period", "periods must be > 0", self.period)
+
+
+@dataclass(frozen=True)
+class HeadConfig(SwayConfig):
+    """``head``: the sway while walking; blend: smoothing (s) of head motion at behavior
+    changes."""
+
+    GROUP: ClassVar[str] = "head"
+
     blend: float = 0.1
 
     def __post_init__(self) -> None:
-        _head_angles(self, "head")
+        super().__post_init__()
         _at_least(self, "head", 0, "blend")
 
 
 @dataclass(frozen=True)
-class ScanConfig:
-    yaw: tuple[float, float] = (-50.0, 50.0)
-    pitch: tuple[float, float] = (-15.0, 30.0)
-    roll: tuple[float, float] = (-15.0, 15.0)
-    period: tuple[float, float, float] = (1.4, 2.2, 1.8)
+class ScanConfig(SwayConfig):
+    """``scan``: the sway while stopped (the scan behavior)."""
 
-    def __post_init__(self) -> None:
-        _head_angles(self, "scan")
+    GROUP: ClassVar[str] = "scan"
 
 
 @dataclass(frozen=True)
@@ -273,8 +292,16 @@ class SimConfig:
     arena: ArenaConfig = field(default_factory=ArenaConfig)
     walk: WalkConfig = field(default_factory=WalkConfig)
     gait: GaitConfig = field(default_factory=GaitConfig)
-    head: HeadConfig = field(default_factory=HeadConfig)
-    scan: ScanConfig = field(default_factory=ScanConfig)
+    head: HeadConfig = field(
+        default_factory=lambda: HeadConfig(
+            (-15.0, 15.0), (-10.0, 10.0), (-8.0, 8.0), (1.6, 1.2, 2.0)
+        )
+    )
+    scan: ScanConfig = field(
+        default_factory=lambda: ScanConfig(
+            (-50.0, 50.0), (-15.0, 30.0), (-15.0, 15.0), (1.4, 2.2, 1.8)
+        )
+    )
     rear: RearConfig = field(default_factory=RearConfig)
     groom: GroomConfig = field(default_factory=GroomConfig)
     reach: ReachConfig = field(default_factory=ReachConfig)
@@ -305,7 +332,7 @@ class SimConfig:
         data = to_plain(cfg)
         if not isinstance(data, Mapping):
             raise ValueError(f"sim: expected a mapping, got {type(data).__name__}")
-        return _build(cls, data, "sim")
+        return _build(cls, data, "sim", cls())
 
     @classmethod
     def from_name(cls, name: str) -> SimConfig:
@@ -377,12 +404,12 @@ def _per_name(value: Any, names: tuple[str, ...], key: str, default: tuple) -> d
     return {n: value.get(n, d) for n, d in zip(names, default)}
 
 
-def _build(cls: type, data: Mapping, key: str) -> Any:
+def _build(cls: type, data: Mapping, key: str, defaults: Any) -> Any:
+    """`cls` from `data`, the keys absent from it as in `defaults` (an instance of `cls`)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"{key}: unknown key(s) {unknown}; known: {sorted(fields)}")
-    defaults = cls() if cls is not MechanismConfig else None
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
         sub = f"{key}.{name}"
@@ -390,7 +417,7 @@ def _build(cls: type, data: Mapping, key: str) -> Any:
         if dataclasses.is_dataclass(default) and not isinstance(default, type):
             if not isinstance(value, Mapping):
                 raise ValueError(f"{sub}: expected a mapping, got {value!r}")
-            kwargs[name] = _build(type(default), value, sub)
+            kwargs[name] = _build(type(default), value, sub, default)
         elif cls is BehaviorConfig:
             rows = _per_name(value, BEHAVIORS, sub, default)
             width = 2 if name == "durations" else len(BEHAVIORS)
@@ -424,7 +451,7 @@ def _build(cls: type, data: Mapping, key: str) -> Any:
             kwargs[name] = int(v)
         else:
             kwargs[name] = _num(value, sub)
-    return cls(**kwargs)  # each dataclass checks its ranges (naming sim.<group>.<key>)
+    return dataclasses.replace(defaults, **kwargs)  # each checks its ranges (sim.<group>.<key>)
 
 
 def _check(cond: bool, key: str, msg: str, value: Any) -> None:
@@ -446,12 +473,3 @@ def _at_least(cfg: Any, group: str, lo: float, *keys: str) -> None:
     for k in keys:
         v = getattr(cfg, k)
         _check(v >= lo, f"{group}.{k}", f"must be >= {lo}", v)
-
-
-def _head_angles(h: Any, group: str) -> None:
-    """head / scan: yaw, pitch, roll intervals in [-90, 90] containing 0; periods > 0."""
-    for k in ("yaw", "pitch", "roll"):
-        iv = getattr(h, k)
-        _interval(iv, f"{group}.{k}", -90.0, 90.0)
-        _check(iv[0] <= 0.0 <= iv[1], f"{group}.{k}", "the interval must contain 0", iv)
-    _check(min(h.period) > 0, f"{group}.period", "periods must be > 0", h.period)
