@@ -1,5 +1,6 @@
 """Config helpers for code that accepts both Hydra/OmegaConf nodes and plain mappings: plain
-values (`to_plain`), a config block's checked fields (`checked_fields`), a project config
+values (`to_plain`), a config block's checked fields (`checked_fields`) or the fields it gives
+(`given_fields`), a project config
 (`compose`), an integer setting (`int_setting`), a frame rate (`check_fps`)."""
 
 from __future__ import annotations
@@ -32,6 +33,15 @@ def checked_fields(cls: type, cfg: Any, what: str, ignore: Iterable[str] = ()) -
         keys = [f"{what}.{k}" for k in unknown]
         raise ValueError(f"unknown {what} settings {keys}; known: {sorted(names)}")
     return {k: v for k, v in data.items() if k in names}
+
+
+def given_fields(cls: type, cfg: Any) -> dict[str, Any]:
+    """The keys of a config node (OmegaConf or a mapping; None: none) that are fields of the
+    dataclass `cls`, unresolved values as they stand: the fields absent keep `cls`'s defaults,
+    the one copy of a YAML default in the code (other keys are read elsewhere)."""
+    if cfg is None:
+        return {}
+    return {f.name: cfg[f.name] for f in dataclasses.fields(cls) if f.name in cfg}
 
 
 def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> Any:

@@ -18,6 +18,7 @@ import datetime
 import json
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
-from deformnet.confutil import to_plain
+from deformnet.confutil import given_fields, to_plain
 from deformnet.data import Augment, DeformDataModule
 from deformnet.deformation import DeformationModel, build_net, check_track_up, frame_up
 from deformnet.lit import DeformLit
@@ -46,6 +47,47 @@ from deformnet.threads import torch_threads
 log = logging.getLogger(__name__)
 
 __all__ = ["run", "build_model", "build_datamodule", "net_config"]
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """The top-level settings of deformnet-train's config that `run` reads (conf/train.yaml
+    documents each); an absent key keeps the default here."""
+
+    pretrained: Any = None  # null | default | a checkpoint path (`load_pretrained`)
+    half_window: int = 16
+    up: Any = None  # the world's up, e.g. [0, 0, 1] (`deformnet.deformation.frame_up`)
+    seed: int = 0
+    threads: int | None = 1
+    progress_bar: str = "rich"  # rich | tqdm | none
+
+    @classmethod
+    def from_config(cls, cfg) -> TrainSettings:
+        s = given_fields(cls, cfg)
+        if s.get("pretrained") is not None and str(s["pretrained"]).lower() in ("", "none", "null"):
+            s["pretrained"] = None
+        return cls(**{k: to_plain(v) for k, v in s.items()})
+
+
+@dataclass(frozen=True)
+class DataSettings:
+    """The ``data`` block's keys that `run` reads itself (conf/data/*.yaml; the rest are
+    `deformnet.data.DeformDataModule`'s arguments): the source, the token step and the
+    augmentation's steps, and ``data=sessions``' sessions, split and token builder."""
+
+    source: str = "sim"
+    step: int = 1
+    augment: Any = None  # `deformnet.windows.Augment.from_any`'s input
+    sessions: tuple = ()
+    val_fraction: float = 0.2
+    block_frames: int = 500
+    builder: Any = None  # a Hydra ``_partial_`` target: raw session -> tokens.npz
+
+    @classmethod
+    def from_config(cls, cfg) -> DataSettings:
+        """From deformnet-train's config (its ``data`` block; absent: the defaults)."""
+        data = cfg["data"] if "data" in cfg else None
+        return cls(**given_fields(cls, data)) if data is not None else cls()
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -96,8 +138,9 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
     (config, window and weights) is fine-tuned instead of a fresh ``cfg.net``."""
     body = BodyModel.from_config(cfg.body) if body is None else body
     name, ncfg = net_config(cfg, body.num_parts)
-    half_window = int(cfg.half_window)
-    up = frame_up(to_plain(cfg.get("up")), pretrained, str(cfg.get("pretrained") or ""))
+    ts = TrainSettings.from_config(cfg)
+    half_window = int(ts.half_window)
+    up = frame_up(ts.up, pretrained, str(ts.pretrained or ""))
     if pretrained is not None:
         if not pretrained.part_agnostic and pretrained.num_parts != body.num_parts:
             raise ValueError(
@@ -126,7 +169,7 @@ def build_model(cfg: DictConfig, body=None, pretrained=None):
 
 def data_step(cfg: DictConfig) -> int:
     """``data.step``: frames between a window's tokens (1: consecutive frames)."""
-    step = (cfg.get("data") or {}).get("step", 1)
+    step = DataSettings.from_config(cfg).step
     if step is None or int(step) < 1:
         raise ValueError(f"data.step must be an integer >= 1, got {step}")
     return int(step)
@@ -134,7 +177,7 @@ def data_step(cfg: DictConfig) -> int:
 
 def data_steps(cfg: DictConfig) -> tuple[int, ...] | None:
     """The token steps training draws from (``data.augment.steps``; None: ``data.step``)."""
-    return Augment.from_any(to_plain((cfg.get("data") or {}).get("augment"))).steps
+    return Augment.from_any(to_plain(DataSettings.from_config(cfg).augment)).steps
 
 
 def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arrays=None):
@@ -157,13 +200,13 @@ def build_datamodule(cfg: DictConfig, body, half_window: int | None = None, arra
 def session_data(cfg: DictConfig, out: Path, window: int, up=None):
     """``data=sessions``: the sessions' tokens, their body model and the train/val split;
     up: the world up of a heading-frame net (each session's world must have it)."""
-    dcfg = cfg.data
-    paths = resolve_sessions(list(dcfg.get("sessions") or []))
+    ds = DataSettings.from_config(cfg)
+    paths = resolve_sessions(list(ds.sessions or []))
     if not paths:
         raise ValueError("data=sessions needs data.sessions=[DIR_OR_GLOB, ...]")
     builder = None
-    if dcfg.get("builder") is not None and dcfg.builder.get("_target_"):
-        partial = hydra.utils.instantiate(dcfg.builder)
+    if ds.builder is not None and "_target_" in ds.builder and ds.builder["_target_"]:
+        partial = hydra.utils.instantiate(ds.builder)
         root = out / "sessions"
 
         def builder(session: Path) -> Path:
@@ -181,8 +224,8 @@ def session_data(cfg: DictConfig, out: Path, window: int, up=None):
     )
     train, val, facts = split_sessions(
         tokens,
-        float(dcfg.get("val_fraction", 0.2)),
-        int(dcfg.get("block_frames", 500)),
+        float(ds.val_fraction),
+        int(ds.block_frames),
         min_frames=window,
     )
     facts["sessions"] = [t.source for t in tokens]
@@ -216,21 +259,22 @@ def run(cfg: DictConfig) -> dict:
     "metrics"} (checkpoint paths None when not written, e.g. under fast_dev_run).
 
     ``threads`` (torch's intra-op threads) applies for the call and is restored after it."""
-    with torch_threads(cfg.get("threads")):
+    with torch_threads(TrainSettings.from_config(cfg).threads):
         return _run(cfg)
 
 
 def _run(cfg: DictConfig) -> dict:
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    ts = TrainSettings.from_config(cfg)
+    L.seed_everything(int(ts.seed), workers=True, verbose=False)
     out = output_dir(cfg)
     write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
-    pretrained = load_pretrained(cfg.get("pretrained"))
+    pretrained = load_pretrained(ts.pretrained)
     body, arrays, data_facts = None, None, None
-    n = int(pretrained.half_window if pretrained is not None else cfg.half_window)
+    n = int(pretrained.half_window if pretrained is not None else ts.half_window)
     window = 2 * n * data_step(cfg) + 1  # frames a window spans (wider steps: where they fit)
-    if str(cfg.data.get("source")) == "sessions":
-        up = frame_up(to_plain(cfg.get("up")), pretrained, str(cfg.get("pretrained") or ""))
+    if str(DataSettings.from_config(cfg).source) == "sessions":
+        up = frame_up(ts.up, pretrained, str(ts.pretrained or ""))
         body, arrays, data_facts = session_data(cfg, out, window, up)
     lit, body, name = build_model(cfg, body, pretrained)
     dm = build_datamodule(cfg, body, lit.mid, arrays)
@@ -246,7 +290,7 @@ def _run(cfg: DictConfig) -> dict:
         auto_insert_metric_name=False,
     )
     callbacks: list = [checkpoint]
-    bar = _progress_bar(str(cfg.get("progress_bar", "rich")))
+    bar = _progress_bar(str(ts.progress_bar))
     if bar is not None:
         callbacks.append(bar)
     logger: Any = False
@@ -281,7 +325,7 @@ def _run(cfg: DictConfig) -> dict:
         "best_checkpoint": best,
         "last_checkpoint": last,
         "metrics": {k: v for k, v in sorted(metrics.items()) if math.isfinite(v)},
-        "pretrained": None if pretrained is None else str(cfg.get("pretrained")),
+        "pretrained": None if pretrained is None else str(ts.pretrained),
         "data": data_facts,
     }
     if trainer.is_global_zero:
