@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from deformnet.paths import CONF_DIR
-from deformnet.train import run
+from deformnet.train import DataSettings, TrainSettings, run
 
 torch.set_num_threads(1)
 
@@ -137,6 +137,24 @@ def test_config_groups_compose(overrides):
         assert cfg.trainer.strategy == "ddp"
     if overrides == ["experiment=quick"]:
         assert cfg.data.source == "toy"
+
+
+def test_the_settings_run_reads_are_typed_with_the_yamls_defaults():
+    """conf/train.yaml's and conf/data/*.yaml's defaults are the dataclasses'; an absent key
+    keeps them (the one copy in the code); given ones are read."""
+    assert TrainSettings.from_config(_compose([])) == TrainSettings()
+    sim = DataSettings.from_config(_compose([]))
+    assert (sim.source, sim.step, sim.sessions) == ("sim", 1, ())
+    ses = DataSettings.from_config(_compose(["data=sessions"]))
+    d = DataSettings()
+    assert (ses.source, ses.val_fraction, ses.block_frames) == ("sessions", d.val_fraction,
+                                                                d.block_frames)  # fmt: skip
+    assert ses.builder["_target_"] == "adjust.tokens.build_session_tokens"
+    given = _compose(["pretrained=none", "threads=2", "data.step=3", "progress_bar=tqdm"])
+    ts = TrainSettings.from_config(given)
+    assert ts.pretrained is None and ts.threads == 2 and ts.progress_bar == "tqdm"
+    assert DataSettings.from_config(given).step == 3
+    assert TrainSettings.from_config({}) == TrainSettings()  # nothing given: the defaults
 
 
 @pytest.mark.slow
