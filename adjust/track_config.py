@@ -128,7 +128,7 @@ class DeformConfig:
     step: int | None = None
     far_steps: Any = "auto"
     refresh: int = 2
-    beyond_window: str = "net"
+    beyond_window: str = "anchored"
     measured: str = "cv"
     rigid_first: bool = True
     max_iterations: int | None = 10
