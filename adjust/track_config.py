@@ -116,6 +116,8 @@ class ConsensusConfig:
 #: ``deform.measured``: a measured part-frame's prior in the net modes
 MEASURED = ("cv", "interp", "rigid", "net")
 JACOBIANS = ("frozen", "forward", "central")
+#: ``deform.gap_sigma``: `adjust.deformation_modes.gap_sigma.GAP_SIGMAS`' names
+GAP_SIGMAS = ("solver", "leave_runs_out")
 
 
 @dataclass(frozen=True)
@@ -134,11 +136,16 @@ class DeformConfig:
     max_iterations: int | None = 10
     require_better: str = "auto"
     single_views: bool = True
+    gap_sigma: str = "solver"
 
     def __post_init__(self) -> None:
         if self.measured not in MEASURED:
             raise ValueError(
                 f"deform.measured must be cv, interp, rigid or net, got {self.measured!r}"
+            )
+        if self.gap_sigma not in GAP_SIGMAS:
+            raise InputError(
+                f"deform.gap_sigma must be one of {', '.join(GAP_SIGMAS)}, got {self.gap_sigma!r}"
             )
         if self.step is not None and int(self.step) < 1:
             raise InputError(f"deform.step must be an integer >= 1, got {self.step}")

@@ -31,6 +31,12 @@ for both, without changing the library: each is patched into one process around
   mean squared Mahalanobis distance, each clipped at 30, at most 2) with each distance clipped
   at 9 or 16 (the target scaled to the clipped chi-square mean), or the median at most the
   chi-square median: swapped or outlying single views count less.
+- ``gap_sigma_leave_runs_out``, ``gap_sigma_anchors_out``: ``single_views`` with the gaps'
+  *reported* sigma inflated by the solver's inflation measured on the single views against a
+  prediction that did not see them: each run of anchors left out (``deform.gap_sigma=
+  leave_runs_out``, `adjust.deformation_modes.gap_sigma`), or every anchor (patched here:
+  `_AnchorsOut`); the points must be single_views' to the bit (checked against its run in the
+  same work folder where there is one: ``max_point_change_mm``).
 
 Metrics per scene (`real_motion.evaluate`, `real_motion.calibration`): RMSE all / seen >= 2 /
 occluded, the pooled calibration ratios, how many parts' occluded ratios are within 0.8-1.25;
@@ -60,7 +66,9 @@ import real_motion as rm  # noqa: E402
 from common import emit, start  # noqa: E402
 from tracking import run_track  # noqa: E402
 
+import adjust.deformation_modes.base as modes_base  # noqa: E402
 import adjust.lsq.observation as observation  # noqa: E402
+from adjust.deformation_modes.gap_sigma import GapSigma  # noqa: E402
 from adjust.lsq import fusion  # noqa: E402
 from adjust.lsq.geometry import so3_exp  # noqa: E402
 from adjust.lsq.stochastic import OffsetCovariance, _neighbours, krige_offsets  # noqa: E402
@@ -77,7 +85,17 @@ VARIANTS = (
     "inflation_clip9",
     "inflation_clip16",
     "inflation_median",
+    "gap_sigma_anchors_out",
+    "gap_sigma_leave_runs_out",
 )
+#: variants that are the defaults with these settings (else ``deform.single_views=false``)
+OVERRIDES = {
+    "single_views": ["deform.gap_sigma=solver"],
+    "gap_sigma_anchors_out": ["deform.gap_sigma=solver"],  # patched (`_AnchorsOut`)
+    "gap_sigma_leave_runs_out": ["deform.gap_sigma=leave_runs_out"],
+}
+#: variants that must give single_views' points (only the reported sigma may change)
+SAME_POINTS = ("gap_sigma_anchors_out", "gap_sigma_leave_runs_out")
 
 
 @dataclass
@@ -451,6 +469,17 @@ def gap_diagnosis(rec: Recorder, truth: np.ndarray, parts: list[str]) -> dict:
     return out
 
 
+class _AnchorsOut(GapSigma):
+    """Every anchor left out: the gaps' reported inflation measured on the single views against
+    the prediction from the 3D observations alone (the first pass's kriging, with the second
+    pass's covariance)."""
+
+    name = "anchors_out"
+
+    def held_out(self, good, anchors):
+        return _neighbours(np.asarray(good) & ~np.asarray(anchors), True)
+
+
 # --- runs -----------------------------------------------------------------------------------
 
 
@@ -470,13 +499,24 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
         t0 = time.perf_counter()
         rec = Recorder()
         rec.install()
+        choose = modes_base.gap_sigma
+        if variant == "gap_sigma_anchors_out":
+            modes_base.gap_sigma = lambda name: _AnchorsOut()
         try:
-            ov = [] if variant == "single_views" else ["deform.single_views=false"]
+            ov = OVERRIDES.get(variant, ["deform.single_views=false"])
             est, _, summ = run_track(scene, out, [f"threads={args.threads}", *ov])
         finally:
             rec.uninstall()
+            modes_base.gap_sigma = choose
         est = rm.align(est, summ["parts"], parts)
         row = {**rm.evaluate(est, truth, nv), "seconds": round(time.perf_counter() - t0, 2)}
+        ref = work / "runs" / "single_views" / key / "points3d.csv"
+        if variant in SAME_POINTS and ref.is_file():
+            ref_pts = rm.align(rm.read_points3d(ref)["points"], summ["parts"], parts)
+            both = np.isfinite(ref_pts) & np.isfinite(est)
+            same_nan = bool((np.isfinite(ref_pts) == np.isfinite(est)).all())
+            d = np.abs(ref_pts - est)[both]
+            row["max_point_change_mm"] = float(d.max()) if same_nan and d.size else float("inf")
         row.update(rm.calibration(out / "points3d.csv", est, truth, nv, parts))
         row["parts_calibrated"] = rm.calibrated_parts(row["calib_per_part"])
         if rec.obs is not None:
@@ -486,7 +526,12 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
             f"{variant:<18} {key:<26} all {row['rmse_all']:6.3f}  >=2 {row['rmse_seen2']:6.3f}  "
             f"occl {row['rmse_occluded']:6.3f}  cal >=2 {row['calib_seen']:5.2f}  occl "
             f"{row['calib_occluded']:5.2f}  parts occl in range "
-            f"{row['parts_calibrated']['occluded'][0]}/{row['parts_calibrated']['occluded'][1]}",
+            f"{row['parts_calibrated']['occluded'][0]}/{row['parts_calibrated']['occluded'][1]}"
+            + (
+                f"  points moved {row['max_point_change_mm']:.3g} mm"
+                if "max_point_change_mm" in row
+                else ""
+            ),
             flush=True,
         )
     patch("base")

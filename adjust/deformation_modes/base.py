@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from adjust.camera import CameraTensors
+from adjust.deformation_modes.gap_sigma import gap_sigma
 from adjust.io import Detections, InputError
 from adjust.lsq.observation import InterpObservation
 from adjust.track_config import ConsensusConfig, DeformConfig
@@ -122,13 +123,14 @@ class Adjusting:
         """``deformation=interp``'s adjustment from the poses ``init`` with the solver settings
         ``cfg``: (the result, its observation, summary facts). With ``deform.single_views``
         it runs twice, the second time with the part-frames one camera saw among the
-        observations its gaps are interpolated from (`InterpObservation.anchored`)."""
+        observations its gaps are interpolated from (`InterpObservation.anchored`), its gaps'
+        reported sigma by ``deform.gap_sigma`` (`adjust.deformation_modes.gap_sigma`)."""
         obs = self.interp_observation()
         res = self.solve(cfg, obs, init)
         facts = {}
         if self.deform.single_views:
             views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
-            obs = obs.anchored(res.points, res.point_sd, views)
+            obs = obs.anchored(res.points, res.point_sd, views, gap_sigma(self.deform.gap_sigma))
             res = self.solve(cfg, obs, res.poses)
             facts["single_view_anchors"] = int(obs.anchors.sum())
         return res, obs, facts

@@ -70,10 +70,25 @@ def fuse_points(
         ):
             break
     if tol is not None:  # the covariance at the converged point
-        u, v, _, Ac = project_components(X, cams, True)
-        H, _ = normal_blocks_3d(Ac, xy[..., 0] - u, xy[..., 1] - v, w, W6, Wg)
-        A = Pinv + H
+        return X, posterior_cov(X, Pinv, xy, w, cams, W6, Wg)
     return X, sym3_inverse(A)
+
+
+def posterior_cov(
+    X: Tensor,
+    prior_inv: Tensor,
+    xy: Tensor,
+    w: Tensor,
+    cams: CameraTensors,
+    W6: Tensor,
+    Wg: Tensor,
+) -> Tensor:
+    """The covariance (T, K, 3, 3) mm^2 of fused points X (T, K, 3) mm: the inverse of the
+    prior's information ``prior_inv`` (T, K, 3, 3) mm^-2 plus the detections' (xy (T, K, C, 2)
+    px, w (T, K, C) px^-2; W6, Wg: `rotation_gemm_weights(cams.R)`) linearised at X."""
+    u, v, _, Ac = project_components(X, cams, True)
+    H, _ = normal_blocks_3d(Ac, xy[..., 0] - u, xy[..., 1] - v, w, W6, Wg)
+    return sym3_inverse(prior_inv + H)
 
 
 #: candidate inflation factors of a prior covariance (`prior_inflation`)

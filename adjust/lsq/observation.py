@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from adjust.lsq.geometry import rigid_points, so3_exp
-from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
+from adjust.lsq.stochastic import OffsetCovariance, krige_between, krige_offsets
 from deformnet.so3 import skew
 
 
@@ -163,6 +163,15 @@ class InterpObservation:
         self.cov = None  # the last OffsetCovariance
         self.anchors = None  # (T, K) part-frames observed through one view (`anchored`)
         self.anchor_var = None  # (T, K) their noise variance per body axis, mm^2
+        # how the gaps' reported uncertainty is calibrated (`anchored`'s ``gap_sigma``: an
+        # object with ``held_out(good, anchors)`` -> the previous and next observation (T, K)
+        # each anchor is predicted from when it is held out, or None; e.g.
+        # `adjust.deformation_modes.gap_sigma.LeaveRunsOut`); after `prepare`, that prediction
+        # in body coordinates and its body-axis variances (`held_out`)
+        self.gap_sigma = None
+        self._M_held: Tensor | None = None
+        self._var_held: Tensor | None = None
+        self._held: Tensor | None = None  # (T, K) the anchors held out
         self.outlier_rounds = 2
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
         self.neighbours = None  # (T, K, 3) body-frame prediction from the neighbouring frames
@@ -217,6 +226,16 @@ class InterpObservation:
                 break
             good = new
         self.outliers = torch.as_tensor(m & ~good)
+        held = None
+        if self.gap_sigma is not None and anchor is not None:
+            held = self.gap_sigma.held_out(good, anchor & good)
+        if held is not None:  # each anchor predicted without itself as a gap would be
+            p_h, v_h = krige_between(o, *held, self.cov, noise)
+            self._M_held = torch.as_tensor(B[None] + p_h, dtype=poses.dtype, device=poses.device)
+            self._var_held = torch.as_tensor(v_h, dtype=poses.dtype, device=poses.device)
+            self._held = torch.as_tensor(anchor & good, device=poses.device)
+        else:
+            self._M_held = self._var_held = self._held = None
         if anchor is not None:  # an anchor's prior is no surer than the anchor itself (its
             # neighbours' single views were fused with the same first-pass prediction)
             var = np.where(anchor[..., None], np.maximum(var, av[..., None]), var)
@@ -230,7 +249,7 @@ class InterpObservation:
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
 
-    def anchored(self, points, point_sd, ncams) -> InterpObservation:
+    def anchored(self, points, point_sd, ncams, gap_sigma=None) -> InterpObservation:
         """This observation with the part-frames one camera saw among the observations too.
 
         points (T, K, 3) global mm and point_sd (T, K) mm (root of the trace of the covariance)
@@ -243,7 +262,8 @@ class InterpObservation:
         where it is seen, `benchmarks/interp_variants.py`): the kriging across the gap then
         rests on these anchors instead of reverting to the part's mean, and the offsets'
         covariance (`prepare`) counts them too (the nugget: the 3D observations' noise). The
-        anchors are kept as ``anchors`` (T, K) and ``anchor_var`` (T, K)."""
+        anchors are kept as ``anchors`` (T, K) and ``anchor_var`` (T, K). gap_sigma: how the
+        gaps' reported uncertainty is inflated (``gap_sigma`` above; None: the solver's own)."""
         pts = torch.as_tensor(points, dtype=self.data.dtype)
         sd = torch.as_tensor(point_sd, dtype=self.data.dtype)
         T, K = self.observed.shape
@@ -260,6 +280,7 @@ class InterpObservation:
         )
         out.anchors = one
         out.anchor_var = torch.where(one, sd * sd, torch.zeros_like(sd))
+        out.gap_sigma = gap_sigma
         return out
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:
@@ -284,6 +305,19 @@ class InterpObservation:
         self._ready(poses)
         return _rotate_axes_var(so3_exp(poses[:, :3]), self._var.to(poses.dtype))
 
+    def held_out(self, poses: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The anchors predicted while held out (``gap_sigma``): global points (T, K, 3) mm,
+        their deformation covariance (T, K, 3, 3) mm^2 (elsewhere the usual prediction) and
+        which part-frames were held out (T, K) bool, or None. The solver measures the gaps'
+        reported inflation on them (`adjust.lsq.solver`); the points and their weights never
+        see it."""
+        self._ready(poses)
+        if self._M_held is None:
+            return None
+        X, _ = _body_frame_points(poses, self._M_held, jacobian=False)
+        cov = _rotate_axes_var(so3_exp(poses[:, :3]), self._var_held.to(poses.dtype))
+        return X, cov, self._held
+
     def rigid_points(self, poses: Tensor) -> tuple[Tensor, Tensor]:
         return self.rigid.rigid_points(poses)
 
@@ -302,4 +336,5 @@ class InterpObservation:
         if self.anchors is not None:
             out.anchors = self.anchors[start:stop]
             out.anchor_var = self.anchor_var[start:stop]
+        out.gap_sigma = self.gap_sigma
         return out

@@ -33,7 +33,7 @@ from adjust.camera import CameraTensors
 from adjust.lsq import banded
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.constraint import default_rho, make_grid
-from adjust.lsq.fusion import fuse_points, innovation_gate, prior_inflation
+from adjust.lsq.fusion import fuse_points, innovation_gate, posterior_cov, prior_inflation
 from adjust.lsq.geometry import retract, so3_exp, so3_log
 from adjust.lsq.init import initial_poses
 from adjust.lsq.lm import add_ridge, levenberg_marquardt
@@ -51,6 +51,7 @@ from adjust.lsq.problem import (
     total_cost,
 )
 from adjust.lsq.robust import kernel_weight
+from adjust.sym3 import sym3_inverse
 from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
@@ -384,23 +385,33 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: floa
             lin.X, prior, pb.xy, w_fuse, pb.cams, cfg.fuse_iterations, pb.W6, pb.Wg
         )
     else:  # estimated: each part-frame's own prior, detections gated against it, to convergence
-        prior = model_cov + dcov + 1e-6 * eye
+        prior0 = model_cov + dcov + 1e-6 * eye
         # calibrate the prior on the single detections (independent of it): per part inflation
         single = pb.valid & (pb.valid.sum(-1, keepdim=True) == 1)
-        alpha = prior_inflation(lin.X, prior, pb.xy, single, pb.cams, cfg.sigma_det_px)
+        alpha = prior_inflation(lin.X, prior0, pb.xy, single, pb.cams, cfg.sigma_det_px)
         pb.inflation = alpha
         # ... applied where the part is predicted across a gap (no camera consensus in the frame)
         gap = torch.ones_like(single[..., 0]) if pb.trusted is None else ~pb.trusted.any(-1)
-        prior = (
-            prior
-            * torch.where(gap, alpha[None, :], torch.ones_like(alpha)[None, :])[..., None, None]
-        )
+        infl = torch.where(gap, alpha[None, :], torch.ones_like(alpha)[None, :])  # (T, K)
+        prior = prior0 * infl[..., None, None]
         accepted, _ = innovation_gate(lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px)
         if pb.trusted is not None:  # cameras that agree with each other outvote the prior
             accepted = accepted | (pb.trusted & pb.valid)
         w_fuse = accepted.to(dt) / cfg.sigma_det_px**2
         pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, 50, pb.W6, pb.Wg, tol=1e-4)
         rob = rob * accepted.to(dt)
+        held_fn = getattr(pb.obs, "held_out", None)
+        held = held_fn(poses) if held_fn is not None else None
+        if held is not None:  # the reported uncertainty of the gaps: the inflation measured on
+            # the single views against a prediction that did not see them (the observation's
+            # held-out one, `InterpObservation.held_out`); the points stay as fused
+            X_h, dcov_h, held_pf = held
+            prior_h = model_cov + dcov_h + 1e-6 * eye
+            use = single & held_pf[..., None]  # the held-out anchors' own views
+            report = prior_inflation(X_h, prior_h, pb.xy, use, pb.cams, cfg.sigma_det_px)
+            infl = torch.where(gap, report[None, :], infl)
+            prior_inv = sym3_inverse(prior0 * infl[..., None, None])
+            pcov = posterior_cov(pts, prior_inv, pb.xy, w_fuse, pb.cams, pb.W6, pb.Wg)
     e = torch.stack((lin.eu, lin.ev), -1)
     res = torch.where(pb.valid[..., None], e, torch.full_like(e, float("nan")))
     inv_det = 1.0 / cfg.sigma_det_px**2

@@ -226,8 +226,40 @@ def krige_offsets(
     """
     o = np.asarray(offsets, dtype=np.float64)
     m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
-    T, K, _ = o.shape
     prev, nxt = _neighbours(m, skip_self)
+    return krige_between(o, prev, nxt, cov, noise)
+
+
+def runs_out_neighbours(observed: np.ndarray, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The previous and next observed frame (T, K) (-1 / T where none) of each part-frame
+    with its whole run of ``held`` frames left out (held (T, K) bool; a run: consecutive held
+    frames of a part): on a held frame, the nearest observed frames outside its run; elsewhere
+    strictly before / after t, as `krige_offsets`'s."""
+    m = np.asarray(observed, dtype=bool)
+    h = np.asarray(held, dtype=bool)
+    T, _ = m.shape
+    t = np.arange(T)[:, None]
+    prev_incl, next_incl = _neighbours(m, skip_self=False)
+    before = np.maximum.accumulate(np.where(~h, t, -1), axis=0)  # last frame not held <= t
+    after = np.minimum.accumulate(np.where(~h, t, T)[::-1], axis=0)[::-1]
+    kk = np.arange(m.shape[1])[None]
+    prev = np.where(before >= 0, prev_incl[np.clip(before, 0, T - 1), kk], -1)
+    nxt = np.where(after < T, next_incl[np.clip(after, 0, T - 1), kk], T)
+    p_skip, n_skip = _neighbours(m, skip_self=True)
+    return np.where(h, prev, p_skip), np.where(h, nxt, n_skip)
+
+
+def krige_between(
+    o: np.ndarray,
+    prev: np.ndarray,
+    nxt: np.ndarray,
+    cov: OffsetCovariance,
+    noise: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`krige_offsets` from given neighbours: offsets o (T, K, 3), the previous and next
+    observed frame of each part-frame (T, K) (-1 / T where none) -> prediction (T, K, 3) mm and
+    its variance (T, K, 3) mm^2."""
+    T, K, _ = o.shape
     t = np.arange(T)[:, None]
     has_p, has_n = prev >= 0, nxt < T
     dp = np.where(has_p, t - prev, 0).astype(np.float64)
