@@ -21,7 +21,8 @@ Rows:
   through the `mode=predict` path on the test sessions) with the `CANDIDATES`' overrides;
   ``default`` is `conf/classify.yaml` with only tracks, labels and the rig's mechanism positions
   given; ``mlp_scratch`` the former default (an MLP head on an LSTM from scratch, 60 s).
-``--candidates all`` runs every candidate (the validation sweep that chose the default).
+``--candidates all`` runs every candidate (the validation sweep that chose the default; with
+``--test 0`` the test animals are not even simulated).
 (The pretrained-encoder rows of docs/benchmarks.md were measured with ``--encoders`` at commit
 2e8c1a5: a forest on the encoder's outputs, `head.inputs=all`, deleted since it did not help.)
 
@@ -66,7 +67,7 @@ SEEDS = {"train": 71_000, "val": 71_100, "test": 71_200}
 NOISE_MM = 1.0
 BOUT_CAP_S = 3.0  # s: a labelled bout's longest span (from its onset) ...
 MIN_BOUT_S = 0.5  # ... and at least this, else the share's part per class
-_FOREST = ["head=forest", "freeze=true", "net=lstm_small"]
+_FOREST = ["head=forest", "freeze=true", "net=lstm_small", "bouts.enabled=false"]
 _CTX = "context.frames=[15,33]"  # the former default context
 #: `deformnet-classify` candidates (overrides beyond tracks, labels, mechanisms); every one
 #: spelt out, so that a change of the defaults does not change what a row measures
@@ -80,14 +81,22 @@ CANDIDATES = {
                           "pseudo_labels.teacher=none"],
     "forest_measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "measurements=true",
                                  "pseudo_labels.teacher=linear"],
-    "forest_measure_linear_halves": [*_FOREST, "context.frames=[15,33,91]",
-                                     "context.halves=true", "measurements=true",
-                                     "pseudo_labels.teacher=linear"],
-    "forest_measure_linear_halves_6s": [*_FOREST, "context.frames=[15,33,91,181]",
-                                        "context.halves=true", "measurements=true",
-                                        "pseudo_labels.teacher=linear"],
+    "forest_measure_linear_3s_bouts": [*_FOREST, "context.frames=[15,33,91]",
+                                       "measurements=true", "pseudo_labels.teacher=linear",
+                                       "bouts.enabled=true"],
+    "forest_measure_linear_bouts": [*_FOREST, _CTX, "measurements=true",
+                                    "pseudo_labels.teacher=linear", "bouts.enabled=true"],
+    "measure_linear_3s_bouts": [*_FOREST, "context.frames=[15,33,91]", "frame_features=false",
+                                "measurements=true", "pseudo_labels.teacher=linear",
+                                "bouts.enabled=true"],
+    "measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "frame_features=false",
+                          "measurements=true", "pseudo_labels.teacher=linear"],
+    "forest_measure_linear_3s_bouts_mf02": [*_FOREST, "context.frames=[15,33,91]",
+                                            "measurements=true", "pseudo_labels.teacher=linear",
+                                            "bouts.enabled=true", "head.max_features=0.2"],
     # the former default: an MLP head on an LSTM trained from scratch (here for 60 s)
     "mlp_scratch": ["net=lstm", "head=mlp", "freeze=false", _CTX, "measurements=false",
+                    "bouts.enabled=false",
                     "pseudo_labels.teacher=none", "trainer.max_time=00:00:01:00"],
 }  # fmt: skip
 
@@ -301,7 +310,8 @@ def run_recipe(out: Path, train: list[dict], label_files: list[Path], val: list[
                              dict(meta.get("smoothing") or {}))  # fmt: skip
         raw.append(pr["raw"])
         smoothed.append(pr["labels"])
-    res["test"] = scored(test, raw) | {"macro_f1_smoothed": scored(test, smoothed)["macro_f1"]}
+    if test:  # --test 0: a validation run
+        res["test"] = scored(test, raw) | {"macro_f1_smoothed": scored(test, smoothed)["macro_f1"]}
     return res | {"seconds": round(time.perf_counter() - t0, 1)}
 
 
@@ -336,7 +346,8 @@ def main(argv: list[str] | None = None) -> dict:
     mech = scene.mech_pos
     fps = 30.0
     results: dict = {"rules": {}, "simba_forest": {}, "recipe": {}}
-    for split in ("val", "test"):
+    splits = [s for s in ("val", "test") if sessions[s]]  # --test 0: validation only
+    for split in splits:
         pred = [rules_predict(s["points"], s["parts"], fps, mech, scene.free_lo, scene.free_hi)
                 for s in sessions[split]]  # fmt: skip
         results["rules"][split] = scored(sessions[split], pred)
@@ -354,7 +365,7 @@ def main(argv: list[str] | None = None) -> dict:
             lab_dir = work / "labels" / tag
             lab_dir.mkdir(parents=True, exist_ok=True)
             files = [write_bouts(lab_dir / f"train{i}.csv", r) for i, r in enumerate(chosen)]
-            for split in ("val", "test"):
+            for split in splits:
                 results["simba_forest"].setdefault(split, {})[key] = run_simba(
                     sessions["train"], chosen, sessions[split], mech
                 )
@@ -363,12 +374,13 @@ def main(argv: list[str] | None = None) -> dict:
                 out = work / "runs" / f"{name.replace(':', '_')}_{tag}"
                 r = run_recipe(out, sessions["train"], files, sessions["val"], sessions["test"],
                                mech, ov)  # fmt: skip
-                for split in ("val", "test"):
+                for split in splits:
                     results["recipe"].setdefault(name, {}).setdefault(split, {})[key] = r[split]
                 print(f"{key} {name}: val {r['val']['macro_f1']:.3f} test "
-                      f"{r['test']['macro_f1']:.3f} ({r['seconds']} s)", flush=True)  # fmt: skip
+                      f"{_fmt(r.get('test', {}).get('macro_f1'))} ({r['seconds']} s)",
+                      flush=True)  # fmt: skip
     # tables
-    for split in ("val", "test"):
+    for split in splits:
         print(f"\n{split} sessions (seeds {SEEDS[split]}..), macro-F1 (raw)")
         print(f"{'row':28s}" + "".join(f"{f:>10g}" for f in fractions))
         print(f"{'rules (no labels)':28s}" + f"{results['rules'][split]['macro_f1']:10.3f}" * len(

@@ -176,22 +176,6 @@ def test_frozen_encoder_weights_do_not_change(freeze):
         assert any(k.startswith("net.lstm") for k in enc_changed)
 
 
-def test_context_halves_add_the_means_before_and_after():
-    """context.halves: each span also gives the mean of its windows before the frame and of
-    those after it (what a movement leads to), in that order after its mean and std."""
-    enc = _encoder("lstm").eval()
-    dim = BehaviorClassifier.feature_dim(enc.out_dim, (5, 9), True)
-    model = BehaviorClassifier(enc, LinearHead(dim, 3), (5, 9), 2, halves=True).eval()
-    assert model.out_dim == dim == 9 * enc.out_dim
-    per = torch.randn(4, 5, enc.out_dim)  # offsets -4, -2, 0, 2, 4
-    f = model.pool(per)
-    want = torch.cat(
-        [per[:, 2], per[:, 1:4].mean(1), per[:, 1:4].std(1, unbiased=False), per[:, 1],
-         per[:, 3], per.mean(1), per.std(1, unbiased=False), per[:, :2].mean(1),
-         per[:, 3:].mean(1)], -1)  # fmt: skip
-    torch.testing.assert_close(f, want)
-
-
 @pytest.mark.parametrize("kind", ["lstm", "transformer"])
 def test_temporal_context_pools_the_surrounding_windows(kind):
     """With context (5, 9) and stride 2 the features are the mid window's encoder output plus

@@ -83,7 +83,9 @@ class ClassifyLit(L.LightningModule):
         p = float(self.hparams.token_dropout)
         if augment and p > 0:
             observed = observed & (torch.rand(observed.shape, device=observed.device) >= p)
-        return self.model(batch["rigid"], batch["deformed"], observed, batch.get("scale"))
+        return self.model(
+            batch["rigid"], batch["deformed"], observed, batch.get("scale"), batch.get("bouts")
+        )
 
     def forward(
         self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None
