@@ -2,8 +2,10 @@
 its size, its parts' deformation moments and its structure step (`refine_body`).
 
 Each step is a plain function of the session's detections (`adjust.io.Detections`), cameras
-(`adjust.camera.CameraTensors`), 3D observations (`adjust.estimate.Consensus`) and the ``body``
-config group (``conf/body/``); `fit_body` is the order `adjust.pipeline` runs them in.
+(`adjust.camera.CameraTensors`), 3D observations (`adjust.estimate.Consensus`), the ``body``
+config group (``conf/body/``: which model, `adjust.track_config.BodyConfig`) and the estimate's
+settings (``body_fit:``, `adjust.track_config.BodyFitConfig`); `fit_body` is the order
+`adjust.pipeline` runs them in.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from adjust.io import Detections, InputError
 from adjust.lsq.geometry import rigid_points
 from adjust.lsq.init import kabsch_poses
 from adjust.lsq.observation import RigidObservation
-from adjust.track_config import BodyFitConfig
+from adjust.track_config import BodyConfig, BodyFitConfig
 from adjust.triangulate import triangulate
 from deformnet.body import BodyModel
 from deformnet.deformation import check_world_up as check_model_up
@@ -56,14 +58,14 @@ def triangulate_points(det: Detections, cams: CameraTensors, robust: bool, max_e
 
 
 def scale_factor(body: BodyModel, fit: BodyFitConfig) -> tuple[BodyModel, dict]:
-    """``body.scale_factor``: the model's size times this (> 0; 1 keeps it)."""
+    """``body_fit.scale_factor``: the model's size times this (> 0; 1 keeps it)."""
     f = fit.scale_factor
     try:
         f = float(f)
     except (TypeError, ValueError):
         f = float("nan")
     if not (math.isfinite(f) and f > 0):
-        raise InputError(f"body.scale_factor must be a number > 0, got {fit.scale_factor!r}")
+        raise InputError(f"body_fit.scale_factor must be a number > 0, got {fit.scale_factor!r}")
     return (body, {}) if f == 1.0 else (body.scaled(f), {"scale_factor": f})
 
 
@@ -96,7 +98,8 @@ def estimate_body(
     ``rms_deviation_mm`` (per-coordinate rms distance of the triangulated parts from the model
     fitted per frame: how far the data is from rigid). With the session's 3D observations
     (`cons`), at most `SHAPE_FRAMES` frames, evenly spaced (`shape_frames`), are used; without,
-    a robust triangulation (``body.robust``, `max_error_px`)."""
+    a robust triangulation (``body_fit.robust``, `max_error_px`); frames with at least
+    ``body_fit.min_parts`` parts."""
     if cons is not None:  # the session's gated 3D observations
         X = cons.points[shape_frames(len(cons.points))]
     else:
@@ -166,10 +169,10 @@ def check_world_up(model, poses: np.ndarray, where: str) -> float | None:
         raise InputError(str(exc)) from None
 
 
-def scale_body(body: BodyModel, fit: BodyFitConfig, cons) -> tuple[BodyModel, dict]:
+def scale_body(body: BodyModel, spec: BodyConfig, cons) -> tuple[BodyModel, dict]:
     """``body.scale``: ``auto`` (default) fits the model's size to the session's triangulated
     parts (`BodyModel.estimate_scale`), a number scales by it (1 keeps the model as is)."""
-    want = fit.scale
+    want = spec.scale
     if want is None or (isinstance(want, str) and want.lower() == "auto"):
         if cons is None:
             return body, {"scale": 1.0, "scale_source": "none (consensus.estimate=false)"}
@@ -219,9 +222,9 @@ def refine_body(body: BodyModel, fit: BodyFitConfig, poses, det, weight, cams, c
     in the body frame across all frames, robustly; the structure step of a bundle adjustment).
     The Procrustes model (`BodyModel.from_observations`) averages triangulated points, each
     resting on the views that saw it in its frame and carrying their errors; this one weighs
-    every detection, single views included, as the pose adjustment does. ``body.refine``:
+    every detection, single views included, as the pose adjustment does. ``body_fit.refine``:
     ``views`` (default) re-estimates every part, ``unplaced`` only the parts with fewer than
-    ``body.rays_below`` 3D observations (no two cameras see them together, so the Procrustes
+    ``body_fit.rays_below`` 3D observations (no two cameras see them together, so the Procrustes
     model could not place them), ``none`` keeps the Procrustes model. Those parts' spread about
     their points comes from their views' residuals (their deformation variance); the others
     keep the spread of their 3D observations. On long sessions the rays of `shape_frames`
@@ -291,6 +294,7 @@ def fit_body(
     det: Detections,
     cams: CameraTensors,
     body: BodyModel | None,
+    spec: BodyConfig,
     fit: BodyFitConfig,
     cons,
     solver_cfg,
@@ -307,19 +311,20 @@ def fit_body(
     of data falls back to its own shape), moved into the frame of the named model `frame_of`;
     then sized (`scale_body`, `scale_factor`) unless it comes from a net's checkpoint.
 
-    body: the named (or the checkpoint's) model, None for ``body=auto``; facts: summary.json's
+    body: the named (or the checkpoint's) model, None for ``body=auto``; spec: the ``body``
+    group's settings; fit: ``body_fit``'s (the estimate's); facts: summary.json's
     ``body`` block, added to; sigma_def_mm: ``solver.sigma_def_mm`` (None: the data's rms
     deviation from the rigid model where the shape is estimated); max_error_px:
     ``consensus.max_error_px``. Returns (body, the solver config with the deformation std
     applied, whether the shape was estimated)."""
-    estimated = not from_checkpoint and (auto or fit.shape == "data")
+    estimated = not from_checkpoint and (auto or spec.shape == "data")
     if estimated:
         try:
             est = estimate_body(
                 det,
                 cams,
                 fit,
-                str(fit.name),
+                str(spec.name),
                 cons,
                 0 if auto else MIN_SHAPE_FRAMES,
                 max_error_px,
@@ -352,7 +357,7 @@ def fit_body(
     if tuple(body.parts) != tuple(det.parts):  # load_scene orders parts as the model does
         raise InputError(f"parts {list(det.parts)} do not match the body model {list(body.parts)}")
     if not estimated and not from_checkpoint:
-        body, scale_facts = scale_body(body, fit, cons)
+        body, scale_facts = scale_body(body, spec, cons)
         facts.update(scale_facts)
     if not from_checkpoint:
         body, factor_facts = scale_factor(body, fit)

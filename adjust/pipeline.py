@@ -73,11 +73,11 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             "adjust-track needs a body model: body=mouse, body=auto (estimated from the data) or "
             "your own conf/body/<name>.yaml"
         )
-    body_cfg = cfg.body  # the model's node (`BodyModel.from_config`; its fit: `tc.body`)
+    body_cfg = cfg.body  # the model's node (`BodyModel.from_config`; `tc.body`, `tc.body_fit`)
     tc = TrackConfig.from_config(cfg)
     kwargs = tc.input.load_kwargs()
-    solver_cfg, fit = tc.solver, tc.body
-    auto = fit.auto
+    solver_cfg, spec, fit = tc.solver, tc.body, tc.body_fit
+    auto = spec.auto
     mode = mode_from_config(tc.deformation)
     if chunk is not None:  # a long session's chunk: the mode (and net) its sample chose
         mode = chunk.deformation_mode(mode)
@@ -110,7 +110,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
         try:
             cameras, det = load(calibration, detections, body, **kwargs)
         except UnknownPartsError as exc:
-            if str(fit.other_parts).lower() != "auto":
+            if str(spec.other_parts).lower() != "auto":
                 raise
             log.warning(
                 "the detection files have parts that body '%s' does not know (%s): their own "
@@ -149,6 +149,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             det,
             cams,
             body,
+            spec,
             fit,
             cons,
             solver_cfg,

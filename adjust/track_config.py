@@ -4,7 +4,10 @@
   observations and detector noise (`adjust.estimate.consensus`); its ``max_error_px`` is also
   the robust triangulation's of a body estimated without them and of a net's inputs.
 - `DeformConfig` (``deform:``): the deformation modes' settings (`adjust.deformation_modes`).
-- `BodyFitConfig` (the ``body`` group's estimator settings, `adjust.body_fit`).
+- `BodyConfig` (the ``body`` group: which body model and where its shape and size come from;
+  its parts and aliases are `deformnet.body.BodyModel.from_config`'s).
+- `BodyFitConfig` (``body_fit:``): how a body's shape is estimated from the data
+  (`adjust.body_fit`).
 - `ChunkConfig` (``chunk_frames``): a long session in chunks (`adjust.chunks`).
 - `TrackConfig`: the above, the solver's (`adjust.lsq.SolverConfig`, ``solver.sigma_det_px``
   and ``solver.sigma_def_mm`` null: from the data), the ``input`` block
@@ -16,14 +19,14 @@
 
 Deprecated names (`DEPRECATED`, kept for one release): a value given under an old name is used
 for its new key, with a logged warning (`resolve_deprecated`); given under both names with
-different values, a ValueError names both.
+different values (the new one not at its default), a ValueError names both.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -39,6 +42,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "DEPRECATED",
     "DEFAULT_CHUNK_FRAMES",
+    "BodyConfig",
     "BodyFitConfig",
     "ChunkConfig",
     "ConsensusConfig",
@@ -59,6 +63,12 @@ DEPRECATED = {
     "body.max_error_px": "consensus.max_error_px",
     "deform.sigma_def_mm": "solver.sigma_def_mm",
     "body.sigma_def_mm": "solver.sigma_def_mm",
+    "body.min_parts": "body_fit.min_parts",
+    "body.robust": "body_fit.robust",
+    "body.refine": "body_fit.refine",
+    "body.rays_below": "body_fit.rays_below",
+    "body.rays_min_views": "body_fit.rays_min_views",
+    "body.scale_factor": "body_fit.scale_factor",
     "deform.threads": "threads",
     "adapt.threads": "threads",
     "solver.num_threads": "threads",
@@ -87,12 +97,25 @@ def resolve_deprecated(cfg: DictConfig) -> DictConfig:
                 f"{given[new][0]}={given[new][1]} and {old}={value} are both {new} now: give "
                 f"{new}=... once"
             )
+        current = OmegaConf.select(cfg, new, default=None)
+        if new not in given and current != value and current != _default(new):
+            raise ValueError(
+                f"{old}={value} and {new}={current} are one setting now: give {new}=... only"
+            )
         given[new] = (old, value)
         log.warning("%s is deprecated (it goes in the next release): use %s=%s", old, new, value)
         with open_dict(cfg):
             OmegaConf.update(cfg, old, _UNSET.get(old, (None,))[-1], force_add=True)
             OmegaConf.update(cfg, new, value, force_add=True)
     return cfg
+
+
+def _default(key: str) -> Any:
+    """A deprecated name's new key's default (its dataclass's; the solver's sigmas: null)."""
+    block, _, name = key.rpartition(".")
+    cls = {"": TrackConfig, "consensus": ConsensusConfig, "body_fit": BodyFitConfig}.get(block)
+    default = {f.name: f.default for f in fields(cls)}.get(name) if cls else None
+    return None if default is MISSING else default
 
 
 def _typed(cls, node: Mapping | None, prefix: str, ignore: tuple[str, ...] = ()):
@@ -159,22 +182,21 @@ BODY_SHAPES = ("data", "table")
 REFINE = ("views", "unplaced", "none")
 
 
+#: the deprecated names' placeholders in the ``body`` group (`DEPRECATED`: conf/body/auto.yaml)
+_BODY_DEPRECATED = tuple(old.split(".")[1] for old in DEPRECATED if old.startswith("body."))
+
+
 @dataclass(frozen=True)
-class BodyFitConfig:
-    """The ``body`` group's settings of the body model's fit (``conf/body/auto.yaml``); the
-    model itself (name, parts, aliases) is `deformnet.body.BodyModel.from_config`'s."""
+class BodyConfig:
+    """The ``body`` group's settings adjust-track reads (``conf/body/``): which model, and
+    where its shape and size come from; its parts and aliases are
+    `deformnet.body.BodyModel.from_config`'s, the estimate's settings `BodyFitConfig`'s."""
 
     name: str = "auto"
     auto: bool = False  # the body estimated from the data (body=auto)
     shape: str = "table"  # data: estimated, moved into the named model's frame | table
     scale: Any = "auto"  # shape=table: auto (fitted to the data) | a number
-    scale_factor: Any = 1.0  # a multiplier on the size (> 0)
     other_parts: str = "error"  # files with parts the model lacks: auto | error
-    min_parts: int | None = None  # frames a shape is estimated from: >= this many parts
-    robust: bool = True  # robust triangulation of a shape estimated without 3D observations
-    refine: str = "views"  # the structure step: views | unplaced | none
-    rays_below: int = 20
-    rays_min_views: int = 10
 
     def __post_init__(self) -> None:
         shape = str(self.shape).lower()
@@ -182,19 +204,35 @@ class BodyFitConfig:
             raise InputError(
                 f"body.shape must be one of {', '.join(BODY_SHAPES)}, got {self.shape!r}"
             )
-        if str(self.refine).lower() not in REFINE:
-            raise ValueError(f"body.refine must be views, unplaced or none, got {self.refine!r}")
         object.__setattr__(self, "shape", shape)
+
+    @classmethod
+    def from_config(cls, node) -> BodyConfig:
+        return _typed(cls, node, "body", ignore=("parts", "aliases", "points", *_BODY_DEPRECATED))
+
+
+@dataclass(frozen=True)
+class BodyFitConfig:
+    """``body_fit:``: how a body's shape is estimated from the data (``body=auto``,
+    ``body.shape=data``; `adjust.body_fit`; conf/track.yaml documents each key)."""
+
+    min_parts: int | None = None  # frames a shape is estimated from: >= this many parts
+    robust: bool = True  # robust triangulation of a shape estimated without 3D observations
+    refine: str = "views"  # the structure step: views | unplaced | none
+    rays_below: int = 20
+    rays_min_views: int = 10
+    scale_factor: Any = 1.0  # a multiplier on the size (> 0)
+
+    def __post_init__(self) -> None:
+        if str(self.refine).lower() not in REFINE:
+            raise ValueError(
+                f"body_fit.refine must be views, unplaced or none, got {self.refine!r}"
+            )
         object.__setattr__(self, "refine", str(self.refine).lower())
 
     @classmethod
     def from_config(cls, node) -> BodyFitConfig:
-        return _typed(
-            cls,
-            node,
-            "body",
-            ignore=("parts", "aliases", "points", "max_error_px", "sigma_def_mm"),
-        )
+        return _typed(cls, node, "body_fit")
 
 
 @dataclass(frozen=True)
@@ -257,7 +295,7 @@ class TrackConfig:
     `adjust.settings`)."""
 
     deformation: str | None
-    body: BodyFitConfig
+    body: BodyConfig
     consensus: ConsensusConfig
     deform: DeformConfig
     solver: SolverConfig
@@ -272,12 +310,13 @@ class TrackConfig:
     input: InputConfig = field(default_factory=InputConfig)
     adapt: AdaptConfig = field(default_factory=AdaptConfig)
     chunk: ChunkConfig = field(default_factory=ChunkConfig)
+    body_fit: BodyFitConfig = field(default_factory=BodyFitConfig)
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> TrackConfig:
         """From adjust-track's composed config (after `resolve_deprecated`)."""
-        blocks = {k: cfg[k] for k in ("solver", "body", "consensus", "deform", "output", "input",
-                                      "adapt") if k in cfg}  # fmt: skip
+        blocks = {k: cfg[k] for k in ("solver", "body", "body_fit", "consensus", "deform",
+                                      "output", "input", "adapt") if k in cfg}  # fmt: skip
         solver = blocks.get("solver")  # (plain dict: the blocks given)
         solver = {} if solver is None else OmegaConf.to_container(solver, resolve=True)
         sigma_det = solver.pop("sigma_det_px", None)
@@ -295,7 +334,8 @@ class TrackConfig:
             top["progress"] = bool(top["progress"])
         return cls(
             deformation=top.pop("deformation", None),
-            body=BodyFitConfig.from_config(blocks.get("body")),
+            body=BodyConfig.from_config(blocks.get("body")),
+            body_fit=BodyFitConfig.from_config(blocks.get("body_fit")),
             consensus=ConsensusConfig.from_config(blocks.get("consensus")),
             deform=DeformConfig.from_config(blocks.get("deform")),
             # num_threads 0: the solver runs in the app's threads (`threads`)

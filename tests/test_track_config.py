@@ -5,6 +5,7 @@ values are refused naming both."""
 from __future__ import annotations
 
 import logging
+from dataclasses import fields
 
 import pytest
 from hydra import compose, initialize_config_dir
@@ -14,6 +15,8 @@ from adjust.adapt import AdaptConfig
 from adjust.settings import InputConfig
 from adjust.track_config import (
     DEPRECATED,
+    BodyConfig,
+    BodyFitConfig,
     ChunkConfig,
     DeformConfig,
     OutputConfig,
@@ -36,9 +39,10 @@ def test_defaults_are_typed_and_each_setting_has_one_name():
     assert tc.solver.num_threads == 0 and tc.threads == 1  # the solver runs in `threads`
     assert tc.deform == DeformConfig() and tc.body.shape == "data" and not tc.body.auto
     # the old names are placeholders only: none of them holds a value by default
-    cfg = _cfg([])
-    for old in DEPRECATED:
-        assert OmegaConf.select(cfg, old, default=None) in (None, 0), old
+    for body in ("mouse", "auto"):
+        cfg = _cfg([f"body={body}"])
+        for old in DEPRECATED:
+            assert OmegaConf.select(cfg, old, default=None) in (None, 0), (body, old)
 
 
 def test_the_blocks_read_typed_and_an_absent_key_keeps_the_dataclass_default():
@@ -70,6 +74,12 @@ def test_the_blocks_read_typed_and_an_absent_key_keeps_the_dataclass_default():
         ("stochastic.estimate", "consensus.estimate", False),
         ("deform.max_error_px", "consensus.max_error_px", 12.0),
         ("body.sigma_def_mm", "solver.sigma_def_mm", 2.5),
+        ("body.min_parts", "body_fit.min_parts", 5),
+        ("body.robust", "body_fit.robust", False),
+        ("body.refine", "body_fit.refine", "unplaced"),
+        ("body.rays_below", "body_fit.rays_below", 7),
+        ("body.rays_min_views", "body_fit.rays_min_views", 3),
+        ("body.scale_factor", "body_fit.scale_factor", 1.05),
         ("deform.threads", "threads", 2),
         ("adapt.threads", "threads", 2),
         ("solver.num_threads", "threads", 2),
@@ -85,6 +95,49 @@ def test_an_old_name_still_works_with_a_warning(old, new, value, caplog):
         assert tc.sigma_det_px == value and tc.solver.sigma_det_px == value
     if new == "consensus.estimate":
         assert tc.consensus.estimate is False
+    if new.startswith("body_fit."):  # the estimate reads its one name (not its default)
+        name = new.split(".")[1]
+        assert getattr(tc.body_fit, name) == value != getattr(BodyFitConfig(), name)
+
+
+def test_the_body_estimate_has_its_own_block_and_the_body_group_describes_a_model():
+    """body_fit.* (conf/track.yaml) is read typed, its YAML defaults the dataclass's; the body
+    group holds the model (name, parts, aliases, where its shape and size come from) and none of
+    the estimate's settings but the deprecated placeholders."""
+    cfg = resolve_deprecated(_cfg(["body_fit.refine=none", "body_fit.scale_factor=1.1"]))
+    tc = TrackConfig.from_config(cfg)
+    assert tc.body_fit == BodyFitConfig(refine="none", scale_factor=1.1)
+    assert TrackConfig.from_config(_cfg([])).body_fit == BodyFitConfig()  # YAML == dataclass
+    for body in ("mouse", "auto"):
+        node = OmegaConf.to_container(_cfg([f"body={body}"]).body)
+        given = {k for k, v in node.items() if v is not None}
+        model = {f.name for f in fields(BodyConfig)} | {"parts", "aliases"}
+        assert given <= model, (body, given - model)
+        assert not given & {f.name for f in fields(BodyFitConfig)}
+    assert TrackConfig.from_config(_cfg(["body=auto"])).body == BodyConfig(auto=True)
+    with pytest.raises(ValueError, match=r"unknown body_fit settings \['body_fit.typo'\]"):
+        BodyFitConfig.from_config({"typo": 1})
+    with pytest.raises(ValueError, match="body_fit.refine must be views, unplaced or none"):
+        TrackConfig.from_config(_cfg(["body_fit.refine=all"]))
+
+
+@pytest.mark.parametrize(
+    ("old", "new"),
+    [
+        ("body.refine=none", "body_fit.refine=unplaced"),
+        ("body.scale_factor=0.95", "body_fit.scale_factor=1.05"),
+        ("deform.max_error_px=12", "consensus.max_error_px=15"),
+    ],
+)
+def test_an_old_and_a_new_name_with_two_values_are_refused(old, new):
+    with pytest.raises(ValueError, match=f"{old} and {new} are one setting now") as err:
+        resolve_deprecated(_cfg([old, new]))
+    assert "\n" not in str(err.value)
+    # the same value under both names is one setting given twice: accepted
+    key, value = old.split("=")
+    cfg = resolve_deprecated(_cfg([old, f"{new.split('=')[0]}={value}"]))
+    assert str(OmegaConf.select(cfg, new.split("=")[0])) == value
+    assert OmegaConf.select(cfg, key) is None
 
 
 def test_auto_is_the_data_and_two_names_with_two_values_are_refused(caplog):
