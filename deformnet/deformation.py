@@ -19,6 +19,7 @@ deformnet-train checkpoint holds only tensors and plain data).
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 from collections.abc import Mapping, Sequence
@@ -299,9 +300,13 @@ class DeformationModel(nn.Module):
         return model.eval()
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write a minimal checkpoint (atomic) that `from_checkpoint` reads."""
+        """Write a minimal checkpoint (atomic) that `from_checkpoint` reads. The same weights
+        give the same bytes (serialised in memory: torch names the archive's records after the
+        file it writes, here the atomic write's random temporary name)."""
+        buf = io.BytesIO()
+        torch.save({CHECKPOINT_KEY: self.export()}, buf)
         with atomic_path(path) as tmp:
-            torch.save({CHECKPOINT_KEY: self.export()}, tmp)
+            tmp.write_bytes(buf.getvalue())
 
     @classmethod
     def from_checkpoint(

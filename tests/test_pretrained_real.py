@@ -153,3 +153,17 @@ def test_pretrain_real_track_cache_is_keyed_by_the_trackers_settings_and_the_sce
     assert track_key(scene, ["deform.single_views=false"]) != base
     (scene / "detections" / "cam_0.csv").write_text("a,b\n1,3\n", encoding="utf-8")
     assert track_key(scene) != base
+
+
+def test_a_saved_net_is_the_same_bytes_for_the_same_weights(tmp_path):
+    """`DeformationModel.save` writes the same file for the same weights (the shipped file is
+    reproducible byte for byte, not only its weights' SHA-256), and it loads back."""
+    from deformnet.deformation import DeformationModel
+    from deformnet.pretrained.build import weights_sha256
+
+    shipped = load_default()
+    shipped.save(tmp_path / "a.pt")
+    shipped.save(tmp_path / "sub" / "b.pt")
+    assert (tmp_path / "a.pt").read_bytes() == (tmp_path / "sub" / "b.pt").read_bytes()
+    back = DeformationModel.from_checkpoint(tmp_path / "a.pt")
+    assert weights_sha256(back) == weights_sha256(shipped)
