@@ -26,7 +26,7 @@ detections (likelihood >= 0.9). Methods, side by side on the same subsets:
   (``--no-self`` skips it).
 
 All `adjust-track` variants use `body=auto`'s rigid model re-estimated from the detections
-themselves (`body.refine=views`, `adjust.estimate.place_from_rays`).
+themselves (`body_fit.refine=views`, `adjust.estimate.place_from_rays`).
 
 The first ``--frames`` (200) frames of each session, the same for every method (aniposelib's
 optimisation takes minutes per leave-out on the whole hand session on 2 cores). Per session and

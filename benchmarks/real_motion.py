@@ -48,7 +48,7 @@ Targets (``default`` against aniposelib, ratios of the seed means): RMSE all and
 <= 0.6x at 2 and 3 cameras and <= 0.8x at 4 (8 parts), <= 0.8x with 22 and 34 parts; seen >= 2
 <= 0.5x everywhere; no adjust-track run diverges; calibration ratios of ``default`` within
 0.8-1.25. Stability (``--no-stability`` skips it; the 3- and 2-camera 8-part scenes, seed 0):
-``default`` re-run with ``body.scale_factor`` x0.95 / x0.99 / x1.01 / x1.05, with 1% of the
+``default`` re-run with ``body_fit.scale_factor`` x0.95 / x0.99 / x1.01 / x1.05, with 1% of the
 accepted detections of every camera dropped (likelihood 0, fixed seed), and on another detector
 seed (100) of the same frames; target: spread (max - min) / median of RMSE all < 10%.
 Beside each perturbation: the share of frames whose body orientation is more than 0.2 rad from
@@ -549,7 +549,9 @@ def stability(args, motion: Motion, start: int, work: Path, base_rows: dict) -> 
     other = f"seed {OTHER_DETECTOR_SEED}"
     # name: (scene: base | drop | other, overrides)
     variants = {"base": ("base", [])}
-    variants.update({f"scale x{f:g}": ("base", [f"body.scale_factor={f}"]) for f in SCALE_FACTORS})
+    variants.update(
+        {f"scale x{f:g}": ("base", [f"body_fit.scale_factor={f}"]) for f in SCALE_FACTORS}
+    )
     variants.update({drop: ("drop", []), other: ("other", [])})
     res = {}
     for cams, nparts in STABILITY_SCENES:

@@ -68,9 +68,9 @@ def _track(scene: Path, out: Path, extra=()) -> tuple[dict, float]:
 
 
 def test_defaults_are_stable_under_a_small_change_of_the_body_size(scenes, tmp_path):
-    """body.scale_factor 0.95 / 1 / 1.05 moves the RMSE by < 10% (a Table 1 model scaled to
+    """body_fit.scale_factor 0.95 / 1 / 1.05 moves the RMSE by < 10% (a Table 1 model scaled to
     this mouse, body.shape=table, flipped a third of the poses at a 1% change)."""
-    rmse = [_track(scenes[3], tmp_path / f"f{f}", [f"body.scale_factor={f}"])[1]
+    rmse = [_track(scenes[3], tmp_path / f"f{f}", [f"body_fit.scale_factor={f}"])[1]
             for f in (0.95, 1.0, 1.05)]  # fmt: skip
     assert np.isfinite(rmse).all()
     assert (max(rmse) - min(rmse)) / np.median(rmse) < 0.10, rmse

@@ -1,4 +1,4 @@
-"""The rigid model from the detections themselves (`place_from_rays`, `body.refine`) and the
+"""The rigid model from the detections themselves (`place_from_rays`, `body_fit.refine`) and the
 held-out-camera choice of the measured part-frames' prior (`held_out_view_errors`,
 `choose_measured_prior`, `deformation=self`)."""
 
@@ -119,7 +119,7 @@ def test_place_from_rays_refuses_bad_shapes():
 
 def test_body_auto_places_a_part_one_camera_sees_end_to_end(tmp_path):
     """adjust-track body=auto on two cameras, one part never seen by the second: the
-    Procrustes model cannot place it (centre); body.refine places it from its single views,
+    Procrustes model cannot place it (centre); body_fit.refine places it from its single views,
     says so in summary.json, and its tracked points are far closer to the truth."""
     body, _, X, cams, _, uv = _scene(T=400, n_cams=2, seed=3, deform_mm=0.5)
     uv[:, 7, 1] = np.nan
@@ -127,7 +127,7 @@ def test_body_auto_places_a_part_one_camera_sees_end_to_end(tmp_path):
     session = write_session(tmp_path / "s", cams, uv, lik, body.parts)
     err = {}
     for mode in ("none", "views"):
-        s = track(session, tmp_path / mode, ["body=auto", f"body.refine={mode}"])
+        s = track(session, tmp_path / mode, ["body=auto", f"body_fit.refine={mode}"])
         P = read_points3d(tmp_path / mode / "points3d.csv")["points"]
         err[mode] = float(np.sqrt(np.mean(np.sum((P[:, 7] - X[:, 7]) ** 2, -1))))
         if mode == "views":
