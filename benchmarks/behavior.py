@@ -24,7 +24,9 @@ Rows:
 ``--candidates all`` runs every candidate (the validation sweep that chose the default; with
 ``--test 0`` the test animals are not even simulated).
 (The pretrained-encoder rows of docs/benchmarks.md were measured with ``--encoders`` at commit
-2e8c1a5: a forest on the encoder's outputs, `head.inputs=all`, deleted since it did not help.)
+2e8c1a5: a forest on the encoder's outputs, `head.inputs=all`, deleted since it did not help;
+the bout-feature rows (`bouts.*`) at commit 62cd7fc and the `context.halves` rows before it:
+options deleted since they did not help.)
 
     flock /tmp/mousetrack-cpu.lock .venv/bin/python benchmarks/behavior.py [--quick]
         [--fractions 0.1,0.01] [--candidates default,mlp_scratch|all]
@@ -67,7 +69,7 @@ SEEDS = {"train": 71_000, "val": 71_100, "test": 71_200}
 NOISE_MM = 1.0
 BOUT_CAP_S = 3.0  # s: a labelled bout's longest span (from its onset) ...
 MIN_BOUT_S = 0.5  # ... and at least this, else the share's part per class
-_FOREST = ["head=forest", "freeze=true", "net=lstm_small", "bouts.enabled=false"]
+_FOREST = ["head=forest", "freeze=true", "net=lstm_small"]
 _CTX = "context.frames=[15,33]"  # the former default context
 #: `deformnet-classify` candidates (overrides beyond tracks, labels, mechanisms); every one
 #: spelt out, so that a change of the defaults does not change what a row measures
@@ -81,22 +83,10 @@ CANDIDATES = {
                           "pseudo_labels.teacher=none"],
     "forest_measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "measurements=true",
                                  "pseudo_labels.teacher=linear"],
-    "forest_measure_linear_3s_bouts": [*_FOREST, "context.frames=[15,33,91]",
-                                       "measurements=true", "pseudo_labels.teacher=linear",
-                                       "bouts.enabled=true"],
-    "forest_measure_linear_bouts": [*_FOREST, _CTX, "measurements=true",
-                                    "pseudo_labels.teacher=linear", "bouts.enabled=true"],
-    "measure_linear_3s_bouts": [*_FOREST, "context.frames=[15,33,91]", "frame_features=false",
-                                "measurements=true", "pseudo_labels.teacher=linear",
-                                "bouts.enabled=true"],
     "measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "frame_features=false",
                           "measurements=true", "pseudo_labels.teacher=linear"],
-    "forest_measure_linear_3s_bouts_mf02": [*_FOREST, "context.frames=[15,33,91]",
-                                            "measurements=true", "pseudo_labels.teacher=linear",
-                                            "bouts.enabled=true", "head.max_features=0.2"],
     # the former default: an MLP head on an LSTM trained from scratch (here for 60 s)
     "mlp_scratch": ["net=lstm", "head=mlp", "freeze=false", _CTX, "measurements=false",
-                    "bouts.enabled=false",
                     "pseudo_labels.teacher=none", "trainer.max_time=00:00:01:00"],
 }  # fmt: skip
 

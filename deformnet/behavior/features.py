@@ -25,10 +25,9 @@ __all__ = ["SessionBank", "Frames", "context_features", "feature_range",
 
 class SessionBank:
     """All frames of some sessions as window centres: each session is padded with its first /
-    last frame n times (padding marked unobserved), so every frame has a full window; with
-    ``bouts`` (the classifier's `BoutFeatures`) each frame's bout features (`bouts`)."""
+    last frame n times (padding marked unobserved), so every frame has a full window."""
 
-    def __init__(self, sessions: Sequence[Session], half_window: int, bouts=None) -> None:
+    def __init__(self, sessions: Sequence[Session], half_window: int) -> None:
         n = self.n = int(half_window)
         rig, dfm, obs, mids, lab, scl = [], [], [], [], [], []
         off = 0
@@ -52,10 +51,6 @@ class SessionBank:
         self.labels = torch.from_numpy(np.concatenate(lab).astype(np.int64))
         #: each bank frame's session body scale (the classifier divides it out), or None
         self.scale = torch.from_numpy(np.concatenate(scl)) if scaled == {True} else None
-        #: each bank frame's bout features (len(bank arrays), F), or None
-        self.bouts = None if bouts is None else torch.from_numpy(
-            np.concatenate([np.pad(f, ((n, n), (0, 0)), mode="edge") for f in bouts.of(sessions)])
-        )  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.mids)
@@ -70,8 +65,6 @@ class SessionBank:
         }
         if self.scale is not None:
             out["scale"] = self.scale[self.mids[idx]]
-        if self.bouts is not None:
-            out["bouts"] = self.bouts[self.mids[idx]]
         return out
 
 
@@ -128,12 +121,7 @@ def _context_features(model, bank: SessionBank, idx, batch_size: int) -> Tensor:
         model.pool(F[inv])
         for inv in inverse.split(max(1, int(batch_size) * 8 // max(len(model.offsets), 1)))
     ]
-    out = torch.cat(out) if out else torch.zeros(0, model.out_dim - model.bout_dim)
-    if not model.bout_dim:
-        return out
-    if bank.bouts is None:
-        raise ValueError("the classifier reads bout features: build its SessionBank with them")
-    return torch.cat([out, bank.bouts[bank.mids[idx]]], -1)
+    return torch.cat(out) if out else torch.zeros(0, model.out_dim)
 
 
 #: the training frames' range of each classifier feature that a recording's frames are compared

@@ -197,7 +197,7 @@ def teach_forest(
     ylab = bank.labels.numpy()[idx]
     ufeats = []  # the unlabelled sessions' features
     for u in unlabelled:
-        ub = SessionBank([u], bank.n, model.bouts)
+        ub = SessionBank([u], bank.n)
         ufeats.append(context_features(model, ub, torch.arange(len(ub))))
     taught = ufeats if pseudo["unlabelled"] else []  # pseudo-labelled too
     tfacts: dict = {}

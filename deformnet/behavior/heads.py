@@ -238,14 +238,12 @@ class BehaviorClassifier(nn.Module):
     standard deviation of the encoder outputs of the frames around it, over centred spans of
     each length (every ``stride``-th frame): the behavior of a frame shows in how its window
     changes over the next second, as the SimBA-style rolling features of hand-made
-    measurements do (D (1 + 2 len(context_frames)) values). With ``bouts`` (a `BoutFeatures`)
-    each frame's bout features (F values: its session's runs, how long a contact or a walk
-    lasts and where it ends) follow. The head sees them standardised by
+    measurements do (D (1 + 2 len(context_frames)) values). The head sees them standardised by
     `feature_mean` / `feature_std` (set from the training frames, `set_standardization`).
 
     forward(rigid, deformed (B, W + 2 span, K, 3), observed (B, W + 2 span, K), scale (B,) or
-    None, bouts (B, F) or None) with W the encoder's window and span = `span` (0 without
-    context); scale: each window's body scale (`WindowEncoder`); bouts: the mid frames'.
+    None) with W the encoder's window and span = `span` (0 without context); scale: each
+    window's body scale (`WindowEncoder`).
     """
 
     def __init__(
@@ -254,33 +252,29 @@ class BehaviorClassifier(nn.Module):
         head: nn.Module,
         context_frames: Sequence[int] = (),
         stride: int = 1,
-        bouts=None,
     ) -> None:
         super().__init__()
         self.encoder = encoder
         self.head = head
         self.context_frames = tuple(int(f) for f in context_frames)
         self.stride = int(stride)
-        self.bouts = bouts
-        self.bout_dim = 0 if bouts is None else int(bouts.dim)
         self.offsets = context_offsets(self.context_frames, self.stride)
         self.span = max(self.offsets)
         self.window = encoder.window + 2 * self.span
         self.half_window = encoder.half_window + self.span
-        self.out_dim = self.feature_dim(encoder.out_dim, self.context_frames) + self.bout_dim
+        self.out_dim = self.feature_dim(encoder.out_dim, self.context_frames)
         self.register_buffer("feature_mean", torch.zeros(self.out_dim))
         self.register_buffer("feature_std", torch.ones(self.out_dim))
 
     def frame_columns(self) -> Tensor:
         """Indices (F,) of the frame features (the pose, the offsets, the observed flags, the
-        mechanism distances, the measurements: see `WindowEncoder`), of their context
-        statistics and of the bout features among the classifier's features."""
+        mechanism distances, the measurements: see `WindowEncoder`) and of their context
+        statistics among the classifier's features."""
         enc = self.encoder
         if not enc.frame_features and enc.mechanisms is None and not enc.measurements:
             raise ValueError("the classifier has no frame features (frame_features=false)")
         i = torch.arange(self.out_dim)
-        pooled = self.out_dim - self.bout_dim
-        return i[((i % enc.out_dim) >= 2 * enc.net.encode_dim) | (i >= pooled)]
+        return i[(i % enc.out_dim) >= 2 * enc.net.encode_dim]
 
     @staticmethod
     def feature_dim(encoder_dim: int, context_frames: Sequence[int]) -> int:
@@ -301,21 +295,16 @@ class BehaviorClassifier(nn.Module):
         return torch.cat(out, -1)
 
     def features(
-        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None,
-        bouts: Tensor | None = None,
-    ) -> Tensor:  # fmt: skip
+        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         """Context features (B, out_dim) of the batch's mid frames (not standardised)."""
         if rigid.dim() != 4 or rigid.shape[1] != self.window:
             raise ValueError(
                 f"rigid must be (B, {self.window}, K, 3) (encoder window {self.encoder.window} "
                 f"+ 2 x context span {self.span}), got {tuple(rigid.shape)}"
             )
-        if self.bout_dim and (bouts is None or tuple(bouts.shape) != (len(rigid), self.bout_dim)):
-            got = None if bouts is None else tuple(bouts.shape)
-            raise ValueError(f"bouts must be ({len(rigid)}, {self.bout_dim}), got {got}")
-        tail = [bouts.to(rigid.dtype)] if self.bout_dim else []
         if not self.span:
-            return torch.cat([self.encoder(rigid, deformed, observed, scale), *tail], -1)
+            return self.encoder(rigid, deformed, observed, scale)
         B, W = rigid.shape[0], self.encoder.window
         starts = [self.span + o for o in self.offsets]  # sub-window centred at mid + o
 
@@ -327,7 +316,7 @@ class BehaviorClassifier(nn.Module):
                 raise ValueError(f"scale must be ({B},), got {tuple(scale.shape)}")
             scale = scale[:, None].expand(B, len(starts)).flatten()
         f = self.encoder(unfold(rigid), unfold(deformed), unfold(observed), scale)
-        return torch.cat([self.pool(f.reshape(B, len(self.offsets), -1)), *tail], -1)
+        return self.pool(f.reshape(B, len(self.offsets), -1))
 
     @torch.no_grad()
     def set_standardization(self, features: Tensor) -> None:
@@ -344,7 +333,6 @@ class BehaviorClassifier(nn.Module):
         return self.head((features - self.feature_mean) / self.feature_std)
 
     def forward(
-        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None,
-        bouts: Tensor | None = None,
-    ) -> Tensor:  # fmt: skip
-        return self.classify(self.features(rigid, deformed, observed, scale, bouts))
+        self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
+        return self.classify(self.features(rigid, deformed, observed, scale))

@@ -83,9 +83,7 @@ class ClassifyLit(L.LightningModule):
         p = float(self.hparams.token_dropout)
         if augment and p > 0:
             observed = observed & (torch.rand(observed.shape, device=observed.device) >= p)
-        return self.model(
-            batch["rigid"], batch["deformed"], observed, batch.get("scale"), batch.get("bouts")
-        )
+        return self.model(batch["rigid"], batch["deformed"], observed, batch.get("scale"))
 
     def forward(
         self, rigid: Tensor, deformed: Tensor, observed: Tensor, scale: Tensor | None = None

@@ -13,7 +13,6 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from deformnet.behavior.bouts import BoutFeatures, bout_settings
 from deformnet.behavior.encoder import MechanismFeatures, WindowEncoder
 from deformnet.behavior.features import SessionBank, context_features, unfamiliar_share
 from deformnet.behavior.heads import BehaviorClassifier, build_head
@@ -23,7 +22,7 @@ from deformnet.behavior.rates import resample_session, to_track_frames
 from deformnet.behavior.tracks import Session
 from deformnet.body import BodyModel
 from deformnet.checkpoint import load_checkpoint
-from deformnet.confutil import check_fps, to_plain
+from deformnet.confutil import to_plain
 from deformnet.deformation import build_net
 from deformnet.sim import MECHANISMS, SimConfig
 from deformnet.sim.scene import build_scene
@@ -48,13 +47,10 @@ def build_classifier(
     measurements: bool = False,
     heights_up=None,
     source: str = "",
-    bouts: dict | None = None,
-    fps: float | None = None,
 ):
     """The classifier a config or a checkpoint describes (``source``: the checkpoint file, for
     errors); its net and head are built from allow-lists with plain arguments only
-    (`deformnet.deformation.build_net`, `deformnet.behavior.heads.build_head`); bouts: the
-    `bout_settings` of its bout features at ``fps`` (None: 30 Hz), or None."""
+    (`deformnet.deformation.build_net`, `deformnet.behavior.heads.build_head`)."""
     mech = None
     if mechanisms:
         parts = [body.parts.index(p) for p in mechanisms["parts"]]
@@ -67,10 +63,9 @@ def build_classifier(
     )  # fmt: skip
     ctx = dict(context or {})
     frames = [int(f) for f in (ctx.get("frames") or [])]
-    bf = None if not bouts else BoutFeatures(bouts, fps or 30.0, mech)
-    dim = BehaviorClassifier.feature_dim(enc.out_dim, frames) + (bf.dim if bf else 0)
+    dim = BehaviorClassifier.feature_dim(enc.out_dim, frames)
     return BehaviorClassifier(
-        enc, build_head(head_cfg, dim, C, source), frames, int(ctx.get("stride", 1) or 1), bf
+        enc, build_head(head_cfg, dim, C, source), frames, int(ctx.get("stride", 1) or 1)
     )
 
 
@@ -106,8 +101,6 @@ def load_classifier(path: str | os.PathLike):
             bool(blob.get("measurements", False)),
             blob.get("heights_up"),
             os.fspath(path),
-            blob.get("bouts"),
-            blob.get("fps"),
         )
         model.load_state_dict(blob["state_dict"])
     except (KeyError, TypeError, AttributeError, RuntimeError, IndexError) as exc:
@@ -154,7 +147,7 @@ def predict_session(
             "labels": back(res["labels"]),
             "unfamiliar": None if res["unfamiliar"] is None else back(res["unfamiliar"]),
         }
-    feats, probs = features_probs(model, SessionBank([session], model.half_window, model.bouts))
+    feats, probs = features_probs(model, SessionBank([session], model.half_window))
     raw = probs.argmax(-1)
     lab = smooth(probs, int(smoothing.get("median") or 0), int(smoothing.get("min_bout") or 0))
     unfamiliar = None if rng is None else unfamiliar_share(feats, rng)
@@ -222,7 +215,6 @@ def classifier_from_config(cfg: DictConfig, net_cfg: dict, body, half_window: in
                          "measurements=true or lock-box context (mechanisms.*)")  # fmt: skip
     context = dict(to_plain(cfg.get("context")) or {})
     model = build_classifier(
-        net_cfg, body, half_window, head_cfg, ff, C, context, up, mech, meas, heights_up, "",
-        bout_settings(cfg.get("bouts")), check_fps(cfg.get("fps"), "fps"),
-    )  # fmt: skip
+        net_cfg, body, half_window, head_cfg, ff, C, context, up, mech, meas, heights_up
+    )
     return model, mech

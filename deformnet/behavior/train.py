@@ -193,7 +193,7 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
     frac, seg = float(cfg.label_fraction), int(cfg.get("label_segment", 1))
     subsample_labels(train, frac, seg, int(cfg.label_seed))
     subsample_labels(val, frac, seg, int(cfg.label_seed) + 1)
-    bank = SessionBank(train, span, model.bouts)
+    bank = SessionBank(train, span)
     idx = np.flatnonzero(bank.labels.numpy() >= 0)
     if idx.size == 0:
         raise ValueError("the training sessions have no labelled frames")
@@ -214,7 +214,7 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
     train_dl = _loader(bank, idx, bs, int(d.steps_per_epoch) * bs, int(cfg.seed))
     val_dl = None
     if val:
-        vbank = SessionBank(val, span, model.bouts)
+        vbank = SessionBank(val, span)
         vidx = np.flatnonzero(vbank.labels.numpy() >= 0)
         vmax = d.get("val_frames")
         if vmax and vidx.size > int(vmax):
@@ -326,7 +326,6 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
             "frames": list(model.context_frames),
             "stride": model.stride,
         },  # fmt: skip
-        "bouts": None if model.bouts is None else model.bouts.settings,
         "mechanisms": mech,
         "measurements": meas,
         "heights_up": None if hup is None else list(hup),
