@@ -140,7 +140,7 @@ class ConsensusConfig:
 MEASURED = ("cv", "interp", "rigid", "net")
 JACOBIANS = ("frozen", "forward", "central")
 #: ``deform.gap_sigma``: `adjust.deformation_modes.gap_sigma.GAP_SIGMAS`' names
-GAP_SIGMAS = ("solver", "leave_runs_out")
+GAP_SIGMAS = ("solver", "leave_runs_out", "anchors_out")
 
 
 @dataclass(frozen=True)

@@ -31,12 +31,14 @@ for both, without changing the library: each is patched into one process around
   mean squared Mahalanobis distance, each clipped at 30, at most 2) with each distance clipped
   at 9 or 16 (the target scaled to the clipped chi-square mean), or the median at most the
   chi-square median: swapped or outlying single views count less.
-- ``gap_sigma_leave_runs_out``, ``gap_sigma_anchors_out``: ``single_views`` with the gaps'
-  *reported* sigma inflated by the solver's inflation measured on the single views against a
-  prediction that did not see them: each run of anchors left out (``deform.gap_sigma=
-  leave_runs_out``, `adjust.deformation_modes.gap_sigma`), or every anchor (patched here:
-  `_AnchorsOut`); the points must be single_views' to the bit (checked against its run in the
-  same work folder where there is one: ``max_point_change_mm``).
+- ``gap_sigma_leave_runs_out``, ``gap_sigma_anchors_out``: ``single_views`` with the
+  *reported* sigma of the part-frames no view was fused into inflated by the solver's inflation
+  measured on the anchors' views against a prediction that did not see them: each run of
+  anchors left out or every anchor (``deform.gap_sigma=leave_runs_out`` / ``anchors_out``,
+  `adjust.deformation_modes.gap_sigma`); the points must be single_views' to the bit (checked
+  against its run in the same work folder where there is one: ``max_point_change_mm``). The
+  occluded calibration is also split by the cameras that saw a part-frame: none / one
+  (``calib_no_view``, ``calib_one_view``).
 
 Metrics per scene (`real_motion.evaluate`, `real_motion.calibration`): RMSE all / seen >= 2 /
 occluded, the pooled calibration ratios, how many parts' occluded ratios are within 0.8-1.25;
@@ -66,12 +68,10 @@ import real_motion as rm  # noqa: E402
 from common import emit, start  # noqa: E402
 from tracking import run_track  # noqa: E402
 
-import adjust.deformation_modes.base as modes_base  # noqa: E402
 import adjust.lsq.observation as observation  # noqa: E402
-from adjust.deformation_modes.gap_sigma import GapSigma  # noqa: E402
 from adjust.lsq import fusion  # noqa: E402
 from adjust.lsq.geometry import so3_exp  # noqa: E402
-from adjust.lsq.stochastic import OffsetCovariance, _neighbours, krige_offsets  # noqa: E402
+from adjust.lsq.stochastic import OffsetCovariance, krige_offsets, neighbours  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = (
@@ -91,7 +91,7 @@ VARIANTS = (
 #: variants that are the defaults with these settings (else ``deform.single_views=false``)
 OVERRIDES = {
     "single_views": ["deform.gap_sigma=solver"],
-    "gap_sigma_anchors_out": ["deform.gap_sigma=solver"],  # patched (`_AnchorsOut`)
+    "gap_sigma_anchors_out": ["deform.gap_sigma=anchors_out"],
     "gap_sigma_leave_runs_out": ["deform.gap_sigma=leave_runs_out"],
 }
 #: variants that must give single_views' points (only the reported sigma may change)
@@ -329,7 +329,7 @@ def _krige_no_mean(offsets, observed, cov, skip_self=True):
     wide = dataclasses.replace(cov, sill=np.full_like(cov.sill, 1e12))
     p2, v2 = krige_offsets(offsets, observed, wide, skip_self=skip_self)
     m = np.asarray(observed, dtype=bool) & np.isfinite(offsets).all(-1)
-    prev, nxt = _neighbours(m, skip_self)
+    prev, nxt = neighbours(m, skip_self)
     inside = ((prev >= 0) & (nxt < m.shape[0]))[..., None]
     return np.where(inside, p2, pred), np.where(inside, v2, var)
 
@@ -345,7 +345,7 @@ def _krige_blend(offsets, observed, cov, skip_self=True):
     pb = (sill * p2 + v2 * cov.mean[None]) / (sill + v2)
     vb = sill * v2 / (sill + v2)
     m = np.asarray(observed, dtype=bool) & np.isfinite(offsets).all(-1)
-    prev, nxt = _neighbours(m, skip_self)
+    prev, nxt = neighbours(m, skip_self)
     inside = ((prev >= 0) & (nxt < m.shape[0]))[..., None]
     return np.where(inside, pb, pred), np.where(inside, vb, var)
 
@@ -469,15 +469,17 @@ def gap_diagnosis(rec: Recorder, truth: np.ndarray, parts: list[str]) -> dict:
     return out
 
 
-class _AnchorsOut(GapSigma):
-    """Every anchor left out: the gaps' reported inflation measured on the single views against
-    the prediction from the 3D observations alone (the first pass's kriging, with the second
-    pass's covariance)."""
-
-    name = "anchors_out"
-
-    def held_out(self, good, anchors):
-        return _neighbours(np.asarray(good) & ~np.asarray(anchors), True)
+def calibration_by_views(points_csv: Path, est, truth, nviews, parts) -> dict:
+    """The occluded part-frames' pooled calibration (rms error / rms sigma) split by how many
+    cameras saw them: none (``calib_no_view``: the tracks are the model's alone) and one
+    (``calib_one_view``: fused with that view)."""
+    extra = rm.read_points3d(points_csv)["extra"]
+    sig = np.stack([np.asarray(extra[f"{p}_sigma"], float) for p in parts], 1)
+    err = np.linalg.norm(est - truth, axis=-1)
+    return {
+        "calib_no_view": rm._ratio(err, sig, nviews == 0),
+        "calib_one_view": rm._ratio(err, sig, nviews == 1),
+    }
 
 
 # --- runs -----------------------------------------------------------------------------------
@@ -499,15 +501,11 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
         t0 = time.perf_counter()
         rec = Recorder()
         rec.install()
-        choose = modes_base.gap_sigma
-        if variant == "gap_sigma_anchors_out":
-            modes_base.gap_sigma = lambda name: _AnchorsOut()
         try:
             ov = OVERRIDES.get(variant, ["deform.single_views=false"])
             est, _, summ = run_track(scene, out, [f"threads={args.threads}", *ov])
         finally:
             rec.uninstall()
-            modes_base.gap_sigma = choose
         est = rm.align(est, summ["parts"], parts)
         row = {**rm.evaluate(est, truth, nv), "seconds": round(time.perf_counter() - t0, 2)}
         ref = work / "runs" / "single_views" / key / "points3d.csv"
@@ -518,6 +516,7 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
             d = np.abs(ref_pts - est)[both]
             row["max_point_change_mm"] = float(d.max()) if same_nan and d.size else float("inf")
         row.update(rm.calibration(out / "points3d.csv", est, truth, nv, parts))
+        row.update(calibration_by_views(out / "points3d.csv", est, truth, nv, parts))
         row["parts_calibrated"] = rm.calibrated_parts(row["calib_per_part"])
         if rec.obs is not None:
             row["gaps"] = gap_diagnosis(rec, truth, parts)
@@ -527,6 +526,7 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
             f"occl {row['rmse_occluded']:6.3f}  cal >=2 {row['calib_seen']:5.2f}  occl "
             f"{row['calib_occluded']:5.2f}  parts occl in range "
             f"{row['parts_calibrated']['occluded'][0]}/{row['parts_calibrated']['occluded'][1]}"
+            f"  (no camera {row['calib_no_view']:4.2f}, one {row['calib_one_view']:4.2f})"
             + (
                 f"  points moved {row['max_point_change_mm']:.3g} mm"
                 if "max_point_change_mm" in row

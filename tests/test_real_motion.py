@@ -175,10 +175,11 @@ def test_single_views_anchor_the_gaps(scenes, tmp_path):
 
 
 def test_gap_sigma_changes_the_reported_sigma_of_the_gaps_only(scenes, tmp_path):
-    """deform.gap_sigma=leave_runs_out: interp's second pass reports its gaps' sigma with the
-    inflation measured on the single views against a prediction that left their runs out; the
-    points are the defaults' to the bit, and so is the sigma of every part-frame the cameras'
-    consensus saw; on the gaps it differs (larger where the check finds the kriging too sure)."""
+    """deform.gap_sigma=leave_runs_out: interp's second pass reports the sigma of the part-frames
+    no view was fused into with the inflation measured on the anchors' views against a
+    prediction that left their runs out; the points are the defaults' to the bit, and so is the
+    sigma of every part-frame the cameras' consensus saw; on the gaps it differs (larger where
+    the check finds the kriging too sure)."""
     scene = scenes[3]
     res = {}
     for name in ("solver", "leave_runs_out"):

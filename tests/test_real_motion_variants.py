@@ -174,6 +174,9 @@ def test_a_held_out_run_of_anchors_is_predicted_from_outside_it():
     assert abs(float(Xh[mid, 0, 0]) - body[0, 0]) < 5.0  # held out: the mean across the gap
     assert float(cov_h[mid, 0].trace()) > 10 * float(checked._var[mid, 0].sum())
     assert torch.equal(checked._M, plain._M) and torch.equal(checked._var, plain._var)
+    every = obs.anchored(torch.tensor(X), sd, torch.tensor(ncams), gap_sigma("anchors_out"))
+    every.prepare(poses)
+    assert abs(float(every.held_out(poses)[0][mid, 0, 0]) - body[0, 0]) < 5.0
     with pytest.raises(InputError, match="deform.gap_sigma"):
         gap_sigma("bogus")
 

@@ -14,7 +14,10 @@ covariance (`InterpObservation.report_inflation`), never the points (``deform.ga
   run of consecutive anchors of a part is predicted from the observations outside it, as a gap
   is (`adjust.lsq.stochastic.runs_out_neighbours`), and the solver's inflation is measured on
   the single views against that prediction (`InterpObservation.held_out`) instead of the one
-  their own anchors made.
+  their own anchors made; `AnchorsOut` (``anchors_out``): against the prediction from the 3D
+  observations alone. Either inflates only the part-frames no view was fused into (their point
+  is the prediction alone): a view's fusion is calibrated already, or underconfident at 3-4
+  cameras (`benchmarks/interp_variants.py`, ``calib_one_view``).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from adjust.io import InputError
-from adjust.lsq.stochastic import runs_out_neighbours
+from adjust.lsq.stochastic import neighbours, runs_out_neighbours
 
 
 class GapSigma:
@@ -48,7 +51,17 @@ class LeaveRunsOut(GapSigma):
         return runs_out_neighbours(good, anchors)
 
 
-GAP_SIGMAS = {c.name: c for c in (GapSigma, LeaveRunsOut)}
+class AnchorsOut(GapSigma):
+    """Every anchor left out: the prediction from the 3D observations alone, as the first pass
+    made it (with the second pass's covariance) (``deform.gap_sigma=anchors_out``)."""
+
+    name = "anchors_out"
+
+    def held_out(self, good, anchors):
+        return neighbours(np.asarray(good) & ~np.asarray(anchors), True)
+
+
+GAP_SIGMAS = {c.name: c for c in (GapSigma, LeaveRunsOut, AnchorsOut)}
 
 
 def gap_sigma(name: str) -> GapSigma:

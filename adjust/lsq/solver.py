@@ -409,7 +409,8 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: floa
             prior_h = model_cov + dcov_h + 1e-6 * eye
             use = single & held_pf[..., None]  # the held-out anchors' own views
             report = prior_inflation(X_h, prior_h, pb.xy, use, pb.cams, cfg.sigma_det_px)
-            infl = torch.where(gap, report[None, :], infl)
+            alone = gap & (w_fuse.sum(-1) == 0)  # no view: the point is the prediction alone
+            infl = torch.where(alone, report[None, :], infl)
             prior_inv = sym3_inverse(prior0 * infl[..., None, None])
             pcov = posterior_cov(pts, prior_inv, pb.xy, w_fuse, pb.cams, pb.W6, pb.Wg)
     e = torch.stack((lin.eu, lin.ev), -1)

@@ -185,7 +185,7 @@ class OffsetCovariance:
         return cls(mean, sill, nug, lags, gamma, counts)
 
 
-def _neighbours(observed: np.ndarray, skip_self: bool) -> tuple[np.ndarray, np.ndarray]:
+def neighbours(observed: np.ndarray, skip_self: bool) -> tuple[np.ndarray, np.ndarray]:
     """Index of the previous and next observed frame (T, K) (-1 / T where none); with
     ``skip_self`` strictly before / after t, else t itself where observed."""
     T, K = observed.shape
@@ -226,7 +226,7 @@ def krige_offsets(
     """
     o = np.asarray(offsets, dtype=np.float64)
     m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
-    prev, nxt = _neighbours(m, skip_self)
+    prev, nxt = neighbours(m, skip_self)
     return krige_between(o, prev, nxt, cov, noise)
 
 
@@ -239,13 +239,13 @@ def runs_out_neighbours(observed: np.ndarray, held: np.ndarray) -> tuple[np.ndar
     h = np.asarray(held, dtype=bool)
     T, _ = m.shape
     t = np.arange(T)[:, None]
-    prev_incl, next_incl = _neighbours(m, skip_self=False)
+    prev_incl, next_incl = neighbours(m, skip_self=False)
     before = np.maximum.accumulate(np.where(~h, t, -1), axis=0)  # last frame not held <= t
     after = np.minimum.accumulate(np.where(~h, t, T)[::-1], axis=0)[::-1]
     kk = np.arange(m.shape[1])[None]
     prev = np.where(before >= 0, prev_incl[np.clip(before, 0, T - 1), kk], -1)
     nxt = np.where(after < T, next_incl[np.clip(after, 0, T - 1), kk], T)
-    p_skip, n_skip = _neighbours(m, skip_self=True)
+    p_skip, n_skip = neighbours(m, skip_self=True)
     return np.where(h, prev, p_skip), np.where(h, nxt, n_skip)
 
 
