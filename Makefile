@@ -31,8 +31,8 @@ lint: $(STAMP)
 	$(PY) -m pytest -q tests/test_layering.py  # the layering contract
 
 # Rebuild the shipped default net (deformnet/pretrained/real_mouse_parts.pt: a part-agnostic net
-# trained on filmed and tracked real motion, adjust.pretrain_real; ~15 min on 2 cores; bit for
-# bit on the same machine). The filmed scenes and their tracks are cached under
+# trained on filmed and tracked real motion, adjust.pretrain_real; ~6 min on 2 cores: tracking ~2,
+# training ~3-4; the same file byte for byte on the same machine). The filmed scenes and their tracks are cached under
 # runs/pretrain_real/ (the tracks keyed by adjust-track's settings and the scene's files); the
 # weights' SHA-256 goes to runs/benchmarks/pretrain_real_build.json.
 # The simulator-only LSTM: $(PY) -m deformnet.pretrained.build
