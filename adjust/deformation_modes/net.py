@@ -270,6 +270,7 @@ class CheckpointNet(NetMode):
     def __init__(self, path: str) -> None:
         self.path = str(path)
         self.model = None
+        self._said_body = False  # the body's replacement is logged once per session
 
     def checkpoint_body(self, body_cfg) -> BodyModel:
         if self.model is None:  # (a long session's chunks reuse the sample's mode: loaded once)
@@ -277,7 +278,9 @@ class CheckpointNet(NetMode):
         model = self.model
         given = BodyModel.from_config(body_cfg)
         body = model.body
-        if given.parts != body.parts or not np.allclose(given.points, body.points):
+        differs = given.parts != body.parts or not np.allclose(given.points, body.points)
+        if differs and not self._said_body:
+            self._said_body = True
             log.warning(
                 "deformation: using the checkpoint's body model '%s' (the net was trained with "
                 "it), not body=%s",
