@@ -238,10 +238,8 @@ def runs_out_neighbours(observed: np.ndarray, held: np.ndarray) -> tuple[np.ndar
     m = np.asarray(observed, dtype=bool)
     h = np.asarray(held, dtype=bool)
     T, _ = m.shape
-    t = np.arange(T)[:, None]
     prev_incl, next_incl = neighbours(m, skip_self=False)
-    before = np.maximum.accumulate(np.where(~h, t, -1), axis=0)  # last frame not held <= t
-    after = np.minimum.accumulate(np.where(~h, t, T)[::-1], axis=0)[::-1]
+    before, after = neighbours(~h, skip_self=False)  # the last / next frame not held, t included
     kk = np.arange(m.shape[1])[None]
     prev = np.where(before >= 0, prev_incl[np.clip(before, 0, T - 1), kk], -1)
     nxt = np.where(after < T, next_incl[np.clip(after, 0, T - 1), kk], T)
