@@ -38,7 +38,7 @@ from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.deformation import DeformationModel, build_net, check_track_up
 from deformnet.heldout import window_sums
-from deformnet.pretrained import load_default, load_net
+from deformnet.pretrained import load_default, load_net, net_spec
 from deformnet.sessions import split_sessions
 from deformnet.threads import torch_threads
 from deformnet.tokens import masked_mse
@@ -118,10 +118,7 @@ class AdaptConfig:
         if "augment" in d:
             d["augment"] = Augment.from_any(d["augment"])
         if "pretrained" in d:  # absent: the field's default
-            p = d["pretrained"]
-            d["pretrained"] = (
-                None if p is None or str(p).lower() in ("", "none", "null") else str(p)
-            )
+            d["pretrained"] = net_spec(d["pretrained"])
         out = cls(**d)
         for key in ("max_steps", "eval_every", "batch_size", "val_windows", "step"):
             if int(getattr(out, key)) < 1:

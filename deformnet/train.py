@@ -35,7 +35,7 @@ from deformnet.data import Augment, DeformDataModule
 from deformnet.deformation import DeformationModel, build_net, check_track_up, frame_up
 from deformnet.lit import DeformLit
 from deformnet.paths import output_dir
-from deformnet.pretrained import load_net
+from deformnet.pretrained import load_net, net_spec
 from deformnet.sessions import (
     check_compatible,
     load_session_tokens,
@@ -54,7 +54,7 @@ class TrainSettings:
     """The top-level settings of deformnet-train's config that `run` reads (conf/train.yaml
     documents each); an absent key keeps the default here."""
 
-    pretrained: Any = None  # null | default | a checkpoint path (`load_pretrained`)
+    pretrained: str | None = None  # null | default | a checkpoint path (`load_net`)
     half_window: int = 16
     up: Any = None  # the world's up, e.g. [0, 0, 1] (`deformnet.deformation.frame_up`)
     seed: int = 0
@@ -63,10 +63,10 @@ class TrainSettings:
 
     @classmethod
     def from_config(cls, cfg) -> TrainSettings:
-        s = given_fields(cls, cfg)
-        if s.get("pretrained") is not None and str(s["pretrained"]).lower() in ("", "none", "null"):
-            s["pretrained"] = None
-        return cls(**{k: to_plain(v) for k, v in s.items()})
+        s = {k: to_plain(v) for k, v in given_fields(cls, cfg).items()}
+        if "pretrained" in s:
+            s["pretrained"] = net_spec(s["pretrained"])
+        return cls(**s)
 
 
 @dataclass(frozen=True)
@@ -121,14 +121,6 @@ def net_config(cfg: DictConfig, num_parts: int) -> tuple[str, dict]:
     net["num_parts"] = int(num_parts)
     net["half_window"] = int(cfg.half_window)
     return name, net
-
-
-def load_pretrained(spec) -> Any:
-    """``pretrained=``: null (or "", "none", "null" as text), ``default`` (the shipped net) or a
-    checkpoint path -> a `DeformationModel` (or None), by `deformnet.pretrained.load_net`."""
-    if spec is not None and str(spec).lower() in ("", "none", "null"):
-        spec = None
-    return load_net(spec, "pretrained")
 
 
 def build_model(cfg: DictConfig, body=None, pretrained=None):
@@ -269,7 +261,7 @@ def _run(cfg: DictConfig) -> dict:
     out = output_dir(cfg)
     write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
-    pretrained = load_pretrained(ts.pretrained)
+    pretrained = load_net(ts.pretrained, "pretrained")
     body, arrays, data_facts = None, None, None
     n = int(pretrained.half_window if pretrained is not None else ts.half_window)
     window = 2 * n * data_step(cfg) + 1  # frames a window spans (wider steps: where they fit)

@@ -34,6 +34,7 @@ __all__ = [
     "default_checkpoint",
     "load_default",
     "load_net",
+    "net_spec",
 ]
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "real_mouse_parts.pt"
@@ -55,16 +56,27 @@ def load_default():
     return DeformationModel.from_checkpoint(default_checkpoint())
 
 
+def net_spec(value) -> str | None:
+    """A net setting's value (``deformnet-train pretrained=``, ``adjust-track
+    adapt.pretrained=``): None for null or the text "", "none" or "null" (from scratch), else
+    the text (``default`` or a checkpoint path)."""
+    if value is None or str(value).lower() in ("", "none", "null"):
+        return None
+    return str(value)
+
+
 def load_net(spec, setting: str) -> DeformationModel | None:
     """The net a setting names (``deformnet-train pretrained=``, ``adjust-track
     adapt.pretrained=``): None -> None (from scratch), ``default`` -> the shipped net
-    (`load_default`), else a checkpoint path. A missing path, or one that is not a regular file
-    (a folder, FIFO or device), is a ValueError naming ``<setting>=<spec>``."""
+    (`load_default`), else a checkpoint path (`net_spec`: "none" and "null" are None too). A
+    missing path, or one that is not a regular file (a folder, FIFO or device), is a
+    ValueError naming ``<setting>=<spec>``."""
+    spec = net_spec(spec)
     if spec is None:
         return None
-    if str(spec).lower() == "default":
+    if spec.lower() == "default":
         return load_default()
-    p = Path(str(spec))
+    p = Path(spec)
     if not p.exists():
         raise ValueError(f"{setting}={spec}: no such checkpoint")
     regular_file(p, f"{setting}={spec}: the checkpoint")
