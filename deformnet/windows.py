@@ -273,7 +273,9 @@ class WindowBank:
         if self.step < 1:
             raise ValueError(f"step must be >= 1, got {step}")
         span = self.n * self.step
-        seqs = [s for s in sequences if s.rigid.shape[0] >= 2 * span + 1]
+        # the sequences long enough for a window, by their index in `sequences`
+        self.kept = [i for i, s in enumerate(sequences) if s.rigid.shape[0] >= 2 * span + 1]
+        seqs = [sequences[i] for i in self.kept]
         if not seqs:
             raise ValueError(f"no sequence has the {2 * span + 1} frames a window needs")
         self.K = seqs[0].rigid.shape[1]
@@ -313,7 +315,8 @@ class WindowBank:
     ) -> dict:
         """Windows around mids_for(step)[idx] with extra hidden flags `hide` (B, W, K); `step`
         frames between tokens (None: the bank's); flip (B,) bool: mirror those windows (x -> -x,
-        parts permuted by `perm`); reverse (B,) bool: play those windows backwards."""
+        parts permuted by `perm`); reverse (B,) bool: play those windows backwards. The batch's
+        ``frames`` (B, W): each token's frame in the kept sequences laid end to end (`kept`)."""
         step = self.step if step is None else int(step)
         mids = self.mids_for(step)
         frames = mids[idx][:, None] + step * torch.arange(-self.n, self.n + 1)  # (B, W)
@@ -340,6 +343,7 @@ class WindowBank:
             "observed": observed,
             "target": truth[:, self.n],
             "target_mask": seen[:, self.n],
+            "frames": frames,
         }
 
 

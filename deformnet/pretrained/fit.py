@@ -105,10 +105,8 @@ class TruthWindowBank(WindowBank):
         if not 0.0 <= float(real_masks) <= 1.0:
             raise ValueError(f"real_masks must be a probability, got {real_masks}")
         super().__init__(sequences, half_window, step)
-        span = self.n * self.step
-        kept = [np.asarray(t, np.float32) for s, t in zip(sequences, truths)
-                if s.rigid.shape[0] >= 2 * span + 1]  # fmt: skip
-        self.truth = torch.from_numpy(np.concatenate(kept))
+        self.truth = torch.from_numpy(np.concatenate([np.asarray(truths[i], np.float32)
+                                                      for i in self.kept]))  # fmt: skip
         if not bool(torch.isfinite(self.truth).all()):
             raise ValueError("truth holds non-finite positions")
         self.real_masks = float(real_masks)
