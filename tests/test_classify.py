@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import hydra
 import numpy as np
 import pandas as pd
@@ -11,8 +13,10 @@ from helpers import pinned, tiny_deformation_model, write_bout_labels
 
 from adjust.io import write_points3d
 from deformnet.behavior.labels import bouts, read_labels, smooth
+from deformnet.behavior.settings import ClassifySettings
 from deformnet.behavior.tracks import read_tracks
 from deformnet.body import default_mouse
+from deformnet.confutil import compose
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import transform_points
 from deformnet.tables import read_points3d_table
@@ -545,7 +549,7 @@ def test_mechanism_config_errors(overrides, match):
 
     cfg = _compose(overrides)
     with pytest.raises(ValueError, match=match):
-        mechanism_setup(cfg, BodyModel.from_config(cfg.body))
+        mechanism_setup(ClassifySettings.from_config(cfg), BodyModel.from_config(cfg.body))
 
 
 def test_mechanism_setup_sources(tmp_path):
@@ -557,15 +561,39 @@ def test_mechanism_setup_sources(tmp_path):
 
     cfg = _compose(["mechanisms.positions=sim", "mechanisms.parts=[snout]"])
     body = BodyModel.from_config(cfg.body)
-    m = mechanism_setup(cfg, body)
+    m = mechanism_setup(ClassifySettings.from_config(cfg), body)
     data = simulate(None, num_frames=30, seed=0, body=body)
     assert m["names"] == list(MECHANISMS) and m["parts"] == ["nose_tip"]
     np.testing.assert_allclose(m["positions"], data.mechanism_positions)
     bad = tmp_path / "calibration.toml"
     bad.write_text("[cam_0]\nname = 'a'\n")
     with pytest.raises(ValueError, match=r"calibration.toml: no \[metadata.mechanisms\] table"):
-        mechanism_setup(_compose([f"mechanisms.calibration={bad}"]), body)
-    assert mechanism_setup(_compose([]), body) is None
+        mechanism_setup(ClassifySettings.from_config(_compose([f"mechanisms.calibration={bad}"])),
+                        body)  # fmt: skip
+    assert mechanism_setup(ClassifySettings.from_config(_compose([])), body) is None
+
+
+def test_the_settings_the_recipe_reads_are_typed_with_the_yamls_defaults():
+    """conf/classify.yaml's defaults are ClassifySettings' (the one copy in the code), every
+    field a key of the YAML (but the optional +sim block); an absent key, or a block given as
+    null, keeps them; given ones are read; a share out of range is named."""
+    yaml, st = compose("classify"), ClassifySettings()
+    assert ClassifySettings.from_config(yaml) == st
+    names = lambda obj: {f.name for f in dataclasses.fields(obj)}  # noqa: E731
+    assert names(st) - set(yaml) == {"sim"}
+    for block in ("context", "mechanisms", "unfamiliar"):
+        assert names(getattr(st, block)) == set(yaml[block]), block
+    assert ClassifySettings.from_config({}) == st
+    assert ClassifySettings.from_config({"context": None, "unfamiliar": None}) == st
+    given = ClassifySettings.from_config(
+        _compose(["body_scale=none", "context.frames=[]", "mechanisms.scale=20",
+                  "unfamiliar.warn_share=0.3", "head_max_iter=5"])
+    )  # fmt: skip
+    assert (given.body_scale, given.context.frames, given.context.stride) == ("none", [], 1)
+    assert (given.mechanisms.scale, given.unfamiliar.warn_share) == (20, 0.3)
+    assert given.head_max_iter == 5 and given.mechanisms.parts == st.mechanisms.parts
+    with pytest.raises(ValueError, match=r"unfamiliar.warn_share must be in \[0, 1\), got 1.5"):
+        ClassifySettings.from_config(_compose(["unfamiliar.warn_share=1.5"]))
 
 
 def test_heights_up_gives_a_body_frame_encoder_the_part_heights(tmp_path):

@@ -19,7 +19,7 @@ from deformnet.behavior.tracks import Session, body_scale
 log = logging.getLogger(__name__)
 
 __all__ = ["SessionBank", "Frames", "context_features", "feature_range",
-           "unfamiliar_share", "unfamiliar_settings", "BODY_SCALE_MODES",
+           "unfamiliar_share", "BODY_SCALE_MODES",
            "set_body_scales"]  # fmt: skip
 
 
@@ -188,13 +188,3 @@ def set_body_scales(sessions: Sequence[Session], mode: str, body) -> None:
         if mode == "session":
             s.scale = body_scale(body, s.rigid, s.deformed, s.observed, s.name)
             log.info("%s: body scale %.3f (the animal's size / the body model's)", s.name, s.scale)
-
-
-def unfamiliar_settings(cfg: Mapping) -> dict:
-    """``unfamiliar.frame_share`` and ``unfamiliar.warn_share``, checked (ValueError)."""
-    u = cfg.get("unfamiliar") or {}
-    out = {k: float(u.get(k, d)) for k, d in (("frame_share", 0.05), ("warn_share", 0.1))}
-    for k, v in out.items():
-        if not 0.0 <= v < 1.0:
-            raise ValueError(f"unfamiliar.{k} must be in [0, 1), got {v}")
-    return out

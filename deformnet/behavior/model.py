@@ -10,7 +10,6 @@ from collections.abc import Mapping
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
 from torch import Tensor
 
 from deformnet.behavior.encoder import MechanismFeatures, WindowEncoder
@@ -19,10 +18,10 @@ from deformnet.behavior.heads import BehaviorClassifier, build_head
 from deformnet.behavior.labels import smooth
 from deformnet.behavior.lockbox import calibration_mechanisms, mechanism_table
 from deformnet.behavior.rates import resample_session, to_track_frames
+from deformnet.behavior.settings import ClassifySettings
 from deformnet.behavior.tracks import Session
 from deformnet.body import BodyModel
 from deformnet.checkpoint import load_checkpoint
-from deformnet.confutil import to_plain
 from deformnet.deformation import build_net
 from deformnet.sim import MECHANISMS, SimConfig
 from deformnet.sim.scene import build_scene
@@ -154,15 +153,15 @@ def predict_session(
     return {"probs": probs, "raw": raw, "labels": lab, "unfamiliar": unfamiliar}
 
 
-def mechanism_setup(cfg: DictConfig, body) -> dict | None:
-    """The lock-box context (`deformnet.behavior.encoder.MechanismFeatures`) from the config's
+def mechanism_setup(settings: ClassifySettings, body) -> dict | None:
+    """The lock-box context (`deformnet.behavior.encoder.MechanismFeatures`) from the
     ``mechanisms`` block: {"names", "positions" (M x [x, y, z] mm), "parts" (the body model's
     names), "scale", "source"}, or None when neither ``mechanisms.positions`` ({name: [x, y,
     z]}, or ``sim``: the simulator's lock box) nor ``mechanisms.calibration`` (a
     calibration.toml with a [metadata.mechanisms] table, as `adjust-simulate` writes and
     `adjust-events` reads) is set. Errors name the file, mechanism or part."""
-    m = cfg.get("mechanisms") or {}
-    pos, calib = to_plain(m.get("positions")), m.get("calibration")
+    m = settings.mechanisms
+    pos, calib = m.positions, m.calibration
     if pos is None and not calib:
         return None
     if pos is not None and calib:
@@ -174,7 +173,7 @@ def mechanism_setup(cfg: DictConfig, body) -> dict | None:
             raise ValueError(f"mechanisms.calibration: {exc}") from None
         source = f"{calib} [metadata.mechanisms]"
     elif pos == "sim":
-        scene = build_scene(SimConfig.from_config(cfg.get("sim")), body)
+        scene = build_scene(SimConfig.from_config(settings.sim), body)
         pos = dict(zip(MECHANISMS, scene.mech_pos.tolist()))
         source = "the simulator's lock box (sim.lockbox)"
     else:
@@ -182,7 +181,7 @@ def mechanism_setup(cfg: DictConfig, body) -> dict | None:
     table = mechanism_table(pos, source)
     names, xyz = list(table), list(table.values())
     parts = []
-    for q in list(to_plain(m.get("parts")) or []):
+    for q in list(m.parts or []):
         r = body.resolve(str(q))
         if r is None:
             raise ValueError(
@@ -191,30 +190,29 @@ def mechanism_setup(cfg: DictConfig, body) -> dict | None:
         parts.append(r)
     if not parts:
         raise ValueError("mechanisms.parts: name at least one body part (e.g. nose_tip)")
-    scale = float(m.get("scale", 50.0))
+    scale = float(m.scale)
     if not scale > 0:
         raise ValueError(f"mechanisms.scale must be > 0 mm, got {scale}")
     return {"names": names, "positions": xyz, "parts": parts, "scale": scale, "source": source}
 
 
-def classifier_from_config(cfg: DictConfig, net_cfg: dict, body, half_window: int, C: int, up):
-    """The classifier the config describes (its head, frame features, lock-box context,
-    measurements and temporal context) on an encoder config (`_encoder_config`'s), untrained;
-    (model, its `mechanism_setup` or None). A forest head reads the frame features: it needs
-    some (ValueError)."""
-    head_cfg = dict(to_plain(cfg.head))
-    ff = bool(cfg.get("frame_features", True))
-    mech = mechanism_setup(cfg, body)
-    meas = bool(cfg.get("measurements", False))
-    heights_up = to_plain(cfg.get("heights_up"))
-    if heights_up is not None and not meas:
+def classifier_from_config(
+    settings: ClassifySettings, head_cfg: dict, net_cfg: dict, body, half_window: int, C: int, up
+):
+    """The classifier the config describes (its head, and from its `settings` the frame
+    features, lock-box context, measurements and temporal context) on an encoder config
+    (`_encoder_config`'s), untrained; (model, its `mechanism_setup` or None). A forest head
+    reads the frame features: it needs some (ValueError)."""
+    ff, meas = bool(settings.frame_features), bool(settings.measurements)
+    mech = mechanism_setup(settings, body)
+    if settings.heights_up is not None and not meas:
         raise ValueError("heights_up is the up of the measurements' part heights: set "
                          "measurements=true too (or leave heights_up unset)")  # fmt: skip
     if head_cfg.get("name") == "forest" and not (ff or mech or meas):
         raise ValueError("head=forest reads the frame features: set frame_features=true, "
                          "measurements=true or lock-box context (mechanisms.*)")  # fmt: skip
-    context = dict(to_plain(cfg.get("context")) or {})
+    context = {"frames": settings.context.frames, "stride": settings.context.stride}
     model = build_classifier(
-        net_cfg, body, half_window, head_cfg, ff, C, context, up, mech, meas, heights_up
+        net_cfg, body, half_window, head_cfg, ff, C, context, up, mech, meas, settings.heights_up
     )
     return model, mech

@@ -17,10 +17,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from deformnet.atomic import atomic_path, finite_or_none, write_text
-from deformnet.behavior.features import set_body_scales, unfamiliar_settings
+from deformnet.behavior.features import set_body_scales
 from deformnet.behavior.labels import bouts
 from deformnet.behavior.model import load_classifier, mechanism_setup, predict_session
 from deformnet.behavior.rates import frame_rates
+from deformnet.behavior.settings import ClassifySettings
 from deformnet.behavior.tracks import Session, read_tracks
 from deformnet.behavior.train import train_classifier
 from deformnet.confutil import check_fps, to_plain
@@ -33,13 +34,13 @@ log = logging.getLogger(__name__)
 __all__ = ["read_session", "predict_track", "run"]
 
 
-def _predict_mechanisms(cfg: DictConfig, model, meta: dict) -> None:
+def _predict_mechanisms(cfg: DictConfig, st: ClassifySettings, model, meta: dict) -> None:
     """mode=predict: the mechanisms' positions in this recording's frame. The classifier's own
     (its training rig's) unless ``mechanisms.positions`` / ``mechanisms.calibration`` give
     this session's (the same mechanisms by name; a moved lock box); its parts and scale stay
     the classifier's."""
     trained = meta.get("mechanisms")
-    here = mechanism_setup(cfg, meta["body"])
+    here = mechanism_setup(st, meta["body"])
     if here is None:
         if trained:
             log.info("lock-box context: the classifier's mechanism positions (%s)",
@@ -78,7 +79,7 @@ def read_session(
     return s
 
 
-def predict_track(cfg: DictConfig, out: Path) -> dict:
+def predict_track(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
     """mode=predict: label ``tracks`` with ``checkpoint``; returns the written files' summary."""
     if isinstance(to_plain(cfg.get("tracks")), list) or cfg.get("labels"):
         raise ValueError("mode=predict labels one track: tracks=points3d.csv (no labels=)")
@@ -86,10 +87,9 @@ def predict_track(cfg: DictConfig, out: Path) -> dict:
         raise ValueError("mode=predict needs checkpoint=CLASSIFIER.pt and tracks=points3d.csv")
     model, meta = load_classifier(str(cfg.checkpoint))
     classes = list(meta["classes"])
-    unf = unfamiliar_settings(cfg)
-    _predict_mechanisms(cfg, model, meta)
+    unf, antialias = st.unfamiliar, bool(st.antialias)
+    _predict_mechanisms(cfg, st, model, meta)
     rates = frame_rates(cfg.get("fps"), meta, str(cfg.tracks))  # before the track is read
-    antialias = bool(cfg.get("antialias", True))
     s = read_session(
         str(cfg.tracks), model, meta, bool(cfg.data.get("interpolate")),
         to_plain(cfg.get("aliases")),
@@ -110,11 +110,11 @@ def predict_track(cfg: DictConfig, out: Path) -> dict:
                  "not compared with the training data", cfg.checkpoint)  # fmt: skip
     else:
         df["unfamiliar"] = pr["unfamiliar"]
-        share = float(np.mean(pr["unfamiliar"] > unf["frame_share"]))
-        if share > unf["warn_share"]:
+        share = float(np.mean(pr["unfamiliar"] > unf.frame_share))
+        if share > unf.warn_share:
             warning = (
                 f"{cfg.tracks}: {100 * share:.0f}% of the frames are unlike the classifier's "
-                f"training data (more than {100 * unf['frame_share']:g}% of their features "
+                f"training data (more than {100 * unf.frame_share:g}% of their features "
                 "outside the training range; column 'unfamiliar'): its labels there are not to "
                 "be trusted (another animal, rig or tracker?). Label some of this recording's "
                 "frames and train on them too; a forest head (head=forest freeze=true "
@@ -161,10 +161,10 @@ def run(cfg: DictConfig) -> dict:
     """mode=train: fine-tune and report (returns output_dir, checkpoint, report, metrics);
     mode=predict: label a track (returns the written files)."""
     set_torch_threads(cfg.get("threads"))
-    mode = str(cfg.get("mode", "train"))
-    if mode not in ("train", "predict"):
-        raise ValueError(f"mode must be 'train' or 'predict', got '{mode}'")
+    st = ClassifySettings.from_config(cfg)
+    if st.mode not in ("train", "predict"):
+        raise ValueError(f"mode must be 'train' or 'predict', got '{st.mode}'")
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = output_dir(cfg)
     write_text(out / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
-    return train_classifier(cfg, out) if mode == "train" else predict_track(cfg, out)
+    return (train_classifier if st.mode == "train" else predict_track)(cfg, st, out)

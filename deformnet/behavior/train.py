@@ -12,7 +12,6 @@ confusion.png, ethogram.png into the output folder.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,6 @@ from deformnet.behavior.features import (
     context_features,
     feature_range,
     set_body_scales,
-    unfamiliar_settings,
 )
 from deformnet.behavior.fit import fit_head_forest, fit_head_lbfgs, teach_forest
 from deformnet.behavior.labels import read_labels, subsample_labels
@@ -38,6 +36,7 @@ from deformnet.behavior.lit import ClassifyLit
 from deformnet.behavior.model import classifier_from_config, export_classifier, predict_session
 from deformnet.behavior.rates import resample_session, same_fps
 from deformnet.behavior.report import macro_f1, write_report
+from deformnet.behavior.settings import ClassifySettings
 from deformnet.behavior.teachers import pseudo_settings
 from deformnet.behavior.tracks import Session, read_tracks
 from deformnet.body import BodyModel
@@ -50,10 +49,10 @@ log = logging.getLogger(__name__)
 __all__ = ["train_classifier"]
 
 
-def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list[Session]:
+def _sessions(cfg: DictConfig, split: str, body, classes, antialias: bool) -> list[Session]:
     """The sessions of a split (train, val, test; or unlabelled: data.unlabelled_tracks, no
     labels files, every frame's label -1) as the config reads them (`data.*_tracks` and
-    `data.*_labels`)."""
+    `data.*_labels`; `classes`: the label names; `antialias`: the setting)."""
     d = cfg.data
     unl = split == "unlabelled"
     interp = bool(d.get("interpolate", False))
@@ -96,7 +95,7 @@ def _sessions(cfg: DictConfig, split: str, body, classes: Sequence[str]) -> list
         s = Session(tp, *parts, lab, pose=tr["pose"])
         if rates is not None and not same_fps(rates[i], fps):
             log.info("%s: %g Hz, read resampled to %g Hz (fps)", tp, rates[i], fps)
-            s = resample_session(s, rates[i], fps, bool(cfg.get("antialias", True)))
+            s = resample_session(s, rates[i], fps, antialias)
         out.append(s)
     return out
 
@@ -138,7 +137,7 @@ def _encoder_config(cfg: DictConfig, classes):
     return ncfg, body, int(cfg.half_window), None, frame_up(to_plain(cfg.get("up")))
 
 
-def train_classifier(cfg: DictConfig, out: Path) -> dict:
+def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
     """mode=train: returns output_dir, checkpoint, report (`write_report`), metrics."""
     classes = [str(c) for c in cfg.classes]
     C = len(classes)
@@ -151,12 +150,11 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
             "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
         )
     pseudo = pseudo_settings(cfg, forest)
-    scale_mode = str(cfg.get("body_scale", "none"))  # settings checked before any data is read
+    scale_mode = str(st.body_scale)  # settings checked before any data is read
     if scale_mode not in BODY_SCALE_MODES:
         raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{scale_mode}'")
-    unf = unfamiliar_settings(cfg)
     fps = check_fps(cfg.get("fps"), "fps")  # the training sessions' rate (None: unknown)
-    model, mech = classifier_from_config(cfg, net_cfg, body, hw, C, up)
+    model, mech = classifier_from_config(st, head_cfg, net_cfg, body, hw, C, up)
     ff, meas = model.encoder.frame_features, model.encoder.measurements
     if mech is not None:
         log.info("lock-box context: %s from %s (parts %s)", mech["names"], mech["source"],
@@ -165,12 +163,12 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
         model.encoder.net.load_state_dict(state)
     span = model.half_window  # the encoder's half window plus the context's
 
-    train = _sessions(cfg, "train", body, classes)
-    val = _sessions(cfg, "val", body, classes)
-    test = _sessions(cfg, "test", body, classes)
+    train, val, test = (
+        _sessions(cfg, k, body, classes, st.antialias) for k in ("train", "val", "test")
+    )
     # more recordings without labels: the teachers label their frames too (the forest learns
     # from them), and the cotrain teacher's sequence pretraining reads them
-    unlabelled = _sessions(cfg, "unlabelled", body, classes)
+    unlabelled = _sessions(cfg, "unlabelled", body, classes, st.antialias)
     if unlabelled and pseudo is None:
         log.warning("data.unlabelled_tracks: %d sessions not used (only "
                     "pseudo_labels.teacher=linear|cotrain learns from them)",
@@ -190,7 +188,7 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
     set_body_scales((*train, *val, *test, *unlabelled), scale_mode, body)
     if not train:
         raise ValueError("no training sessions: set data.train_tracks / data.train_labels")
-    frac, seg = float(cfg.label_fraction), int(cfg.get("label_segment", 1))
+    frac, seg = float(cfg.label_fraction), int(st.label_segment)
     subsample_labels(train, frac, seg, int(cfg.label_seed))
     subsample_labels(val, frac, seg, int(cfg.label_seed) + 1)
     bank = SessionBank(train, span)
@@ -245,7 +243,7 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
         trainer = L.Trainer(
             **tcfg,
             logger=logger,
-            enable_progress_bar=str(cfg.get("progress_bar", "none")) != "none",
+            enable_progress_bar=str(st.progress_bar) != "none",
             enable_checkpointing=False,
             default_root_dir=str(out),
         )
@@ -281,8 +279,8 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
                 train_features,
                 labels,
                 weights,
-                float(cfg.get("head_l2", 1.0)),
-                int(cfg.get("head_max_iter", 200)),
+                float(st.head_l2),
+                int(st.head_max_iter),
             )
         if val_dl is not None:  # the probe's validation score: the state to beat
             with torch.no_grad():
@@ -345,7 +343,7 @@ def train_classifier(cfg: DictConfig, out: Path) -> dict:
     # the report on the test sessions (else validation, else training)
     split, sessions = ("test", test) if test else (("val", val) if val else ("train", train))
     preds = [predict_session(model, s, smoothing, rng) for s in sessions]
-    unfamiliar = np.concatenate([p["unfamiliar"] > unf["frame_share"] for p in preds])
+    unfamiliar = np.concatenate([p["unfamiliar"] > st.unfamiliar.frame_share for p in preds])
     facts = {
         "smoothing": smoothing,
         "labelled_training_frames": int(idx.size),
