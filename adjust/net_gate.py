@@ -1,38 +1,77 @@
 """Does a deformation net beat interpolation on this recording? The checks behind
 ``deform.require_better`` (a net not trained on the recording) and ``adapt.require_better``
-(``deformation=self``'s adapted net), on the recording's own held-out parts.
+(``deformation=self``'s adapted net), on the recording's own held-out parts: the net against
+the interpolation the tracks would otherwise get, ``deformation=interp``'s kriging of body-frame
+offsets from the 3D observations and the single-view anchors (`kriged_mid`, `Anchors`).
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from adjust.io import InputError
+from adjust.lsq.observation import InterpObservation
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 from adjust.tokenize import session_tokens
-from deformnet.heldout import MIN_TARGETS, heldout_errors, window_sums
+from deformnet.heldout import MIN_TARGETS, window_sums
 from deformnet.so3 import kabsch
 from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REQUIRE_BETTER", "heldout_check", "kriged_mid", "net_vs_kriging"]
+__all__ = ["REQUIRE_BETTER", "Anchors", "heldout_check", "kriged_mid", "net_vs_kriging"]
 
 
 REQUIRE_BETTER = ("auto", "parts", "all", "report", "false")
 
 
+@dataclass(frozen=True)
+class Anchors:
+    """A recording's single-view anchors (`InterpObservation.anchored`): the part-frames without
+    a 3D observation whose one accepted view was fused with the interp prior. points (T, K, 3)
+    global mm, mask (T, K) bool, var (T, K) mm^2 per body axis."""
+
+    points: Tensor
+    mask: Tensor
+    var: Tensor
+
+    @classmethod
+    def of(cls, obs: InterpObservation | None) -> Anchors | None:
+        """The anchors of an interp observation; None without any (``deform.single_views``
+        off, or no observation)."""
+        if obs is None or obs.anchors is None:
+            return None
+        m = obs.anchors.cpu().bool()
+        return cls(obs.data.detach().cpu().double(), m, obs.anchor_var.detach().cpu().double())
+
+    def window(self, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Each window token's anchor: frames (B, W) recording frames -> points (B, W, K, 3),
+        mask (B, W, K), var (B, W, K)."""
+        f = frames.long()
+        return self.points[f], self.mask[f], self.var[f]
+
+
 def heldout_check(
-    model, poses, body, cons, require_better, where: str, mode: str = "default", step=None
+    model,
+    poses,
+    body,
+    cons,
+    require_better,
+    where: str,
+    mode: str = "default",
+    step=None,
+    interp: InterpObservation | None = None,
 ):
     """``deform.require_better``: a net not trained on this recording (``deformation=default``
-    or a checkpoint) against interpolation (the rigid model plus interpolated offsets, as
-    ``deformation=interp``) on the recording's own held-out parts
-    (`deformnet.heldout.heldout_errors` on its tokens from the interp poses (T, 6)).
+    or a checkpoint) against the interpolation the tracks would otherwise get (`net_vs_kriging`:
+    interp's kriging with the session's offset covariance and single-view anchors, from
+    ``interp``, the interp stage's prepared observation) on the recording's own held-out parts
+    (masked windows of its tokens from the interp poses (T, 6)).
     ``parts``: the net predicts only the parts it predicts better (a part with too few
     held-out targets follows the verdict over all parts); ``all``: every part if it is better
     over all parts, else none; ``report``: every part, the figures computed and a worse part
@@ -50,11 +89,13 @@ def heldout_check(
         )
     if spec == "auto":
         spec = "parts" if mode == "default" else "report"
-    if spec == "false" or cons is None:
+    if spec == "false" or cons is None or interp is None or interp.cov is None:
         return None, {"require_better": spec, "checked": False}
     tokens = session_tokens(poses, body.points, cons, body.parts, body.name, source=where)
     try:
-        h = heldout_errors(model, tokens, step=step)
+        h = net_vs_kriging(
+            model, tokens, interp.cov, step=step, windows=2048, anchors=Anchors.of(interp)
+        )
     except ValueError as exc:  # shorter than one window: nothing to judge by
         log.warning("deform.require_better: the net is not checked (%s)", exc)
         return None, {"require_better": spec, "checked": False, "reason": str(exc)}
@@ -71,7 +112,7 @@ def heldout_check(
     facts = {
         "require_better": spec,
         "checked": True,
-        **{k: h[k] for k in ("windows", "targets", "net_all_mm", "interp_all_mm")},
+        **{k: h[k] for k in ("baseline", "windows", "targets", "net_all_mm", "interp_all_mm")},
         "net_mm": dict(zip(body.parts, map(float, net_mm))),
         "interp_mm": dict(zip(body.parts, map(float, int_mm))),
         "net_parts": [p for p, k in zip(body.parts, keep) if k],
@@ -114,7 +155,14 @@ def heldout_check(
     return (None if spec == "report" else keep), facts
 
 
-def kriged_mid(batch: dict, body_points, cov: OffsetCovariance, mid: int, step: int = 1) -> Tensor:
+def kriged_mid(
+    batch: dict,
+    body_points,
+    cov: OffsetCovariance,
+    mid: int,
+    step: int = 1,
+    anchors: tuple[Tensor, Tensor, Tensor] | None = None,
+) -> Tensor:
     """``deformation=interp``'s prediction of each window's mid frame: every part's offset from
     the rigid model, in body axes, kriged from the window's observed frames
     (`adjust.lsq.stochastic.krige_offsets` with the session's `OffsetCovariance`, as
@@ -122,11 +170,29 @@ def kriged_mid(batch: dict, body_points, cov: OffsetCovariance, mid: int, step: 
 
     batch: rigid, deformed (B, W, K, 3) mm, observed (B, W, K) (a `deformnet.windows` batch);
     body_points (K, 3) mm, the model whose points ``rigid`` moves; step: frames between the
-    window's tokens (the covariance's lags are in frames). Returns (B, K, 3) mm, global."""
+    window's tokens (the covariance's lags are in frames); anchors: the window's single-view
+    anchors (`Anchors.window`: points (B, W, K, 3) mm, mask (B, W, K), var (B, W, K) mm^2),
+    kriged from with their own noise where the window has no 3D observation (as
+    `InterpObservation.anchored`); None: the 3D observations only. Returns (B, K, 3) mm,
+    global."""
     rigid = batch["rigid"].double()
     deformed = batch["deformed"].double()
     observed = batch["observed"].bool()
     Bw, W, K, _ = rigid.shape
+    noise = None
+    if anchors is not None:
+        a_pts, a_mask, a_var = anchors
+        if tuple(a_pts.shape) != (Bw, W, K, 3) or tuple(a_mask.shape) != (Bw, W, K):
+            raise ValueError(
+                f"anchors must be (B, W, K, 3) / (B, W, K) for windows {(Bw, W, K)}, "
+                f"got {tuple(a_pts.shape)} / {tuple(a_mask.shape)}"
+            )
+        a_mask = a_mask.bool() & ~observed
+        deformed = torch.where(a_mask[..., None], a_pts.double(), deformed)
+        observed = observed | a_mask
+        own = torch.as_tensor(np.tile(cov.nugget, (Bw, 1))).reshape(Bw, 1, K, 3)
+        noise = torch.where(a_mask[..., None], a_var.double()[..., None], own)
+        noise = noise.permute(1, 0, 2, 3).reshape(W, Bw * K, 3).numpy()
     R, _ = kabsch(rigid, torch.tensor(np.asarray(body_points), dtype=torch.float64))
     # o = R^T (X - t) - B = R^T (X - rigid): (B, W, K, 3) in body axes
     off = torch.einsum("bwji,bwkj->bwki", R, deformed - rigid)
@@ -141,7 +207,7 @@ def kriged_mid(batch: dict, body_points, cov: OffsetCovariance, mid: int, step: 
         gamma=np.tile(cov.gamma, (Bw, 1, 1)),
         counts=np.tile(cov.counts, Bw),
     )
-    pred, _ = krige_offsets(o, m, tiled, skip_self=True)
+    pred, _ = krige_offsets(o, m, tiled, skip_self=True, noise=noise)
     p = torch.as_tensor(pred[mid]).reshape(Bw, K, 3)
     return rigid[:, mid] + torch.einsum("bij,bkj->bki", R[:, mid], p)
 
@@ -155,18 +221,22 @@ def net_vs_kriging(
     windows: int = 1024,
     batch_size: int = 256,
     seed: int = 0,
+    anchors: Anchors | None = None,
 ) -> dict:
     """RMSE (mm) of the net and of `kriged_mid` (what ``deformation=interp`` predicts) on the
     same masked windows (`deformnet.windows`, training-like masks) of the recording's tokens
     (`deformnet.sessions.SessionTokens`), over all parts and per part.
 
     blocks: [[start, stop], ...] frames to draw the windows from (the fine-tuning's held-out
-    blocks; None: the whole recording); step: frames between tokens (None: the net's).
-    Returns {"net_mm", "interp_mm" (per part lists), "targets", "net_all_mm",
-    "interp_all_mm", "windows"}. ValueError when no block holds a window."""
+    blocks; None: the whole recording); step: frames between tokens (None: the net's);
+    anchors: the recording's single-view anchors, which the kriging uses as interp does
+    (None: none). Returns {"net_mm", "interp_mm" (per part lists), "targets", "net_all_mm",
+    "interp_all_mm", "windows", "baseline"}. ValueError when no block holds a window."""
     step = int(model.step if step is None else step)
     spans = [(0, tokens.num_frames)] if blocks is None else [(int(a), int(b)) for a, b in blocks]
     bank = WindowBank([tokens.to_sequence(a, b) for a, b in spans], model.half_window, step)
+    # each bank frame's recording frame (the kept blocks laid end to end)
+    recording = torch.cat([torch.arange(*spans[i]) for i in bank.kept])
     data = FixedWindowBatches.build(bank, int(windows), int(batch_size), int(seed), MaskConfig())
     net = krig = count = None
     n = 0
@@ -176,7 +246,8 @@ def net_vs_kriging(
         with torch.no_grad():
             for b in data.batches:
                 sums = window_sums(model, b, model.half_window)
-                pred = kriged_mid(b, tokens.body_points, cov, model.half_window, step)
+                a = None if anchors is None else anchors.window(recording[b["frames"]])
+                pred = kriged_mid(b, tokens.body_points, cov, model.half_window, step, a)
                 m = b["target_mask"].double()
                 k = (((pred - b["target"].double()) ** 2).sum(-1) * m).sum(0)
                 net = sums["net"] if net is None else net + sums["net"]
@@ -198,4 +269,5 @@ def net_vs_kriging(
         "net_all_mm": float(np.sqrt(float(net.sum()) / total)) if total else float("nan"),
         "interp_all_mm": float(np.sqrt(float(krig.sum()) / total)) if total else float("nan"),
         "windows": n,
+        "baseline": "interp's kriging" + ("" if anchors is None else " with single-view anchors"),
     }

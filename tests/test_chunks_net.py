@@ -38,7 +38,9 @@ def _agree(scene: Path, whole: Path, chunked: Path) -> None:
     with np.load(scene / "truth.npz") as z:
         truth = z["points"]
     rms = [np.sqrt(np.mean(np.sum((p["points"] - truth) ** 2, -1))) for p in (a, b)]
-    assert rms[1] < 1.10 * rms[0], rms
+    # 200-frame chunks estimate interp's offset covariance from 200 frames: on this scene
+    # deformation=interp alone is 1.10x worse chunked (3.06 vs 2.77 mm); the net adds no more
+    assert rms[1] < 1.15 * rms[0], rms
 
 
 def test_default_net_in_chunks_agrees_with_the_whole_run(scene, tmp_path, caplog):

@@ -16,7 +16,7 @@ from torch import nn
 from deformnet.body import default_mouse
 from deformnet.confutil import compose
 from deformnet.deformation import DeformationModel
-from deformnet.heldout import heldout_errors, window_sums
+from deformnet.heldout import MIN_TARGETS, heldout_errors, window_sums
 from deformnet.sessions import SessionTokens
 from deformnet.tokens import linear_baseline, offset_baseline
 
@@ -199,23 +199,25 @@ def _track(scene: Path, out: Path, overrides: list[str]) -> dict:
     return track_session(scene, out, overrides)
 
 
-def test_the_shipped_net_passes_on_its_own_kind_of_mouse(long_scene, tmp_path):
+def test_the_shipped_net_is_checked_part_by_part_against_anchored_kriging(long_scene, tmp_path):
+    """The check compares the net with what the tracks would otherwise get: interp's kriging
+    from the 3D observations and the single-view anchors. Measured (stop 48) with the shipped
+    net of issue 48 (trained on filmed real motion; the simulator's mouse is a body it never
+    trained on): 4.42 vs 3.39 mm over all parts (against offset interpolation without the
+    anchors, the earlier check, 4.42 vs 4.40); the check keeps right_ear only."""
     s = _track(long_scene, tmp_path / "d", ["deformation=default"])
     h = s["deformation"]["heldout"]
     assert h["checked"] and h["require_better"] == "parts"
-    # measured with the shipped net of issue 48 as make pretrained rebuilds it (stop 47: trained
-    # on filmed real motion, true targets; the simulator's mouse is a body it never trained
-    # on): 4.42 vs 4.40 mm over all parts (1.005x; stop 46's net 1.03x, the earlier nets
-    # 0.88x); the check keeps right_ear and left_front_paw (5.02 / 6.77 vs 6.19 / 7.03 mm), the
-    # nose (2.88 vs 2.33) and the others go to interp
-    assert h["net_all_mm"] < 1.1 * h["interp_all_mm"]
-    assert len(h["net_parts"]) >= 2
-    paws = {"left_front_paw", "right_front_paw", "left_hind_paw", "right_hind_paw"}
-    assert len(paws & set(h["net_parts"])) >= 1
+    assert h["baseline"] == "interp's kriging with single-view anchors"
     net, interp = h["net_mm"], h["interp_mm"]
-    assert all(net[p] < interp[p] for p in h["net_parts"])  # the parts kept are the better ones
-    assert "nose_tip" not in h["net_parts"]
-    assert s["deformation"]["net_passes"] >= 1 and s["completeness"] == 1.0
+    targets = dict(zip(net, h["targets"]))
+    kept = set(h["net_parts"])
+    assert all(net[p] < interp[p] for p in kept)  # the parts kept are the better ones
+    judged = [p for p in net if targets[p] >= MIN_TARGETS]
+    assert all(net[p] >= interp[p] for p in judged if p not in kept)
+    assert "nose_tip" not in kept and len(kept) < len(net)
+    assert s["deformation"]["mode"] == "default" and s["completeness"] == 1.0
+    assert s["deformation"]["net_passes"] >= 1
 
 
 def test_a_net_worse_than_interpolation_is_not_used(scene, tmp_path, monkeypatch, caplog):

@@ -137,6 +137,7 @@ def test_a_net_no_better_than_kriging_is_reported_as_interp(scene, tmp_path, mon
     assert "does not beat interp's kriging by 2%" in d["reason"]
     h = d["heldout"]
     assert h["checked"] and h["net_all_mm"] > h["interp_all_mm"] and h["blocks"] == [[300, 600]]
+    assert h["baseline"] == "interp's kriging with single-view anchors"
     assert "net_passes" not in d and d["adapt"]["used"] is False
     assert "summary.json says deformation.mode: interp" in caplog.text
 
@@ -148,3 +149,50 @@ def test_a_net_that_beats_kriging_is_kept(scene, tmp_path, monkeypatch):
     assert h["checked"] and h["net_all_mm"] < h["interp_all_mm"], h
     assert d["mode"] == "self" and "reason" not in d and d["adapt"]["used"] is True
     assert d["net_passes"] >= 1 and d["net_used_fraction"] > 0
+
+
+def _anchored_recording(T: int = 400):
+    """A still body whose parts sway (x offset 5 sin(2 pi t / 12) mm), measured in 3D on every
+    4th frame only and through one view (single-view anchors, exact here) on the others."""
+    from adjust.net_gate import Anchors
+    from deformnet.sessions import SessionTokens
+
+    body = default_mouse()
+    K = body.num_parts
+    B = np.array(body.points)
+    t = np.arange(T)
+    rigid = np.broadcast_to(B, (T, K, 3)).copy()
+    truth = rigid.copy()
+    truth[..., 0] += 5.0 * np.sin(2 * np.pi * t / 12)[:, None]
+    observed = np.broadcast_to((t % 4 == 0)[:, None], (T, K)).copy()
+    tokens = SessionTokens(rigid, truth, observed, tuple(body.parts), B, body.name)
+    anchors = Anchors(
+        torch.as_tensor(truth),
+        torch.as_tensor(~observed),
+        torch.full((T, K), 0.01, dtype=torch.float64),
+    )
+    return body, tokens, anchors
+
+
+def test_the_gate_krieges_from_the_single_view_anchors_of_its_windows_frames():
+    """The fallback interp rests on single-view anchors inside the gaps, so the gate's kriging
+    must too, each window's anchors taken from its own recording frames (held-out blocks that
+    do not start at frame 0 included): with them its error is a fraction of the 3D-only one."""
+    from adjust.net_gate import net_vs_kriging
+
+    body, tokens, anchors = _anchored_recording()
+    model = DeformationModel(_ShiftNet(4), body, 4)
+    cov = _cov(body.num_parts)
+    blocks = [[100, 300]]
+    plain = net_vs_kriging(model, tokens, cov, blocks, 1, windows=128)
+    anch = net_vs_kriging(model, tokens, cov, blocks, 1, windows=128, anchors=anchors)
+    assert plain["baseline"] == "interp's kriging"
+    assert anch["baseline"] == "interp's kriging with single-view anchors"
+    assert anch["targets"] == plain["targets"] and anch["net_all_mm"] == plain["net_all_mm"]
+    assert anch["interp_all_mm"] < 0.3 * plain["interp_all_mm"], (anch, plain)
+    # a view of the held-out mid frame itself (50 mm off here) is never used
+    mid_off = anchors.points.clone()
+    mid_off[torch.as_tensor(tokens.observed)] += 50.0
+    leak = anchors.__class__(mid_off, torch.ones_like(anchors.mask), anchors.var)
+    same = net_vs_kriging(model, tokens, cov, blocks, 1, windows=128, anchors=leak)
+    assert same["interp_all_mm"] == pytest.approx(anch["interp_all_mm"])

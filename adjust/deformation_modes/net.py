@@ -26,7 +26,7 @@ from adjust.deformation_modes.base import (
 )
 from adjust.io import Detections, InputError
 from adjust.lsq.net_observation import NetObservation
-from adjust.net_gate import heldout_check, net_vs_kriging
+from adjust.net_gate import Anchors, heldout_check, net_vs_kriging
 from adjust.tokenize import session_tokens
 from adjust.track_config import DeformConfig
 from adjust.validate import choose_measured_prior
@@ -295,7 +295,7 @@ class CheckpointNet(NetMode):
         return self.model, {}
 
     def check(self, a: Adjusting, model, poses, interp_obs):
-        return _require_better(a, model, poses, "net")
+        return _require_better(a, model, poses, "net", interp_obs)
 
     def checkpoint(self, a: Adjusting) -> str:
         return str(Path(self.path).resolve())
@@ -325,7 +325,7 @@ class DefaultNet(NetMode):
         return self.model, {}
 
     def check(self, a: Adjusting, model, poses, interp_obs):
-        return _require_better(a, model, poses, "default")
+        return _require_better(a, model, poses, "default", interp_obs)
 
     def checkpoint(self, a: Adjusting) -> str:
         return "default"
@@ -351,8 +351,9 @@ class SelfNet(NetMode):
 
     def check(self, a: Adjusting, model, poses, interp_obs):
         """``adapt.require_better``: the adapted net against the interpolation the tracks would
-        otherwise get (`InterpMode`'s kriging, with this session's offset covariance) on the
-        same masked windows of the fine-tuning's held-out blocks (`net_vs_kriging`)."""
+        otherwise get (`InterpMode`'s kriging, with this session's offset covariance and
+        single-view anchors) on the same masked windows of the fine-tuning's held-out blocks
+        (`net_vs_kriging`)."""
         facts = self.adapt_facts
         settings = adapt.AdaptConfig.from_any(a.adapt_cfg)
         if not settings.require_better:
@@ -360,11 +361,12 @@ class SelfNet(NetMode):
             return None, {"require_better": False, "checked": False}, None
         blocks = (facts.get("data") or {}).get("val_blocks")
         step = deform_step(model, a.deform)
+        anchors = Anchors.of(interp_obs)
         try:
-            h = net_vs_kriging(model, self.tokens, interp_obs.cov, blocks, step)
+            h = net_vs_kriging(model, self.tokens, interp_obs.cov, blocks, step, anchors=anchors)
         except ValueError as exc:  # held-out blocks shorter than a window
             log.warning("adapt.require_better: the held-out blocks hold no window (%s)", exc)
-            h = net_vs_kriging(model, self.tokens, interp_obs.cov, None, step)
+            h = net_vs_kriging(model, self.tokens, interp_obs.cov, None, step, anchors=anchors)
             blocks = None
         h = {"require_better": True, "checked": True, "blocks": blocks or "all frames", **h}
         h["net_mm"] = dict(zip(a.body.parts, h["net_mm"]))
@@ -400,8 +402,9 @@ class SelfNet(NetMode):
         return str(a.out / "deformation.ckpt")
 
 
-def _require_better(a: Adjusting, model, poses, mode: str):
-    """``deform.require_better`` (`adjust.net_gate.heldout_check`) as `NetMode.check`."""
+def _require_better(a: Adjusting, model, poses, mode: str, interp_obs):
+    """``deform.require_better`` (`adjust.net_gate.heldout_check`, against interp_obs's
+    kriging) as `NetMode.check`."""
     t1 = time.perf_counter()
     net_parts, facts = heldout_check(
         model,
@@ -412,6 +415,7 @@ def _require_better(a: Adjusting, model, poses, mode: str):
         a.where,
         mode,
         step=deform_step(model, a.deform),
+        interp=interp_obs,
     )
     a.timings["heldout_check_s"] = time.perf_counter() - t1
     reason = None
