@@ -16,7 +16,7 @@ from deformnet.behavior.labels import bouts, read_labels, smooth
 from deformnet.behavior.settings import ClassifySettings
 from deformnet.behavior.tracks import read_tracks
 from deformnet.body import default_mouse
-from deformnet.confutil import compose
+from deformnet.confutil import compose, to_plain
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import transform_points
 from deformnet.tables import read_points3d_table
@@ -575,25 +575,43 @@ def test_mechanism_setup_sources(tmp_path):
 
 def test_the_settings_the_recipe_reads_are_typed_with_the_yamls_defaults():
     """conf/classify.yaml's defaults are ClassifySettings' (the one copy in the code), every
-    field a key of the YAML (but the optional +sim block); an absent key, or a block given as
-    null, keeps them; given ones are read; a share out of range is named."""
+    field a key of the YAML (but the optional +sim block; of ``data``, the keys with a default);
+    an absent key, or a block given as null, keeps them; given ones are read (a whole number
+    as an integer); a bad value is named."""
     yaml, st = compose("classify"), ClassifySettings()
-    assert ClassifySettings.from_config(yaml) == st
     names = lambda obj: {f.name for f in dataclasses.fields(obj)}  # noqa: E731
     assert names(st) - set(yaml) == {"sim"}
-    for block in ("context", "mechanisms", "unfamiliar"):
+    for block in ("context", "mechanisms", "unfamiliar", "pseudo_labels"):
         assert names(getattr(st, block)) == set(yaml[block]), block
+    assert names(st.pseudo_labels.sequence) == set(yaml.pseudo_labels.sequence)
+    assert names(st.data) <= set(yaml.data)
+    for block in ("context", "mechanisms", "unfamiliar", "data", "pseudo_labels"):  # key by key
+        plain = to_plain(yaml[block])
+        for k, v in dataclasses.asdict(getattr(st, block)).items():
+            assert v == plain[k], f"{block}.{k}: {v!r} here, {plain[k]!r} in the YAML"
+    assert ClassifySettings.from_config(yaml) == st  # and the top-level keys
     assert ClassifySettings.from_config({}) == st
     assert ClassifySettings.from_config({"context": None, "unfamiliar": None}) == st
+    assert ClassifySettings.from_config({"pseudo_labels": {"sequence": None}}) == st
     given = ClassifySettings.from_config(
         _compose(["body_scale=none", "context.frames=[]", "mechanisms.scale=20",
-                  "unfamiliar.warn_share=0.3", "head_max_iter=5"])
+                  "unfamiliar.warn_share=0.3", "head_max_iter=5", "pseudo_labels.teacher=none",
+                  "pseudo_labels.sequence.steps=30.0", "pseudo_labels.sequence.encoder=a.pt",
+                  "data.interpolate=true", "data.token_dropout=0"])
     )  # fmt: skip
     assert (given.body_scale, given.context.frames, given.context.stride) == ("none", [], 1)
     assert (given.mechanisms.scale, given.unfamiliar.warn_share) == (20, 0.3)
     assert given.head_max_iter == 5 and given.mechanisms.parts == st.mechanisms.parts
+    pl = given.pseudo_labels
+    assert (pl.teacher, pl.keep, pl.sequence.encoder) == ("none", 0.3, "a.pt")
+    assert pl.sequence.steps == 30 and isinstance(pl.sequence.steps, int)
+    assert given.data == dataclasses.replace(st.data, interpolate=True, token_dropout=0.0)
     with pytest.raises(ValueError, match=r"unfamiliar.warn_share must be in \[0, 1\), got 1.5"):
         ClassifySettings.from_config(_compose(["unfamiliar.warn_share=1.5"]))
+    with pytest.raises(ValueError, match=r"pseudo_labels.sequence.dilations must be a non-empty"):
+        ClassifySettings.from_config(_compose(["pseudo_labels.sequence.dilations=[]"]))
+    with pytest.raises(ValueError, match="pseudo_labels.labelled_weight must be a number > 0"):
+        ClassifySettings.from_config({"pseudo_labels": {"labelled_weight": True}})
 
 
 def test_heights_up_gives_a_body_frame_encoder_the_part_heights(tmp_path):

@@ -222,8 +222,8 @@ def test_sequence_encoder_in_deformnet_classify(tmp_path):
         ("pseudo_labels.sequence.mask_ratio=1", r"mask_ratio must be in \(0, 1\)"),
         ("pseudo_labels.sequence.context=[4]", "context must be odd"),
         ("pseudo_labels.sequence.steps=2.5", "steps must be an integer"),
-        ("+pseudo_labels.sequence.epochs=3", "unknown settings"),
-        ("+pseudo_labels.sequence.bins=3", r"\(bins is pseudo_labels.bins\)"),
+        ("+pseudo_labels.sequence.epochs=3", "unknown pseudo_labels.sequence settings"),
+        ("+pseudo_labels.sequence.bins=3", r"sequence.bins: unknown \(it is pseudo_labels.bins\)"),
     ):
         with pytest.raises(ValueError, match=match):
             run(_compose([*base, bad, f"output.dir={tmp_path / 'x'}"]))

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from deformnet.behavior.features import SessionBank, context_features
 from deformnet.behavior.heads import EnsembleHead, ForestHead
 from deformnet.behavior.sequence import sequence_signature, sequence_teacher
+from deformnet.behavior.settings import PseudoLabelSettings
 from deformnet.behavior.teachers import (
     co_training_pseudo_labels,
     linear_teacher_probs,
@@ -139,7 +140,8 @@ def fit_head_forest(
 
 def self_train_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
-    settings: dict, probs: np.ndarray | Sequence[np.ndarray], all_features: Tensor | None = None,
+    settings: PseudoLabelSettings, probs: np.ndarray | Sequence[np.ndarray],
+    all_features: Tensor | None = None,
     unlabelled: Sequence[Tensor] = (),
 ) -> tuple[dict, Tensor]:  # fmt: skip
     """Self-training of a fitted forest head: a teacher's class probabilities ``probs``
@@ -151,8 +153,8 @@ def self_train_forest(
     on both, weighted per frame (`pseudo_sample_weights`). ``all_features``: every training
     frame's features (len(bank), D), computed when not given. ``probs`` a list of two
     (`pseudo_labels.teacher=cotrain`: the frame features' teacher's, the embedding's):
-    co-training (`co_training_pseudo_labels`, shares settings["keep"] and
-    settings["embedding_keep"]). Returns facts (the pseudo-labelled frames in all, per class and
+    co-training (`co_training_pseudo_labels`, shares settings.keep and
+    settings.embedding_keep). Returns facts (the pseudo-labelled frames in all, per class and
     from the unlabelled sessions, the refitted forest's; co-training: the frames dropped for a
     conflict) and every training frame's features."""
     if all_features is None:
@@ -165,11 +167,11 @@ def self_train_forest(
         if p.shape != (len(pool), C):
             raise ValueError(f"probs must be ({len(pool)}, {C}), got {p.shape}")
     labelled = np.r_[labels >= 0, np.zeros(len(pool) - N, bool)]
-    keeps = [settings["keep"], settings.get("embedding_keep")][: len(views)]
+    keeps = [settings.keep, settings.embedding_keep][: len(views)]
     rows, pseudo, conflicts = co_training_pseudo_labels(  # one view: class-balanced alone
-        views, [*lengths, *(len(u) for u in unlabelled)], labelled, keeps, settings["smooth"]
+        views, [*lengths, *(len(u) for u in unlabelled)], labelled, keeps, settings.smooth
     )  # fmt: skip
-    facts = {"teacher": settings["teacher"], "frames": int(rows.size),
+    facts = {"teacher": settings.teacher, "frames": int(rows.size),
              "per_class": np.bincount(pseudo, minlength=C).tolist(),
              "unlabelled_frames": int((rows >= N).sum())}  # fmt: skip
     if len(views) > 1:
@@ -177,7 +179,7 @@ def self_train_forest(
     if rows.size == 0:  # every frame is labelled: nothing to teach
         return facts, all_features
     y = np.concatenate([labels[idx], pseudo])
-    sw = pseudo_sample_weights(y, len(idx), C, settings["labelled_weight"])
+    sw = pseudo_sample_weights(y, len(idx), C, settings.labelled_weight)
     x = torch.cat([features, pool[torch.as_tensor(rows)]])
     facts["forest"] = fit_head_forest(model, x, torch.as_tensor(y), sample_weight=sw)
     return facts, all_features
@@ -185,12 +187,13 @@ def self_train_forest(
 
 def teach_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
-    unlabelled: Sequence, pseudo: dict, weights, mech: Mapping | None, scale_mode: str, out: Path,
+    unlabelled: Sequence, pseudo: PseudoLabelSettings, weights, mech: Mapping | None,
+    scale_mode: str, out: Path,
 ) -> tuple[dict, Tensor]:  # fmt: skip
-    """`pseudo_labels.teacher` (linear | cotrain, `pseudo_settings`) teaches the fitted forest
+    """`pseudo_labels.teacher` (linear | cotrain, `PseudoLabelSettings`) teaches the fitted forest
     head: the teacher's probabilities of every training frame of ``bank`` (sessions of
     ``lengths`` frames; labelled frames ``idx`` with features ``features``) and of the
-    ``unlabelled`` sessions' frames (`Session`s) where ``pseudo["unlabelled"]``, then
+    ``unlabelled`` sessions' frames (`Session`s) where ``pseudo.unlabelled``, then
     `self_train_forest`. Returns (facts, every training frame's features)."""
     C = model.head.num_classes
     all_features = context_features(model, bank, torch.arange(len(bank)))
@@ -199,16 +202,16 @@ def teach_forest(
     for u in unlabelled:
         ub = SessionBank([u], bank.n)
         ufeats.append(context_features(model, ub, torch.arange(len(ub))))
-    taught = ufeats if pseudo["unlabelled"] else []  # pseudo-labelled too
+    taught = ufeats if pseudo.unlabelled else []  # pseudo-labelled too
     tfacts: dict = {}
-    if pseudo["teacher"] == "cotrain":
+    if pseudo.teacher == "cotrain":
         tprobs, tfacts = sequence_teacher(
-            model, all_features, lengths, ufeats, idx, ylab, C, weights, pseudo["sequence"],
-            sequence_signature(model, mech, scale_mode), out, pseudo["bins"], len(taught) > 0,
+            model, all_features, lengths, ufeats, idx, ylab, C, weights, pseudo,
+            sequence_signature(model, mech, scale_mode), out,
         )  # fmt: skip
     else:  # linear
         frame = torch.cat([all_features, *taught])[:, model.frame_columns()].double().numpy()
-        tprobs = linear_teacher_probs(frame, idx, ylab, C, weights, pseudo["bins"])
+        tprobs = linear_teacher_probs(frame, idx, ylab, C, weights, pseudo.bins)
     facts, all_features = self_train_forest(
         model, bank, lengths, idx, features, pseudo, tprobs, all_features, taught
     )

@@ -91,7 +91,7 @@ def predict_track(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
     _predict_mechanisms(cfg, st, model, meta)
     rates = frame_rates(cfg.get("fps"), meta, str(cfg.tracks))  # before the track is read
     s = read_session(
-        str(cfg.tracks), model, meta, bool(cfg.data.get("interpolate")),
+        str(cfg.tracks), model, meta, bool(st.data.interpolate),
         to_plain(cfg.get("aliases")),
     )  # fmt: skip
     T = len(s.fnum)

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor, nn
 
 from deformnet.atomic import atomic_path
+from deformnet.behavior.settings import PseudoLabelSettings
 from deformnet.behavior.teachers import embedding_teacher_probs, linear_teacher_probs
 from deformnet.checkpoint import load_checkpoint
 
@@ -327,55 +328,57 @@ def sequence_teacher(
     labels: np.ndarray,
     num_classes: int,
     class_weights,
-    settings: dict,
+    pseudo: PseudoLabelSettings,
     signature: Mapping,
     out: Path,
-    bins: int = 4,
-    teach_unlabelled: bool = True,
 ) -> tuple[list[np.ndarray], dict]:
     """`pseudo_labels.teacher=cotrain`: the behavior-scale sequence encoder
     pretrained by masked-span reconstruction on the training sessions'
     per-frame features (each frame's own encoder output: the first `encoder.out_dim` columns of
     ``train_features`` (N, out_dim), every training frame, sessions of ``lengths`` frames) and
     the ``unlabelled`` sessions' (their features, (T_u, out_dim) each), or loaded
-    (``settings["encoder"]``, checked against ``signature``, `sequence_signature`); it is saved
+    (``pseudo.sequence.encoder``, checked against ``signature``, `sequence_signature`); it is saved
     to out/sequence_encoder.pt. Two teachers fitted on the labelled frames ``idx`` (labels
     ``labels`` (L,), ``num_classes`` C, class weights (C,) or None), one per view: the binned
-    frame features (with context; `linear_teacher_probs`, ``bins`` per feature) and the
+    frame features (with context; `linear_teacher_probs`, ``pseudo.bins`` per feature) and the
     encoder's embedding (`embedding_teacher_probs`). Returns their probabilities (N + M, C) of
     every training frame, then every unlabelled session's (M frames in all; M = 0 without
-    ``teach_unlabelled``: then only the pretraining reads them), as a list of two, and facts."""
-    D = model.encoder.out_dim
+    ``pseudo.unlabelled``: then only the pretraining reads them), as a list of two, and facts."""
+    settings, D = pseudo.sequence, model.encoder.out_dim
     per_frame = train_features[:, :D].float()
     bounds = np.cumsum([0, *lengths])
     train_seqs = [per_frame[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
     facts: dict = {}
-    if settings["encoder"]:  # the signature holds the feature count (out_dim)
-        seq = load_sequence_encoder(settings["encoder"], signature)
-        facts["encoder"] = str(settings["encoder"])
-        log.info("sequence encoder from %s", settings["encoder"])
+    if settings.encoder:  # the signature holds the feature count (out_dim)
+        seq = load_sequence_encoder(settings.encoder, signature)
+        facts["encoder"] = str(settings.encoder)
+        log.info("sequence encoder from %s", settings.encoder)
     else:
-        torch.manual_seed(int(settings["seed"]))
-        target = frame_feature_columns(model) if settings["target"] == "frame" else None
-        seq = SequenceEncoder(D, settings["channels"], settings["dilations"], target)
+        if not settings.steps:
+            log.warning("pseudo_labels.sequence.steps=0: the sequence encoder is not "
+                        "pretrained (its random weights teach: a control, not a classifier "
+                        "to use)")  # fmt: skip
+        torch.manual_seed(int(settings.seed))
+        target = frame_feature_columns(model) if settings.target == "frame" else None
+        seq = SequenceEncoder(D, settings.channels, settings.dilations, target)
         seqs = train_seqs + [u[:, :D].float() for u in unlabelled]
         log.info("sequence pretraining: %d steps on %d sessions (%d unlabelled), %d frames",
-                 settings["steps"], len(seqs), len(unlabelled),
+                 settings.steps, len(seqs), len(unlabelled),
                  sum(len(s) for s in seqs))  # fmt: skip
         facts["pretraining"] = pretrain_sequences(
-            seq, seqs, settings["steps"], settings["mask_ratio"], settings["longest_span"],
-            settings["crop"], settings["batch"], settings["lr"], settings["seed"],
+            seq, seqs, settings.steps, settings.mask_ratio, settings.longest_span,
+            settings.crop, settings.batch, settings.lr, settings.seed,
         )  # fmt: skip
         log.info("sequence pretraining: %s", facts["pretraining"])
         path = out / "sequence_encoder.pt"
         with atomic_path(path) as tmp:
             torch.save(export_sequence_encoder(seq, signature, facts["pretraining"]), tmp)
         facts["encoder"] = str(path)
-    taught = list(unlabelled) if teach_unlabelled else []  # the frames to label, after training's
-    emb = embeddings(seq, train_seqs + [u[:, :D].float() for u in taught], settings["context"])
+    taught = list(unlabelled) if pseudo.unlabelled else []  # the frames to label, after training's
+    emb = embeddings(seq, train_seqs + [u[:, :D].float() for u in taught], settings.context)
     frame = torch.cat([train_features, *taught])[:, model.frame_columns()].double().numpy()
     emb = emb.double().numpy()
     return [
-        linear_teacher_probs(frame, idx, labels, num_classes, class_weights, bins),
+        linear_teacher_probs(frame, idx, labels, num_classes, class_weights, pseudo.bins),
         embedding_teacher_probs(emb, idx, labels, num_classes, class_weights),
     ], facts  # fmt: skip

@@ -3,12 +3,40 @@ conf/classify.yaml documents each)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Any
 
-from deformnet.confutil import given_fields, to_plain
+from deformnet.confutil import checked_fields, given_fields, to_plain
 
-__all__ = ["ClassifySettings", "ContextSettings", "MechanismSettings", "UnfamiliarSettings"]
+__all__ = [
+    "ClassifySettings", "ContextSettings", "DataSettings", "MechanismSettings",
+    "PseudoLabelSettings", "SequenceSettings", "UnfamiliarSettings",
+]  # fmt: skip
+
+
+def _as(v, kind):
+    """v as `kind`: int (a whole number), float, str, bool (only a bool: no other kind takes
+    one) or list (of whole numbers); None where it is not one."""
+    if kind is list:
+        v = [_as(x, int) for x in v] if isinstance(v, (list, tuple)) else [None]
+        return None if None in v else v
+    if isinstance(v, bool) != (kind is bool):
+        return None
+    try:
+        return v if kind is bool else None if kind is int and float(v) != int(v) else kind(v)
+    except (TypeError, ValueError, OverflowError):
+        return None
+
+
+def _check(obj, block: str, **rules) -> None:
+    """The fields of the frozen dataclass `obj` that `rules` names (key=(kind, test, what))
+    coerced to their kind (`_as`) and checked by test(value) (test None: any value of the
+    kind); else a ValueError: ``block.key`` must be `what`."""
+    for key, (kind, test, what) in rules.items():
+        v = _as(getattr(obj, key), kind)
+        if v is None or (test is not None and not test(v)):
+            raise ValueError(f"{block}.{key} must be {what}, got {getattr(obj, key)!r}")
+        object.__setattr__(obj, key, v)
 
 
 @dataclass(frozen=True)
@@ -33,9 +61,80 @@ class UnfamiliarSettings:  # ``unfamiliar``: when a frame, a recording, is unlik
     warn_share: float = 0.1
 
     def __post_init__(self) -> None:
-        for k in ("frame_share", "warn_share"):
-            if not 0.0 <= float(getattr(self, k)) < 1.0:
-                raise ValueError(f"unfamiliar.{k} must be in [0, 1), got {getattr(self, k)}")
+        share = (float, lambda v: 0.0 <= v < 1.0, "in [0, 1)")
+        _check(self, "unfamiliar", frame_share=share, warn_share=share)
+
+
+@dataclass(frozen=True)
+class DataSettings:  # ``data``'s keys with a default (train.py reads the others as given)
+    interpolate: bool = False
+    val_frames: int | None = 2048  # None: every labelled validation frame
+    token_dropout: float = 0.1
+
+
+@dataclass(frozen=True)
+class SequenceSettings:  # ``pseudo_labels.sequence``: the cotrain teacher's sequence encoder
+    encoder: str | None = None  # a saved sequence_encoder.pt (None or "": pretrain one)
+    steps: int = 1000
+    channels: int = 128
+    dilations: list[int] = field(default_factory=lambda: [1, 2, 4, 8, 16, 32, 64])
+    mask_ratio: float = 0.75
+    longest_span: int = 60
+    crop: int = 256
+    batch: int = 32
+    lr: float = 1e-3
+    target: str = "frame"  # frame | all
+    context: list[int] = field(default_factory=lambda: [15, 33])
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        at_least = lambda low: (int, lambda v: v >= low, f"an integer >= {low}")  # noqa: E731
+        _check(self, "pseudo_labels.sequence", steps=at_least(0), channels=at_least(1),
+               longest_span=at_least(4), crop=at_least(16), batch=at_least(1),
+               seed=(int, None, "an integer"), lr=(float, lambda v: v > 0, "a number > 0"),
+               mask_ratio=(float, lambda v: 0.0 < v < 1.0, "in (0, 1)"),
+               target=(str, lambda v: v in ("frame", "all"), "'frame' or 'all'"),
+               dilations=(list, lambda v: v and min(v) >= 1,
+                          "a non-empty list of integers >= 1"),
+               context=(list, lambda v: all(c >= 3 and c % 2 for c in v),
+                        "odd frame counts >= 3"))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class PseudoLabelSettings:  # ``pseudo_labels``: the forest head's teacher (behavior.teachers)
+    teacher: str = "linear"  # one of TEACHERS
+    keep: float = 0.3
+    smooth: int = 9
+    labelled_weight: float = 5.0
+    embedding_keep: float = 0.5
+    bins: int = 4
+    unlabelled: bool = True
+    sequence: SequenceSettings = field(default_factory=SequenceSettings)
+
+    TEACHERS = ("none", "linear", "cotrain")
+
+    def __post_init__(self) -> None:
+        share = (float, lambda v: 0.0 < v <= 1.0, "in (0, 1]")
+        _check(self, "pseudo_labels", keep=share, embedding_keep=share,
+               teacher=(str, lambda v: v in self.TEACHERS, f"one of {self.TEACHERS}"),
+               smooth=(int, lambda v: v >= 1, "an integer >= 1"),
+               labelled_weight=(float, lambda v: v > 0, "a number > 0"),
+               bins=(int, lambda v: v >= 2, "an integer >= 2"),
+               unlabelled=(bool, None, "true or false"))  # fmt: skip
+        if not isinstance(self.sequence, SequenceSettings):  # a block (None: the defaults)
+            seq = to_plain(self.sequence) or {}
+            if "bins" in seq:
+                raise ValueError("pseudo_labels.sequence.bins: unknown (it is pseudo_labels.bins)")
+            seq = checked_fields(SequenceSettings, seq, "pseudo_labels.sequence")
+            object.__setattr__(self, "sequence", SequenceSettings(**seq))
+
+    def facts(self) -> dict | None:
+        """What classifier.pt keeps of how the forest head was taught: None (teacher none), or
+        the settings its teacher reads (the sequence block and embedding_keep: cotrain's)."""
+        if self.teacher == "none":
+            return None
+        drop = () if self.teacher == "cotrain" else ("sequence", "embedding_keep")
+        return {k: v for k, v in asdict(self).items() if k not in drop}
 
 
 @dataclass(frozen=True)
@@ -56,6 +155,8 @@ class ClassifySettings:
     context: ContextSettings = field(default_factory=ContextSettings)
     mechanisms: MechanismSettings = field(default_factory=MechanismSettings)
     unfamiliar: UnfamiliarSettings = field(default_factory=UnfamiliarSettings)
+    data: DataSettings = field(default_factory=DataSettings)
+    pseudo_labels: PseudoLabelSettings = field(default_factory=PseudoLabelSettings)
     sim: Any = None  # an optional +sim block: the simulator whose lock box positions=sim takes
 
     @classmethod

@@ -8,31 +8,26 @@ ones), so every class keeps its own most confident share of the frames the teach
 (class-balanced self-training, Zou et al., ECCV 2018). Behaviors come in bouts, so the teacher's
 probabilities are first averaged over a few neighbouring frames of the same session.
 
-Teachers (`pseudo_labels.teacher`, checked by `pseudo_settings`): ``linear``, a logistic
-regression on the binned frame features (`linear_teacher_probs`); ``cotrain``, that and one on a
-pretrained sequence encoder's embedding (`embedding_teacher_probs`,
-`deformnet.behavior.sequence`), their confident frames pooled (`co_training_pseudo_labels`).
+Teachers (`pseudo_labels.teacher`, `deformnet.behavior.settings.PseudoLabelSettings`):
+``linear``, a logistic regression on the binned frame features (`linear_teacher_probs`);
+``cotrain``, that and one on a pretrained sequence encoder's embedding
+(`embedding_teacher_probs`, `deformnet.behavior.sequence`), their confident frames pooled
+(`co_training_pseudo_labels`).
 Shapes: N frames (the sessions' frames concatenated in order), C classes.
 """
 
 from __future__ import annotations
 
-import logging
 import warnings
 from collections.abc import Sequence
 
 import numpy as np
-from omegaconf import DictConfig
 from sklearn.linear_model import LogisticRegression
 from sklearn.preprocessing import KBinsDiscretizer
 
-from deformnet.confutil import to_plain
-
-log = logging.getLogger(__name__)
-
 __all__ = [
     "class_balanced_pseudo_labels", "pseudo_sample_weights", "co_training_pseudo_labels",
-    "binned", "linear_teacher_probs", "embedding_teacher_probs", "pseudo_settings",
+    "binned", "linear_teacher_probs", "embedding_teacher_probs",
 ]  # fmt: skip
 
 
@@ -233,103 +228,3 @@ def _logistic_probs(x, idx, labels, num_classes, class_weights) -> np.ndarray:
     lr.fit(x[idx], y)
     P[:, lr.classes_] = lr.predict_proba(x)
     return P
-
-
-PSEUDO_TEACHERS = ("none", "linear", "cotrain")
-SEQUENCE_DEFAULTS = {  # pseudo_labels.sequence (conf/classify.yaml documents them)
-    "encoder": None, "steps": 1000, "channels": 128, "dilations": [1, 2, 4, 8, 16, 32, 64],
-    "mask_ratio": 0.75, "longest_span": 60, "crop": 256, "batch": 32, "lr": 1e-3,
-    "target": "frame", "context": [15, 33], "seed": 0,
-}  # fmt: skip
-
-
-def _number(block: str, key: str, v, kind):
-    try:
-        if isinstance(v, bool) or (kind is int and float(v) != int(float(v))):
-            raise ValueError
-        return kind(v)
-    except (TypeError, ValueError):
-        what = "an integer" if kind is int else "a number"
-        raise ValueError(f"{block}.{key} must be {what}, got {v!r}") from None
-
-
-def _sequence_settings(block) -> dict:
-    """`pseudo_labels.sequence` checked (ValueError naming the setting)."""
-    sq = {**SEQUENCE_DEFAULTS, **(dict(to_plain(block)) if block else {})}
-    unknown = sorted(set(sq) - set(SEQUENCE_DEFAULTS))
-    if unknown:
-        moved = " (bins is pseudo_labels.bins)" if "bins" in unknown else ""
-        raise ValueError(f"pseudo_labels.sequence: unknown settings {unknown} (known: "
-                         f"{sorted(SEQUENCE_DEFAULTS)}){moved}")  # fmt: skip
-    b = "pseudo_labels.sequence"
-    out = {"encoder": None if sq["encoder"] in (None, "") else str(sq["encoder"])}
-    for key, kind, low in (("steps", int, 0), ("channels", int, 1), ("longest_span", int, 4),
-                           ("crop", int, 16), ("batch", int, 1),
-                           ("seed", int, None), ("lr", float, None),
-                           ("mask_ratio", float, None)):  # fmt: skip
-        out[key] = _number(b, key, sq[key], kind)
-        if low is not None and out[key] < low:
-            raise ValueError(f"{b}.{key} must be >= {low}, got {out[key]}")
-    if out["lr"] <= 0:
-        raise ValueError(f"{b}.lr must be > 0, got {out['lr']}")
-    if not 0.0 < out["mask_ratio"] < 1.0:
-        raise ValueError(f"{b}.mask_ratio must be in (0, 1), got {out['mask_ratio']}")
-    if str(sq["target"]) not in ("frame", "all"):
-        raise ValueError(f"{b}.target must be 'frame' or 'all', got '{sq['target']}'")
-    out["target"] = str(sq["target"])
-    for key in ("dilations", "context"):
-        v = sq[key]
-        if not isinstance(v, (list, tuple)):
-            raise ValueError(f"{b}.{key} must be a list of integers, got {v!r}")
-        out[key] = [_number(b, key, x, int) for x in v]
-    if not out["dilations"] or min(out["dilations"]) < 1:
-        raise ValueError(f"{b}.dilations must be a non-empty list of integers >= 1, got "
-                         f"{out['dilations']}")  # fmt: skip
-    if any(c < 3 or c % 2 == 0 for c in out["context"]):
-        raise ValueError(f"{b}.context must be odd frame counts >= 3, got {out['context']}")
-    if out["encoder"] is None and out["steps"] == 0:
-        log.warning("%s.steps=0: the sequence encoder is not pretrained (its random weights "
-                    "teach: a control, not a classifier to use)", b)  # fmt: skip
-    return out
-
-
-def pseudo_settings(cfg: DictConfig, forest: bool) -> dict | None:
-    """`pseudo_labels` checked before any data is read: None (teacher none) or {"teacher",
-    "keep", "smooth", "labelled_weight", "bins", "unlabelled"} (teacher=cotrain: and
-    "sequence", its sequence encoder's settings, and "embedding_keep")."""
-    pl = dict(to_plain(cfg.get("pseudo_labels")) or {})
-    teacher = str(pl.get("teacher", "none"))
-    if teacher not in PSEUDO_TEACHERS:
-        raise ValueError(f"pseudo_labels.teacher must be one of {PSEUDO_TEACHERS}, got "
-                         f"'{teacher}'")  # fmt: skip
-    if teacher == "none":
-        return None
-    if not forest:
-        raise ValueError(f"pseudo_labels.teacher={teacher} self-trains the forest head: set "
-                         "head=forest freeze=true (or pseudo_labels.teacher=none)")  # fmt: skip
-    out: dict = {"teacher": teacher}
-    for key, default, kind in (("keep", 0.3, float), ("smooth", 9, int),
-                               ("labelled_weight", 5.0, float), ("bins", 4, int)):  # fmt: skip
-        out[key] = _number("pseudo_labels", key, pl.get(key, default), kind)
-    out["unlabelled"] = pl.get("unlabelled", True)
-    if not isinstance(out["unlabelled"], bool):
-        raise ValueError(f"pseudo_labels.unlabelled must be true or false, got "
-                         f"{out['unlabelled']!r}")  # fmt: skip
-    if out["bins"] < 2:
-        raise ValueError(f"pseudo_labels.bins must be an integer >= 2, got {out['bins']}")
-    if not 0.0 < out["keep"] <= 1.0:
-        raise ValueError(f"pseudo_labels.keep must be in (0, 1], got {out['keep']}")
-    if out["smooth"] < 1:
-        raise ValueError(f"pseudo_labels.smooth must be an integer >= 1, got {out['smooth']}")
-    if out["labelled_weight"] <= 0:
-        raise ValueError(f"pseudo_labels.labelled_weight must be > 0, got "
-                         f"{out['labelled_weight']}")  # fmt: skip
-    if teacher == "cotrain":
-        out["sequence"] = _sequence_settings(pl.get("sequence"))
-        out["embedding_keep"] = _number(
-            "pseudo_labels", "embedding_keep", pl.get("embedding_keep", 0.5), float
-        )
-        if not 0.0 < out["embedding_keep"] <= 1.0:
-            raise ValueError(f"pseudo_labels.embedding_keep must be in (0, 1], got "
-                             f"{out['embedding_keep']}")  # fmt: skip
-    return out

@@ -37,7 +37,6 @@ from deformnet.behavior.model import classifier_from_config, export_classifier, 
 from deformnet.behavior.rates import resample_session, same_fps
 from deformnet.behavior.report import macro_f1, write_report
 from deformnet.behavior.settings import ClassifySettings
-from deformnet.behavior.teachers import pseudo_settings
 from deformnet.behavior.tracks import Session, read_tracks
 from deformnet.body import BodyModel
 from deformnet.confutil import check_fps, to_plain
@@ -49,22 +48,20 @@ log = logging.getLogger(__name__)
 __all__ = ["train_classifier"]
 
 
-def _sessions(cfg: DictConfig, split: str, body, classes, antialias: bool) -> list[Session]:
+def _sessions(cfg: DictConfig, st: ClassifySettings, split: str, body, classes) -> list[Session]:
     """The sessions of a split (train, val, test; or unlabelled: data.unlabelled_tracks, no
     labels files, every frame's label -1) as the config reads them (`data.*_tracks` and
-    `data.*_labels`; `classes`: the label names; `antialias`: the setting)."""
+    `data.*_labels`; `classes`: the label names)."""
     d = cfg.data
-    unl = split == "unlabelled"
-    interp = bool(d.get("interpolate", False))
     tracks = [str(p) for p in (d.get(f"{split}_tracks") or [])]
     labels = [str(p) for p in (d.get(f"{split}_labels") or [])]
+    if split == "unlabelled":
+        labels = [None] * len(tracks)
     if split == "train" and cfg.get("tracks") and not tracks:  # tracks=[...] labels=[...]
         tracks, labels = _path_list(cfg.get("tracks")), _path_list(cfg.get("labels"))
         if len(tracks) != len(labels):
             raise ValueError(f"tracks= has {len(tracks)} files but labels= {len(labels)} (one "
                              "labels file per session)")  # fmt: skip
-    if unl:
-        labels = [None] * len(tracks)
     if len(tracks) != len(labels):
         raise ValueError(
             f"data.{split}_tracks has {len(tracks)} files but data.{split}_labels {len(labels)}"
@@ -85,7 +82,7 @@ def _sessions(cfg: DictConfig, split: str, body, classes, antialias: bool) -> li
         rates = [check_fps(r, f"data.{split}_fps[{i}]") for i, r in enumerate(rates)]
     out = []
     for i, (tp, lp) in enumerate(zip(tracks, labels)):
-        tr = read_tracks(tp, body, interpolate=interp)
+        tr = read_tracks(tp, body, interpolate=bool(st.data.interpolate))
         if lp is None:
             lab = np.full(len(tr["fnum"]), -1, dtype=np.int64)
         else:
@@ -95,7 +92,7 @@ def _sessions(cfg: DictConfig, split: str, body, classes, antialias: bool) -> li
         s = Session(tp, *parts, lab, pose=tr["pose"])
         if rates is not None and not same_fps(rates[i], fps):
             log.info("%s: %g Hz, read resampled to %g Hz (fps)", tp, rates[i], fps)
-            s = resample_session(s, rates[i], fps, antialias)
+            s = resample_session(s, rates[i], fps, st.antialias)
         out.append(s)
     return out
 
@@ -149,8 +146,11 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         raise ValueError(
             "head=forest is fitted by scikit-learn on a frozen encoder's features: set freeze=true"
         )
-    pseudo = pseudo_settings(cfg, forest)
-    scale_mode = str(st.body_scale)  # settings checked before any data is read
+    pseudo = st.pseudo_labels  # settings checked (ClassifySettings) before any data is read
+    if pseudo.teacher != "none" and not forest:
+        raise ValueError(f"pseudo_labels.teacher={pseudo.teacher} self-trains the forest head: "
+                         "set head=forest freeze=true (or pseudo_labels.teacher=none)")  # fmt: skip
+    scale_mode = str(st.body_scale)
     if scale_mode not in BODY_SCALE_MODES:
         raise ValueError(f"body_scale must be one of {BODY_SCALE_MODES}, got '{scale_mode}'")
     fps = check_fps(cfg.get("fps"), "fps")  # the training sessions' rate (None: unknown)
@@ -163,21 +163,19 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         model.encoder.net.load_state_dict(state)
     span = model.half_window  # the encoder's half window plus the context's
 
-    train, val, test = (
-        _sessions(cfg, k, body, classes, st.antialias) for k in ("train", "val", "test")
-    )
+    train, val, test = (_sessions(cfg, st, k, body, classes) for k in ("train", "val", "test"))
     # more recordings without labels: the teachers label their frames too (the forest learns
     # from them), and the cotrain teacher's sequence pretraining reads them
-    unlabelled = _sessions(cfg, "unlabelled", body, classes, st.antialias)
-    if unlabelled and pseudo is None:
+    unlabelled = _sessions(cfg, st, "unlabelled", body, classes)
+    if unlabelled and pseudo.teacher == "none":
         log.warning("data.unlabelled_tracks: %d sessions not used (only "
                     "pseudo_labels.teacher=linear|cotrain learns from them)",
                     len(unlabelled))  # fmt: skip
         unlabelled = []
     elif (
         unlabelled
-        and not pseudo["unlabelled"]
-        and (pseudo["teacher"] == "linear" or pseudo["sequence"]["encoder"])
+        and not pseudo.unlabelled
+        and (pseudo.teacher == "linear" or pseudo.sequence.encoder)
     ):
         log.warning("data.unlabelled_tracks: %d sessions not used (pseudo_labels.unlabelled="
                     "false, and no sequence pretraining reads them)", len(unlabelled))  # fmt: skip
@@ -207,16 +205,15 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
     if idx.size >= 2:
         model.set_standardization(train_features)
 
-    d = cfg.data
-    bs = int(d.batch_size)
-    train_dl = _loader(bank, idx, bs, int(d.steps_per_epoch) * bs, int(cfg.seed))
+    d = st.data
+    bs = int(cfg.data.batch_size)
+    train_dl = _loader(bank, idx, bs, int(cfg.data.steps_per_epoch) * bs, int(cfg.seed))
     val_dl = None
     if val:
         vbank = SessionBank(val, span)
         vidx = np.flatnonzero(vbank.labels.numpy() >= 0)
-        vmax = d.get("val_frames")
-        if vmax and vidx.size > int(vmax):
-            vidx = vidx[np.linspace(0, vidx.size - 1, int(vmax)).round().astype(int)]
+        if d.val_frames and vidx.size > int(d.val_frames):
+            vidx = vidx[np.linspace(0, vidx.size - 1, int(d.val_frames)).round().astype(int)]
         if vidx.size:
             val_dl = _loader(vbank, vidx, 512, None, 0)
 
@@ -228,7 +225,7 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         lr=float(cfg.optim.lr),
         encoder_lr=float(cfg.optim.encoder_lr),
         weight_decay=float(cfg.optim.weight_decay),
-        token_dropout=float(d.get("token_dropout", 0.0)),
+        token_dropout=float(d.token_dropout),
     )
     logger: Any = False
     lcfg = to_plain(cfg.get("logger")) or {}
@@ -265,7 +262,7 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         lit.head_only = True
         if forest:
             probe_facts = fit_head_forest(model, train_features, labels, weights)
-            if pseudo is not None:
+            if pseudo.teacher != "none":
                 probe_facts["pseudo_labels"], all_features = teach_forest(
                     model, bank, [len(s) for s in train], idx, train_features, unlabelled,
                     pseudo, weights, mech, scale_mode, out,
@@ -335,7 +332,7 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         "feature_range": rng,
         "body_scale": scale_mode,
         "fps": fps,
-        "pseudo_labels": pseudo,  # how the forest head was taught (None: labelled frames only)
+        "pseudo_labels": pseudo.facts(),  # how the forest head was taught (None: labelled only)
     }
     ckpt = out / "classifier.pt"
     with atomic_path(ckpt) as tmp:
