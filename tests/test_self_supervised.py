@@ -40,13 +40,17 @@ def _points(out: Path) -> np.ndarray:
 @pytest.fixture(scope="module")
 def tracked(scene, tmp_path_factory) -> dict:
     """rigid, interp and deformation=self (fine-tuning capped at 60 s; it stops earlier, by
-    adapt.max_steps / adapt.patience: measured 75 steps, 7 s) on the scene."""
+    adapt.max_steps / adapt.patience: measured 75 steps, 7 s) on the scene: ``self`` with its
+    adapted net used whatever its gate says (``adapt.require_better=false``), ``self_gated``
+    as a user runs it."""
     root = tmp_path_factory.mktemp("tracks")
     runs = {}
+    adapt = ["deformation=self", "adapt.max_time=00:00:01:00", "adapt.tensorboard=false"]
     for name, ov in (
         ("rigid", ["deformation=rigid"]),
         ("interp", ["deformation=interp"]),
-        ("self", ["deformation=self", "adapt.max_time=00:00:01:00", "adapt.tensorboard=false"]),
+        ("self", [*adapt, "adapt.require_better=false"]),
+        ("self_gated", adapt),
     ):
         runs[name] = (_track(scene, root / name, ov), root / name)
     return runs
@@ -122,6 +126,29 @@ def test_self_lowers_the_occluded_error_against_rigid(scene, tracked):
     assert m["self"]["rmse_seen"] < 1.2 * m["interp"]["rmse_seen"], m
 
 
+def test_self_falls_back_to_interp_where_its_net_is_worse(scene, tracked):
+    """On this scene the adapted net's tracks are worse than interp's (occluded 3.72 vs 3.33
+    mm, measured at stop 48), and its gate, against interp's kriging with the single-view
+    anchors, sees it (5.22 vs 4.59 mm on held-out windows; the kriging without the anchors had
+    passed such a net, 3.17 vs 4.17 mm on the benchmark's mouse_b scene): summary.json says
+    interp, with the reason, and the tracks are interp's (3.36 mm), not the net's."""
+    from adjust.metrics import point_errors
+
+    summary, out = tracked["self_gated"]
+    d = summary["deformation"]
+    assert d["mode"] == "interp" and d["requested"] == "self", d
+    assert "does not beat interp's kriging" in d["reason"]
+    h = d["heldout"]
+    assert h["baseline"] == "interp's kriging with single-view anchors"
+    assert h["net_all_mm"] >= 0.98 * h["interp_all_mm"], h
+    truth = np.load(scene / "truth.npz")
+    occ = {
+        k: point_errors(_points(tracked[k][1]), truth["points"], truth["nviews"])["rmse_occluded"]
+        for k in ("interp", "self", "self_gated")
+    }
+    assert occ["self_gated"] < 1.03 * occ["interp"] and occ["self_gated"] < occ["self"], occ
+
+
 @pytest.mark.xfail(
     strict=True,
     reason="issue 50: measured self/interp occluded RMSE 1.18 on this scene (4.32 vs 3.66 mm; "
@@ -171,7 +198,7 @@ def test_shipped_net_loads_without_lightning():
     assert shape == f"(2, {K}, 3)" and int(K) >= 8
 
 
-@pytest.mark.slow  # the fast check: test_heldout's test_the_shipped_net_passes_on_its_own_kind...
+@pytest.mark.slow  # the fast check: test_heldout's test_the_shipped_net_is_checked_part_by_part...
 def test_default_mode_uses_the_shipped_net(scene, tmp_path):
     s = _track(scene, tmp_path / "d", ["deformation=default"])
     assert s["deformation"]["mode"] == "default"
