@@ -66,6 +66,7 @@ def heldout_check(
     mode: str = "default",
     step=None,
     interp: InterpObservation | None = None,
+    net_anchors: bool = False,
 ):
     """``deform.require_better``: a net not trained on this recording (``deformation=default``
     or a checkpoint) against the interpolation the tracks would otherwise get (`net_vs_kriging`:
@@ -94,7 +95,13 @@ def heldout_check(
     tokens = session_tokens(poses, body.points, cons, body.parts, body.name, source=where)
     try:
         h = net_vs_kriging(
-            model, tokens, interp.cov, step=step, windows=2048, anchors=Anchors.of(interp)
+            model,
+            tokens,
+            interp.cov,
+            step=step,
+            windows=2048,
+            anchors=Anchors.of(interp),
+            net_anchors=net_anchors,
         )
     except ValueError as exc:  # shorter than one window: nothing to judge by
         log.warning("deform.require_better: the net is not checked (%s)", exc)
@@ -222,6 +229,7 @@ def net_vs_kriging(
     batch_size: int = 256,
     seed: int = 0,
     anchors: Anchors | None = None,
+    net_anchors: bool = False,
 ) -> dict:
     """RMSE (mm) of the net and of `kriged_mid` (what ``deformation=interp`` predicts) on the
     same masked windows (`deformnet.windows`, training-like masks) of the recording's tokens
@@ -230,8 +238,10 @@ def net_vs_kriging(
     blocks: [[start, stop], ...] frames to draw the windows from (the fine-tuning's held-out
     blocks; None: the whole recording); step: frames between tokens (None: the net's);
     anchors: the recording's single-view anchors, which the kriging uses as interp does
-    (None: none). Returns {"net_mm", "interp_mm" (per part lists), "targets", "net_all_mm",
-    "interp_all_mm", "windows", "baseline"}. ValueError when no block holds a window."""
+    (None: none); net_anchors: the net's window inputs include them too (as observed tokens,
+    ``deform.net_anchors``). Returns {"net_mm", "interp_mm" (per part lists), "targets",
+    "net_all_mm", "interp_all_mm", "windows", "baseline"}. ValueError when no block holds a
+    window."""
     step = int(model.step if step is None else step)
     spans = [(0, tokens.num_frames)] if blocks is None else [(int(a), int(b)) for a, b in blocks]
     bank = WindowBank([tokens.to_sequence(a, b) for a, b in spans], model.half_window, step)
@@ -245,8 +255,13 @@ def net_vs_kriging(
     try:
         with torch.no_grad():
             for b in data.batches:
-                sums = window_sums(model, b, model.half_window)
                 a = None if anchors is None else anchors.window(recording[b["frames"]])
+                nb = b
+                if net_anchors and a is not None:
+                    one = a[1] & ~b["observed"]
+                    deformed = torch.where(one[..., None], a[0].to(b["deformed"]), b["deformed"])
+                    nb = {**b, "deformed": deformed, "observed": b["observed"] | one}
+                sums = window_sums(model, nb, model.half_window)
                 pred = kriged_mid(b, tokens.body_points, cov, model.half_window, step, a)
                 m = b["target_mask"].double()
                 k = (((pred - b["target"].double()) ** 2).sum(-1) * m).sum(0)

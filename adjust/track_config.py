@@ -154,6 +154,7 @@ class DeformConfig:
     far_steps: Any = "auto"
     refresh: int = 2
     beyond_window: str = "anchored"
+    net_anchors: bool = True
     measured: str = "cv"
     rigid_first: bool = True
     max_iterations: int | None = 10

@@ -1,6 +1,7 @@
 """``deform.beyond_window``: where the net's window does not see a part on both sides, the net
 (``net``), the interpolation (``interp``) or, with interp's single-view anchors,
-the anchored interpolation near an anchor and the net elsewhere (``anchored``)."""
+the anchored interpolation near an anchor and the net elsewhere (``anchored``); and
+``deform.net_anchors``: those anchors among the net's window inputs."""
 
 from __future__ import annotations
 
@@ -100,3 +101,29 @@ def test_anchored_without_anchors_is_the_net_and_bad_settings_are_refused():
     with pytest.raises(ValueError, match="interp must observe"):
         NetObservation(WindowMean(), body, 5, data[:10], observed[:10], 0.0, 64, "frozen",
                        interp=InterpObservation(body, data, observed))  # fmt: skip
+
+
+def test_net_anchors_put_the_single_views_among_the_nets_window_inputs():
+    """A part in a 40-frame gap, seen by one camera on frame 40: with net_anchors the net's
+    windows around frame 40 observe the anchor's fused point (the stand-in net returns it);
+    without, they observe nothing of the part (the rigid point). The 3D observations and the
+    held-out factor are the same either way."""
+    body, poses, data, observed, anchored = _scene()
+
+    def obs(net_anchors):
+        o = NetObservation(WindowMean(), body, 5, data, observed, 0.0, 4096, "frozen",
+                           beyond_window="net", interp=anchored,
+                           net_anchors=net_anchors)  # fmt: skip
+        o.prepare(poses)
+        return o
+
+    with_a, without = obs(True), obs(False)
+    X, _ = with_a.points(poses, jacobian=False)
+    Xo, _ = without.points(poses, jacobian=False)
+    anchor = anchored.data[40, 1]  # the fused point, 5 mm off per axis
+    for t in range(38, 43):  # every window that holds frame 40
+        torch.testing.assert_close(X[t, 1], anchor)
+        assert (Xo[t, 1] - anchor).norm() > 5.0
+    torch.testing.assert_close(X[50, 1], Xo[50, 1])  # beyond the anchor's windows: the same
+    torch.testing.assert_close(X[:, 0], Xo[:, 0])
+    torch.testing.assert_close(with_a.factor, without.factor)

@@ -196,3 +196,30 @@ def test_the_gate_krieges_from_the_single_view_anchors_of_its_windows_frames():
     leak = anchors.__class__(mid_off, torch.ones_like(anchors.mask), anchors.var)
     same = net_vs_kriging(model, tokens, cov, blocks, 1, windows=128, anchors=leak)
     assert same["interp_all_mm"] == pytest.approx(anch["interp_all_mm"])
+
+
+class _WindowMean(nn.Module):
+    """Each part's mean observed deformed position over the window (the rigid mid point where
+    none): a stand-in net that reads its inputs."""
+
+    def forward(self, rigid_c, deformed_c, observed):
+        o = observed[..., None].to(rigid_c.dtype)
+        c = o.sum(-3)
+        mid = rigid_c[:, rigid_c.shape[1] // 2]
+        return torch.where(c > 0, (deformed_c * o).sum(-3) / c.clamp_min(1), mid)
+
+
+def test_the_gate_gives_the_net_the_anchors_when_the_tracker_does():
+    """``deform.net_anchors``: the gate's net sees the windows' single-view anchors as the
+    tracker's does (its error changes: here the window mean of the anchors is the closer one),
+    the kriging is the same."""
+    from adjust.net_gate import net_vs_kriging
+
+    body, tokens, anchors = _anchored_recording()
+    model = DeformationModel(_WindowMean(), body, 4)
+    cov = _cov(body.num_parts)
+    kw = {"windows": 128, "anchors": anchors}
+    plain = net_vs_kriging(model, tokens, cov, [[100, 300]], 1, **kw)
+    fed = net_vs_kriging(model, tokens, cov, [[100, 300]], 1, net_anchors=True, **kw)
+    assert fed["interp_all_mm"] == plain["interp_all_mm"]
+    assert fed["net_all_mm"] < 0.8 * plain["net_all_mm"], (fed, plain)

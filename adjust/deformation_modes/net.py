@@ -99,7 +99,8 @@ def make_deformable_observation(
         step=deform_step(model, cfg_def),
         far_steps=far_steps(model, cfg_def),
         net_parts=None if net_parts is None else torch.as_tensor(net_parts, dtype=torch.bool),
-        interp=interp if str(cfg_def.beyond_window) == "anchored" else None,
+        interp=interp if str(cfg_def.beyond_window) == "anchored" or cfg_def.net_anchors else None,
+        net_anchors=bool(cfg_def.net_anchors),
     )
     return obs, {"observed_fraction": float(observed.double().mean()) if observed.numel() else 0.0}
 
@@ -361,12 +362,16 @@ class SelfNet(NetMode):
             return None, {"require_better": False, "checked": False}, None
         blocks = (facts.get("data") or {}).get("val_blocks")
         step = deform_step(model, a.deform)
-        anchors = Anchors.of(interp_obs)
+        anchors, na = Anchors.of(interp_obs), bool(a.deform.net_anchors)
         try:
-            h = net_vs_kriging(model, self.tokens, interp_obs.cov, blocks, step, anchors=anchors)
+            h = net_vs_kriging(
+                model, self.tokens, interp_obs.cov, blocks, step, anchors=anchors, net_anchors=na
+            )
         except ValueError as exc:  # held-out blocks shorter than a window
             log.warning("adapt.require_better: the held-out blocks hold no window (%s)", exc)
-            h = net_vs_kriging(model, self.tokens, interp_obs.cov, None, step, anchors=anchors)
+            h = net_vs_kriging(
+                model, self.tokens, interp_obs.cov, None, step, anchors=anchors, net_anchors=na
+            )
             blocks = None
         h = {"require_better": True, "checked": True, "blocks": blocks or "all frames", **h}
         h["net_mm"] = dict(zip(a.body.parts, h["net_mm"]))
@@ -416,6 +421,7 @@ def _require_better(a: Adjusting, model, poses, mode: str, interp_obs):
         mode,
         step=deform_step(model, a.deform),
         interp=interp_obs,
+        net_anchors=bool(a.deform.net_anchors),
     )
     a.timings["heldout_check_s"] = time.perf_counter() - t1
     reason = None

@@ -208,7 +208,9 @@ class NetObservation(DeformableObservation):
     here); None: one built from ``data`` and ``observed``. ``net_parts`` (K,) bool: only
     those parts take the net's prediction, the others interp's everywhere (`adjust-track`'s
     held-out check, ``deform.require_better``; None: every part). `use_net` (T, K) says where
-    the net was used.
+    the net was used. ``net_anchors``: the net's window inputs include ``interp``'s
+    single-view anchors (their fused points) as observed tokens, as its kriging does
+    (``deform.net_anchors``); the held-out `factor` is still taken on the 3D observations.
 
     `deformation_cov`: the interpolation's kriging variance (how uncertainty grows with the
     distance to the part's observations; conservative for the net in gaps, where it is the
@@ -239,6 +241,7 @@ class NetObservation(DeformableObservation):
         far_steps: tuple[int, ...] = (),
         net_parts: Tensor | None = None,
         interp: InterpObservation | None = None,
+        net_anchors: bool = False,
     ):
         super().__init__(model, body_points, window, observed, batch_size, step)
         K = observed.shape[-1]
@@ -282,6 +285,8 @@ class NetObservation(DeformableObservation):
             if interp is None
             else copy.copy(interp)
         )
+        # the net's window inputs include interp's single-view anchors as observed tokens
+        self.net_anchors = bool(net_anchors)
         self.evaluations = 0  # net passes over the whole sequence so far
         self.factor: Tensor | None = None  # (K,) net / interp held-out mean-square error
         self.reach: Tensor | None = None  # (T, K) the window sees the part on both sides
@@ -293,6 +298,10 @@ class NetObservation(DeformableObservation):
         Xr = Xr.detach()
         data = self.data.to(Xr.dtype)
         obs = self.observed & torch.isfinite(data).all(-1)
+        if self.net_anchors and self.interp.anchors is not None:
+            one = self.interp.anchors.to(obs.device) & ~obs
+            data = torch.where(one[..., None], self.interp.data.to(data), data)
+            obs = obs | one
         if self.gate_mm > 0:
             obs = obs & ((data - Xr).norm(dim=-1) <= self.gate_mm)
         self._rigid_win = self._windows(Xr)
