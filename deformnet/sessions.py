@@ -11,7 +11,9 @@ are the part positions the cameras measured. `adjust-track` writes, into every o
     parts (K,), body_points (K, 3), body_name, fps (NaN if unknown), version
 
 A token pairs the rigid point with the measurement; windows and masks are cut from it as from
-a simulated sequence (`deformnet.data`), and only measured part-frames are ever targets.
+a simulated sequence (`deformnet.data`), and only measured part-frames are ever targets. In
+memory only (not in ``tokens.npz``), ``inputs`` (T, K) bool may mark part-frames whose
+``deformed`` value is an input and never a target (``deformation=self``'s single-view anchors).
 
 This module reads those files and never imports `adjust` (the layering rule). A *raw* session
 folder (``calibration.toml`` + detections) is turned into tokens by a builder that the
@@ -64,9 +66,15 @@ class SessionTokens:
     body_name: str = "body"
     fps: float = float("nan")
     source: str = ""
+    inputs: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         T, K = self.observed.shape
+        if self.inputs is not None and np.shape(self.inputs) != (T, K):
+            raise ValueError(
+                f"{self.source or 'tokens'}: inputs must be (T, K) = ({T}, {K}), "
+                f"got {np.shape(self.inputs)}"
+            )
         if self.rigid.shape != (T, K, 3) or self.deformed.shape != (T, K, 3):
             raise ValueError(
                 f"{self.source or 'tokens'}: rigid/deformed must be (T, K, 3) = ({T}, {K}, 3), "
@@ -128,11 +136,13 @@ class SessionTokens:
 
     def to_sequence(self, start: int = 0, stop: int | None = None):
         """Frames start..stop-1 as a `deformnet.windows.SequenceArrays` (unmeasured deformed values
-        replaced by the rigid points; they are masked)."""
+        replaced by the rigid points; they are masked; ``inputs`` kept as input-only)."""
         s = slice(start, stop)
         obs = self.observed[s]
-        deformed = np.where(obs[..., None], self.deformed[s], self.rigid[s])
-        return SequenceArrays(self.rigid[s], deformed.astype(np.float32), obs)
+        extra = None if self.inputs is None else self.inputs[s] & ~obs
+        seen = obs if extra is None else obs | extra
+        deformed = np.where(seen[..., None], self.deformed[s], self.rigid[s])
+        return SequenceArrays(self.rigid[s], deformed.astype(np.float32), obs, extra)
 
 
 def _is_raw_session(path: Path) -> bool:

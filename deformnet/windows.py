@@ -53,11 +53,13 @@ __all__ = [
 @dataclass(frozen=True)
 class SequenceArrays:
     """The parts of a simulated sequence the nets need: rigid, deformed (T, K, 3) global mm,
-    observed (T, K) bool."""
+    observed (T, K) bool; inputs (T, K) bool or None: part-frames whose ``deformed`` value a
+    window observes as an input but never a target (a recording's single-view anchors)."""
 
     rigid: np.ndarray
     deformed: np.ndarray
     observed: np.ndarray
+    inputs: np.ndarray | None = None
 
     @classmethod
     def of(cls, seq: Any) -> SequenceArrays:
@@ -282,6 +284,11 @@ class WindowBank:
         self.rigid = torch.from_numpy(np.concatenate([s.rigid for s in seqs]))
         self.deformed = torch.from_numpy(np.concatenate([s.deformed for s in seqs]))
         self.observed = torch.from_numpy(np.concatenate([s.observed for s in seqs]))
+        # input-only part-frames (`SequenceArrays.inputs`), none where a sequence has none
+        self.inputs = torch.from_numpy(
+            np.concatenate([np.zeros_like(s.observed) if s.inputs is None else s.inputs
+                            for s in seqs]).astype(bool)
+        )  # fmt: skip
         self._pieces, off = [], 0
         for s in seqs:
             self._pieces.append((off, s.rigid.shape[0]))
@@ -325,6 +332,7 @@ class WindowBank:
         rigid = self.rigid[frames]
         truth = self.deformed[frames]
         seen = self.observed[frames]
+        extra = self.inputs[frames]
         if flip is not None and perm is not None and bool(flip.any()):
             sign = torch.tensor([-1.0, 1.0, 1.0], dtype=rigid.dtype)
             p = torch.as_tensor(list(perm), dtype=torch.long)
@@ -332,7 +340,8 @@ class WindowBank:
             rigid = torch.where(f4, (rigid * sign)[:, :, p], rigid)
             truth = torch.where(f4, (truth * sign)[:, :, p], truth)
             seen = torch.where(flip[:, None, None], seen[:, :, p], seen)
-        observed = seen & ~hide
+            extra = torch.where(flip[:, None, None], extra[:, :, p], extra)
+        observed = (seen | extra) & ~hide
         deformed = truth
         if noise_mm > 0:
             deformed = truth + noise_mm * torch.randn(truth.shape, generator=gen)

@@ -110,14 +110,17 @@ def scene(tmp_path_factory) -> Path:
     return out
 
 
-def _self_run(scene: Path, out: Path, monkeypatch, net: str) -> dict:
+def _self_run(scene: Path, out: Path, monkeypatch, net: str, given=None, extra=()) -> dict:
     """adjust-track deformation=self with the fine-tuning replaced by `net`: ``shift`` (10 mm
-    off) or ``oracle`` (`_Oracle`); the second half of the recording held out."""
+    off) or ``oracle`` (`_Oracle`); the second half of the recording held out. given: a dict
+    that receives the tokens the fine-tuning was given."""
     from helpers import track_session
 
     import adjust.adapt
 
     def adapt_net(tokens, where, adapt_cfg, progress):
+        if given is not None:
+            given["tokens"] = tokens
         body = default_mouse()
         body = body.__class__(body.parts, tokens.body_points, body.aliases, body.name)
         model = DeformationModel(_ShiftNet(4), body, 4) if net == "shift" else _Oracle(body, tokens)
@@ -126,7 +129,7 @@ def _self_run(scene: Path, out: Path, monkeypatch, net: str) -> dict:
             "split": "by time blocks", "val_blocks": [[T // 2, T]]}}  # fmt: skip
 
     monkeypatch.setattr(adjust.adapt, "adapt_net", adapt_net)
-    return track_session(scene, out, ["deformation=self"])
+    return track_session(scene, out, ["deformation=self", *extra])
 
 
 def test_a_net_no_better_than_kriging_is_reported_as_interp(scene, tmp_path, monkeypatch, caplog):
@@ -143,7 +146,11 @@ def test_a_net_no_better_than_kriging_is_reported_as_interp(scene, tmp_path, mon
 
 
 def test_a_net_that_beats_kriging_is_kept(scene, tmp_path, monkeypatch):
-    s = _self_run(scene, tmp_path / "good", monkeypatch, "oracle")
+    given = {}
+    s = _self_run(scene, tmp_path / "good", monkeypatch, "oracle", given)
+    # deform.net_anchors: the fine-tuning's windows observe the single views as inputs only
+    tok = given["tokens"]
+    assert tok.inputs is not None and tok.inputs.any() and not (tok.inputs & tok.observed).any()
     d = s["deformation"]
     h = d["heldout"]
     assert h["checked"] and h["net_all_mm"] < h["interp_all_mm"], h
@@ -223,3 +230,11 @@ def test_the_gate_gives_the_net_the_anchors_when_the_tracker_does():
     fed = net_vs_kriging(model, tokens, cov, [[100, 300]], 1, net_anchors=True, **kw)
     assert fed["interp_all_mm"] == plain["interp_all_mm"]
     assert fed["net_all_mm"] < 0.8 * plain["net_all_mm"], (fed, plain)
+
+
+def test_without_net_anchors_the_fine_tuning_sees_3d_observations_only(
+    scene, tmp_path, monkeypatch
+):
+    given = {}
+    _self_run(scene, tmp_path / "plain", monkeypatch, "shift", given, ["deform.net_anchors=false"])
+    assert given["tokens"].inputs is None

@@ -248,3 +248,39 @@ def test_track_step_settings_are_checked():
         deform_step(M(), {"step": 0})
     with pytest.raises(InputError, match="deform.far_steps must be auto or a list"):
         far_steps(M(), {"far_steps": "wide"})
+
+
+def test_input_only_part_frames_are_observed_inputs_and_never_targets():
+    """`SequenceArrays.inputs` (a recording's single-view anchors): a window observes them
+    unless its mask hides them, and they are never the mid frame's targets; each token's
+    recording frame is in the batch ('frames'); `SessionTokens.to_sequence` keeps them."""
+    from deformnet.sessions import SessionTokens
+
+    T, K, n = 40, 3, 4
+    base = _frame_coded(T, K)
+    observed = np.ones((T, K), bool)
+    observed[10:30, 1] = False  # part 1 measured in 3D outside frames 10-29 only
+    inputs = np.zeros((T, K), bool)
+    inputs[10:30:2, 1] = True  # seen by one camera on every other frame of the gap
+    seq = SequenceArrays(base.rigid, base.deformed, observed, inputs)
+    bank = WindowBank([seq], n)
+    idx = torch.arange(len(bank))
+    b = bank.batch(idx, torch.zeros(len(idx), bank.W, K, dtype=torch.bool))
+    frames = b["frames"]
+    assert torch.equal(frames, bank.mids[:, None] + torch.arange(-n, n + 1))
+    expect = torch.as_tensor(observed | inputs)[frames]
+    assert torch.equal(b["observed"], expect)
+    assert torch.equal(b["target_mask"], torch.as_tensor(observed)[bank.mids])
+    hidden = bank.batch(idx, torch.ones(len(idx), bank.W, K, dtype=torch.bool))
+    assert not hidden["observed"].any()
+    plain = WindowBank([SequenceArrays(base.rigid, base.deformed, observed)], n).batch(
+        idx, torch.zeros(len(idx), bank.W, K, dtype=torch.bool)
+    )
+    assert torch.equal(plain["observed"], torch.as_tensor(observed)[frames])
+    tok = SessionTokens(
+        base.rigid, base.deformed, observed, ("a", "b", "c"), np.eye(3), inputs=inputs
+    )
+    s = tok.to_sequence(5, 35)
+    assert np.array_equal(s.inputs, inputs[5:35]) and np.array_equal(s.observed, observed[5:35])
+    np.testing.assert_array_equal(s.deformed[5:25:2, 1], base.deformed[10:30:2, 1])
+    np.testing.assert_array_equal(s.deformed[6:25:2, 1], base.rigid[11:30:2, 1])

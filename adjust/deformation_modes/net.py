@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -129,8 +129,9 @@ class NetMode(DeformationMode):
     needs_consensus = True
     decision: NetDecision | None = None
 
-    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
-        """(the net, facts about it) for this session; poses (T, 6): the interp poses."""
+    def net(self, a: Adjusting, poses, interp_obs=None) -> tuple[Any, dict]:
+        """(the net, facts about it) for this session; poses (T, 6): the interp poses;
+        interp_obs: the interp stage's observation (its single-view anchors), or None."""
         raise NotImplementedError
 
     def check(self, a: Adjusting, model, poses, interp_obs) -> tuple[Any, dict | None, str | None]:
@@ -215,7 +216,7 @@ class NetMode(DeformationMode):
     def decide(self, a: Adjusting, init, interp_obs) -> NetDecision:
         """The net for this session (`net`), its world up and its check (`check`); a net the
         check refuses leaves the tracks to the interpolation (model None)."""
-        model, net_facts = self.net(a, init)
+        model, net_facts = self.net(a, init, interp_obs)
         up_deg = None
         if model is not None and init is not None:
             up_deg = check_world_up(model, init, a.where)
@@ -292,7 +293,7 @@ class CheckpointNet(NetMode):
         aliases = {k: v for k, v in given.aliases.items() if v in body.parts}
         return BodyModel(body.parts, body.points, {**aliases, **body.aliases}, body.name)
 
-    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
+    def net(self, a: Adjusting, poses, interp_obs=None) -> tuple[Any, dict]:
         return self.model, {}
 
     def check(self, a: Adjusting, model, poses, interp_obs):
@@ -322,7 +323,7 @@ class DefaultNet(NetMode):
         except ValueError as exc:
             raise InputError(f"{exc}; or use deformation=self") from None
 
-    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
+    def net(self, a: Adjusting, poses, interp_obs=None) -> tuple[Any, dict]:
         return self.model, {}
 
     def check(self, a: Adjusting, model, poses, interp_obs):
@@ -340,12 +341,21 @@ class SelfNet(NetMode):
     name = "self"
     prior_without_net = True
 
-    def net(self, a: Adjusting, poses) -> tuple[Any, dict]:
+    def net(self, a: Adjusting, poses, interp_obs=None) -> tuple[Any, dict]:
+        """The shipped net fine-tuned on the recording's tokens; with ``deform.net_anchors``
+        the windows also observe interp's single-view anchors as inputs (never as targets),
+        as the tracker's net does."""
         t1 = time.perf_counter()
         tokens = session_tokens(
             poses, a.body.points, a.cons, a.body.parts, a.body.name, source=a.where
         )
-        model, facts = adapt.adapt_net(tokens, a.out, a.adapt_cfg, a.progress)
+        anchors = Anchors.of(interp_obs) if a.deform.net_anchors else None
+        train = tokens
+        if anchors is not None:
+            one = anchors.mask.numpy() & ~tokens.observed
+            deformed = np.where(one[..., None], anchors.points.numpy(), tokens.deformed)
+            train = replace(tokens, deformed=deformed.astype(np.float32), inputs=one)
+        model, facts = adapt.adapt_net(train, a.out, a.adapt_cfg, a.progress)
         a.timings["adapt_s"] = time.perf_counter() - t1
         self.tokens, self.adapt_facts = tokens, facts
         return model, {"adapt": facts}
