@@ -1,6 +1,9 @@
 """Typed settings of the adjust apps: each read and checked once, a bad value a ValueError
 naming the setting and what it accepts (`setting`, `check_settings`), required keys
-(`required`), the detections' input block (`InputConfig`, `load_kwargs`)."""
+(`required`), the detections' input block (`InputConfig`, `load_kwargs`), adjust-triangulate's
+``triangulate`` block (`TriangulateConfig`) and the apps' switches (`EventsConfig`,
+`DemoSteps`, `BatchConfig`). A key absent from a config keeps its dataclass default, the one
+copy of the YAML's in the code."""
 
 from __future__ import annotations
 
@@ -13,13 +16,18 @@ from omegaconf import DictConfig, OmegaConf
 
 from adjust.io import InputError
 from adjust.lsq.config import SolverConfig
-from deformnet.confutil import checked_fields
+from deformnet.confutil import checked_fields, given_fields
 
 __all__ = [
+    "BatchConfig",
+    "DemoSteps",
+    "EventsConfig",
     "InputConfig",
     "MAX_THREADS",
     "MIN_SIGMA_PX",
     "SETTINGS",
+    "TRIANGULATE_WEIGHTS",
+    "TriangulateConfig",
     "check_settings",
     "load_kwargs",
     "required",
@@ -247,3 +255,80 @@ def load_kwargs(inp) -> dict:
     """`adjust.io.load_scene` keyword arguments from an app's `input` config node (settings of
     the wrong type or range are a ValueError naming them; `InputConfig`)."""
     return InputConfig.from_config(inp).load_kwargs()
+
+
+#: ``triangulate.weight``: likelihood (views weighted by the detector's likelihood), uniform
+TRIANGULATE_WEIGHTS = ("likelihood", "uniform")
+
+
+@dataclass(frozen=True)
+class TriangulateConfig:
+    """adjust-triangulate's ``triangulate`` block (conf/triangulate.yaml documents each key); a
+    bad value is a ValueError naming ``triangulate.<key>``, null keeps the default."""
+
+    robust: bool = False
+    max_error_px: float = 20.0
+    min_views: int = 2
+    weight: str = "likelihood"
+
+    @classmethod
+    def from_config(cls, node) -> TriangulateConfig:
+        """From the ``triangulate`` node (OmegaConf or a mapping; None: the defaults)."""
+        d = {k: v for k, v in checked_fields(cls, node, "triangulate").items() if v is not None}
+        for key, kind, lo in (("robust", "bool", None), ("max_error_px", "float", 0.0),
+                              ("min_views", "int", 2)):  # fmt: skip
+            if key in d:
+                d[key] = setting(d, key, kind, lo=lo, prefix="triangulate.")
+        if "weight" in d:
+            d["weight"] = str(d["weight"])
+            if d["weight"] not in TRIANGULATE_WEIGHTS:
+                raise ValueError(
+                    f"triangulate.weight must be one of {TRIANGULATE_WEIGHTS}, got {d['weight']!r}"
+                )
+        return cls(**d)
+
+
+def _switches(cls: type, cfg):
+    """The dataclass `cls` of true/false switches from the keys of `cfg` (OmegaConf or a
+    mapping) that are its fields, each checked (`setting`: a bad value is a ValueError naming
+    the key); absent or null: the dataclass's default."""
+    given = {k: v for k, v in given_fields(cls, cfg).items() if v is not None}
+    return cls(**{k: setting(given, k, "bool") for k in given})
+
+
+@dataclass(frozen=True)
+class EventsConfig:
+    """adjust-events' switches (conf/events.yaml): ``interpolate``, fill the tracks' NaN gaps
+    linearly in time first (a raw triangulation's)."""
+
+    interpolate: bool = False
+
+    @classmethod
+    def from_config(cls, cfg) -> EventsConfig:
+        return _switches(cls, cfg)
+
+
+@dataclass(frozen=True)
+class DemoSteps:
+    """adjust-demo's optional steps (conf/demo.yaml): the behavior classifier, with the lock-box
+    context, and the events."""
+
+    behavior: bool = True
+    behavior_box: bool = True
+    events: bool = True
+
+    @classmethod
+    def from_config(cls, cfg) -> DemoSteps:
+        return _switches(cls, cfg)
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """adjust-track's batch switch (conf/track.yaml): ``force``, re-run sessions an earlier
+    batch already tracked with the same inputs and settings."""
+
+    force: bool = False
+
+    @classmethod
+    def from_config(cls, cfg) -> BatchConfig:
+        return _switches(cls, cfg)

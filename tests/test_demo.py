@@ -234,6 +234,24 @@ def test_bad_labelled_sessions_fail_before_anything_runs(tmp_path, override, mes
     assert not (tmp_path / "scene").exists()
 
 
+def test_the_steps_are_typed_and_their_yaml_defaults_are_the_dataclass_s(tmp_path):
+    """conf/demo.yaml's behavior, behavior_box and events are `DemoSteps`' defaults (the one
+    copy in the code); absent, each keeps its default; a bad value names the setting before
+    anything runs."""
+    from adjust.apps.demo import run
+    from adjust.settings import DemoSteps
+
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = hydra.compose("demo", overrides=["preset=quick", f"output.dir={tmp_path}"])
+    steps = DemoSteps.from_config(cfg)
+    assert steps == DemoSteps() == DemoSteps.from_config({})
+    assert {k: cfg[k] for k in ("behavior", "behavior_box", "events")} == vars(steps)
+    cfg.behavior_box = "sometimes"
+    with pytest.raises(ValueError, match="behavior_box='sometimes'"):
+        run(cfg)
+    assert not (tmp_path / "scene").exists()
+
+
 def test_unknown_preset_is_one_clear_error(tmp_path):
     from adjust.apps.demo import run
 

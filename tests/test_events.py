@@ -9,6 +9,7 @@ import pytest
 
 from adjust.events import contact_intervals, detect_events, first_operated, operations
 from adjust.io import write_points3d
+from adjust.settings import EventsConfig
 from deformnet.paths import CONF_DIR
 
 LEVER = np.array([100.0, 200.0, 20.0])
@@ -93,6 +94,17 @@ def test_detect_events_finds_exactly_the_planted_events():
 def _cfg(overrides):
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         return hydra.compose("events", overrides=overrides)
+
+
+def test_the_switches_are_typed_and_their_yaml_defaults_are_the_dataclass_s():
+    """conf/events.yaml's ``interpolate`` is `EventsConfig`'s default (the one copy in the
+    code); absent, it keeps that default; a bad value names the setting."""
+    cfg = _cfg([])
+    assert cfg.interpolate == EventsConfig().interpolate
+    assert EventsConfig.from_config(cfg) == EventsConfig() == EventsConfig.from_config({})
+    assert EventsConfig.from_config(_cfg(["interpolate=true"])).interpolate
+    with pytest.raises(ValueError, match="interpolate='often'"):
+        EventsConfig.from_config({"interpolate": "often"})
 
 
 def test_adjust_events_cli_writes_events_and_order(tmp_path):

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from adjust.camera import CameraTensors, project_cameras
 from adjust.scene import (
@@ -22,6 +23,7 @@ from adjust.scene import (
     occluded_by_ellipsoids,
     simulate_scene,
 )
+from adjust.scene.rig import RigConfig
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import matrix_to_rodrigues
@@ -105,6 +107,17 @@ def test_default_rig_sees_the_arena(rig):
     d = np.stack([c.R[2] for c in rig])
     ang = np.degrees(np.arccos(np.clip(d @ d.T, -1, 1)))
     assert 50 < ang[0, 1] < 130 and 50 < ang[0, 2] < 130 and 60 < ang[1, 2] < 120
+
+
+def test_the_rig_settings_are_typed_and_their_yaml_defaults_are_the_dataclass_s():
+    """conf/rig/default.yaml's ``up`` and ``arena_view_height`` are `RigConfig`'s defaults (the
+    one copy in the code); a rig without them keeps those."""
+    yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "rig" / "default.yaml"))
+    assert tuple(yaml["up"]) == tuple(RigConfig().up)
+    assert yaml["arena_view_height"] == RigConfig().arena_view_height
+    assert RigConfig.from_config({"cameras": {}}) == RigConfig()
+    given = RigConfig.from_config({"up": [0, 1, 0], "arena_view_height": 50})
+    assert list(given.up) == [0, 1, 0] and given.arena_view_height == 50.0
 
 
 def test_bad_rig_config():

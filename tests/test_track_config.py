@@ -12,7 +12,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from adjust.adapt import AdaptConfig
-from adjust.settings import InputConfig
+from adjust.settings import BatchConfig, InputConfig
 from adjust.track_config import (
     DEPRECATED,
     BodyConfig,
@@ -51,6 +51,8 @@ def test_the_blocks_read_typed_and_an_absent_key_keeps_the_dataclass_default():
     tc = TrackConfig.from_config(resolve_deprecated(_cfg([])))
     assert tc.input == InputConfig() and tc.adapt == AdaptConfig()
     assert tc.chunk == ChunkConfig() and not any(tc.output.subject.values())
+    cfg = _cfg([])
+    assert BatchConfig.from_config(cfg) == BatchConfig() and cfg.force == BatchConfig().force
     assert tc.output == OutputConfig(subject=tc.output.subject)  # (the YAML lists the fields)
     given = {"input": {"likelihood_threshold": 0.7, "exclude_cameras": "side",
                        "camera_check": False},

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import hydra
@@ -12,6 +13,7 @@ import torch
 from adjust.apps.triangulate import run
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import read_points3d, save_calibration, write_dlc_csv
+from adjust.settings import TriangulateConfig
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR, real_hand_dir
 
@@ -21,6 +23,22 @@ REAL = real_hand_dir()
 def _cfg(overrides):
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         return hydra.compose("triangulate", overrides=overrides)
+
+
+def test_the_triangulate_block_is_typed_and_its_yaml_defaults_are_the_dataclass_s():
+    """conf/triangulate.yaml's ``triangulate`` block holds exactly `TriangulateConfig`'s
+    fields and defaults (the one copy in the code); a bad value names its setting."""
+    cfg = _cfg([])
+    assert dict(cfg.triangulate) == dataclasses.asdict(TriangulateConfig())
+    assert TriangulateConfig.from_config(cfg.triangulate) == TriangulateConfig()
+    given = TriangulateConfig.from_config({"weight": "uniform", "min_views": 3})
+    assert given == TriangulateConfig(weight="uniform", min_views=3)  # the others: defaults
+    with pytest.raises(ValueError, match="triangulate.weight must be one of"):
+        TriangulateConfig.from_config({"weight": "equal"})
+    with pytest.raises(ValueError, match="triangulate.min_views=1"):
+        TriangulateConfig.from_config({"min_views": 1})
+    with pytest.raises(ValueError, match="triangulate.typo"):
+        TriangulateConfig.from_config({"typo": 1})
 
 
 def test_cli_on_real_hand_data(tmp_path):

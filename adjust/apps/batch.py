@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from adjust.io.scene import SUFFIXES
 from adjust.pipeline import run as track_run
 from adjust.session import SESSION_KEY, session_name, with_session
+from adjust.settings import BatchConfig
 from deformnet import project
 from deformnet.atomic import file_digest, write_text
 from deformnet.outputs import output_lock, recover_outputs
@@ -203,7 +204,7 @@ def run_session(
         detections = Path(str(OmegaConf.select(cfg, "input.detections")))
         row["inputs_sha256"] = inputs_digest(calibration, detections)
         prev = None
-        if not bool(cfg.get("force", False)):
+        if not BatchConfig.from_config(cfg).force:
             prev = previous_run(out, calibration, detections, row["settings"], row["inputs_sha256"])
         if prev is not None:
             folder, summary = prev

@@ -44,6 +44,7 @@ from adjust.apps.common import run_or_exit
 from adjust.apps.report import write_report
 from adjust.apps.report_text import notes
 from adjust.scene import scene_fps, write_truth_labels
+from adjust.settings import DemoSteps
 from deformnet.atomic import write_text
 from deformnet.paths import CONF_DIR, output_dir
 from deformnet.quiet import quiet_lightning
@@ -188,10 +189,11 @@ def _run(cfg: DictConfig) -> dict:
     deform_net = str(cfg.deformable_net)
     if deform_net not in nets:
         raise ValueError(f"deformable_net={deform_net} is not among nets={nets}")
+    steps = DemoSteps.from_config(cfg)  # behavior, behavior_box, events
     out = output_dir(cfg).resolve()
     step = _Steps()
     seed = int(cfg.seed)
-    if bool(cfg.behavior):
+    if steps.behavior:
         session_seeds(p, seed)  # before anything runs
 
     # 1. the scene
@@ -249,7 +251,7 @@ def _run(cfg: DictConfig) -> dict:
 
     # 5. behavior
     classify = None
-    if bool(cfg.behavior):
+    if steps.behavior:
         from deformnet.behavior import predict as cls_app  # (Lightning, as deformnet.train above)
 
         sessions = step(
@@ -266,7 +268,7 @@ def _run(cfg: DictConfig) -> dict:
         rate_train = [] if fps_train is None else [f"fps={fps_train:g}"]
         rate_here = [] if fps_here is None else [f"fps={fps_here:g}"]
         box_train, box_here = [], []
-        if bool(cfg.get("behavior_box", True)):  # the lock-box context
+        if steps.behavior_box:  # the lock-box context
             rig = out / "classify" / "sessions" / str(first) / "scene" / "calibration.toml"
             box_train = [f"mechanisms.calibration={rig}"]  # the labelled sessions' lock box:
             # where the mouse is relative to each mechanism
@@ -307,7 +309,7 @@ def _run(cfg: DictConfig) -> dict:
 
     # 6. events
     events = None
-    if bool(cfg.events):
+    if steps.events:
         ecfg = compose(
             "events",
             [

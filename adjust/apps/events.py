@@ -28,7 +28,7 @@ from omegaconf import DictConfig
 from adjust.apps.common import finite_or_none, hydra_app
 from adjust.events import detect_events, first_operated, operations
 from adjust.io import InputError, load_calibration_metadata, read_points3d, recording_fps
-from adjust.settings import required
+from adjust.settings import EventsConfig, required
 from deformnet.atomic import atomic_path, write_text
 from deformnet.behavior.lockbox import mechanism_table
 from deformnet.confutil import to_plain
@@ -118,7 +118,7 @@ def run(cfg: DictConfig) -> dict:
     if missing:
         raise InputError(f"{tracks}: no columns for part(s) {missing} (the file has {parts})")
     pts = tr["points"]
-    if bool(cfg.get("interpolate", False)):
+    if EventsConfig.from_config(cfg).interpolate:
         pts = interpolate_gaps(pts)
     sigma = None
     if all(f"{p}_sigma" in tr["extra"] for p in parts):

@@ -13,6 +13,7 @@ compose API); it returns the summary.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -25,13 +26,11 @@ from adjust.camera import CameraTensors
 from adjust.camera_check import check_from_config
 from adjust.io import check_cameras_usable, load_scene, write_points3d
 from adjust.metrics import stats
-from adjust.settings import load_kwargs, required, setting
+from adjust.settings import TriangulateConfig, load_kwargs, required
 from adjust.triangulate import triangulate
 from deformnet.body import BodyModel
 
 log = logging.getLogger(__name__)
-
-WEIGHTS = ("likelihood", "uniform")
 
 
 def run(cfg: DictConfig) -> dict:
@@ -40,13 +39,7 @@ def run(cfg: DictConfig) -> dict:
     calibration = required(cfg, "input.calibration", "triangulate")
     detections = required(cfg, "input.detections", "triangulate")
     inp = cfg.input
-    tri = cfg.triangulate
-    weight_mode = str(tri.get("weight", "likelihood"))
-    if weight_mode not in WEIGHTS:
-        raise ValueError(f"triangulate.weight must be one of {WEIGHTS}, got {weight_mode!r}")
-    robust = setting(cfg, "triangulate.robust", "bool", False)
-    max_error_px = setting(cfg, "triangulate.max_error_px", "float", 20.0, lo=0.0)
-    min_views = setting(cfg, "triangulate.min_views", "int", 2, lo=2)
+    tri = TriangulateConfig.from_config(cfg.get("triangulate"))
     kwargs = load_kwargs(inp)
     out = prepare_output(cfg)  # before any computing
     body_cfg = cfg.get("body")
@@ -54,16 +47,16 @@ def run(cfg: DictConfig) -> dict:
     cameras, det = load_scene(calibration, detections, body, **kwargs)
     cameras, det, camera_report = check_from_config(cameras, det, inp)
     check_cameras_usable(det, str(detections))  # one camera cannot triangulate: refused
-    weight = det.weight() if weight_mode == "likelihood" else det.observed.astype(np.float64)
+    weight = det.weight() if tri.weight == "likelihood" else det.observed.astype(np.float64)
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     with torch.no_grad():
         res = triangulate(
             torch.as_tensor(det.xy),
             torch.as_tensor(weight),
             cams,
-            robust=robust,
-            max_error_px=max_error_px,
-            min_views=min_views,
+            robust=tri.robust,
+            max_error_px=tri.max_error_px,
+            min_views=tri.min_views,
         )
     points = res.points.numpy()
     error = res.error.numpy()
@@ -92,12 +85,7 @@ def run(cfg: DictConfig) -> dict:
         # the files' frame numbers (the fnum column), first and last
         "frames": np.asarray(det.frames)[[0, -1]].tolist() if T else [],
         "detections_set_aside": det.notes.get("absurd_or_nonfinite", {}),
-        "triangulate": {
-            "robust": robust,
-            "max_error_px": max_error_px,
-            "min_views": min_views,
-            "weight": weight_mode,
-        },
+        "triangulate": dataclasses.asdict(tri),
         # fraction of keypoint-frames with a 3D point
         "completeness": float(done.mean()) if done.size else 0.0,
         "completeness_per_part": {p: float(done[:, k].mean()) for k, p in enumerate(det.parts)},

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -16,13 +17,13 @@ import torch
 
 from adjust.camera import Camera, CameraTensors, depth, look_at_pose, project_cameras
 from adjust.scene._checks import _vec
-from deformnet.confutil import to_plain
+from deformnet.confutil import given_fields, to_plain
 from deformnet.paths import CONF_DIR
 from deformnet.so3 import matrix_to_rodrigues
 
 log = logging.getLogger(__name__)
 
-__all__ = ["arena_in_view", "camera_look_at", "default_rig", "rig_from_config"]
+__all__ = ["RigConfig", "arena_in_view", "camera_look_at", "default_rig", "rig_from_config"]
 
 
 def camera_look_at(
@@ -63,6 +64,25 @@ def camera_look_at(
     return Camera(name=str(name), K=K, dist=d, rvec=rvec, tvec=t, size=w_h)
 
 
+@dataclass(frozen=True)
+class RigConfig:
+    """A rig config's settings beside its ``cameras`` (the ``rig`` group,
+    ``conf/rig/default.yaml``): the world vector a camera without its own ``up`` shows as up,
+    and the height (mm) of the arena box `default_rig` checks is in every camera's view. A key
+    absent from the config keeps its default here, the one copy of the YAML's."""
+
+    up: Sequence[float] = (0.0, 0.0, 1.0)
+    arena_view_height: float = 80.0
+
+    @classmethod
+    def from_config(cls, rig: Mapping) -> RigConfig:
+        """From a rig config (a mapping: its ``up`` and ``arena_view_height``)."""
+        d = given_fields(cls, rig)
+        if "arena_view_height" in d:
+            d["arena_view_height"] = float(d["arena_view_height"])
+        return cls(**d)
+
+
 _CAMERA_KEYS = {"size", "focal_px", "position", "look_at", "up", "dist", "principal_point"}
 
 
@@ -74,7 +94,7 @@ def rig_from_config(rig_cfg: Any) -> list[Camera]:
         raise ValueError("rig config needs a 'cameras' mapping {name: {position, look_at, ...}}")
     if not rig["cameras"]:
         raise ValueError("rig config has no cameras")
-    default_up = rig.get("up", (0.0, 0.0, 1.0))
+    default_up = RigConfig.from_config(rig).up
     cams = []
     for name, spec in rig["cameras"].items():
         if not isinstance(spec, Mapping):
@@ -156,7 +176,7 @@ def default_rig(cfg: Any = None, arena_size: Sequence[float] | None = None) -> l
                 arena_size = sim["arena_size"]
     cams = rig_from_config(rig)
     if arena_size is not None:
-        height = float(rig.get("arena_view_height", 80.0)) if isinstance(rig, Mapping) else 80.0
+        height = RigConfig.from_config(rig).arena_view_height  # (a mapping: rig_from_config)
         bad = [n for n, ok in arena_in_view(cams, arena_size, height).items() if not ok]
         if bad:
             log.warning(
