@@ -288,28 +288,29 @@ class TriangulateConfig:
         return cls(**d)
 
 
-def _switches(cls: type, cfg):
-    """The dataclass `cls` of true/false switches from the keys of `cfg` (OmegaConf or a
-    mapping) that are its fields, each checked (`setting`: a bad value is a ValueError naming
-    the key); absent or null: the dataclass's default."""
-    given = {k: v for k, v in given_fields(cls, cfg).items() if v is not None}
-    return cls(**{k: setting(given, k, "bool") for k in given})
+@dataclass(frozen=True)
+class _Switches:
+    """A frozen dataclass of true/false switches (the subclasses' fields)."""
+
+    @classmethod
+    def from_config(cls, cfg):
+        """From the keys of `cfg` (OmegaConf or a mapping; None: none) that are fields, each
+        checked (`setting`: a bad value is a ValueError naming the key); absent or null: the
+        dataclass's default, the one copy of the YAML's."""
+        given = {k: v for k, v in given_fields(cls, cfg).items() if v is not None}
+        return cls(**{k: setting(given, k, "bool") for k in given})
 
 
 @dataclass(frozen=True)
-class EventsConfig:
+class EventsConfig(_Switches):
     """adjust-events' switches (conf/events.yaml): ``interpolate``, fill the tracks' NaN gaps
     linearly in time first (a raw triangulation's)."""
 
     interpolate: bool = False
 
-    @classmethod
-    def from_config(cls, cfg) -> EventsConfig:
-        return _switches(cls, cfg)
-
 
 @dataclass(frozen=True)
-class DemoSteps:
+class DemoSteps(_Switches):
     """adjust-demo's optional steps (conf/demo.yaml): the behavior classifier, with the lock-box
     context, and the events."""
 
@@ -317,18 +318,10 @@ class DemoSteps:
     behavior_box: bool = True
     events: bool = True
 
-    @classmethod
-    def from_config(cls, cfg) -> DemoSteps:
-        return _switches(cls, cfg)
-
 
 @dataclass(frozen=True)
-class BatchConfig:
+class BatchConfig(_Switches):
     """adjust-track's batch switch (conf/track.yaml): ``force``, re-run sessions an earlier
     batch already tracked with the same inputs and settings."""
 
     force: bool = False
-
-    @classmethod
-    def from_config(cls, cfg) -> BatchConfig:
-        return _switches(cls, cfg)
