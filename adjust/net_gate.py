@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from adjust.io import InputError
-from adjust.lsq.observation import InterpObservation
+from adjust.lsq.observation import InterpObservation, with_single_views
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 from adjust.tokenize import session_tokens
 from deformnet.heldout import MIN_TARGETS, window_sums
@@ -194,9 +194,7 @@ def kriged_mid(
                 f"anchors must be (B, W, K, 3) / (B, W, K) for windows {(Bw, W, K)}, "
                 f"got {tuple(a_pts.shape)} / {tuple(a_mask.shape)}"
             )
-        a_mask = a_mask.bool() & ~observed
-        deformed = torch.where(a_mask[..., None], a_pts.double(), deformed)
-        observed = observed | a_mask
+        deformed, observed, a_mask = with_single_views(deformed, observed, a_pts, a_mask)
         own = torch.as_tensor(np.tile(cov.nugget, (Bw, 1))).reshape(Bw, 1, K, 3)
         noise = torch.where(a_mask[..., None], a_var.double()[..., None], own)
         noise = noise.permute(1, 0, 2, 3).reshape(W, Bw * K, 3).numpy()
@@ -258,9 +256,8 @@ def net_vs_kriging(
                 a = None if anchors is None else anchors.window(recording[b["frames"]])
                 nb = b
                 if net_anchors and a is not None:
-                    one = a[1] & ~b["observed"]
-                    deformed = torch.where(one[..., None], a[0].to(b["deformed"]), b["deformed"])
-                    nb = {**b, "deformed": deformed, "observed": b["observed"] | one}
+                    deformed, observed, _ = with_single_views(b["deformed"], b["observed"], *a[:2])
+                    nb = {**b, "deformed": deformed, "observed": observed}
                 sums = window_sums(model, nb, model.half_window)
                 pred = kriged_mid(b, tokens.body_points, cov, model.half_window, step, a)
                 m = b["target_mask"].double()

@@ -127,3 +127,19 @@ def test_net_anchors_put_the_single_views_among_the_nets_window_inputs():
     torch.testing.assert_close(X[50, 1], Xo[50, 1])  # beyond the anchor's windows: the same
     torch.testing.assert_close(X[:, 0], Xo[:, 0])
     torch.testing.assert_close(with_a.factor, without.factor)
+
+
+def test_with_single_views_adds_one_view_part_frames_only_where_no_3d_one():
+    from adjust.lsq.observation import with_single_views
+
+    data = torch.zeros(2, 3, 4, 3, dtype=torch.float64)  # leading dims (2, 3), K = 4
+    observed = torch.zeros(2, 3, 4, dtype=torch.bool)
+    observed[..., 0] = True
+    points = torch.ones(2, 3, 4, 3, dtype=torch.float32)
+    views = torch.zeros(2, 3, 4, dtype=torch.bool)
+    views[..., :2] = True  # part 0 also has a 3D observation: kept as it is
+    d, o, one = with_single_views(data, observed, points, views)
+    assert d.dtype == torch.float64 and d.shape == data.shape
+    assert one[..., 1].all() and not one[..., [0, 2, 3]].any()
+    assert torch.equal(o, observed | one)
+    assert (d[..., 1, :] == 1).all() and (d[..., [0, 2, 3], :] == 0).all()

@@ -26,6 +26,7 @@ from adjust.deformation_modes.base import (
 )
 from adjust.io import Detections, InputError
 from adjust.lsq.net_observation import NetObservation
+from adjust.lsq.observation import with_single_views
 from adjust.net_gate import Anchors, heldout_check, net_vs_kriging
 from adjust.tokenize import session_tokens
 from adjust.track_config import DeformConfig
@@ -352,9 +353,11 @@ class SelfNet(NetMode):
         anchors = Anchors.of(interp_obs) if a.deform.net_anchors else None
         train = tokens
         if anchors is not None:
-            one = anchors.mask.numpy() & ~tokens.observed
-            deformed = np.where(one[..., None], anchors.points.numpy(), tokens.deformed)
-            train = replace(tokens, deformed=deformed.astype(np.float32), inputs=one)
+            deformed, _, one = with_single_views(
+                torch.as_tensor(tokens.deformed), torch.as_tensor(tokens.observed),
+                anchors.points, anchors.mask,
+            )  # fmt: skip
+            train = replace(tokens, deformed=deformed.numpy(), inputs=one.numpy())
         model, facts = adapt.adapt_net(train, a.out, a.adapt_cfg, a.progress)
         a.timings["adapt_s"] = time.perf_counter() - t1
         self.tokens, self.adapt_facts = tokens, facts

@@ -20,6 +20,7 @@ from adjust.lsq.observation import (
     RigidObservation,
     _body_frame_points,
     _rotate_axes_var,
+    with_single_views,
 )
 from deformnet.threads import torch_threads
 
@@ -299,9 +300,8 @@ class NetObservation(DeformableObservation):
         data = self.data.to(Xr.dtype)
         obs = self.observed & torch.isfinite(data).all(-1)
         if self.net_anchors and self.interp.anchors is not None:
-            one = self.interp.anchors.to(obs.device) & ~obs
-            data = torch.where(one[..., None], self.interp.data.to(data), data)
-            obs = obs | one
+            views = self.interp.anchors.to(obs.device)
+            data, obs, _ = with_single_views(data, obs, self.interp.data, views)
         if self.gate_mm > 0:
             obs = obs & ((data - Xr).norm(dim=-1) <= self.gate_mm)
         self._rigid_win = self._windows(Xr)

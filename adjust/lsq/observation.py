@@ -110,6 +110,17 @@ class RigidObservation:
         return self
 
 
+def with_single_views(
+    data: Tensor, observed: Tensor, points: Tensor, views: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Part-frames seen through one view (`InterpObservation.anchored`'s anchors) added to the
+    observations where there is no 3D one: data (..., K, 3) mm, observed (..., K) bool, points
+    (..., K, 3) mm the views' fused points, views (..., K) bool. Returns (data, observed, one),
+    one (..., K) the part-frames added."""
+    one = views.to(torch.bool) & ~observed
+    return torch.where(one[..., None], points.to(data), data), observed | one, one
+
+
 class InterpObservation:
     """``deformation=interp``: the rigid model plus each part's offset in body coordinates
     predicted from the part's own observations in the neighbouring frames.
