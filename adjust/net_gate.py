@@ -18,7 +18,7 @@ from adjust.io import InputError
 from adjust.lsq.observation import InterpObservation, with_single_views
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 from adjust.tokenize import session_tokens
-from deformnet.heldout import MIN_TARGETS, window_sums
+from deformnet.heldout import MIN_TARGETS, rmse_by_part, summed_over, window_sums
 from deformnet.so3 import kabsch
 from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank
 
@@ -246,40 +246,28 @@ def net_vs_kriging(
     # each bank frame's recording frame (the kept blocks laid end to end)
     recording = torch.cat([torch.arange(*spans[i]) for i in bank.kept])
     data = FixedWindowBatches.build(bank, int(windows), int(batch_size), int(seed), MaskConfig())
-    net = krig = count = None
-    n = 0
-    was_training = model.training
-    model.eval()
-    try:
-        with torch.no_grad():
-            for b in data.batches:
-                a = None if anchors is None else anchors.window(recording[b["frames"]])
-                nb = b
-                if net_anchors and a is not None:
-                    deformed, observed, _ = with_single_views(b["deformed"], b["observed"], *a[:2])
-                    nb = {**b, "deformed": deformed, "observed": observed}
-                sums = window_sums(model, nb, model.half_window)
-                pred = kriged_mid(b, tokens.body_points, cov, model.half_window, step, a)
-                m = b["target_mask"].double()
-                k = (((pred - b["target"].double()) ** 2).sum(-1) * m).sum(0)
-                net = sums["net"] if net is None else net + sums["net"]
-                krig = k if krig is None else krig + k
-                count = sums["count"] if count is None else count + sums["count"]
-                n += int(b["rigid"].shape[0])
-    finally:
-        model.train(was_training)
 
-    def per_part(x: Tensor) -> list[float]:
-        r = (x / count.clamp_min(1.0)).sqrt()
-        return [float(v) if c > 0 else float("nan") for v, c in zip(r, count)]
+    def sums(b: dict) -> dict[str, Tensor]:
+        a = None if anchors is None else anchors.window(recording[b["frames"]])
+        nb = b
+        if net_anchors and a is not None:
+            deformed, observed, _ = with_single_views(b["deformed"], b["observed"], *a[:2])
+            nb = {**b, "deformed": deformed, "observed": observed}
+        s = window_sums(model, nb, model.half_window)
+        pred = kriged_mid(b, tokens.body_points, cov, model.half_window, step, a)
+        m = b["target_mask"].double()
+        krig = (((pred - b["target"].double()) ** 2).sum(-1) * m).sum(0)
+        return {"net": s["net"], "interp": krig, "count": s["count"]}
 
-    total = float(count.sum())
+    total = summed_over(model, data.batches, sums)
+    count = total.pop("count")
+    rmse = rmse_by_part(total, count)
     return {
-        "net_mm": per_part(net),
-        "interp_mm": per_part(krig),
+        "net_mm": rmse["net"][0],
+        "interp_mm": rmse["interp"][0],
         "targets": [int(c) for c in count],
-        "net_all_mm": float(np.sqrt(float(net.sum()) / total)) if total else float("nan"),
-        "interp_all_mm": float(np.sqrt(float(krig.sum()) / total)) if total else float("nan"),
-        "windows": n,
+        "net_all_mm": rmse["net"][1],
+        "interp_all_mm": rmse["interp"][1],
+        "windows": sum(int(b["rigid"].shape[0]) for b in data.batches),
         "baseline": "interp's kriging" + ("" if anchors is None else " with single-view anchors"),
     }

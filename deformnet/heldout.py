@@ -4,7 +4,9 @@ No Lightning: `adjust-track` uses it to decide, part by part, whether a net it d
 this recording (``deformation=default`` or a checkpoint) predicts this recording's hidden parts
 better than the interpolation it would otherwise use (``deform.require_better``: against
 `offset_baseline`, the rigid model plus interpolated offsets, as ``deformation=interp``);
-`DeformLit`'s validation sums the same errors (`window_sums`).
+`DeformLit`'s validation sums the same errors (`window_sums`), and `adjust.net_gate`'s
+comparison with interp's kriging adds them up and reports them as this module does
+(`summed_over`, `rmse_by_part`).
 
 The windows are the training-like masked windows of `deformnet.windows` over the recording's
 tokens (`deformnet.sessions.SessionTokens`): the mid frame's measured parts are the targets,
@@ -13,7 +15,8 @@ hidden from both predictors, and gaps are hidden around them as occlusions hide 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -23,7 +26,14 @@ from torch import Tensor
 from deformnet.tokens import linear_baseline, offset_baseline
 from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank
 
-__all__ = ["window_sums", "heldout_errors", "MIN_TARGETS"]
+__all__ = [
+    "window_sums",
+    "heldout_errors",
+    "evaluating",
+    "summed_over",
+    "rmse_by_part",
+    "MIN_TARGETS",
+]
 
 MIN_TARGETS = 50  # a part with fewer held-out targets is not judged (too few to tell)
 
@@ -58,6 +68,47 @@ def window_sums(model, batch: Mapping[str, Tensor], mid: int) -> dict[str, Tenso
     }
 
 
+@contextmanager
+def evaluating(model: torch.nn.Module) -> Iterator[torch.nn.Module]:
+    """`model` in eval mode without gradients inside the block; its training flag restored
+    after (an exception included)."""
+    was_training = model.training
+    model.eval()
+    try:
+        with torch.no_grad():
+            yield model
+    finally:
+        model.train(was_training)
+
+
+def summed_over(
+    model: torch.nn.Module,
+    batches: Iterable[Mapping[str, Tensor]],
+    sums: Callable[[Mapping[str, Tensor]], Mapping[str, Tensor]],
+) -> dict[str, Tensor]:
+    """Each key's per-part sums (K,) added up over `batches` in order, `sums(batch)` run with
+    `model` `evaluating` (e.g. `window_sums` of the batch)."""
+    total: dict[str, Tensor] = {}
+    with evaluating(model):
+        for batch in batches:
+            for k, v in sums(batch).items():
+                total[k] = total[k] + v if k in total else v
+    return total
+
+
+def rmse_by_part(sums: Mapping[str, Tensor], count: Tensor) -> dict[str, tuple[list[float], float]]:
+    """Root mean squared errors from per-part sums of squared errors: sums {name: (K,)},
+    count (K,) targets per part -> {name: (per part [K] (NaN where a part has no target),
+    over all parts (NaN without any target))}."""
+    n = float(count.sum())
+    out: dict[str, tuple[list[float], float]] = {}
+    for k, x in sums.items():
+        r = (x / count.clamp_min(1.0)).sqrt()
+        part = [float(v) if c > 0 else float("nan") for v, c in zip(r, count)]
+        out[k] = (part, float(np.sqrt(float(x.sum()) / n)) if n > 0 else float("nan"))
+    return out
+
+
 def heldout_errors(
     model,
     tokens,
@@ -88,35 +139,20 @@ def heldout_errors(
     data = FixedWindowBatches.build(
         bank, int(windows), int(batch_size), int(seed), MaskConfig.from_any(masking)
     )
-    total: dict[str, Tensor] = {}
-    was_training = model.training
-    model.eval()
-    try:
-        with torch.no_grad():
-            for batch in data.batches:
-                for k, v in window_sums(model, batch, model.half_window).items():
-                    total[k] = total[k] + v if k in total else v
-    finally:
-        model.train(was_training)
-    count = total["count"]
-
-    def per_part(x: Tensor) -> list[float]:
-        r = (x / count.clamp_min(1.0)).sqrt()
-        return [float(v) if c > 0 else float("nan") for v, c in zip(r, count)]
-
-    def overall(x: Tensor) -> float:
-        n = float(count.sum())
-        return float(np.sqrt(float(x.sum()) / n)) if n > 0 else float("nan")
-
+    total = summed_over(
+        model, data.batches, lambda batch: window_sums(model, batch, model.half_window)
+    )
+    count = total.pop("count")
+    rmse = rmse_by_part(total, count)
     return {
         "parts": list(parts),
-        "net_mm": per_part(total["net"]),
-        "interp_mm": per_part(total["offset"]),
-        "linear_mm": per_part(total["linear"]),
-        "rigid_mm": per_part(total["rigid"]),
+        "net_mm": rmse["net"][0],
+        "interp_mm": rmse["offset"][0],
+        "linear_mm": rmse["linear"][0],
+        "rigid_mm": rmse["rigid"][0],
         "targets": [int(c) for c in count],
-        "net_all_mm": overall(total["net"]),
-        "interp_all_mm": overall(total["offset"]),
-        "linear_all_mm": overall(total["linear"]),
+        "net_all_mm": rmse["net"][1],
+        "interp_all_mm": rmse["offset"][1],
+        "linear_all_mm": rmse["linear"][1],
         "windows": sum(int(b["rigid"].shape[0]) for b in data.batches),
     }

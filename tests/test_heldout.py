@@ -16,7 +16,14 @@ from torch import nn
 from deformnet.body import default_mouse
 from deformnet.confutil import compose
 from deformnet.deformation import DeformationModel
-from deformnet.heldout import MIN_TARGETS, heldout_errors, window_sums
+from deformnet.heldout import (
+    MIN_TARGETS,
+    evaluating,
+    heldout_errors,
+    rmse_by_part,
+    summed_over,
+    window_sums,
+)
 from deformnet.sessions import SessionTokens
 from deformnet.tokens import linear_baseline, offset_baseline
 
@@ -135,6 +142,43 @@ def test_window_sums_are_the_per_part_squared_errors():
     assert set(s) == {"net", "rigid", "linear", "offset", "count"}
     with pytest.raises(ValueError, match="rigid"):
         window_sums(model, {**batch, "target": batch["target"][:, :3]}, 4)
+
+
+def test_rmse_by_part_per_part_nan_without_targets_and_over_all():
+    """Per part sqrt(sum / count), NaN where a part has no target; over all parts
+    sqrt(total sum / total count) (not the mean of the parts' RMSEs); no target at all: NaN."""
+    sums = {"a": torch.tensor([8.0, 0.0, 27.0], dtype=torch.float64)}
+    count = torch.tensor([2.0, 0.0, 3.0], dtype=torch.float64)
+    part, overall = rmse_by_part(sums, count)["a"]
+    assert part[0] == 2.0 and part[2] == 3.0 and np.isnan(part[1])
+    assert overall == pytest.approx(np.sqrt(35.0 / 5.0), rel=1e-15)
+    part, overall = rmse_by_part(sums, torch.zeros(3, dtype=torch.float64))["a"]
+    assert np.isnan(overall) and all(np.isnan(part))
+
+
+def test_summed_over_adds_each_key_in_eval_mode_and_restores_training():
+    """The batches' sums added key by key, each batch summed with the model in eval mode and
+    no gradients; the model's training flag restored after, also when a batch raises."""
+    net = nn.Linear(1, 1).train()
+    seen = []
+
+    def sums(batch):
+        seen.append((net.training, torch.is_grad_enabled()))
+        if batch.get("bad"):
+            raise RuntimeError("bad batch")
+        return {"x": batch["x"], "count": torch.ones(2, dtype=torch.float64)}
+
+    batches = [{"x": torch.tensor([1.0, 2.0])}, {"x": torch.tensor([3.0, 5.0])}]
+    total = summed_over(net, batches, sums)
+    torch.testing.assert_close(total["x"], torch.tensor([4.0, 7.0]))
+    torch.testing.assert_close(total["count"], torch.full((2,), 2.0, dtype=torch.float64))
+    assert seen == [(False, False)] * 2 and net.training
+    with pytest.raises(RuntimeError, match="bad batch"):
+        summed_over(net, [{"bad": True}], sums)
+    assert net.training
+    with evaluating(net.eval()):
+        assert not net.training
+    assert not net.training
 
 
 def test_net_parts_keep_the_other_parts_on_interp():
