@@ -37,7 +37,7 @@ import torch
 from deformnet.atomic import write_text
 from deformnet.body import BodyModel
 from deformnet.deformation import DeformationModel, build_net, check_track_up
-from deformnet.heldout import window_sums
+from deformnet.heldout import summed_over, window_sums
 from deformnet.pretrained import load_default, load_net, net_spec
 from deformnet.sessions import split_sessions
 from deformnet.threads import torch_threads
@@ -236,17 +236,12 @@ def _to(batch: Mapping[str, Any], device: torch.device) -> dict:
     }
 
 
-@torch.no_grad()
 def evaluate(model: DeformationModel, batches, device: torch.device) -> dict[str, float]:
     """RMSE (mm) of the net and of the rigid, linear and offset (interp) baselines over
     held-out windows (the mid frame's measured parts)."""
-    was = model.training
-    model.eval()
-    sums: dict[str, torch.Tensor] = {}
-    for b in batches:
-        for k, v in window_sums(model, _to(b, device), model.half_window).items():
-            sums[k] = sums[k] + v if k in sums else v
-    model.train(was)
+    sums = summed_over(
+        model, batches, lambda b: window_sums(model, _to(b, device), model.half_window)
+    )
     total = sums["count"].sum().clamp_min(1.0)
     return {
         name: float((sums[key].sum() / total).sqrt())
