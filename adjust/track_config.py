@@ -141,6 +141,8 @@ MEASURED = ("cv", "interp", "rigid", "net")
 JACOBIANS = ("frozen", "forward", "central")
 #: ``deform.gap_sigma``: `adjust.deformation_modes.gap_sigma.GAP_SIGMAS`' names
 GAP_SIGMAS = ("solver", "leave_runs_out", "anchors_out")
+#: ``deform.anchors``: how interp's second pass reads a part-frame one camera saw
+ANCHORS = ("fused", "rays")
 
 
 @dataclass(frozen=True)
@@ -160,6 +162,8 @@ class DeformConfig:
     max_iterations: int | None = 10
     require_better: str = "auto"
     single_views: bool = True
+    anchors: str = "fused"
+    ray_sd_factor: float = 6.0
     gap_sigma: str = "solver"
 
     def __post_init__(self) -> None:
@@ -167,6 +171,12 @@ class DeformConfig:
             raise ValueError(
                 f"deform.measured must be cv, interp, rigid or net, got {self.measured!r}"
             )
+        if self.anchors not in ANCHORS:
+            raise InputError(
+                f"deform.anchors must be one of {', '.join(ANCHORS)}, got {self.anchors!r}"
+            )
+        if not float(self.ray_sd_factor) >= 1.0:
+            raise InputError(f"deform.ray_sd_factor must be >= 1, got {self.ray_sd_factor}")
         if self.gap_sigma not in GAP_SIGMAS:
             raise InputError(
                 f"deform.gap_sigma must be one of {', '.join(GAP_SIGMAS)}, got {self.gap_sigma!r}"

@@ -31,6 +31,10 @@ for both, without changing the library: each is patched into one process around
   mean squared Mahalanobis distance, each clipped at 30, at most 2) with each distance clipped
   at 9 or 16 (the target scaled to the clipped chi-square mean), or the median at most the
   chi-square median: swapped or outlying single views count less.
+- ``rays1``, ``rays3``, ``rays6``, ``rays12``: ``single_views`` with each anchor read as its
+  camera's ray and every part's offsets smoothed over the session (``deform.anchors=rays``,
+  `adjust.lsq.smoother`), the views' sd across their rays 1, 3, 6, 12 x the detector's
+  (``deform.ray_sd_factor``).
 - ``gap_sigma_leave_runs_out``, ``gap_sigma_anchors_out``: ``single_views`` with the
   *reported* sigma of the part-frames no view was fused into inflated by the solver's inflation
   measured on the anchors' views against a prediction that did not see them: each run of
@@ -74,6 +78,7 @@ from adjust.lsq.geometry import so3_exp  # noqa: E402
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets, neighbours  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
+RAY_SD_FACTORS = (1, 3, 6, 12)
 VARIANTS = (
     "base",
     "cv_calibration",
@@ -87,12 +92,14 @@ VARIANTS = (
     "inflation_median",
     "gap_sigma_anchors_out",
     "gap_sigma_leave_runs_out",
+    *(f"rays{f}" for f in RAY_SD_FACTORS),
 )
 #: variants that are the defaults with these settings (else ``deform.single_views=false``)
 OVERRIDES = {
     "single_views": ["deform.gap_sigma=solver"],
     "gap_sigma_anchors_out": ["deform.gap_sigma=anchors_out"],
     "gap_sigma_leave_runs_out": ["deform.gap_sigma=leave_runs_out"],
+    **{f"rays{f}": ["deform.anchors=rays", f"deform.ray_sd_factor={f}"] for f in RAY_SD_FACTORS},
 }
 #: variants that must give single_views' points (only the reported sigma may change)
 SAME_POINTS = ("gap_sigma_anchors_out", "gap_sigma_leave_runs_out")

@@ -18,6 +18,7 @@ from adjust.camera import CameraTensors
 from adjust.deformation_modes.gap_sigma import gap_sigma
 from adjust.io import Detections, InputError
 from adjust.lsq.observation import InterpObservation
+from adjust.lsq.smoother import view_rays
 from adjust.track_config import ConsensusConfig, DeformConfig
 from deformnet.body import BodyModel
 
@@ -119,6 +120,25 @@ class Adjusting:
             few_var=self.few_var,
         )
 
+    def anchor_rays(self, res) -> tuple[np.ndarray, np.ndarray]:
+        """The rays (T, K, 3) and across-ray variances (T, K) of the part-frames one camera
+        saw in the adjustment ``res`` (`adjust.lsq.smoother.view_rays`)."""
+        c = self.cams
+        sig = np.asarray(self.cons.sigma_det_per_camera, dtype=np.float64)
+        sig = np.where(np.isfinite(sig), sig, float(self.cons.sigma_det_px))
+        Km = c.K.cpu().numpy()
+        _, rays, var = view_rays(
+            np.asarray(res.points, dtype=np.float64),
+            np.asarray(res.weights),
+            c.centers.cpu().numpy(),
+            0.5 * (Km[:, 0, 0] + Km[:, 1, 1]),
+            sig,
+            c.R.cpu().numpy(),
+            c.t.cpu().numpy(),
+            self.deform.ray_sd_factor,
+        )
+        return rays, var
+
     def interp_solve(self, cfg, init) -> tuple[Any, InterpObservation, dict]:
         """``deformation=interp``'s adjustment from the poses ``init`` with the solver settings
         ``cfg``: (the result, its observation, summary facts). With ``deform.single_views``
@@ -130,7 +150,10 @@ class Adjusting:
         facts = {}
         if self.deform.single_views:
             views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
-            obs = obs.anchored(res.points, res.point_sd, views, gap_sigma(self.deform.gap_sigma))
+            rays = self.anchor_rays(res) if self.deform.anchors == "rays" else (None, None)
+            obs = obs.anchored(
+                res.points, res.point_sd, views, gap_sigma(self.deform.gap_sigma), *rays
+            )
             res = self.solve(cfg, obs, res.poses)
             facts["single_view_anchors"] = int(obs.anchors.sum())
         return res, obs, facts

@@ -383,7 +383,9 @@ class NetObservation(DeformableObservation):
         M = torch.where(use, M, Mi)
         var = self.interp._var.to(M.dtype)
         if self.measured == "net":  # the net's own held-out error where it is used there
-            var = torch.where(m[..., None], var * self.factor[None, :, None], var)
+            lead = (1, -1, *([1] * (var.ndim - 2)))  # body-axis variances or covariances
+            mm = m.reshape(*m.shape, *([1] * (var.ndim - 2)))
+            var = torch.where(mm, var * self.factor.reshape(lead), var)
         self._M, self._var = M, var
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:

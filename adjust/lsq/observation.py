@@ -21,10 +21,12 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from adjust.lsq.geometry import rigid_points, so3_exp
+from adjust.lsq.smoother import ray_information, smooth_offsets
 from adjust.lsq.stochastic import OffsetCovariance, krige_between, krige_offsets
 from deformnet.so3 import skew
 
@@ -50,7 +52,10 @@ class ObservationModel(Protocol):
 
 
 def _rotate_axes_var(R: Tensor, var: Tensor) -> Tensor:
-    """Body-axis variances var (T, K, 3) -> global covariances R diag(var) R^T (T, K, 3, 3)."""
+    """Body-axis variances var (T, K, 3), or covariances in body axes (T, K, 3, 3) -> global
+    covariances R diag(var) R^T, or R var R^T (T, K, 3, 3)."""
+    if var.ndim == 4:
+        return torch.einsum("tij,tkjm,tlm->tkil", R, var, R)
     return torch.einsum("tij,tkj,tlj->tkil", R, var, R)
 
 
@@ -174,6 +179,10 @@ class InterpObservation:
         self.cov = None  # the last OffsetCovariance
         self.anchors = None  # (T, K) part-frames observed through one view (`anchored`)
         self.anchor_var = None  # (T, K) their noise variance per body axis, mm^2
+        # with ``rays`` (T, K, 3) global unit vectors and ``ray_var`` (T, K) mm^2: each anchor
+        # is its camera's ray (`anchored`), the offsets smoothed (`adjust.lsq.smoother`)
+        self.rays = None
+        self.ray_var = None
         # how the gaps' reported uncertainty is calibrated (`anchored`'s ``gap_sigma``: an
         # object with ``held_out(good, anchors)`` -> the previous and next observation (T, K)
         # each anchor is predicted from when it is held out, or None; e.g.
@@ -199,8 +208,6 @@ class InterpObservation:
         return self.rigid.body
 
     def prepare(self, poses: Tensor) -> None:
-        import numpy as np
-
         R = so3_exp(poses[:, :3]).detach()
         Rn = R.cpu().numpy().astype(np.float64)
         tn = poses[:, 3:].detach().cpu().numpy().astype(np.float64)
@@ -247,7 +254,14 @@ class InterpObservation:
             self._held = torch.as_tensor(anchor & good, device=poses.device)
         else:
             self._M_held = self._var_held = self._held = None
-        if anchor is not None:  # an anchor's prior is no surer than the anchor itself (its
+        if self.rays is not None and anchor is not None:
+            # the smoother where no 3D observation is; a 3D-observed frame keeps the kriging
+            # from its neighbours (the prior its own detections are fused with, calibrated)
+            ps, vs = self._smoothed(o, good, anchor, Rn)
+            three = (good & ~anchor)[..., None]
+            pred = np.where(three, pred, ps)
+            var = np.where(three[..., None], var[..., None] * np.eye(3), vs)
+        elif anchor is not None:  # an anchor's prior is no surer than the anchor itself (its
             # neighbours' single views were fused with the same first-pass prediction)
             var = np.where(anchor[..., None], np.maximum(var, av[..., None]), var)
         dt = poses.dtype
@@ -256,11 +270,30 @@ class InterpObservation:
         if self.measured_var is not None:  # measured part-frames: the rigid model point
             mv = self.measured_var.cpu().numpy().astype(np.float64)
             pred = np.where(good[..., None], 0.0, pred)
-            var = np.where(good[..., None], mv[None], var)
+            if var.ndim == 4:  # full body-axis covariances (the smoothed anchors)
+                mv = mv[..., None] * np.eye(3)
+            var = np.where(good.reshape(*good.shape, *([1] * (var.ndim - 2))), mv[None], var)
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
 
-    def anchored(self, points, point_sd, ncams, gap_sigma=None) -> InterpObservation:
+    def _smoothed(self, o, good, anchor, Rn) -> tuple:
+        """The offsets' prediction (T, K, 3) and covariance (T, K, 3, 3) in body axes from every
+        other frame (`adjust.lsq.smoother.smooth_offsets`): the 3D observations with the
+        nugget, the anchors as their camera's ray."""
+        T, K = good.shape
+        J = np.zeros((T, K, 3, 3))
+        three = good & ~anchor
+        nug = np.maximum(self.cov.nugget, 1e-6)  # (K, 3)
+        J[three] = np.eye(3) / np.broadcast_to(nug[None], (T, K, 3))[three][:, None, :]
+        one = good & anchor
+        u = np.einsum("tji,tkj->tki", Rn, self.rays.cpu().numpy().astype(np.float64))[one]
+        rv = self.ray_var.cpu().numpy().astype(np.float64)[one]
+        J[one] = ray_information(u, rv)
+        return smooth_offsets(o, J, self.cov)
+
+    def anchored(
+        self, points, point_sd, ncams, gap_sigma=None, rays=None, ray_var=None
+    ) -> InterpObservation:
         """This observation with the part-frames one camera saw among the observations too.
 
         points (T, K, 3) global mm and point_sd (T, K) mm (root of the trace of the covariance)
@@ -292,6 +325,9 @@ class InterpObservation:
         out.anchors = one
         out.anchor_var = torch.where(one, sd * sd, torch.zeros_like(sd))
         out.gap_sigma = gap_sigma
+        if rays is not None:
+            out.rays = torch.as_tensor(rays, dtype=self.data.dtype)
+            out.ray_var = torch.as_tensor(ray_var, dtype=self.data.dtype)
         return out
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:
@@ -347,5 +383,7 @@ class InterpObservation:
         if self.anchors is not None:
             out.anchors = self.anchors[start:stop]
             out.anchor_var = self.anchor_var[start:stop]
+        if self.rays is not None:
+            out.rays, out.ray_var = self.rays[start:stop], self.ray_var[start:stop]
         out.gap_sigma = self.gap_sigma
         return out
