@@ -462,6 +462,8 @@ def gap_diagnosis(rec: Recorder, truth: np.ndarray, parts: list[str]) -> dict:
     o_true = np.einsum("tji,tkj->tki", R, truth - t[:, None]) - B[None]
     good = obs.observed.cpu().numpy() & ~obs.outliers.cpu().numpy()
     var = obs._var.cpu().numpy()
+    if var.ndim == 4:  # full body-axis covariances (``anchors=rays``): their diagonal
+        var = np.diagonal(var, axis1=-2, axis2=-1)
     d = np.sqrt(((o_true - obs.cov.mean[None]) ** 2).sum(-1))
     out = {}
     for k, p in enumerate(parts):
@@ -474,6 +476,40 @@ def gap_diagnosis(rec: Recorder, truth: np.ndarray, parts: list[str]) -> dict:
             "inflation": None if rec.alpha is None else float(rec.alpha[k]),
         }
     return out
+
+
+def ray_diagnosis(rec: Recorder, truth: np.ndarray) -> dict | None:
+    """``anchors=rays``: on the part-frames one camera saw, the prior's error (the smoother's
+    prediction without the frame's own view, against the truth, in the tracker's body frame)
+    along the view's ray and across it, rms error (mm), rms predicted sd (mm) and their ratio
+    (1: calibrated); and on the part-frames no view saw. None without rays."""
+    obs = rec.obs
+    if obs is None or obs.rays is None:
+        return None
+    P = rec.poses
+    R = so3_exp(P[:, :3]).cpu().numpy().astype(np.float64)
+    t = P[:, 3:].cpu().numpy().astype(np.float64)
+    err = np.einsum("tji,tkj->tki", R, truth - t[:, None]) - obs._M.cpu().numpy()
+    var = obs._var.cpu().numpy()
+    one = obs.anchors.cpu().numpy() & ~obs.outliers.cpu().numpy()
+    u = np.einsum("tji,tkj->tki", R, obs.rays.cpu().numpy())[one]
+    e, V = err[one], var[one]
+    along = (e * u).sum(-1)
+    v_along = np.einsum("ni,nij,nj->n", u, V, u)
+    across2 = (e**2).sum(-1) - along**2
+    v_across = np.trace(V, axis1=-2, axis2=-1) - v_along
+    none = ~obs.observed.cpu().numpy()
+    e0, v0 = (err[none] ** 2).sum(-1), np.trace(var[none], axis1=-2, axis2=-1)
+
+    def row(e2, v):
+        re, rs = float(np.sqrt(np.mean(e2))), float(np.sqrt(np.mean(v)))
+        return {"rms_err_mm": re, "rms_sd_mm": rs, "ratio": re / rs}
+
+    return {
+        "one_view_along": row(along**2, v_along),
+        "one_view_across": row(across2, v_across),
+        "no_view": row(e0, v0) if none.any() else None,
+    }
 
 
 def calibration_by_views(points_csv: Path, est, truth, nviews, parts) -> dict:
@@ -527,6 +563,7 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
         row["parts_calibrated"] = rm.calibrated_parts(row["calib_per_part"])
         if rec.obs is not None:
             row["gaps"] = gap_diagnosis(rec, truth, parts)
+            row["rays"] = ray_diagnosis(rec, truth)
         rows[key] = row
         print(
             f"{variant:<18} {key:<26} all {row['rmse_all']:6.3f}  >=2 {row['rmse_seen2']:6.3f}  "
@@ -537,6 +574,13 @@ def run_variant(variant: str, scenes: list[tuple[int, int]], args, motion, work:
             + (
                 f"  points moved {row['max_point_change_mm']:.3g} mm"
                 if "max_point_change_mm" in row
+                else ""
+            )
+            + (
+                "  prior / truth, one view: along the ray {:.2f}, across {:.2f}".format(
+                    row["rays"]["one_view_along"]["ratio"], row["rays"]["one_view_across"]["ratio"]
+                )
+                if row.get("rays")
                 else ""
             ),
             flush=True,
