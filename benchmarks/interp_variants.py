@@ -96,9 +96,9 @@ VARIANTS = (
 )
 #: variants that are the defaults with these settings (else ``deform.single_views=false``)
 OVERRIDES = {
-    "single_views": ["deform.gap_sigma=solver"],
-    "gap_sigma_anchors_out": ["deform.gap_sigma=anchors_out"],
-    "gap_sigma_leave_runs_out": ["deform.gap_sigma=leave_runs_out"],
+    "single_views": ["deform.gap_sigma=solver", "deform.anchors=fused"],
+    "gap_sigma_anchors_out": ["deform.gap_sigma=anchors_out", "deform.anchors=fused"],
+    "gap_sigma_leave_runs_out": ["deform.gap_sigma=leave_runs_out", "deform.anchors=fused"],
     **{f"rays{f}": ["deform.anchors=rays", f"deform.ray_sd_factor={f}"] for f in RAY_SD_FACTORS},
 }
 #: variants that must give single_views' points (only the reported sigma may change)

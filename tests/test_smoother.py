@@ -138,8 +138,9 @@ def test_rays_find_a_part_only_single_views_see():
 def test_anchored_with_rays_uses_the_smoother():
     """`InterpObservation.anchored` with rays: where no 3D observation is, the prediction is the
     smoother's from the session's own covariance (the 3D observations with the nugget, the
-    views as rays), full covariances (rotated by `deformation_cov`), the rays kept through
-    `window`; without rays the fused points' kriging, which differs there."""
+    views as rays), its full covariance (rotated by `deformation_cov`) floored at the
+    kriging's variance, the rays kept through `window`; without rays the fused points'
+    kriging, which differs there."""
     X, observed, rays, fused, true = _rays_scene()
     T, K = observed.shape
     body = np.zeros((K, 3))
@@ -158,7 +159,15 @@ def test_anchored_with_rays_uses_the_smoother():
     want, want_var = smooth_offsets(fused, J, as_rays.cov)
     gap = ~observed
     np.testing.assert_allclose(as_rays._M.numpy()[gap], want[gap], atol=1e-9)
-    np.testing.assert_allclose(as_rays._var.numpy()[gap], want_var[gap], atol=1e-9)
+    # its covariance scaled up to at least the two-neighbour kriging's variance (the trace)
+    assert int(as_rays.outliers.sum()) == 0
+    noise = np.where(observed[..., None], as_rays.cov.nugget[None], 400.0)  # anchors: sd^2
+    _, kv = krige_offsets(fused, np.ones((T, K), bool), as_rays.cov, noise=noise)
+    tr = np.trace(want_var, axis1=-2, axis2=-1)
+    scale = np.maximum(1.0, kv.sum(-1) / tr)
+    assert (scale[gap] > 1.01).any()  # the floor binds
+    got = as_rays._var.numpy()[gap]
+    np.testing.assert_allclose(got, want_var[gap] * scale[gap][:, None, None], rtol=1e-9)
     assert as_rays.deformation_cov(poses).shape == (T, K, 3, 3)
     w = as_rays.window(10, 50)
     assert w.rays.shape == (40, K, 3) and w.ray_var.shape == (40, K)

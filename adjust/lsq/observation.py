@@ -256,8 +256,13 @@ class InterpObservation:
             self._M_held = self._var_held = self._held = None
         if self.rays is not None and anchor is not None:
             # the smoother where no 3D observation is; a 3D-observed frame keeps the kriging
-            # from its neighbours (the prior its own detections are fused with, calibrated)
+            # from its neighbours (the prior its own detections are fused with, calibrated).
+            # The smoother's covariance is scaled up to at least the kriging's variance (its
+            # trace): its depth along a ray rests on rays of other frames crossing, and is
+            # overconfident there (real motion, validation: 1.3-3x), which no view can check
             ps, vs = self._smoothed(o, good, anchor, Rn)
+            tr = np.trace(vs, axis1=-2, axis2=-1)
+            vs = vs * np.maximum(1.0, var.sum(-1) / np.maximum(tr, 1e-12))[..., None, None]
             three = (good & ~anchor)[..., None]
             pred = np.where(three, pred, ps)
             var = np.where(three[..., None], var[..., None] * np.eye(3), vs)
