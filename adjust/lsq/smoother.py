@@ -17,7 +17,9 @@ each observed frame's own likelihood is then divided out (exact: it is a factor 
 frame's state alone), so the prediction at t never sees t's own observation and stays an
 independent prior to fuse with t's detections, as `krige_offsets` (``skip_self``) is.
 
-Shapes: T frames, K parts. Units: mm, frames. numpy float64.
+Shapes: T frames, K parts. Units: mm, frames. numpy float64. Cost: a Python loop over the
+frames, two passes (about 0.2 s for 1000 frames and 8 parts); the filter keeps (T, K, 6, 6)
+covariances (a 50,000-frame chunk of 34 parts: 0.5 GB).
 """
 
 from __future__ import annotations
