@@ -35,6 +35,31 @@ def checked_fields(cls: type, cfg: Any, what: str, ignore: Iterable[str] = ()) -
     return {k: v for k, v in data.items() if k in names}
 
 
+def as_kind(v, kind):
+    """v as `kind`: int (a whole number), float, str, bool (only a bool: no other kind takes
+    one) or list (of whole numbers); None where it is not one."""
+    if kind is list:
+        v = [as_kind(x, int) for x in v] if isinstance(v, (list, tuple)) else [None]
+        return None if None in v else v
+    if isinstance(v, bool) != (kind is bool):
+        return None
+    try:
+        return v if kind is bool else None if kind is int and float(v) != int(v) else kind(v)
+    except (TypeError, ValueError, OverflowError):
+        return None
+
+
+def check_fields(obj, block: str, **rules) -> None:
+    """The fields of the frozen dataclass `obj` that `rules` names (key=(kind, test, what))
+    coerced to their kind (`as_kind`) and checked by test(value) (test None: any value of the
+    kind); else a ValueError: ``block.key`` must be `what`."""
+    for key, (kind, test, what) in rules.items():
+        v = as_kind(getattr(obj, key), kind)
+        if v is None or (test is not None and not test(v)):
+            raise ValueError(f"{block}.{key} must be {what}, got {getattr(obj, key)!r}")
+        object.__setattr__(obj, key, v)
+
+
 def given_fields(cls: type, cfg: Any) -> dict[str, Any]:
     """The keys of a config node (OmegaConf or a mapping; None: none) that are fields of the
     dataclass `cls`, unresolved values as they stand: the fields absent keep `cls`'s defaults,

@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from torch.utils.data import Dataset, IterableDataset
 
 from deformnet.body import BodyModel
-from deformnet.confutil import checked_fields
+from deformnet.confutil import check_fields, checked_fields
 from deformnet.so3 import kabsch, transform_points
 from deformnet.tokens import canonicalize
 
@@ -163,20 +163,19 @@ class Augment:
     reverse: float = 0.0
     steps: tuple[int, ...] | None = None
 
+    def __post_init__(self) -> None:
+        prob = (float, lambda v: 0.0 <= v <= 1.0, "a probability")
+        check_fields(self, "data.augment", mirror=prob, reverse=prob)
+        if self.steps is not None:
+            ints = (list, lambda v: len(v) > 0 and min(v) >= 1, "integers >= 1")
+            check_fields(self, "data.augment", steps=ints)
+            object.__setattr__(self, "steps", tuple(self.steps))
+
     @classmethod
     def from_any(cls, cfg: Mapping[str, Any] | Augment | None) -> Augment:
         if isinstance(cfg, Augment):
             return cfg
-        d = checked_fields(cls, cfg, "data.augment")
-        steps = d.get("steps")
-        if steps is not None:
-            steps = tuple(int(x) for x in steps)
-            if not steps or min(steps) < 1:
-                raise ValueError(f"data.augment.steps must be integers >= 1, got {list(steps)}")
-        for key in ("mirror", "reverse"):
-            if not 0.0 <= float(d.get(key, 0.0)) <= 1.0:
-                raise ValueError(f"data.augment.{key} must be a probability, got {d[key]}")
-        return cls(float(d.get("mirror", 0.0)), float(d.get("reverse", 0.0)), steps)
+        return cls(**checked_fields(cls, cfg, "data.augment"))
 
 
 # --------------------------------------------------------------------------------------------

@@ -581,11 +581,11 @@ def test_the_settings_the_recipe_reads_are_typed_with_the_yamls_defaults():
     yaml, st = compose("classify"), ClassifySettings()
     names = lambda obj: {f.name for f in dataclasses.fields(obj)}  # noqa: E731
     assert names(st) - set(yaml) == {"sim"}
-    for block in ("context", "mechanisms", "unfamiliar", "pseudo_labels"):
+    for block in ("context", "mechanisms", "unfamiliar", "smoothing", "pseudo_labels"):
         assert names(getattr(st, block)) == set(yaml[block]), block
     assert names(st.pseudo_labels.sequence) == set(yaml.pseudo_labels.sequence)
     assert names(st.data) <= set(yaml.data)
-    for block in ("context", "mechanisms", "unfamiliar", "data", "pseudo_labels"):  # key by key
+    for block in ("context", "mechanisms", "unfamiliar", "smoothing", "data", "pseudo_labels"):
         plain = to_plain(yaml[block])
         for k, v in dataclasses.asdict(getattr(st, block)).items():
             assert v == plain[k], f"{block}.{k}: {v!r} here, {plain[k]!r} in the YAML"

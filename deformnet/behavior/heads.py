@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from deformnet.behavior.encoder import WindowEncoder
+from deformnet.behavior.settings import HeadSettings
 from deformnet.checkpoint import plain_kwargs
 
 __all__ = [
@@ -196,22 +197,19 @@ def build_head(
     config or a non-plain value."""
     where = f"{source}: head" if source else "head"
     cfg = plain_kwargs(config, where)
-    name = str(cfg.pop("name", "linear"))
-    if name not in HEADS:
-        raise ValueError(f"{where}.name must be one of {sorted(HEADS)}, got '{name[:200]}'")
-    members = cfg.pop("ensemble", 1)
-    if members is None or int(members) < 1:
-        raise ValueError(f"{where}.ensemble must be an integer >= 1, got {members}")
-    if name == "forest" and int(members) != 1:
+    try:  # the head's own keys (typed); the others are its constructor's arguments
+        s = HeadSettings(**{k: cfg.pop(k) for k in ("name", "ensemble") if k in cfg})
+    except ValueError as exc:
+        raise ValueError(f"{source}: {exc}" if source else str(exc)) from None
+    if s.name not in HEADS:
+        raise ValueError(f"{where}.name must be one of {sorted(HEADS)}, got '{s.name[:200]}'")
+    if s.name == "forest" and s.ensemble != 1:
         raise ValueError(f"{where}.ensemble must be 1 for a forest (it is an ensemble: head.trees)")
     try:
-        if int(members) == 1:
-            return HEADS[name](int(in_dim), int(num_classes), **cfg)
-        return EnsembleHead(
-            [HEADS[name](int(in_dim), int(num_classes), **cfg) for _ in range(int(members))]
-        )
+        heads = [HEADS[s.name](int(in_dim), int(num_classes), **cfg) for _ in range(s.ensemble)]
     except TypeError as exc:
-        raise ValueError(f"{where}: cannot build the {name} head: {exc}") from None
+        raise ValueError(f"{where}: cannot build the {s.name} head: {exc}") from None
+    return heads[0] if s.ensemble == 1 else EnsembleHead(heads)
 
 
 def context_offsets(frames: Sequence[int], stride: int = 1) -> tuple[int, ...]:

@@ -18,10 +18,11 @@ from deformnet.behavior.heads import BehaviorClassifier, build_head
 from deformnet.behavior.labels import smooth
 from deformnet.behavior.lockbox import calibration_mechanisms, mechanism_table
 from deformnet.behavior.rates import resample_session, to_track_frames
-from deformnet.behavior.settings import ClassifySettings
+from deformnet.behavior.settings import ClassifySettings, SmoothingSettings
 from deformnet.behavior.tracks import Session
 from deformnet.body import BodyModel
 from deformnet.checkpoint import load_checkpoint
+from deformnet.confutil import checked_fields
 from deformnet.deformation import build_net
 from deformnet.sim import MECHANISMS, SimConfig
 from deformnet.sim.scene import build_scene
@@ -121,7 +122,7 @@ def features_probs(model, bank: SessionBank, batch_size: int = 512) -> tuple[Ten
 def predict_session(
     model,
     session: Session,
-    smoothing: dict,
+    smoothing: SmoothingSettings | Mapping | None,
     rng: Mapping | None = None,
     rates: tuple[float, float] | None = None,
     antialias: bool = True,
@@ -134,6 +135,8 @@ def predict_session(
     the session's own frames (`to_track_frames`: probabilities interpolated, the smoothed
     labels and unfamiliar shares of the nearest resampled frame); to a lower rate low-passed
     first unless `antialias` is false."""
+    if not isinstance(smoothing, SmoothingSettings):  # a mapping (classifier.pt's)
+        smoothing = SmoothingSettings(**checked_fields(SmoothingSettings, smoothing, "smoothing"))
     if rates is not None:
         fps, rate = rates
         low = resample_session(session, fps, rate, antialias)
@@ -148,7 +151,7 @@ def predict_session(
         }
     feats, probs = features_probs(model, SessionBank([session], model.half_window))
     raw = probs.argmax(-1)
-    lab = smooth(probs, int(smoothing.get("median") or 0), int(smoothing.get("min_bout") or 0))
+    lab = smooth(probs, smoothing.median, smoothing.min_bout)
     unfamiliar = None if rng is None else unfamiliar_share(feats, rng)
     return {"probs": probs, "raw": raw, "labels": lab, "unfamiliar": unfamiliar}
 

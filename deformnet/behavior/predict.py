@@ -95,7 +95,7 @@ def predict_track(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         to_plain(cfg.get("aliases")),
     )  # fmt: skip
     T = len(s.fnum)
-    smoothing = dict(to_plain(cfg.smoothing) or {}) or dict(meta.get("smoothing") or {})
+    smoothing = st.smoothing if cfg.get("smoothing") else meta.get("smoothing")
     rng = meta.get("feature_range")
     pr = predict_session(model, s, smoothing, rng, rates, antialias)
     fnum = s.fnum

@@ -6,43 +6,38 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Any
 
-from deformnet.confutil import checked_fields, given_fields, to_plain
+from deformnet.confutil import check_fields, checked_fields, given_fields, to_plain
 
 __all__ = [
-    "ClassifySettings", "ContextSettings", "DataSettings", "MechanismSettings",
-    "PseudoLabelSettings", "SequenceSettings", "UnfamiliarSettings",
+    "ClassifySettings", "ContextSettings", "DataSettings", "HeadSettings", "MechanismSettings",
+    "PseudoLabelSettings", "SequenceSettings", "SmoothingSettings", "UnfamiliarSettings",
 ]  # fmt: skip
-
-
-def _as(v, kind):
-    """v as `kind`: int (a whole number), float, str, bool (only a bool: no other kind takes
-    one) or list (of whole numbers); None where it is not one."""
-    if kind is list:
-        v = [_as(x, int) for x in v] if isinstance(v, (list, tuple)) else [None]
-        return None if None in v else v
-    if isinstance(v, bool) != (kind is bool):
-        return None
-    try:
-        return v if kind is bool else None if kind is int and float(v) != int(v) else kind(v)
-    except (TypeError, ValueError, OverflowError):
-        return None
-
-
-def _check(obj, block: str, **rules) -> None:
-    """The fields of the frozen dataclass `obj` that `rules` names (key=(kind, test, what))
-    coerced to their kind (`_as`) and checked by test(value) (test None: any value of the
-    kind); else a ValueError: ``block.key`` must be `what`."""
-    for key, (kind, test, what) in rules.items():
-        v = _as(getattr(obj, key), kind)
-        if v is None or (test is not None and not test(v)):
-            raise ValueError(f"{block}.{key} must be {what}, got {getattr(obj, key)!r}")
-        object.__setattr__(obj, key, v)
 
 
 @dataclass(frozen=True)
 class ContextSettings:  # ``context``: the head's temporal context (deformnet.behavior.heads)
     frames: list[int] = field(default_factory=lambda: [15, 33, 91])
     stride: int = 1
+
+
+@dataclass(frozen=True)
+class HeadSettings:  # ``head``'s own keys (conf/head/*.yaml; the others: the head's arguments)
+    name: str = "linear"  # one of heads.HEADS
+    ensemble: int = 1  # > 1: an EnsembleHead of that many heads
+
+    def __post_init__(self) -> None:
+        check_fields(self, "head", name=(str, None, "a head's name"),
+                     ensemble=(int, lambda v: v >= 1, "an integer >= 1"))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SmoothingSettings:  # ``smoothing``: of the predicted labels (model.predict_session)
+    median: int = 9
+    min_bout: int = 5
+
+    def __post_init__(self) -> None:
+        off = (int, lambda v: v >= 0, "an integer >= 0 (0: off)")
+        check_fields(self, "smoothing", median=off, min_bout=off)
 
 
 @dataclass(frozen=True)
@@ -62,7 +57,7 @@ class UnfamiliarSettings:  # ``unfamiliar``: when a frame, a recording, is unlik
 
     def __post_init__(self) -> None:
         share = (float, lambda v: 0.0 <= v < 1.0, "in [0, 1)")
-        _check(self, "unfamiliar", frame_share=share, warn_share=share)
+        check_fields(self, "unfamiliar", frame_share=share, warn_share=share)
 
 
 @dataclass(frozen=True)
@@ -89,7 +84,7 @@ class SequenceSettings:  # ``pseudo_labels.sequence``: the cotrain teacher's seq
 
     def __post_init__(self) -> None:
         at_least = lambda low: (int, lambda v: v >= low, f"an integer >= {low}")  # noqa: E731
-        _check(self, "pseudo_labels.sequence", steps=at_least(0), channels=at_least(1),
+        check_fields(self, "pseudo_labels.sequence", steps=at_least(0), channels=at_least(1),
                longest_span=at_least(4), crop=at_least(16), batch=at_least(1),
                seed=(int, None, "an integer"), lr=(float, lambda v: v > 0, "a number > 0"),
                mask_ratio=(float, lambda v: 0.0 < v < 1.0, "in (0, 1)"),
@@ -115,7 +110,7 @@ class PseudoLabelSettings:  # ``pseudo_labels``: the forest head's teacher (beha
 
     def __post_init__(self) -> None:
         share = (float, lambda v: 0.0 < v <= 1.0, "in (0, 1]")
-        _check(self, "pseudo_labels", keep=share, embedding_keep=share,
+        check_fields(self, "pseudo_labels", keep=share, embedding_keep=share,
                teacher=(str, lambda v: v in self.TEACHERS, f"one of {self.TEACHERS}"),
                smooth=(int, lambda v: v >= 1, "an integer >= 1"),
                labelled_weight=(float, lambda v: v > 0, "a number > 0"),
@@ -155,6 +150,7 @@ class ClassifySettings:
     context: ContextSettings = field(default_factory=ContextSettings)
     mechanisms: MechanismSettings = field(default_factory=MechanismSettings)
     unfamiliar: UnfamiliarSettings = field(default_factory=UnfamiliarSettings)
+    smoothing: SmoothingSettings = field(default_factory=SmoothingSettings)
     data: DataSettings = field(default_factory=DataSettings)
     pseudo_labels: PseudoLabelSettings = field(default_factory=PseudoLabelSettings)
     sim: Any = None  # an optional +sim block: the simulator whose lock box positions=sim takes

@@ -12,6 +12,7 @@ confusion.png, ethogram.png into the output folder.
 from __future__ import annotations
 
 import logging
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -309,7 +310,7 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         all_features = context_features(model, bank, torch.arange(len(bank)))
     rng = feature_range(all_features)
 
-    smoothing = dict(to_plain(cfg.smoothing) or {})
+    smoothing = asdict(st.smoothing)
     meta = {
         "net_config": net_cfg,
         "body": body.to_mapping(),
@@ -339,7 +340,7 @@ def train_classifier(cfg: DictConfig, st: ClassifySettings, out: Path) -> dict:
         torch.save(export_classifier(model, meta), tmp)
     # the report on the test sessions (else validation, else training)
     split, sessions = ("test", test) if test else (("val", val) if val else ("train", train))
-    preds = [predict_session(model, s, smoothing, rng) for s in sessions]
+    preds = [predict_session(model, s, st.smoothing, rng) for s in sessions]
     unfamiliar = np.concatenate([p["unfamiliar"] > st.unfamiliar.frame_share for p in preds])
     facts = {
         "smoothing": smoothing,
