@@ -40,7 +40,7 @@ leave-outs of each method's common-subset median relative to rigid's and to inte
 lower error on average); ``self`` is also counted per leave-out (below rigid, below interp).
 
     .venv/bin/python benchmarks/real_loco.py [--sessions hand,fly,mouse_sleap] [--no-anipose]
-        [--no-kalman] [--no-disk]
+        [--no-kalman] [--no-disk] [-o deform.anchors=rays]  # -o: for every tracked method
 
 Last line JSON, also written to runs/benchmarks/real_loco.json.
 """
@@ -145,6 +145,7 @@ def loco(
     adapt: str | None,
     kalman: bool = False,
     disk: float | None = None,
+    overrides: list[str] | None = None,
 ) -> dict:
     """All leave-outs of one session; ``adapt``: deformation=self's max_time (None: skip);
     ``kalman``: the Kalman-smoother peer on the DLT points too; ``disk``: the DISK-style peer's
@@ -199,7 +200,7 @@ def loco(
                     )
                     p = list(dsub.parts)
                 else:
-                    ov = ["body=auto"] + {
+                    ov = ["body=auto", *(overrides or [])] + {
                         "rigid": ["deformation=rigid"],
                         "interp": [],
                         "self": ["deformation=self", f"adapt.max_time={adapt}"],
@@ -251,6 +252,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=200, help="first N frames of each session")
     ap.add_argument("--adapt-seconds", type=int, default=30, help="deformation=self budget")
     ap.add_argument("--no-self", action="store_true")
+    ap.add_argument("-o", "--override", action="append", default=[],
+                    help="an adjust-track setting of every tracked method")  # fmt: skip
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_loco"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "real_loco.json"))
     ap.set_defaults(threads=1)  # one torch thread (`start`)
@@ -267,7 +270,9 @@ def main(argv: list[str] | None = None) -> dict:
             else f"00:00:{args.adapt_seconds // 60:02d}:" + (f"{args.adapt_seconds % 60:02d}")
         )
         disk = None if args.no_disk else float(args.adapt_seconds)
-        results[name] = loco(name, all_specs[name], work, anipose, args.frames, adapt, kalman, disk)
+        results[name] = loco(
+            name, all_specs[name], work, anipose, args.frames, adapt, kalman, disk, args.override
+        )
     cols = ["coverage", "median_px", "p90_px", "common_median_px", "common_p90_px", "seconds"]
     failures = 0
     for name, r in results.items():
