@@ -13,6 +13,7 @@ import torch
 from adjust.io import InputError
 from adjust.lsq.observation import InterpObservation
 from adjust.lsq.smoother import (
+    across_ray_rms,
     matern32_semivariogram,
     matern_lengths,
     ray_information,
@@ -187,3 +188,37 @@ def test_the_anchor_settings_are_checked():
         DeformConfig(anchors="ray")
     with pytest.raises(InputError, match="ray_sd_factor"):
         DeformConfig(ray_sd_factor=0.5)
+
+
+def test_the_smoother_is_used_only_for_the_parts_it_predicts_better():
+    """Per part, the smoother replaces the kriging only where it predicts the left-out views
+    better across their rays (`across_ray_rms`); a part with too few views to tell (here 10,
+    under its 20) keeps the fused kriging."""
+    X, observed, rays, fused, true = _rays_scene()
+    T = X.shape[0]
+    few = np.zeros((T, 1), bool)
+    few[100:110] = True  # part 1: ten single views, no view elsewhere in the gap
+    Xa = np.concatenate([X, X], 1)
+    Fa = np.concatenate([fused, fused], 1)
+    Oa = np.concatenate([observed, observed], 1)
+    ncams = np.where(Oa, 2, 1)
+    ncams[:, 1] = np.where(observed[:, 0], 2, np.where(few[:, 0], 1, 0))
+    K = 2
+    data = torch.tensor(np.where(Oa[..., None], Xa, np.nan))
+    noise = torch.full((T, K), 0.25, dtype=torch.float64)
+    obs = InterpObservation(torch.zeros(K, 3, dtype=torch.float64), data, torch.tensor(Oa), noise)
+    args = (torch.tensor(Fa), torch.full((T, K), 20.0, dtype=torch.float64), torch.tensor(ncams))
+    poses = torch.zeros(T, 6, dtype=torch.float64)
+    as_rays = obs.anchored(*args, None, torch.tensor(np.concatenate([rays, rays], 1)),
+                           torch.full((T, K), 0.25, dtype=torch.float64))  # fmt: skip
+    as_rays.prepare(poses)
+    as_fused = obs.anchored(*args)
+    as_fused.prepare(poses)
+    assert as_rays.ray_parts.tolist() == [True, False]
+    np.testing.assert_allclose(as_rays._M.numpy()[:, 1], as_fused._M.numpy()[:, 1])
+    assert np.abs(as_rays._M.numpy()[:, 0] - as_fused._M.numpy()[:, 0]).max() > 1.0
+    r = np.zeros((4, 2, 3))
+    r[..., 0] = 1.0  # rays along x: only y and z count
+    resid = np.tile(np.array([5.0, 3.0, 4.0]), (4, 2, 1))
+    np.testing.assert_allclose(across_ray_rms(resid, r, np.ones((4, 2), bool), 4), [5.0, 5.0])
+    assert np.isnan(across_ray_rms(resid, r, np.ones((4, 2), bool), 5)).all()

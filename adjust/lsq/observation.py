@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from adjust.lsq.geometry import rigid_points, so3_exp
-from adjust.lsq.smoother import ray_information, smooth_offsets
+from adjust.lsq.smoother import across_ray_rms, ray_information, smooth_offsets
 from adjust.lsq.stochastic import OffsetCovariance, krige_between, krige_offsets
 from deformnet.so3 import skew
 
@@ -183,6 +183,7 @@ class InterpObservation:
         # is its camera's ray (`anchored`), the offsets smoothed (`adjust.lsq.smoother`)
         self.rays = None
         self.ray_var = None
+        self.ray_parts = None  # (K,) bool after `prepare`: the parts the smoother predicts
         # how the gaps' reported uncertainty is calibrated (`anchored`'s ``gap_sigma``: an
         # object with ``held_out(good, anchors)`` -> the previous and next observation (T, K)
         # each anchor is predicted from when it is held out, or None; e.g.
@@ -254,21 +255,28 @@ class InterpObservation:
             self._held = torch.as_tensor(anchor & good, device=poses.device)
         else:
             self._M_held = self._var_held = self._held = None
+        smooth = None
         if self.rays is not None and anchor is not None:
             # the smoother where no 3D observation is; a 3D-observed frame keeps the kriging
             # from its neighbours (the prior its own detections are fused with, calibrated).
             # The smoother's covariance is scaled up to at least the kriging's variance (its
             # trace): its depth along a ray rests on rays of other frames crossing, and is
             # overconfident there (real motion, validation: 1.3-3x), which no view can check
-            ps, vs = self._smoothed(o, good, anchor, Rn)
+            u = np.einsum("tji,tkj->tki", Rn, self.rays.cpu().numpy().astype(np.float64))
+            ps, vs = self._smoothed(o, good, anchor, u)
             tr = np.trace(vs, axis1=-2, axis2=-1)
             vs = vs * np.maximum(1.0, var.sum(-1) / np.maximum(tr, 1e-12))[..., None, None]
-            three = (good & ~anchor)[..., None]
-            pred = np.where(three, pred, ps)
-            var = np.where(three[..., None], var[..., None] * np.eye(3), vs)
-        elif anchor is not None:  # an anchor's prior is no surer than the anchor itself (its
+            # per part, the smoother only where it predicts the left-out views better across
+            # their rays than the kriging does (label-free; NaN: too few views to tell)
+            one = good & anchor
+            self.ray_parts = across_ray_rms(o - ps, u, one) <= across_ray_rms(o - pred, u, one)
+            smooth = ~(good & ~anchor) & self.ray_parts[None, :]
+        if anchor is not None:  # an anchor's prior is no surer than the anchor itself (its
             # neighbours' single views were fused with the same first-pass prediction)
             var = np.where(anchor[..., None], np.maximum(var, av[..., None]), var)
+        if smooth is not None:
+            pred = np.where(smooth[..., None], ps, pred)
+            var = np.where(smooth[..., None, None], vs, var[..., None] * np.eye(3))
         dt = poses.dtype
         # the neighbours' prediction, also where the rigid point replaces it (diagnostics)
         self.neighbours = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
@@ -281,19 +289,18 @@ class InterpObservation:
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
 
-    def _smoothed(self, o, good, anchor, Rn) -> tuple:
+    def _smoothed(self, o, good, anchor, u) -> tuple:
         """The offsets' prediction (T, K, 3) and covariance (T, K, 3, 3) in body axes from every
         other frame (`adjust.lsq.smoother.smooth_offsets`): the 3D observations with the
-        nugget, the anchors as their camera's ray."""
+        nugget, the anchors as their camera's ray (u (T, K, 3): in body axes)."""
         T, K = good.shape
         J = np.zeros((T, K, 3, 3))
         three = good & ~anchor
         nug = np.maximum(self.cov.nugget, 1e-6)  # (K, 3)
         J[three] = np.eye(3) / np.broadcast_to(nug[None], (T, K, 3))[three][:, None, :]
         one = good & anchor
-        u = np.einsum("tji,tkj->tki", Rn, self.rays.cpu().numpy().astype(np.float64))[one]
         rv = self.ray_var.cpu().numpy().astype(np.float64)[one]
-        J[one] = ray_information(u, rv)
+        J[one] = ray_information(u[one], rv)
         return smooth_offsets(o, J, self.cov)
 
     def anchored(

@@ -186,3 +186,14 @@ def view_rays(
     depth = np.einsum("tkj,tkj->tk", R[cam][..., 2, :], X) + t[cam][..., 2]
     sd = sd_factor * sigma_px[cam] * np.maximum(depth, 1.0) / focal[cam]
     return one, rays, np.where(one, sd * sd, 1.0)
+
+
+def across_ray_rms(resid: np.ndarray, rays: np.ndarray, mask: np.ndarray, min_count: int = 20):
+    """(K,) per part, the rms across its ray of resid (T, K, 3) over the part-frames of mask
+    (T, K) (rays (T, K, 3), any length): how far a prediction left a view's ray where that
+    view was left out of it (NaN with fewer than min_count part-frames)."""
+    u = rays / np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-12)
+    d = resid - (resid * u).sum(-1, keepdims=True) * u
+    d2 = np.where(mask, (d * d).sum(-1), 0.0)
+    n = mask.sum(0)
+    return np.where(n >= min_count, np.sqrt(d2.sum(0) / np.maximum(n, 1)), np.nan)
