@@ -133,13 +133,19 @@ RECIPE = FitConfig(
 UNKEYED = ("input.calibration", "input.detections", "output.dir", "progress", "threads")
 
 
+#: the recipe's tracking beside adjust-track's defaults: the shipped net was trained on interp's
+#: tracks with the single views at their fused points (``deform.anchors=rays``, the default
+#: since stop 49, came after it), so `make pretrained` still rebuilds the shipped file
+RECIPE_TRACK = ("deform.anchors=fused",)
+
+
 def track_config(scene: Path, out: Path, overrides=()) -> DictConfig:
-    """``adjust-track``'s configuration for a scene folder: its defaults (with `overrides`),
-    one thread."""
+    """``adjust-track``'s configuration for a scene folder: its defaults with `RECIPE_TRACK`
+    (and `overrides`), one thread."""
     return compose("track", [
         f"input.calibration={scene / 'calibration.toml'}",
         f"input.detections={scene / 'detections'}",
-        f"output.dir={out}", "progress=false", "threads=1", *overrides,
+        f"output.dir={out}", "progress=false", "threads=1", *RECIPE_TRACK, *overrides,
     ])  # fmt: skip
 
 
@@ -164,7 +170,7 @@ def track_key(scene: Path, overrides=()) -> str:
 
 
 def track_scene(scene: Path, out: Path) -> Path:
-    """``adjust-track`` with its defaults on a scene folder (through its ``run(cfg)``);
+    """``adjust-track`` (`track_config`) on a scene folder (through its ``run(cfg)``);
     returns its tokens.npz (cached: kept if it is there; `scene_tokens` keys `out` by
     `track_key`)."""
 

@@ -162,7 +162,7 @@ class DeformConfig:
     max_iterations: int | None = 10
     require_better: str = "auto"
     single_views: bool = True
-    anchors: str = "fused"
+    anchors: str = "rays"
     ray_sd_factor: float = 6.0
     gap_sigma: str = "solver"
 
@@ -180,6 +180,11 @@ class DeformConfig:
         if self.gap_sigma not in GAP_SIGMAS:
             raise InputError(
                 f"deform.gap_sigma must be one of {', '.join(GAP_SIGMAS)}, got {self.gap_sigma!r}"
+            )
+        if self.gap_sigma != "solver" and self.anchors != "fused":
+            raise InputError(
+                f"deform.gap_sigma={self.gap_sigma} re-measures the fused kriging's gaps: "
+                "use it with deform.anchors=fused"
             )
         if self.step is not None and int(self.step) < 1:
             raise InputError(f"deform.step must be an integer >= 1, got {self.step}")

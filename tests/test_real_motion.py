@@ -184,7 +184,8 @@ def test_gap_sigma_changes_the_reported_sigma_of_the_gaps_only(scenes, tmp_path)
     res = {}
     for name in ("solver", "leave_runs_out"):
         out = tmp_path / name
-        _run(scene / "calibration.toml", scene / "detections", out, [f"deform.gap_sigma={name}"])
+        ov = [f"deform.gap_sigma={name}", "deform.anchors=fused"]  # gap_sigma: fused's option
+        _run(scene / "calibration.toml", scene / "detections", out, ov)
         res[name] = read_points3d(out / "points3d.csv")
     a, b = res["solver"], res["leave_runs_out"]
     assert np.array_equal(a["points"], b["points"], equal_nan=True)

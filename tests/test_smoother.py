@@ -183,11 +183,14 @@ def test_anchored_with_rays_uses_the_smoother():
 
 
 def test_the_anchor_settings_are_checked():
-    assert DeformConfig().anchors == "fused"
+    assert DeformConfig().anchors == "rays"
     with pytest.raises(InputError, match="deform.anchors"):
         DeformConfig(anchors="ray")
     with pytest.raises(InputError, match="ray_sd_factor"):
         DeformConfig(ray_sd_factor=0.5)
+    with pytest.raises(InputError, match="with deform.anchors=fused"):
+        DeformConfig(gap_sigma="leave_runs_out")
+    assert DeformConfig(gap_sigma="anchors_out", anchors="fused").gap_sigma == "anchors_out"
 
 
 def test_the_smoother_is_used_only_for_the_parts_it_predicts_better():

@@ -153,7 +153,9 @@ class NetMode(DeformationMode):
         init = None if res is None else res.poses
         if a.cons is not None:  # the net starts from the interp poses
             t1 = time.perf_counter()
-            res, interp_obs, interp_extra = a.interp_solve(a.solver_cfg, init)
+            # the single views as fused points (``deform.anchors=fused``): the nets' checks
+            # (`adjust.net_gate`) compare with that kriging, so a refused net falls back to it
+            res, interp_obs, interp_extra = a.interp_solve(a.solver_cfg, init, anchors="fused")
             init = res.poses
             a.timings["interp_s"] = time.perf_counter() - t1
         if self.decision is None:
