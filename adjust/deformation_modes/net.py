@@ -153,9 +153,7 @@ class NetMode(DeformationMode):
         init = None if res is None else res.poses
         if a.cons is not None:  # the net starts from the interp poses
             t1 = time.perf_counter()
-            # the single views as fused points (``deform.anchors=fused``): the nets' checks
-            # (`adjust.net_gate`) compare with that kriging
-            res, interp_obs, interp_extra = a.interp_solve(a.solver_cfg, init, anchors="fused")
+            res, interp_obs, interp_extra = a.interp_solve(a.solver_cfg, init)
             init = res.poses
             a.timings["interp_s"] = time.perf_counter() - t1
         if self.decision is None:
@@ -163,9 +161,6 @@ class NetMode(DeformationMode):
         d = self.decision
         model, net_facts, net_parts = d.model, d.net_facts, d.net_parts
         heldout, reason, up_deg = d.heldout, d.reason, d.up_deg
-        if model is None and a.rigid is not None and a.deform.anchors != "fused":
-            # a refused net's tracks are deformation=interp's (its single views as rays)
-            res, interp_obs, interp_extra = a.interp_solve(a.deform_solver_cfg, a.rigid.poses)
         observation, def_facts, dcfg = None, {}, a.solver_cfg
         if model is not None:
             observation, def_facts = make_deformable_observation(
