@@ -182,14 +182,16 @@ def measure_memory(T: int, threads: int, dtype: str = "float32") -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def run_deformable(T: int, checkpoint: str | None, threads: int, work: Path) -> dict:
+def run_deformable(
+    T: int, checkpoint: str | None, threads: int, work: Path, overrides: list[str] = ()
+) -> dict:
     """Time adjust-track rigid, interp (the default) and deformable on a simulated T-frame
     scene (see module doc)."""
     import tracking  # benchmarks/tracking.py: scene, training and adjust-track helpers
 
     scene = tracking.ensure_scene(work / f"scene_{T}", T, tracking.SCENE_SEED)
     deformation = f"deformation={checkpoint}" if checkpoint else "deformation=default"
-    extra = [f"threads={threads}"] if threads else []
+    extra = ([f"threads={threads}"] if threads else []) + list(overrides)
     truth = np.load(scene / "truth.npz")["points"]
     row: dict = {"frames": T, "checkpoint": str(checkpoint or "default (shipped)")}
     for name, overrides in (
@@ -249,6 +251,8 @@ def main(argv: list[str] | None = None) -> dict:
         "--checkpoint", default=None, help="deformation checkpoint (else: the shipped net)"
     )
     ap.add_argument("--work", default=str(CONF_DIR.parent / "runs" / "benchmarks" / "scaling"))
+    ap.add_argument("-o", "--override", action="append", default=[],
+                    help="an adjust-track setting of the --deformable-frames runs")  # fmt: skip
     args = ap.parse_args(argv)
     if args.memory_child is not None:  # one memory measurement, in its own process
         print(json.dumps(memory_one(args.memory_child, args.threads, args.memory_dtype)))
@@ -291,7 +295,7 @@ def main(argv: list[str] | None = None) -> dict:
     deformable = None
     if args.deformable_frames > 0:
         deformable = run_deformable(
-            args.deformable_frames, args.checkpoint, args.threads, Path(args.work)
+            args.deformable_frames, args.checkpoint, args.threads, Path(args.work), args.override
         )
     summary = {
         "benchmark": "scaling",
