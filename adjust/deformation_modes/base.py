@@ -139,22 +139,19 @@ class Adjusting:
         )
         return rays, var
 
-    def interp_solve(
-        self, cfg, init, anchors: str | None = None
-    ) -> tuple[Any, InterpObservation, dict]:
+    def interp_solve(self, cfg, init) -> tuple[Any, InterpObservation, dict]:
         """``deformation=interp``'s adjustment from the poses ``init`` with the solver settings
         ``cfg``: (the result, its observation, summary facts). With ``deform.single_views``
         it runs twice, the second time with the part-frames one camera saw among the
         observations its gaps are interpolated from (`InterpObservation.anchored`), read as
-        ``anchors`` says (None: ``deform.anchors``), its gaps' reported sigma by
+        ``deform.anchors`` says, its gaps' reported sigma by
         ``deform.gap_sigma`` (`adjust.deformation_modes.gap_sigma`)."""
         obs = self.interp_observation()
         res = self.solve(cfg, obs, init)
         facts = {}
         if self.deform.single_views:
-            anchors = self.deform.anchors if anchors is None else anchors
             views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
-            rays = self.anchor_rays(res) if anchors == "rays" else (None, None)
+            rays = self.anchor_rays(res) if self.deform.anchors == "rays" else (None, None)
             obs = obs.anchored(
                 res.points, res.point_sd, views, gap_sigma(self.deform.gap_sigma), *rays
             )
