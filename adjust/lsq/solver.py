@@ -394,8 +394,13 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: floa
         gap = torch.ones_like(single[..., 0]) if pb.trusted is None else ~pb.trusted.any(-1)
         infl = torch.where(gap, alpha[None, :], torch.ones_like(alpha)[None, :])  # (T, K)
         prior = prior0 * infl[..., None, None]
-        accepted, _ = innovation_gate(lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px)
-        if pb.trusted is not None:  # cameras that agree with each other outvote the prior
+        # cameras that agree with each other outvote the prior: with a consensus, only its
+        # views (two failing views need not agree: a correct one and a far outlier, or two
+        # far outliers, fused, cost tens of mm)
+        accepted, _ = innovation_gate(
+            lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px, agree=pb.trusted
+        )
+        if pb.trusted is not None:
             accepted = accepted | (pb.trusted & pb.valid)
         w_fuse = accepted.to(dt) / cfg.sigma_det_px**2
         pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, 50, pb.W6, pb.Wg, tol=1e-4)
