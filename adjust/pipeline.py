@@ -201,12 +201,13 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
     rigid, rigid_iterations = None, 0
     if mode.rigid_first(tc.deform, cons):
         # the rigid adjustment: the result itself, or the start of a deformable one
-        rigid = solve(solver_cfg, rigid_obs)
+        start_cfg = mode.start_cfg(solver_cfg, tc.deform)
+        rigid = solve(start_cfg, rigid_obs)
         if estimated and rigid_obs is not None:  # the model from the detections themselves
             refined = refine_body(body, fit, rigid.poses, det, weight, cams, cons, rigid_obs)
             if refined is not None:
                 body, rigid_obs, few_var, body_facts["refined"] = refined
-                rigid = solve(solver_cfg, rigid_obs, rigid.poses)
+                rigid = solve(start_cfg, rigid_obs, rigid.poses)
         rigid_iterations = int(rigid.iterations)
         timings["rigid_s"] = time.perf_counter() - t0
     out = output_dir(cfg)

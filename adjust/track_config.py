@@ -34,6 +34,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from adjust.adapt import AdaptConfig
 from adjust.io import InputError
 from adjust.lsq.config import SolverConfig
+from adjust.lsq.robust import KERNELS
 from adjust.settings import InputConfig
 from deformnet.confutil import checked_fields, to_plain
 
@@ -159,6 +160,7 @@ class DeformConfig:
     net_anchors: bool = True
     measured: str = "cv"
     rigid_first: bool = True
+    rigid_robust: str | None = "none"
     max_iterations: int | None = 10
     require_better: str = "auto"
     single_views: bool = True
@@ -174,6 +176,11 @@ class DeformConfig:
         if self.anchors not in ANCHORS:
             raise InputError(
                 f"deform.anchors must be one of {', '.join(ANCHORS)}, got {self.anchors!r}"
+            )
+        if self.rigid_robust is not None and self.rigid_robust not in KERNELS:
+            raise InputError(
+                f"deform.rigid_robust must be null or one of {', '.join(KERNELS)}, "
+                f"got {self.rigid_robust!r}"
             )
         if not float(self.ray_sd_factor) >= 1.0:
             raise InputError(f"deform.ray_sd_factor must be >= 1, got {self.ray_sd_factor}")

@@ -12,6 +12,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from adjust.adapt import AdaptConfig
+from adjust.deformation_modes import mode_from_config
+from adjust.io import InputError
+from adjust.lsq.config import SolverConfig
 from adjust.settings import BatchConfig, InputConfig
 from adjust.track_config import (
     DEPRECATED,
@@ -156,3 +159,16 @@ def test_unknown_and_bad_settings_name_themselves():
         DeformConfig(measured="best")
     with pytest.raises(ValueError, match="body.shape must be one of data, table"):
         TrackConfig.from_config(_cfg(["body.shape=blob"]))
+
+
+def test_the_rigid_start_kernel_is_checked_and_the_rigid_mode_keeps_the_solvers():
+    """``deform.rigid_robust`` names a kernel (or null); the deformable modes start from a
+    rigid adjustment with it, ``deformation=rigid`` (whose rigid adjustment is the result)
+    keeps ``solver.robust``."""
+    with pytest.raises(InputError, match="deform.rigid_robust must be null or one of"):
+        DeformConfig(rigid_robust="tukey")
+    solver = SolverConfig(robust="cauchy")
+    interp, rigid = mode_from_config("interp"), mode_from_config("rigid")
+    assert interp.start_cfg(solver, DeformConfig()).robust == "none"
+    assert interp.start_cfg(solver, DeformConfig(rigid_robust=None)).robust == "cauchy"
+    assert rigid.start_cfg(solver, DeformConfig()).robust == "cauchy"

@@ -181,6 +181,13 @@ class DeformationMode:
         """Whether the rigid adjustment runs before `adjust`."""
         return True
 
+    def start_cfg(self, solver_cfg, deform: DeformConfig):
+        """The solver settings of the rigid adjustment the mode starts from: its robust kernel
+        ``deform.rigid_robust`` (null: the solver's own)."""
+        if deform.rigid_robust is None:
+            return solver_cfg
+        return solver_cfg.replace(robust=deform.rigid_robust)
+
     def adjust(self, a: Adjusting) -> tuple[Any, dict]:
         """(the session's result, summary.json's ``deformation`` block)."""
         raise NotImplementedError
@@ -190,6 +197,9 @@ class RigidMode(DeformationMode):
     """``deformation=rigid``: the rigid adjustment is the result."""
 
     name = "rigid"
+
+    def start_cfg(self, solver_cfg, deform: DeformConfig):
+        return solver_cfg  # the rigid adjustment is the result: the solver's own kernel
 
     def adjust(self, a: Adjusting) -> tuple[Any, dict]:
         return a.rigid, {"mode": self.name}
