@@ -1,4 +1,4 @@
-"""Where a detector seed's change of ``adjust-track``'s error comes from (issue 51).
+"""Where a detector seed's change of ``adjust-track``'s error comes from (issue 45).
 
 `real_motion.py`'s stability table re-runs the defaults on another detector seed of the same
 frames; this breaks the difference down, on the scenes and runs `real_motion.py` keeps under

@@ -1,4 +1,4 @@
-"""The fusion's innovation gate: which cameras may outvote a part's prediction (issue 51).
+"""The fusion's innovation gate: which cameras may outvote a part's prediction (issue 45).
 
 Two detections of one part-frame that both fail the gate used to be kept as "cameras that
 agree with each other" without any check that they do: a correct view and a far outlier, or
