@@ -39,18 +39,8 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import real_motion as rm  # noqa: E402
 from common import emit, start  # noqa: E402
-from real_motion import (  # noqa: E402
-    DATA,
-    SEGMENT_FRAMES,
-    SPLITS,
-    Motion,
-    film_scene,
-    read_poses,
-    run_aniposelib,
-    scene_key,
-    track_row,
-)
 
 from adjust.io import load_calibration, read_points3d  # noqa: E402
 from deformnet.tables import read_points3d_table  # noqa: E402
@@ -134,7 +124,7 @@ def seed_facts(scene: Path, run: Path, ani: np.ndarray) -> dict:
     summ = json.loads((run / "summary.json").read_text())
     df = read_points3d_table(run / "points3d.csv")
     tvec = df[["pose_tx", "pose_ty", "pose_tz"]].to_numpy(float)
-    ang = pose_error(read_poses(run / "points3d.csv"), tvec, est, X)
+    ang = pose_error(rm.read_poses(run / "points3d.csv"), tvec, est, X)
     far = ang > POSE_RAD
     cams = load_calibration(scene / "calibration.toml")
     centers = np.stack([c.center for c in cams])
@@ -203,18 +193,18 @@ def stretches(base: dict, other: dict, size: int, top: int = TOP_BLOCKS) -> list
 # --- main -----------------------------------------------------------------------------------
 
 
-def ensure_runs(args, motion: Motion, start_frame: int, work: Path, seed: int):
+def ensure_runs(args, motion: rm.Motion, start_frame: int, work: Path, seed: int):
     """The scene, the default run folder and aniposelib's points of one seed (made if missing)."""
-    key = scene_key(args.split, start_frame, args.frames, args.cameras, 8, seed)
-    scene = film_scene(
+    key = rm.scene_key(args.split, start_frame, args.frames, args.cameras, 8, seed)
+    scene = rm.film_scene(
         work / "scenes" / key, motion, start_frame, args.frames, args.cameras, 8, seed
     )
     run = work / "runs" / key / "default"
     if not (run / "accepted.npz").exists():
         tr = np.load(scene / "truth.npz")
         threads = [f"threads={args.threads}"] if args.threads else ["threads=null"]
-        track_row(scene, run, threads, tr["points"], tr["nviews"], [str(p) for p in tr["parts"]])
-    ani, _, _ = run_aniposelib(scene, 8, Path(args.data).parent / "skeleton.csv")
+        rm.track_row(scene, run, threads, tr["points"], tr["nviews"], [str(p) for p in tr["parts"]])
+    ani, _, _ = rm.run_aniposelib(scene, 8, Path(args.data).parent / "skeleton.csv")
     return scene, run, ani
 
 
@@ -255,21 +245,21 @@ def print_tables(res: dict, seeds: list[int]) -> None:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--split", choices=sorted(SPLITS), default="val")
+    ap.add_argument("--split", choices=sorted(rm.SPLITS), default="val")
     ap.add_argument("--cameras", type=int, default=3)
     ap.add_argument("--seeds", default="0,100,1,2", help="detector seeds; the first is the base")
-    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES)
+    ap.add_argument("--frames", type=int, default=rm.SEGMENT_FRAMES)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--data", default=str(DATA))
+    ap.add_argument("--data", default=str(rm.DATA))
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_motion"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "seed_stability.json"))
     args = start(ap, argv)
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     if len(seeds) < 2:
         ap.error("--seeds: at least two (the first is the base)")
-    motion = Motion(Path(args.data))
+    motion = rm.Motion(Path(args.data))
     work = Path(args.work) / motion.tag
-    start_frame = SPLITS[args.split]
+    start_frame = rm.SPLITS[args.split]
     facts = {}
     for s in seeds:
         scene, run, ani = ensure_runs(args, motion, start_frame, work, s)
@@ -292,7 +282,7 @@ def main(argv: list[str] | None = None) -> dict:
             "stretches": {str(n): stretches(base, o, n) for n in BLOCKS},
         }
     res = {
-        "scene": scene_key(args.split, start_frame, args.frames, args.cameras, 8, seeds[0]),
+        "scene": rm.scene_key(args.split, start_frame, args.frames, args.cameras, 8, seeds[0]),
         "split": args.split,
         "cameras": args.cameras,
         "seeds": {str(s): {k: v for k, v in f.items() if k != "_"} for s, f in facts.items()},
