@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from adjust.lsq.stochastic import OffsetCovariance
+from adjust.sym3 import sym3_inverse
 
 #: Matern-3/2 lengths (frames) tried by `matern_lengths`: log-spaced, 0.5 .. 2000 frames
 LENGTH_GRID = np.geomspace(0.5, 2000.0, 80)
@@ -86,33 +87,11 @@ def _inv(A: np.ndarray) -> np.ndarray:
 
 
 def _inv3(A: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric positive definite 3 x 3 matrices (..., 3, 3) in closed form (the
-    adjugate over the determinant, elementwise over the batch), with `_inv`'s jitter."""
+    """Inverse of symmetric positive definite 3 x 3 matrices (..., 3, 3), with `_inv`'s jitter,
+    by cofactors (`adjust.sym3.sym3_inverse`: elementwise over the batch)."""
     scale = np.abs(np.diagonal(A, axis1=-2, axis2=-1)).max(-1)[..., None, None]
-    A = A + JITTER * np.maximum(scale, 1e-300) * np.eye(3)
-    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
-    d, e, f = A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
-    adj = np.empty(A.shape)
-    adj[..., 0, 0] = d * f - e * e
-    adj[..., 1, 1] = a * f - c * c
-    adj[..., 2, 2] = a * d - b * b
-    adj[..., 0, 1] = adj[..., 1, 0] = c * e - b * f
-    adj[..., 0, 2] = adj[..., 2, 0] = b * e - c * d
-    adj[..., 1, 2] = adj[..., 2, 1] = b * c - a * e
-    det = a * adj[..., 0, 0] + b * adj[..., 0, 1] + c * adj[..., 0, 2]
-    return adj / det[..., None, None]
-
-
-def _inv3_general(A: np.ndarray) -> np.ndarray:
-    """Inverse of well-conditioned 3 x 3 matrices (..., 3, 3), any, in closed form."""
-    c = np.empty(A.shape)
-    for i in range(3):
-        for j in range(3):
-            r0, r1 = (j + 1) % 3, (j + 2) % 3  # rows and columns of the cofactor, cyclic
-            c0, c1 = (i + 1) % 3, (i + 2) % 3
-            c[..., i, j] = A[..., r0, c0] * A[..., r1, c1] - A[..., r0, c1] * A[..., r1, c0]
-    det = (A[..., 0, :] * c[..., :, 0]).sum(-1)
-    return c / det[..., None, None]
+    A = np.ascontiguousarray(A + JITTER * np.maximum(scale, 1e-300) * np.eye(3))
+    return sym3_inverse(torch.from_numpy(A)).numpy()
 
 
 def _sym(A: np.ndarray) -> np.ndarray:
@@ -205,7 +184,7 @@ def _smoothed_states(F, Q, P0, J, h) -> tuple[np.ndarray, np.ndarray]:
     # the frame's own element: prior P (P0 at the first frame, Q after) times its observation;
     # (I + P Jo)^-1 with Jo on the offsets alone is [[X, 0], [-P21 J X, I]], X = (I + P11 J)^-1
     P = np.concatenate([P0[None], np.broadcast_to(Q, (T - 1, G, 6, 6))])
-    X = _inv3_general(np.eye(3) + P[..., :3, :3] @ J)
+    X = torch.linalg.inv(torch.from_numpy(np.eye(3) + P[..., :3, :3] @ J)).numpy()
     S = np.zeros((T, G, 6, 6))
     S[..., :3, :3] = X
     S[..., 3:, :3] = -P[..., 3:, :3] @ J @ X
