@@ -198,7 +198,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
 
     # (K, 3) the spread of parts placed from their single views (else NaN)
     few_var = None if model is None else model.few_var
-    rigid, rigid_iterations = None, 0
+    rigid, rigid_iterations, start_cfg = None, 0, None
     if mode.rigid_first(tc.deform, cons):
         # the rigid adjustment: the result itself, or the start of a deformable one
         start_cfg = mode.start_cfg(solver_cfg, tc.deform)
@@ -263,6 +263,8 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             "likelihood_threshold": det.threshold,
             "individual": kwargs["individual"],
             "solver": asdict(solver_cfg),
+            # the rigid adjustment's kernel (deform.rigid_robust; null: no rigid adjustment)
+            "rigid_robust": None if start_cfg is None else start_cfg.robust,
         },
         "rigid_iterations": rigid_iterations,  # of the rigid run that started a deformable one
         **result_summary(res, det, cols.error, cols.view_err),

@@ -82,7 +82,8 @@ def test_a_strongly_bent_body_keeps_its_pose(tmp_path):
     well-seen head and give the rear up, 0.9 rad off, a basin the deformable stage kept (those
     frames 10.8 mm RMSE, all 4.98); the defaults' least-squares start stays in the body's."""
     scene = _scene(tmp_path / "scene", 3, seed=100, frames=1000)
-    _track(scene, tmp_path / "out", ["threads=1"])
+    summary, _ = _track(scene, tmp_path / "out", ["threads=1"])
+    assert summary["settings"]["rigid_robust"] == "none"  # summary.json says which start
     tr = np.load(scene / "truth.npz")
     err = np.linalg.norm(read_points3d(tmp_path / "out" / "points3d.csv")["points"]
                          - tr["points"], axis=-1)  # fmt: skip
