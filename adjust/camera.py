@@ -155,6 +155,11 @@ class CameraTensors:
         return projection_matrix(self.K, self.R, self.t)
 
     @property
+    def focal(self) -> Tensor:
+        """(C,) px: each camera's focal length, sqrt(|f_x f_y|)."""
+        return torch.sqrt(self.K[:, 0, 0].abs() * self.K[:, 1, 1].abs())
+
+    @property
     def centers(self) -> Tensor:
         """(C, 3) camera centres in world coordinates, -R^T t."""
         return -(self.R.transpose(-1, -2) @ self.t[..., None]).squeeze(-1)

@@ -269,7 +269,7 @@ def place_from_rays(
             break
     e, z, use, H, _ = normal_equations(B)
     cov_B = torch.linalg.inv(H)  # (P, 3, 3) in body axes
-    focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs()).to(dt)  # (C,)
+    focal = cams.focal.to(dt)  # (C,)
     mm_per_px2 = (z / focal) ** 2  # (T, P, C)
     e2 = (e**2).sum(-1)
     for i, k in enumerate(todo):

@@ -126,12 +126,11 @@ class Adjusting:
         c = self.cams
         sig = np.asarray(self.cons.sigma_det_per_camera, dtype=np.float64)
         sig = np.where(np.isfinite(sig), sig, float(self.cons.sigma_det_px))
-        Km = c.K.cpu().numpy()
         _, rays, var = view_rays(
             np.asarray(res.points, dtype=np.float64),
             np.asarray(res.weights),
             c.centers.cpu().numpy(),
-            0.5 * (Km[:, 0, 0] + Km[:, 1, 1]),
+            c.focal.cpu().numpy(),
             sig,
             c.R.cpu().numpy(),
             c.t.cpu().numpy(),

@@ -287,7 +287,7 @@ def _adjust_poses(
         )
     rho = cfg.rotation_scale_mm if cfg.rotation_scale_mm is not None else default_rho(body)
     grid = make_grid(body, cfg.grid_size) if cfg.constraint == "grid" else None
-    focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs())
+    focal = cams.focal
 
     trusted_t = None if trusted is None else torch.as_tensor(np.asarray(trusted, dtype=bool))
     if trusted_t is not None and trusted_t.shape != (T, K, C):
@@ -458,7 +458,7 @@ def normal_matrix(
     body = body_points.to(dt)
     rho = cfg.rotation_scale_mm if cfg.rotation_scale_mm is not None else default_rho(body)
     grid = make_grid(body, cfg.grid_size) if cfg.constraint == "grid" else None
-    focal = torch.sqrt(cams.K[:, 0, 0].abs() * cams.K[:, 1, 1].abs())
+    focal = cams.focal
     pb = Problem(
         torch.where(valid[..., None], xy, torch.zeros_like(xy)),
         base,
