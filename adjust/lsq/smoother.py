@@ -189,13 +189,11 @@ def _smoothed_states(F, Q, P0, J, h) -> tuple[np.ndarray, np.ndarray]:
     S[..., :3, :3] = X
     S[..., 3:, :3] = -P[..., 3:, :3] @ J @ X
     S[..., 3:, 3:] = I6[3:, 3:]
-    Jo = np.zeros((T, G, 6, 6))
-    Jo[..., :3, :3] = J
     SP = S @ P
     A = S @ F
     A[0] = 0.0
     eta = _mv(Ft @ _t(S[..., :3, :]), h)  # F^T (I + Jo P)^-1 ho, ho = (h, 0)
-    Je = _sym(Ft @ Jo @ A)
+    Je = _sym(Ft[..., :3] @ J @ A[..., :3, :])  # F^T Jo (I + P Jo)^-1 F, Jo on the offsets
     eta[0], Je[0] = 0.0, 0.0
     b = _mv(SP[..., :3], h)
     ident = (I6, np.zeros(6), np.zeros((6, 6)), np.zeros(6), np.zeros((6, 6)))
