@@ -35,6 +35,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -43,6 +44,8 @@ import real_motion as rm  # noqa: E402
 from common import emit, start  # noqa: E402
 
 from adjust.io import load_calibration, read_points3d  # noqa: E402
+from adjust.plot import runs_of  # noqa: E402
+from deformnet.so3 import kabsch  # noqa: E402
 from deformnet.tables import read_points3d_table  # noqa: E402
 
 log = logging.getLogger("benchmarks.seed_stability")
@@ -67,35 +70,15 @@ def mse_split(e2: np.ndarray, nviews: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def kabsch_rotations(shape: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations R_t minimising |R_t (shape - mean) - (X_t - mean_t)|: shape (K, 3),
-    X (T, K, 3) (all finite)."""
-    S = shape - shape.mean(0)
-    Xc = X - X.mean(1, keepdims=True)
-    U, _, Vt = np.linalg.svd(np.einsum("ki,tkj->tij", S, Xc))
-    d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
-    D = np.ones((len(X), 3))
-    D[:, 2] = d
-    return np.einsum("tji,tj,tkj->tik", Vt, D, U)
-
-
 def pose_error(rotvec: np.ndarray, trans: np.ndarray, est: np.ndarray, truth: np.ndarray):
     """(T,) angle (rad) between the tracked orientations (rotation vectors (T, 3), translations
     (T, 3), points est (T, K, 3)) and the truth's: the tracked points' median body-frame shape
     Kabsch-fitted to the true points (T, K, 3) of each frame."""
     R = Rotation.from_rotvec(rotvec).as_matrix()
     body = np.einsum("tji,tkj->tki", R, est - trans[:, None])
-    Rt = kabsch_rotations(np.median(body, 0), truth)
+    Rt, _ = kabsch(torch.as_tensor(truth), torch.as_tensor(np.median(body, 0)))
+    Rt = Rt.numpy()
     return Rotation.from_matrix(np.einsum("tji,tjk->tik", Rt, R)).magnitude()
-
-
-def runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
-    """The runs of True in a (T,) bool: [(first, last)]."""
-    idx = np.flatnonzero(mask)
-    if not idx.size:
-        return []
-    cuts = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
-    return [(int(c[0]), int(c[-1])) for c in cuts]
 
 
 def along_across(err: np.ndarray, points: np.ndarray, centers: np.ndarray, view: np.ndarray):
@@ -146,7 +129,7 @@ def seed_facts(scene: Path, run: Path, ani: np.ndarray) -> dict:
         "pose_excursion_mse": float(e2[far].sum() / n),
         "pose_excursion_runs": [
             [a, b, round(float(ang[a : b + 1].max()), 3), round(float(e2[a : b + 1].sum() / n), 3)]
-            for a, b in runs_of(far)
+            for a, b in ((a, stop - 1) for a, stop in runs_of(far))
         ],
         "single_view_part_frames": int(one.sum()),
         "single_view_mse_along_ray": float(al.sum() / n),
