@@ -56,7 +56,7 @@ import numpy as np
 import torch
 
 from deformnet.atomic import write_text
-from deformnet.paths import CONF_DIR
+from deformnet.paths import CONF_DIR, real_mouse_motion_dir
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -67,7 +67,7 @@ GAPS = (1, 5, 15)
 TEST_SEED = 90_000  # held out: training uses seed + i and seed + 10_000 + i
 
 #: --real: the recording, its split (fixed before any choice: the last third held out) and gaps
-REAL_DATA = CONF_DIR.parent.parent / "shared" / "data" / "real-mouse-motion-3d" / "poses3d.csv"
+REAL_DATA = real_mouse_motion_dir() / "poses3d.csv"  # $MOUSETRACK_SHARED or ../shared
 REAL_TRAIN = (0, 2400)
 REAL_HELD_OUT = (2400, 3600)
 REAL_GAPS = (1, 5, 15, 45)

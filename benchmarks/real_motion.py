@@ -103,13 +103,13 @@ from adjust.scene.motion import (  # noqa: E402
 from deformnet.atomic import atomic_path  # noqa: E402
 from deformnet.body import default_mouse  # noqa: E402
 from deformnet.confutil import compose  # noqa: E402
-from deformnet.paths import CONF_DIR  # noqa: E402
+from deformnet.paths import CONF_DIR, real_mouse_motion_dir  # noqa: E402
 from deformnet.tables import read_points3d_table  # noqa: E402
 
 log = logging.getLogger("benchmarks.real_motion")
 
 ROOT = CONF_DIR.parent
-DATA = CONF_DIR.parent.parent / "shared" / "data" / "real-mouse-motion-3d" / "poses3d.csv"
+DATA = real_mouse_motion_dir() / "poses3d.csv"  # $MOUSETRACK_SHARED or ../shared
 
 #: the split, fixed before any choice: segment start frames (1000 frames each)
 SPLITS = {"val": 1200, "test": 2400}

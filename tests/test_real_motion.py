@@ -213,3 +213,15 @@ def test_gap_sigma_changes_the_reported_sigma_of_the_gaps_only(scenes, tmp_path)
     changed = ~np.isclose(sa, sb, rtol=1e-6)
     assert changed[nviews < 2].sum() > 50, changed.sum()
     assert (sb[changed] > sa[changed]).mean() > 0.9
+
+
+def test_a_recording_that_is_missing_or_incomplete_is_named(tmp_path):
+    """`load_motion`: a missing file and one without complete {part}_x,_y,_z columns are errors
+    that name the file, not a pandas traceback or an empty track."""
+    missing = tmp_path / "nothere.csv"
+    with pytest.raises(FileNotFoundError, match="nothere.csv: no such recording"):
+        load_motion(missing)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("frame,nose_x,nose_y\n0,1,2\n")
+    with pytest.raises(ValueError, match="bad.csv: no complete"):
+        load_motion(bad)

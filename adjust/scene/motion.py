@@ -78,9 +78,12 @@ RIG_CAMERAS = {
 
 def load_motion(path: str | Path) -> tuple[np.ndarray, tuple[str, ...]]:
     """A recorded 3D track: a CSV of ``{part}_x,_y,_z`` columns (mm), one row per frame (other
-    columns, e.g. ``frame``, ignored). Returns points (T, K, 3) and the part names. A part with
-    a missing coordinate column, or a file with no part, is a ValueError naming the file."""
+    columns, e.g. ``frame``, ignored). Returns points (T, K, 3) and the part names. A missing
+    file is a FileNotFoundError, a part with a missing coordinate column or a file with no part
+    a ValueError, each naming the file."""
     p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: no such recording (a CSV of {{part}}_x,_y,_z columns)")
     df = pd.read_csv(p)
     parts = [c[:-2] for c in df.columns if c.endswith("_x")]
     missing = [q for q in parts if f"{q}_y" not in df or f"{q}_z" not in df]
