@@ -59,7 +59,7 @@ change between them, the part of a seed's change that is the data's).
         [--cameras 2,3,4] [--parts 8,22,34] [--seeds 0,1] \\
         [--methods dlt,aniposelib,default,rigid[,self,net]] [--adapt-minutes 3] \\
         [--no-stability] [--no-peer-stability] [--threads 1] [--data poses3d.csv] \\
-        [--work DIR] [--out FILE]
+        [--work DIR] [--out FILE] [-o deform.max_iterations=20 ...]
 
 Prints the tables; the last line is JSON, also written to runs/benchmarks/real_motion.json.
 """
@@ -389,6 +389,7 @@ def run_scene(
     truth, nviews = tr["points"], tr["nviews"]
     parts = [str(p) for p in tr["parts"]]
     threads = [f"threads={args.threads}"] if args.threads else ["threads=null"]
+    threads += args.override  # every adjust-track run of the table
     rows: dict[str, dict] = {}
     for m in methods:
         label = f"{scene.name} {m}"
@@ -545,6 +546,7 @@ def calibrated_parts(per_part: dict) -> dict:
 def stability(args, motion: Motion, start: int, work: Path, base_rows: dict) -> dict:
     """``default`` under small perturbations on the 3- and 2-camera 8-part scenes (seed 0)."""
     threads = [f"threads={args.threads}"] if args.threads else ["threads=null"]
+    threads += args.override  # every adjust-track run of the table
     drop = f"drop {100 * DROP_FRACTION:g}%"
     other = f"seed {OTHER_DETECTOR_SEED}"
     # name: (scene: base | drop | other, overrides)
@@ -788,6 +790,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "real_motion"),
                     help="scenes and runs, in a folder named by the data file's hash")  # fmt: skip
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "real_motion.json"))
+    ap.add_argument("-o", "--override", action="append", default=[],
+                    help="an adjust-track setting of every tracker run (repeat; with its own "
+                    "--work: the runs' folders do not name it)")  # fmt: skip
     args = start(ap, argv)
     if not 1 <= args.frames <= SEGMENT_FRAMES:
         ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
@@ -884,6 +889,7 @@ def main(argv: list[str] | None = None) -> dict:
         "checks": checks,
         "adapt_minutes": args.adapt_minutes,
         "threads": args.threads,
+        "overrides": args.override,
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
     return emit(summary, args.out)

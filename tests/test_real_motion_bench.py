@@ -31,7 +31,7 @@ def test_tiny_run(tmp_path, one_thread):
     rm.main(
         ["--frames", "150", "--cameras", "3", "--parts", "8", "--seeds", "0",
          "--methods", "dlt,rigid", "--no-stability", "--work", str(tmp_path / "work"),
-         "--out", str(out)]
+         "--out", str(out), "-o", "body_fit.scale_factor=1.05"]
     )  # fmt: skip
     res = json.loads(out.read_text())
     assert res["split"] == "test" and res["frames"] == [2400, 2550]
@@ -45,6 +45,8 @@ def test_tiny_run(tmp_path, one_thread):
     assert rows["dlt"]["completeness"] < 1.0
     assert rows["rigid"]["completeness"] == 1.0
     assert rows["rigid"]["diverged"] is False
+    assert res["overrides"] == ["body_fit.scale_factor=1.05"]  # -o: every tracker run's
+    assert rows["rigid"]["scale_factor"] == 1.05
     per = rows["rigid"]["calib_per_part"]  # the calibration part by part
     assert list(per) == list(MOTION_PAPER8)
     seen = [d["seen"] for d in per.values() if d["seen"] is not None]
