@@ -123,6 +123,9 @@ def test_sample_weights_balance_classes_and_favour_labels():
     assert w[2:][y[2:] == 0].sum() == pytest.approx(3 * per[0])
     with pytest.raises(ValueError, match="labelled_weight must be > 0"):
         pseudo_sample_weights(y, 2, 3, 0.0)
+    # loss.class_weights=none: every pseudo-label weighs 1 (the teacher's class frequencies)
+    w = pseudo_sample_weights(y, 2, 3, labelled_weight=5.0, balanced=False)
+    np.testing.assert_allclose(w, [5.0, 5.0, 1, 1, 1, 1])
 
 
 def few_label_toy(tmp_path) -> tuple[list[str], list]:
@@ -233,6 +236,28 @@ def test_linear_teacher_in_deformnet_classify(tmp_path):
     with pytest.raises(ValueError, match="pseudo_labels.unlabelled must be true or false"):
         run(_compose([*base, *forest, "pseudo_labels.unlabelled=3",
                       f"output.dir={tmp_path / 'x'}"]))  # fmt: skip
+
+
+def test_class_weights_reach_the_self_trained_forest(tmp_path, monkeypatch):
+    """loss.class_weights is the student forest's too: balanced, its pseudo-labels weigh
+    inversely to their class's count; none, each weighs 1 (the teacher's class frequencies, an
+    estimate of the recordings', are kept; the labelled frames are a person's pick per class)."""
+    import deformnet.behavior.fit as fit
+    from deformnet.behavior.predict import run
+
+    seen, real = [], fit.pseudo_sample_weights
+
+    def spy(*args, **kwargs):
+        w = real(*args, **kwargs)
+        seen.append(bool(np.ptp(w[args[1] :]) > 0))  # pseudo-labels weighed unequally
+        return w
+
+    monkeypatch.setattr(fit, "pseudo_sample_weights", spy)
+    base, _ = few_label_toy(tmp_path)
+    forest = ["head=forest", "head.trees=10", "freeze=true", "pseudo_labels.teacher=linear"]
+    for cw in ("balanced", "none"):
+        run(_compose([*base, *forest, f"loss.class_weights={cw}", f"output.dir={tmp_path / cw}"]))
+    assert seen == [True, False]
 
 
 def _subtle_session(tmp_path, name: str, seed: int, T: int = 600, shift: float = 0.55):

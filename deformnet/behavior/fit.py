@@ -142,15 +142,15 @@ def self_train_forest(
     model, bank: SessionBank, lengths: Sequence[int], idx: np.ndarray, features: Tensor,
     settings: PseudoLabelSettings, probs: np.ndarray | Sequence[np.ndarray],
     all_features: Tensor | None = None,
-    unlabelled: Sequence[Tensor] = (),
+    unlabelled: Sequence[Tensor] = (), balanced: bool = True,
 ) -> tuple[dict, Tensor]:  # fmt: skip
     """Self-training of a fitted forest head: a teacher's class probabilities ``probs``
     (len(bank) + M, C) of every training frame of ``bank`` (sessions of ``lengths`` frames) and
     of the M frames of ``unlabelled`` (the features (T_u, D) of sessions nobody labelled,
     `data.unlabelled_tracks`, after the training frames); the class-balanced pseudo-labels of
-    the frames without a label (`class_balanced_pseudo_labels`) join the
-    labelled frames ``idx`` (their features ``features`` (N, D)) and the forest is fitted again
-    on both, weighted per frame (`pseudo_sample_weights`). ``all_features``: every training
+    the frames without a label (`class_balanced_pseudo_labels`) join the labelled frames ``idx``
+    (their features ``features`` (N, D)) and the forest is fitted again on both, weighted per
+    frame (`pseudo_sample_weights`, class-``balanced`` or not). ``all_features``: every training
     frame's features (len(bank), D), computed when not given. ``probs`` a list of two
     (`pseudo_labels.teacher=cotrain`: the frame features' teacher's, the embedding's):
     co-training (`co_training_pseudo_labels`, shares settings.keep and
@@ -179,7 +179,7 @@ def self_train_forest(
     if rows.size == 0:  # every frame is labelled: nothing to teach
         return facts, all_features
     y = np.concatenate([labels[idx], pseudo])
-    sw = pseudo_sample_weights(y, len(idx), C, settings.labelled_weight)
+    sw = pseudo_sample_weights(y, len(idx), C, settings.labelled_weight, balanced)
     x = torch.cat([features, pool[torch.as_tensor(rows)]])
     facts["forest"] = fit_head_forest(model, x, torch.as_tensor(y), sample_weight=sw)
     return facts, all_features
@@ -212,7 +212,8 @@ def teach_forest(
     else:  # linear
         frame = torch.cat([all_features, *taught])[:, model.frame_columns()].double().numpy()
         tprobs = linear_teacher_probs(frame, idx, ylab, C, weights, pseudo.bins)
-    facts, all_features = self_train_forest(
-        model, bank, lengths, idx, features, pseudo, tprobs, all_features, taught
-    )
+    facts, all_features = self_train_forest(  # weights None: loss.class_weights=none
+        model, bank, lengths, idx, features, pseudo, tprobs, all_features, taught,
+        balanced=weights is not None,
+    )  # fmt: skip
     return facts | tfacts, all_features

@@ -82,17 +82,18 @@ def class_balanced_pseudo_labels(
 
 
 def pseudo_sample_weights(labels: np.ndarray, labelled: int, num_classes: int,
-                          labelled_weight: float) -> np.ndarray:  # fmt: skip
+                          labelled_weight: float, balanced: bool = True) -> np.ndarray:  # fmt: skip
     """Sample weights (M,) of a student's training rows: ``labels`` (M,) of the labelled rows
     (the first ``labelled``) and the pseudo-labelled ones after them; each class weighted
-    total / (C count) over both (balanced), a labelled row ``labelled_weight`` times more."""
+    total / (C count) over both if ``balanced`` (`loss.class_weights=balanced`), else 1 (the
+    teacher's class frequencies kept), a labelled row ``labelled_weight`` times more."""
     y = np.asarray(labels, dtype=np.int64)
     if not 0 <= int(labelled) <= y.size:
         raise ValueError(f"labelled must be in [0, {y.size}], got {labelled}")
     if float(labelled_weight) <= 0:
         raise ValueError(f"pseudo_labels.labelled_weight must be > 0, got {labelled_weight}")
     counts = np.bincount(y, minlength=num_classes)
-    w = (counts.sum() / np.maximum(num_classes * counts, 1))[y]
+    w = (counts.sum() / np.maximum(num_classes * counts, 1))[y] if balanced else np.ones(y.size)
     w[: int(labelled)] *= float(labelled_weight)
     return w
 
