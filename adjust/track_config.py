@@ -166,6 +166,7 @@ class DeformConfig:
     single_views: bool = True
     anchors: str = "rays"
     ray_sd_factor: float = 6.0
+    ray_disagreement: float = 1.0
     gap_sigma: str = "solver"
 
     def __post_init__(self) -> None:
@@ -184,6 +185,8 @@ class DeformConfig:
             )
         if not float(self.ray_sd_factor) >= 1.0:
             raise InputError(f"deform.ray_sd_factor must be >= 1, got {self.ray_sd_factor}")
+        if not float(self.ray_disagreement) >= 0.0:
+            raise InputError(f"deform.ray_disagreement must be >= 0, got {self.ray_disagreement}")
         if self.gap_sigma not in GAP_SIGMAS:
             raise InputError(
                 f"deform.gap_sigma must be one of {', '.join(GAP_SIGMAS)}, got {self.gap_sigma!r}"

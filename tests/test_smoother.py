@@ -227,3 +227,37 @@ def test_the_smoother_is_used_only_for_the_parts_it_predicts_better():
     resid = np.tile(np.array([5.0, 3.0, 4.0]), (4, 2, 1))
     np.testing.assert_allclose(across_ray_rms(resid, r, np.ones((4, 2), bool), 4), [5.0, 5.0])
     assert np.isnan(across_ray_rms(resid, r, np.ones((4, 2), bool), 5)).all()
+
+
+def test_the_smoothed_gaps_covariance_counts_the_two_predictions_disagreement():
+    """With ``disagreement`` w, a smoothed part-frame's prior covariance is the smoother's own
+    plus w d d^T, d the smoother's prediction minus the kriging's (where the kriging keeps the
+    first pass's depth along the rays, the two disagree along them); 3D-observed frames keep
+    the kriging's covariance unchanged."""
+    X, observed, rays, fused, true = _rays_scene()
+    T, K = observed.shape
+    data = torch.tensor(np.where(observed[..., None], X, np.nan))
+    noise = torch.full((T, K), 0.25, dtype=torch.float64)
+    obs = InterpObservation(torch.zeros(K, 3, dtype=torch.float64), data, torch.tensor(observed),
+                            noise)  # fmt: skip
+    args = (torch.tensor(fused), torch.full((T, K), 20.0, dtype=torch.float64),
+            torch.tensor(np.where(observed, 2, 1)))  # fmt: skip
+    ray_args = (None, torch.tensor(rays), torch.full((T, K), 0.25, dtype=torch.float64))
+    poses = torch.zeros(T, 6, dtype=torch.float64)
+    out = {}
+    for w in (0.0, 1.0):
+        o = obs.anchored(*args, *ray_args, disagreement=w)
+        o.prepare(poses)
+        assert o.ray_parts.tolist() == [True]
+        out[w] = (o._M.numpy()[:, 0], o._var.numpy()[:, 0])
+    np.testing.assert_array_equal(out[0.0][0], out[1.0][0])  # the prediction is the smoother's
+    krig = obs.anchored(*args)  # the fused anchors' kriging: the other prediction
+    krig.prepare(poses)
+    d = out[0.0][0] - krig._M.numpy()[:, 0]
+    extra = out[1.0][1] - out[0.0][1]  # (T, 3, 3)
+    gap = ~observed[:, 0]
+    np.testing.assert_allclose(extra[gap], d[gap, :, None] * d[gap, None, :], atol=1e-9)
+    assert np.median(np.linalg.norm(d[gap], axis=-1)) > 1.0  # the two do disagree here
+    assert np.abs(extra[~gap]).max() == 0.0
+    with pytest.raises(ValueError, match="disagreement must be >= 0"):
+        obs.anchored(*args, *ray_args, disagreement=-1.0)

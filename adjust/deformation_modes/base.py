@@ -152,7 +152,12 @@ class Adjusting:
             views = (np.asarray(res.weights) > 0).sum(-1)  # accepted views per part-frame
             rays = self.anchor_rays(res) if self.deform.anchors == "rays" else (None, None)
             obs = obs.anchored(
-                res.points, res.point_sd, views, gap_sigma(self.deform.gap_sigma), *rays
+                res.points,
+                res.point_sd,
+                views,
+                gap_sigma(self.deform.gap_sigma),
+                *rays,
+                disagreement=self.deform.ray_disagreement,
             )
             res = self.solve(cfg, obs, res.poses)
             facts["single_view_anchors"] = int(obs.anchors.sum())

@@ -184,6 +184,9 @@ class InterpObservation:
         self.rays = None
         self.ray_var = None
         self.ray_parts = None  # (K,) bool after `prepare`: the parts the smoother predicts
+        # with ``rays``: the smoother's covariance gains this times d d^T, d its prediction
+        # minus the kriging's (`anchored`'s ``disagreement``)
+        self.ray_disagreement = 0.0
         # how the gaps' reported uncertainty is calibrated (`anchored`'s ``gap_sigma``: an
         # object with ``held_out(good, anchors)`` -> the previous and next observation (T, K)
         # each anchor is predicted from when it is held out, or None; e.g.
@@ -266,6 +269,11 @@ class InterpObservation:
             ps, vs = self._smoothed(o, good, anchor, u)
             tr = np.trace(vs, axis1=-2, axis2=-1)
             vs = vs * np.maximum(1.0, var.sum(-1) / np.maximum(tr, 1e-12))[..., None, None]
+            # ... and by what the two label-free predictions disagree on: mostly the depth
+            # along the rays one camera cannot see, where both rest on the motion model alone
+            # (2 cameras, validation: occluded rms error / rms sigma 1.32 -> 1.15)
+            d = ps - pred
+            vs = vs + self.ray_disagreement * d[..., :, None] * d[..., None, :]
             # per part, the smoother only where it predicts the left-out views better across
             # their rays than the kriging does (label-free; NaN: too few views to tell)
             one = good & anchor
@@ -304,7 +312,7 @@ class InterpObservation:
         return smooth_offsets(o, J, self.cov)
 
     def anchored(
-        self, points, point_sd, ncams, gap_sigma=None, rays=None, ray_var=None
+        self, points, point_sd, ncams, gap_sigma=None, rays=None, ray_var=None, disagreement=0.0
     ) -> InterpObservation:
         """This observation with the part-frames one camera saw among the observations too.
 
@@ -319,7 +327,10 @@ class InterpObservation:
         rests on these anchors instead of reverting to the part's mean, and the offsets'
         covariance (`prepare`) counts them too (the nugget: the 3D observations' noise). The
         anchors are kept as ``anchors`` (T, K) and ``anchor_var`` (T, K). gap_sigma: how the
-        gaps' reported uncertainty is inflated (``gap_sigma`` above; None: the solver's own)."""
+        gaps' reported uncertainty is inflated (``gap_sigma`` above; None: the solver's own).
+        rays (T, K, 3), ray_var (T, K): each anchor read as its camera's ray (``rays`` above);
+        disagreement >= 0: the weight of the smoother's and the kriging's disagreement in the
+        smoothed part-frames' covariance (``ray_disagreement``)."""
         pts = torch.as_tensor(points, dtype=self.data.dtype)
         sd = torch.as_tensor(point_sd, dtype=self.data.dtype)
         T, K = self.observed.shape
@@ -340,6 +351,9 @@ class InterpObservation:
         if rays is not None:
             out.rays = torch.as_tensor(rays, dtype=self.data.dtype)
             out.ray_var = torch.as_tensor(ray_var, dtype=self.data.dtype)
+        if not float(disagreement) >= 0.0:
+            raise ValueError(f"disagreement must be >= 0, got {disagreement}")
+        out.ray_disagreement = float(disagreement)
         return out
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:
