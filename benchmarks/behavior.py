@@ -85,6 +85,10 @@ CANDIDATES = {
                                  "pseudo_labels.teacher=linear"],
     "measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "frame_features=false",
                           "measurements=true", "pseudo_labels.teacher=linear"],
+    # the default with every frame weighed alike (no class balancing), the self-trained
+    # forest's pseudo-labels included: the teacher's class frequencies kept (issue 49, stop 51)
+    "class_weights_none": ["loss.class_weights=none"],
+    "student_unbalanced": ["pseudo_labels.balanced=false"],  # the refitted forest's only
     # the former default: an MLP head on an LSTM trained from scratch (here for 60 s)
     "mlp_scratch": ["net=lstm", "head=mlp", "freeze=false", _CTX, "measurements=false",
                     "pseudo_labels.teacher=none", "trainer.max_time=00:00:01:00"],

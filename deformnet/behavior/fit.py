@@ -214,6 +214,6 @@ def teach_forest(
         tprobs = linear_teacher_probs(frame, idx, ylab, C, weights, pseudo.bins)
     facts, all_features = self_train_forest(  # weights None: loss.class_weights=none
         model, bank, lengths, idx, features, pseudo, tprobs, all_features, taught,
-        balanced=weights is not None,
+        balanced=pseudo.balanced and weights is not None,
     )  # fmt: skip
     return facts | tfacts, all_features

@@ -104,18 +104,19 @@ class PseudoLabelSettings:  # ``pseudo_labels``: the forest head's teacher (beha
     embedding_keep: float = 0.5
     bins: int = 4
     unlabelled: bool = True
+    balanced: bool = True  # the self-trained forest's classes weighed alike (loss.class_weights)
     sequence: SequenceSettings = field(default_factory=SequenceSettings)
 
     TEACHERS = ("none", "linear", "cotrain")
 
     def __post_init__(self) -> None:
-        share = (float, lambda v: 0.0 < v <= 1.0, "in (0, 1]")
+        share, flag = (float, lambda v: 0.0 < v <= 1.0, "in (0, 1]"), (bool, None, "true or false")
         check_fields(self, "pseudo_labels", keep=share, embedding_keep=share,
                teacher=(str, lambda v: v in self.TEACHERS, f"one of {self.TEACHERS}"),
                smooth=(int, lambda v: v >= 1, "an integer >= 1"),
                labelled_weight=(float, lambda v: v > 0, "a number > 0"),
                bins=(int, lambda v: v >= 2, "an integer >= 2"),
-               unlabelled=(bool, None, "true or false"))  # fmt: skip
+               unlabelled=flag, balanced=flag)  # fmt: skip
         if not isinstance(self.sequence, SequenceSettings):  # a block (None: the defaults)
             seq = to_plain(self.sequence) or {}
             if "bins" in seq:
