@@ -71,24 +71,27 @@ BOUT_CAP_S = 3.0  # s: a labelled bout's longest span (from its onset) ...
 MIN_BOUT_S = 0.5  # ... and at least this, else the share's part per class
 _FOREST = ["head=forest", "freeze=true", "net=lstm_small"]
 _CTX = "context.frames=[15,33]"  # the former default context
+_BAL = "pseudo_labels.balanced=true"  # the former default (until stop 51)
 #: `deformnet-classify` candidates (overrides beyond tracks, labels, mechanisms); every one
 #: spelt out, so that a change of the defaults does not change what a row measures
 CANDIDATES = {
-    "default": [],  # conf/classify.yaml: forest_measure_linear_3s, chosen on validation
+    "default": [],  # conf/classify.yaml: forest_measure_linear_3s with pseudo_labels.balanced=
+    # false (student_unbalanced), chosen on validation
     "forest_frame": [*_FOREST, _CTX, "measurements=false", "pseudo_labels.teacher=none"],
     "forest_measure": [*_FOREST, _CTX, "measurements=true", "pseudo_labels.teacher=none"],
     "forest_measure_linear": [*_FOREST, _CTX, "measurements=true",
-                              "pseudo_labels.teacher=linear"],
+                              "pseudo_labels.teacher=linear", _BAL],
     "forest_measure_3s": [*_FOREST, "context.frames=[15,33,91]", "measurements=true",
                           "pseudo_labels.teacher=none"],
     "forest_measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "measurements=true",
-                                 "pseudo_labels.teacher=linear"],
+                                 "pseudo_labels.teacher=linear", _BAL],
     "measure_linear_3s": [*_FOREST, "context.frames=[15,33,91]", "frame_features=false",
-                          "measurements=true", "pseudo_labels.teacher=linear"],
+                          "measurements=true", "pseudo_labels.teacher=linear", _BAL],
     # the default with every frame weighed alike (no class balancing), the self-trained
     # forest's pseudo-labels included: the teacher's class frequencies kept (issue 49, stop 51)
     "class_weights_none": ["loss.class_weights=none"],
     "student_unbalanced": ["pseudo_labels.balanced=false"],  # the refitted forest's only
+    "student_balanced": [_BAL],  # the default until stop 51
     # the former default: an MLP head on an LSTM trained from scratch (here for 60 s)
     "mlp_scratch": ["net=lstm", "head=mlp", "freeze=false", _CTX, "measurements=false",
                     "pseudo_labels.teacher=none", "trainer.max_time=00:00:01:00"],

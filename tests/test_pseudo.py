@@ -242,7 +242,7 @@ def test_class_weights_reach_the_self_trained_forest(tmp_path, monkeypatch):
     """loss.class_weights is the student forest's too: balanced, its pseudo-labels weigh
     inversely to their class's count; none, each weighs 1 (the teacher's class frequencies, an
     estimate of the recordings', are kept; the labelled frames are a person's pick per class);
-    pseudo_labels.balanced=false: the student's alone weighs each frame alike."""
+    pseudo_labels.balanced=false (the default) does that for the student alone."""
     import deformnet.behavior.fit as fit
     from deformnet.behavior.predict import run
 
@@ -256,9 +256,10 @@ def test_class_weights_reach_the_self_trained_forest(tmp_path, monkeypatch):
     monkeypatch.setattr(fit, "pseudo_sample_weights", spy)
     base, _ = few_label_toy(tmp_path)
     forest = ["head=forest", "head.trees=10", "freeze=true", "pseudo_labels.teacher=linear"]
-    for i, ov in enumerate(["loss.class_weights=balanced", "loss.class_weights=none",
-                            "pseudo_labels.balanced=false"]):  # fmt: skip
-        run(_compose([*base, *forest, ov, f"output.dir={tmp_path / str(i)}"]))
+    runs = [["pseudo_labels.balanced=true"], ["pseudo_labels.balanced=true",
+            "loss.class_weights=none"], []]  # fmt: skip
+    for i, ov in enumerate(runs):
+        run(_compose([*base, *forest, *ov, f"output.dir={tmp_path / str(i)}"]))
     assert seen == [True, False, False]
     with pytest.raises(ValueError, match="pseudo_labels.balanced must be true or false"):
         run(_compose([*base, *forest, "pseudo_labels.balanced=2", f"output.dir={tmp_path}"]))

@@ -104,7 +104,7 @@ class PseudoLabelSettings:  # ``pseudo_labels``: the forest head's teacher (beha
     embedding_keep: float = 0.5
     bins: int = 4
     unlabelled: bool = True
-    balanced: bool = True  # the self-trained forest's classes weighed alike (loss.class_weights)
+    balanced: bool = False  # true: the self-trained forest's classes weighed alike
     sequence: SequenceSettings = field(default_factory=SequenceSettings)
 
     TEACHERS = ("none", "linear", "cotrain")
