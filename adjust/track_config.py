@@ -166,7 +166,8 @@ class DeformConfig:
     single_views: bool = True
     anchors: str = "rays"
     ray_sd_factor: float = 6.0
-    ray_disagreement: float = 1.0
+    ray_disagreement: float = 0.5
+    ray_outliers: bool = True
     gap_sigma: str = "solver"
 
     def __post_init__(self) -> None:

@@ -261,3 +261,44 @@ def test_the_smoothed_gaps_covariance_counts_the_two_predictions_disagreement():
     assert np.abs(extra[~gap]).max() == 0.0
     with pytest.raises(ValueError, match="disagreement must be >= 0"):
         obs.anchored(*args, *ray_args, disagreement=-1.0)
+
+
+def test_observations_the_smoother_contradicts_are_rejected():
+    """``outliers=True`` (``deform.ray_outliers``; the kriging's own outlier rounds off here): a
+    3D observation 25 mm off in a stretch the rays pin down (two views fused, one wrong along
+    the epipolar line), and a single view 20 mm off across its ray, are rejected once at the
+    first poses (``ray_rejected``); the prediction around them follows the rays again.
+    Without it the wrong point pulls its neighbours."""
+    X, observed, rays, fused, true = _rays_scene()
+    T, K = observed.shape
+    obs3 = observed.copy()
+    obs3[150] = True  # a wrong 3D observation in the single views' stretch
+    X3 = X.copy()
+    X3[150, 0] = true + np.array([0.0, 0.0, 25.0])
+    fused = fused.copy()
+    side = np.cross(rays[100, 0], [0.0, 0.0, 1.0])
+    fused[100, 0] += 20.0 * side / np.linalg.norm(side)  # a wrong single view, across its ray
+    data = torch.tensor(np.where(obs3[..., None], X3, np.nan))
+    noise = torch.full((T, K), 0.25, dtype=torch.float64)
+    obs = InterpObservation(torch.zeros(K, 3, dtype=torch.float64), data, torch.tensor(obs3),
+                            noise)  # fmt: skip
+    args = (torch.tensor(fused), torch.full((T, K), 20.0, dtype=torch.float64),
+            torch.tensor(np.where(obs3, 2, 1)))  # fmt: skip
+    ray_args = (None, torch.tensor(rays), torch.full((T, K), 0.25, dtype=torch.float64))
+    poses = torch.zeros(T, 6, dtype=torch.float64)
+    err = {}
+    for flag in (False, True):
+        o = obs.anchored(*args, *ray_args, outliers=flag)
+        o.outlier_rounds = 0  # the kriging's own rounds off: this check alone
+        o.prepare(poses)
+        err[flag] = np.linalg.norm(o._M.numpy()[:, 0] - true, axis=-1)
+        if flag:
+            rej = o.ray_rejected.numpy()[:, 0]
+            assert rej[150] and rej[100]
+            assert rej[20:280].sum() == 2  # the rest of the stretch kept
+            assert o.outliers.numpy()[[100, 150], 0].all()
+        else:
+            assert o.ray_rejected is None
+            assert not o.outliers.numpy()[[100, 150], 0].any()
+    near = slice(140, 161)
+    assert err[True][near].max() < 0.5 * err[False][near].max()

@@ -158,12 +158,15 @@ class Adjusting:
                 gap_sigma(self.deform.gap_sigma),
                 *rays,
                 disagreement=self.deform.ray_disagreement,
+                outliers=self.deform.ray_outliers,
             )
             res = self.solve(cfg, obs, res.poses)
             facts["single_view_anchors"] = int(obs.anchors.sum())
             if obs.ray_parts is not None:  # the parts the smoother predicts (anchors=rays)
                 parts = self.body.parts
                 facts["ray_parts"] = [p for p, u in zip(parts, obs.ray_parts) if u]
+            if obs.ray_rejected is not None:  # observations the smoother contradicted
+                facts["ray_rejected"] = int(obs.ray_rejected.sum())
         return res, obs, facts
 
 

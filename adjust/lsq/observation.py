@@ -30,6 +30,14 @@ from adjust.lsq.smoother import across_ray_rms, ray_information, smooth_offsets
 from adjust.lsq.stochastic import OffsetCovariance, krige_between, krige_offsets
 from deformnet.so3 import skew
 
+#: chi-square quantiles at p = 0.001: an observation its prediction contradicts
+CHI2_3DOF_P001 = 16.3
+CHI2_2DOF_P001 = 13.8
+#: `InterpObservation`'s smoother check (``ray_outliers``): rounds at most, and the frames
+#: either side within which only the most contradicted observation of a part is rejected
+RAY_OUTLIER_ROUNDS = 3
+RAY_OUTLIER_SPAN = 3
+
 
 @runtime_checkable
 class ObservationModel(Protocol):
@@ -187,6 +195,11 @@ class InterpObservation:
         # with ``rays``: the smoother's covariance gains this times d d^T, d its prediction
         # minus the kriging's (`anchored`'s ``disagreement``)
         self.ray_disagreement = 0.0
+        # with ``rays``: reject the observations the smoother contradicts (`_contradicted`,
+        # decided at the first `prepare`, in rounds: ``ray_rejected`` (T, K) bool, then kept)
+        self.ray_outliers = False
+        self.ray_rejected: Tensor | None = None
+        self._ray_rounds = 0
         # how the gaps' reported uncertainty is calibrated (`anchored`'s ``gap_sigma``: an
         # object with ``held_out(good, anchors)`` -> the previous and next observation (T, K)
         # each anchor is predicted from when it is held out, or None; e.g.
@@ -229,7 +242,8 @@ class InterpObservation:
         # robust: an observation its own neighbours contradict (chi-square, 3 dof, p = 0.001)
         # is a mis-detection, not deformation; re-estimate without it
         few = None if self.few_var is None else self.few_var.cpu().numpy().astype(np.float64)
-        good = m
+        base = m if self.ray_rejected is None else m & ~self.ray_rejected.cpu().numpy()
+        good = base
         for _ in range(self.outlier_rounds + 1):
             # single-view anchors (`anchored`) count in the covariance too (they show where a
             # part goes while it is hidden) and are interpolated from with their own noise
@@ -243,7 +257,7 @@ class InterpObservation:
                 break
             own = self.cov.nugget[None] if noise is None else noise
             d2 = ((o - pred) ** 2 / (var + own)).sum(-1)
-            new = m & ~(d2 > 16.3)
+            new = base & ~(d2 > CHI2_3DOF_P001)
             if (new == good).all():
                 break
             good = new
@@ -269,9 +283,22 @@ class InterpObservation:
             ps, vs = self._smoothed(o, good, anchor, u)
             tr = np.trace(vs, axis1=-2, axis2=-1)
             vs = vs * np.maximum(1.0, var.sum(-1) / np.maximum(tr, 1e-12))[..., None, None]
+            if self.ray_outliers and self._ray_rounds < RAY_OUTLIER_ROUNDS:
+                # the observations the smoother (every other frame, the rays included)
+                # contradicts: e.g. two views fused where one is an outlier along the epipolar
+                # line, which the kriging from the fused points alone let through. In rounds at
+                # the first poses, the most contradicted of each stretch first (its neighbours'
+                # predictions carry it), the whole prediction re-made without them; then kept
+                self._ray_rounds += 1
+                new = self._contradicted(o, good, anchor, u, ps, vs)
+                if new.any():
+                    old = None if self.ray_rejected is None else self.ray_rejected.numpy()
+                    self.ray_rejected = torch.as_tensor(new if old is None else old | new)
+                    return self.prepare(poses)
+                self._ray_rounds = RAY_OUTLIER_ROUNDS
             # ... and by what the two label-free predictions disagree on: mostly the depth
             # along the rays one camera cannot see, where both rest on the motion model alone
-            # (2 cameras, validation: occluded rms error / rms sigma 1.32 -> 1.15)
+            # (2 cameras, validation: occluded rms error / rms sigma 1.32 -> 1.15 at weight 1)
             d = ps - pred
             vs = vs + self.ray_disagreement * d[..., :, None] * d[..., None, :]
             # per part, the smoother only where it predicts the left-out views better across
@@ -297,6 +324,39 @@ class InterpObservation:
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
 
+    def _contradicted(self, o, good, anchor, u, ps, vs) -> np.ndarray:
+        """(T, K) bool: the observations (of ``good``) that the smoother's prediction from every
+        other frame, ps (T, K, 3) with covariance vs (T, K, 3, 3) in body axes, contradicts
+        (chi-square, p = 0.001): a 3D observation by its distance (3 dof, with the nugget), a
+        single view (``anchor``, ray u (T, K, 3) in body axes) by its distance across its ray
+        (2 dof, with the view's variance across it). Shapes as `prepare`'s."""
+        r = o - ps
+        eye = np.eye(3)
+        S = vs + np.maximum(self.cov.nugget, 1e-6)[None, :, :, None] * eye
+        three = good & ~anchor
+        d2 = np.einsum("tki,tki->tk", r, np.linalg.solve(S, r[..., None])[..., 0])
+        out = three & (d2 > CHI2_3DOF_P001)
+        one = good & anchor
+        if one.any():
+            rv = self.ray_var.cpu().numpy().astype(np.float64)
+            un = u / np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-12)
+            P = eye - un[..., :, None] * un[..., None, :]  # across the ray
+            rp = (P @ r[..., None])[..., 0]
+            # the along-ray direction made free: (P S P + var P + big u u^T)^-1 on rp
+            big = 1e6 * (np.trace(vs, axis1=-2, axis2=-1) + rv + 1.0)
+            S1 = P @ vs @ P + rv[..., None, None] * P + big[..., None, None] * (eye - P)
+            d1 = np.einsum("tki,tki->tk", rp, np.linalg.solve(S1, rp[..., None])[..., 0])
+            d1 = np.where(one, d1, 0.0)
+            d2 = np.where(three, d2, d1)
+            out = out | (one & (d1 > CHI2_2DOF_P001))
+        # only the most contradicted within RAY_OUTLIER_SPAN frames of each part: a wrong
+        # observation also moves its neighbours' predictions, which then contradict them
+        d2 = np.where(out, d2, -np.inf)
+        w = RAY_OUTLIER_SPAN
+        pad = np.pad(d2, ((w, w), (0, 0)), constant_values=-np.inf)
+        top = np.max(np.stack([pad[i : i + len(d2)] for i in range(2 * w + 1)]), 0)
+        return out & (d2 >= top)
+
     def _smoothed(self, o, good, anchor, u) -> tuple:
         """The offsets' prediction (T, K, 3) and covariance (T, K, 3, 3) in body axes from every
         other frame (`adjust.lsq.smoother.smooth_offsets`): the 3D observations with the
@@ -312,7 +372,15 @@ class InterpObservation:
         return smooth_offsets(o, J, self.cov)
 
     def anchored(
-        self, points, point_sd, ncams, gap_sigma=None, rays=None, ray_var=None, disagreement=0.0
+        self,
+        points,
+        point_sd,
+        ncams,
+        gap_sigma=None,
+        rays=None,
+        ray_var=None,
+        disagreement=0.0,
+        outliers=False,
     ) -> InterpObservation:
         """This observation with the part-frames one camera saw among the observations too.
 
@@ -330,7 +398,8 @@ class InterpObservation:
         gaps' reported uncertainty is inflated (``gap_sigma`` above; None: the solver's own).
         rays (T, K, 3), ray_var (T, K): each anchor read as its camera's ray (``rays`` above);
         disagreement >= 0: the weight of the smoother's and the kriging's disagreement in the
-        smoothed part-frames' covariance (``ray_disagreement``)."""
+        smoothed part-frames' covariance (``ray_disagreement``); outliers: with rays, the
+        observations the smoother contradicts are rejected (``ray_outliers``)."""
         pts = torch.as_tensor(points, dtype=self.data.dtype)
         sd = torch.as_tensor(point_sd, dtype=self.data.dtype)
         T, K = self.observed.shape
@@ -354,6 +423,7 @@ class InterpObservation:
         if not float(disagreement) >= 0.0:
             raise ValueError(f"disagreement must be >= 0, got {disagreement}")
         out.ray_disagreement = float(disagreement)
+        out.ray_outliers = bool(outliers) and rays is not None
         return out
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:
