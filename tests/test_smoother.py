@@ -229,12 +229,10 @@ def test_the_smoother_is_used_only_for_the_parts_it_predicts_better():
     assert np.isnan(across_ray_rms(resid, r, np.ones((4, 2), bool), 5)).all()
 
 
-def test_the_smoothed_gaps_covariance_counts_the_two_predictions_disagreement():
-    """With ``disagreement`` w, a smoothed part-frame's prior covariance is the smoother's own
-    plus w d d^T, d the smoother's prediction minus the kriging's (where the kriging keeps the
-    first pass's depth along the rays, the two disagree along them); 3D-observed frames keep
-    the kriging's covariance unchanged."""
-    X, observed, rays, fused, true = _rays_scene()
+def _one_part_observation(X, observed, rays, fused):
+    """`_rays_scene`'s part as an `InterpObservation` (3D observations of noise 0.25 mm^2) and
+    the arguments of its `anchored` (the views' fused points with a view's whole sd, 20 mm; each
+    view also as its ray, 0.25 mm^2 across it), with zero poses."""
     T, K = observed.shape
     data = torch.tensor(np.where(observed[..., None], X, np.nan))
     noise = torch.full((T, K), 0.25, dtype=torch.float64)
@@ -243,7 +241,16 @@ def test_the_smoothed_gaps_covariance_counts_the_two_predictions_disagreement():
     args = (torch.tensor(fused), torch.full((T, K), 20.0, dtype=torch.float64),
             torch.tensor(np.where(observed, 2, 1)))  # fmt: skip
     ray_args = (None, torch.tensor(rays), torch.full((T, K), 0.25, dtype=torch.float64))
-    poses = torch.zeros(T, 6, dtype=torch.float64)
+    return obs, args, ray_args, torch.zeros(T, 6, dtype=torch.float64)
+
+
+def test_the_smoothed_gaps_covariance_counts_the_two_predictions_disagreement():
+    """With ``disagreement`` w, a smoothed part-frame's prior covariance is the smoother's own
+    plus w d d^T, d the smoother's prediction minus the kriging's (where the kriging keeps the
+    first pass's depth along the rays, the two disagree along them); 3D-observed frames keep
+    the kriging's covariance unchanged."""
+    X, observed, rays, fused, true = _rays_scene()
+    obs, args, ray_args, poses = _one_part_observation(X, observed, rays, fused)
     out = {}
     for w in (0.0, 1.0):
         o = obs.anchored(*args, *ray_args, disagreement=w)
@@ -270,7 +277,6 @@ def test_observations_the_smoother_contradicts_are_rejected():
     first poses (``ray_rejected``); the prediction around them follows the rays again.
     Without it the wrong point pulls its neighbours."""
     X, observed, rays, fused, true = _rays_scene()
-    T, K = observed.shape
     obs3 = observed.copy()
     obs3[150] = True  # a wrong 3D observation in the single views' stretch
     X3 = X.copy()
@@ -278,14 +284,7 @@ def test_observations_the_smoother_contradicts_are_rejected():
     fused = fused.copy()
     side = np.cross(rays[100, 0], [0.0, 0.0, 1.0])
     fused[100, 0] += 20.0 * side / np.linalg.norm(side)  # a wrong single view, across its ray
-    data = torch.tensor(np.where(obs3[..., None], X3, np.nan))
-    noise = torch.full((T, K), 0.25, dtype=torch.float64)
-    obs = InterpObservation(torch.zeros(K, 3, dtype=torch.float64), data, torch.tensor(obs3),
-                            noise)  # fmt: skip
-    args = (torch.tensor(fused), torch.full((T, K), 20.0, dtype=torch.float64),
-            torch.tensor(np.where(obs3, 2, 1)))  # fmt: skip
-    ray_args = (None, torch.tensor(rays), torch.full((T, K), 0.25, dtype=torch.float64))
-    poses = torch.zeros(T, 6, dtype=torch.float64)
+    obs, args, ray_args, poses = _one_part_observation(X3, obs3, rays, fused)
     err = {}
     for flag in (False, True):
         o = obs.anchored(*args, *ray_args, outliers=flag)
