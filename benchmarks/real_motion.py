@@ -307,6 +307,11 @@ def run_aniposelib(scene: Path, nparts: int, skeleton: Path) -> tuple[np.ndarray
     return pts, tuple(parts), secs
 
 
+def common_overrides(args) -> list[str]:
+    """The adjust-track settings of every tracker run of the tables: its threads and ``-o``."""
+    return [f"threads={args.threads}" if args.threads else "threads=null", *args.override]
+
+
 def track_overrides(method: str, adapt_minutes: float) -> list[str]:
     if method == "default":
         return []
@@ -388,8 +393,7 @@ def run_scene(
     tr = np.load(scene / "truth.npz")
     truth, nviews = tr["points"], tr["nviews"]
     parts = [str(p) for p in tr["parts"]]
-    threads = [f"threads={args.threads}"] if args.threads else ["threads=null"]
-    threads += args.override  # every adjust-track run of the table
+    common = common_overrides(args)
     rows: dict[str, dict] = {}
     for m in methods:
         label = f"{scene.name} {m}"
@@ -410,7 +414,7 @@ def run_scene(
         else:
 
             def fn(m=m):
-                ov = [*threads, *track_overrides(m, args.adapt_minutes)]
+                ov = [*common, *track_overrides(m, args.adapt_minutes)]
                 return track_row(scene, runs / m, ov, truth, nviews, parts)
 
         t0 = time.perf_counter()
@@ -545,8 +549,7 @@ def calibrated_parts(per_part: dict) -> dict:
 
 def stability(args, motion: Motion, start: int, work: Path, base_rows: dict) -> dict:
     """``default`` under small perturbations on the 3- and 2-camera 8-part scenes (seed 0)."""
-    threads = [f"threads={args.threads}"] if args.threads else ["threads=null"]
-    threads += args.override  # every adjust-track run of the table
+    common = common_overrides(args)
     drop = f"drop {100 * DROP_FRACTION:g}%"
     other = f"seed {OTHER_DETECTOR_SEED}"
     # name: (scene: base | drop | other, overrides)
@@ -581,7 +584,7 @@ def stability(args, motion: Motion, start: int, work: Path, base_rows: dict) -> 
                 scene = scene_of(which)
                 tr = np.load(scene / "truth.npz")
                 parts = [str(p) for p in tr["parts"]]
-                return track_row(scene, out, [*threads, *ov], tr["points"], tr["nviews"], parts)
+                return track_row(scene, out, [*common, *ov], tr["points"], tr["nviews"], parts)
 
             rows[name] = guarded(f"stability {key} {name}", fn)
             outs[name] = out

@@ -334,8 +334,8 @@ class InterpObservation:
         eye = np.eye(3)
         S = vs + np.maximum(self.cov.nugget, 1e-6)[None, :, :, None] * eye
         three = good & ~anchor
-        d2 = np.einsum("tki,tki->tk", r, np.linalg.solve(S, r[..., None])[..., 0])
-        out = three & (d2 > CHI2_3DOF_P001)
+        score = np.einsum("tki,tki->tk", r, np.linalg.solve(S, r[..., None])[..., 0])
+        out = three & (score > CHI2_3DOF_P001)
         one = good & anchor
         if one.any():
             rv = self.ray_var.cpu().numpy().astype(np.float64)
@@ -346,16 +346,15 @@ class InterpObservation:
             big = 1e6 * (np.trace(vs, axis1=-2, axis2=-1) + rv + 1.0)
             S1 = P @ vs @ P + rv[..., None, None] * P + big[..., None, None] * (eye - P)
             d1 = np.einsum("tki,tki->tk", rp, np.linalg.solve(S1, rp[..., None])[..., 0])
-            d1 = np.where(one, d1, 0.0)
-            d2 = np.where(three, d2, d1)
             out = out | (one & (d1 > CHI2_2DOF_P001))
+            score = np.where(three, score, d1)
         # only the most contradicted within RAY_OUTLIER_SPAN frames of each part: a wrong
         # observation also moves its neighbours' predictions, which then contradict them
-        d2 = np.where(out, d2, -np.inf)
+        score = np.where(out, score, -np.inf)
         w = RAY_OUTLIER_SPAN
-        pad = np.pad(d2, ((w, w), (0, 0)), constant_values=-np.inf)
-        top = np.max(np.stack([pad[i : i + len(d2)] for i in range(2 * w + 1)]), 0)
-        return out & (d2 >= top)
+        pad = np.pad(score, ((w, w), (0, 0)), constant_values=-np.inf)
+        top = np.max(np.stack([pad[i : i + len(score)] for i in range(2 * w + 1)]), 0)
+        return out & (score >= top)
 
     def _smoothed(self, o, good, anchor, u) -> tuple:
         """The offsets' prediction (T, K, 3) and covariance (T, K, 3, 3) in body axes from every
