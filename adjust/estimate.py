@@ -37,6 +37,10 @@ from deformnet.so3 import rodrigues_to_matrix
 
 log = logging.getLogger(__name__)
 
+MAX_ERROR_PX = 20.0  # robust triangulation: drop the worst view while it reprojects worse (px)
+GATE_SIGMAS = 4.0  # a triangulated point is a 3D observation within this x the detector noise
+RAYS_MIN_VIEWS = 10  # `place_from_rays` places a part from at least this many detections
+
 
 @dataclass
 class Consensus:
@@ -73,8 +77,8 @@ def consensus(
     xy: np.ndarray,
     weight: np.ndarray,
     cams: CameraTensors,
-    max_error_px: float = 20.0,
-    gate_sigmas: float = 4.0,
+    max_error_px: float = MAX_ERROR_PX,
+    gate_sigmas: float = GATE_SIGMAS,
     sigma_det_px: float | None = None,
 ) -> Consensus:
     """Robust triangulation, detector noise and gated 3D observations.
@@ -191,7 +195,7 @@ def place_from_rays(
     which: np.ndarray,
     sigma_px: float,
     prior_sd_mm: float,
-    min_views: int = 10,
+    min_views: int = RAYS_MIN_VIEWS,
     iterations: int = 20,
     kernel_scale: float = 3.0,
 ) -> RayPlacement:

@@ -18,7 +18,7 @@ from adjust.io import InputError
 from adjust.lsq.observation import InterpObservation, with_single_views
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 from adjust.tokenize import session_tokens
-from deformnet.heldout import MIN_TARGETS, rmse_by_part, summed_over, window_sums
+from deformnet.heldout import MIN_TARGETS, WINDOWS, rmse_by_part, summed_over, window_sums
 from deformnet.so3 import kabsch
 from deformnet.windows import FixedWindowBatches, MaskConfig, WindowBank
 
@@ -99,7 +99,7 @@ def heldout_check(
             tokens,
             interp.cov,
             step=step,
-            windows=2048,
+            windows=WINDOWS,
             anchors=Anchors.of(interp),
             net_anchors=net_anchors,
         )

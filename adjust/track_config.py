@@ -32,6 +32,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from adjust.adapt import AdaptConfig
+from adjust.estimate import GATE_SIGMAS, MAX_ERROR_PX, RAYS_MIN_VIEWS
 from adjust.io import InputError
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.robust import KERNELS
@@ -129,8 +130,8 @@ class ConsensusConfig:
     """``consensus:``: the session's 3D observations from a consensus of its cameras."""
 
     estimate: bool = True  # false: no 3D observations (rigid or a checkpoint only)
-    max_error_px: float = 20.0  # robust triangulation: drop the worst view above this
-    gate_sigmas: float = 4.0  # a triangulated point is a 3D observation within this x noise
+    max_error_px: float = MAX_ERROR_PX  # robust triangulation: drop the worst view above this
+    gate_sigmas: float = GATE_SIGMAS  # a triangulated point is a 3D observation within this x noise
 
     @classmethod
     def from_config(cls, node) -> ConsensusConfig:
@@ -247,7 +248,7 @@ class BodyFitConfig:
     robust: bool = True  # robust triangulation of a shape estimated without 3D observations
     refine: str = "views"  # the structure step: views | unplaced | none
     rays_below: int = 20
-    rays_min_views: int = 10
+    rays_min_views: int = RAYS_MIN_VIEWS
     scale_factor: Any = 1.0  # a multiplier on the size (> 0)
 
     def __post_init__(self) -> None:

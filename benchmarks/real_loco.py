@@ -64,7 +64,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cell, start  # noqa: E402
 from peers.anipose import run_anipose  # noqa: E402
 from peers.anipose import wanted as anipose_wanted  # noqa: E402
-from peers.disk import fit_disk, impute  # noqa: E402
+from peers.disk import WINDOW, fit_disk, impute  # noqa: E402
 from peers.kalman import kalman_smooth  # noqa: E402
 from peers.kalman import wanted as kalman_wanted  # noqa: E402
 from tracking import compose, emit  # noqa: E402
@@ -183,7 +183,7 @@ def loco(
                     p, X0, s0 = dlt
                     t0 = time.perf_counter()
                     model, _ = fit_disk(np.asarray(X0)[None], seconds=disk,
-                                        window=min(60, len(X0)))  # fmt: skip
+                                        window=min(WINDOW, len(X0)))  # fmt: skip
                     X = impute(model, np.asarray(X0))
                     s = s0 + time.perf_counter() - t0
                 elif m == "aniposelib":

@@ -33,9 +33,11 @@ __all__ = [
     "summed_over",
     "rmse_by_part",
     "MIN_TARGETS",
+    "WINDOWS",
 ]
 
 MIN_TARGETS = 50  # a part with fewer held-out targets is not judged (too few to tell)
+WINDOWS = 2048  # masked windows a recording's held-out check draws (`heldout_errors`, the gate)
 
 
 def window_sums(model, batch: Mapping[str, Tensor], mid: int) -> dict[str, Tensor]:
@@ -112,7 +114,7 @@ def rmse_by_part(sums: Mapping[str, Tensor], count: Tensor) -> dict[str, tuple[l
 def heldout_errors(
     model,
     tokens,
-    windows: int = 2048,
+    windows: int = WINDOWS,
     batch_size: int = 256,
     seed: int = 0,
     step: int | None = None,

@@ -24,7 +24,14 @@ import math
 import torch
 from torch import Tensor, nn
 
-from deformnet.tokens import NUM_FEATURES, PRIOR_FEATURES, check_window, token_features
+from deformnet.tokens import (
+    NUM_FEATURES,
+    OFFSET_SCALE,
+    POS_SCALE,
+    PRIOR_FEATURES,
+    check_window,
+    token_features,
+)
 
 __all__ = [
     "LSTMPredictor",
@@ -147,8 +154,8 @@ class LSTMPredictor(_FixedParts):
         layers: int = 2,
         embed: int = 64,
         dropout: float = 0.0,
-        pos_scale: float = 30.0,
-        offset_scale: float = 10.0,
+        pos_scale: float = POS_SCALE,
+        offset_scale: float = OFFSET_SCALE,
         prior_residual: bool = False,
     ) -> None:
         super().__init__(num_parts, half_window, pos_scale, offset_scale)
@@ -211,8 +218,8 @@ class TransformerPredictor(_FixedParts):
         ff: int = 128,
         d_part: int = 16,
         dropout: float = 0.0,
-        pos_scale: float = 30.0,
-        offset_scale: float = 10.0,
+        pos_scale: float = POS_SCALE,
+        offset_scale: float = OFFSET_SCALE,
         use_pos_enc: bool = True,
         prior_residual: bool = False,
     ) -> None:
@@ -317,8 +324,8 @@ class PartTransformer(_Base):
         ff: int = 128,
         hidden: int = 128,
         dropout: float = 0.0,
-        pos_scale: float = 30.0,
-        offset_scale: float = 10.0,
+        pos_scale: float = POS_SCALE,
+        offset_scale: float = OFFSET_SCALE,
         prior_residual: bool = False,
     ) -> None:
         if half_window < 0 or layers < 0:

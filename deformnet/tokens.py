@@ -39,12 +39,16 @@ __all__ = [
     "check_window",
     "NUM_FEATURES",
     "PRIOR_FEATURES",
+    "POS_SCALE",
+    "OFFSET_SCALE",
     "masked_mse",
     "linear_baseline",
     "offset_baseline",
 ]
 
 NUM_FEATURES = 7  # rigid_c (3), deformation offset in the frame's own body frame (3), observed (1)
+POS_SCALE = 30.0  # mm: the default divisor of canonical positions in the token features
+OFFSET_SCALE = 10.0  # mm: the default divisor of deformation offsets (features and net outputs)
 
 
 def heading_rotation(R: Tensor, up: Tensor) -> Tensor:
@@ -138,8 +142,8 @@ def token_features(
     deformed_c: Tensor,
     observed: Tensor,
     mid: int,
-    pos_scale: float = 30.0,
-    offset_scale: float = 10.0,
+    pos_scale: float = POS_SCALE,
+    offset_scale: float = OFFSET_SCALE,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per-token and per-part input features for the nets, from a canonical window.
 

@@ -30,6 +30,8 @@ import numpy as np
 import torch
 from torch import nn
 
+WINDOW = 60  # frames a window spans (`fit_disk`'s default)
+
 
 class DiskImputer(nn.Module):
     """(B, W, K, 3) points normalised (centred on the window's present points, divided by
@@ -39,7 +41,7 @@ class DiskImputer(nn.Module):
         self,
         parts: int,
         window: int,
-        scale: float = 50.0,
+        scale: float,
         dim: int = 128,
         layers: int = 4,
         heads: int = 4,
@@ -74,7 +76,7 @@ def _normalise(win: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
 def fit_disk(
     train: np.ndarray,
     seconds: float = 180.0,
-    window: int = 60,
+    window: int = WINDOW,
     scale: float = 50.0,
     gap_prob: float = 0.5,
     batch: int = 32,
