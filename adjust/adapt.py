@@ -189,13 +189,6 @@ def window_data(
     return train_set, val_set, facts
 
 
-def _body_of(tokens) -> BodyModel:
-    return BodyModel.from_mapping(
-        {p: [float(c) for c in xyz] for p, xyz in zip(tokens.parts, tokens.body_points)},
-        name=tokens.body_name,
-    )
-
-
 def starting_model(
     pretrained: DeformationModel | None, body: BodyModel
 ) -> tuple[DeformationModel, str]:
@@ -385,7 +378,7 @@ def adapt_net(tokens, out: Path, adapt_cfg, progress: bool) -> tuple:
     work = Path(out) / "adapt"
     work.mkdir(parents=True, exist_ok=True)
     pre = load_net(cfg.pretrained, "adapt.pretrained")  # None: from scratch
-    body = _body_of(tokens)
+    body = tokens.body_model()
     model, how = starting_model(pre, body)
     if how == "scratch" and pre is not None:
         log.warning(

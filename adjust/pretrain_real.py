@@ -55,7 +55,7 @@ from deformnet.heldout import heldout_errors
 from deformnet.paths import real_mouse_motion_dir
 from deformnet.pretrained import DEFAULT_CHECKPOINT
 from deformnet.pretrained.build import weights_sha256
-from deformnet.pretrained.fit import FitConfig, fit_sessions, session_body
+from deformnet.pretrained.fit import FitConfig, fit_sessions
 from deformnet.sessions import TOKENS_FILE, SessionTokens
 from deformnet.threads import torch_threads
 
@@ -250,7 +250,7 @@ def evaluate(model: DeformationModel, tokens, specs) -> list[dict]:
     the mid frame's measured parts hidden from every predictor), RMSE mm over all parts."""
     rows = []
     for tok, spec in zip(tokens, specs):
-        h = heldout_errors(model.for_body(session_body(tok)), tok)
+        h = heldout_errors(model.for_body(tok.body_model()), tok)
         n = np.asarray(h["targets"], dtype=float)
         rig = np.asarray(h["rigid_mm"], dtype=float)
         ok = n > 0

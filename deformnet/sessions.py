@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from deformnet.atomic import atomic_path
+from deformnet.body import BodyModel
 from deformnet.windows import SequenceArrays
 
 log = logging.getLogger(__name__)
@@ -85,6 +86,13 @@ class SessionTokens:
                 f"{self.source or 'tokens'}: {len(self.parts)} parts / body points "
                 f"{self.body_points.shape} for {K} parts"
             )
+
+    def body_model(self) -> BodyModel:
+        """The session's rigid body model: its parts at its body points."""
+        return BodyModel.from_mapping(
+            {p: [float(c) for c in xyz] for p, xyz in zip(self.parts, self.body_points)},
+            name=self.body_name,
+        )
 
     @property
     def num_frames(self) -> int:

@@ -210,10 +210,7 @@ def session_data(cfg: DictConfig, out: Path, window: int, up=None):
         for t in tokens:
             check_track_up(t.rigid, t.body_points, up, t.source or "a session")
     first = tokens[0]
-    body = BodyModel.from_mapping(
-        {p: [float(c) for c in xyz] for p, xyz in zip(first.parts, first.body_points)},
-        name=first.body_name,
-    )
+    body = first.body_model()
     train, val, facts = split_sessions(
         tokens,
         float(ds.val_fraction),

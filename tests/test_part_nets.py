@@ -197,8 +197,7 @@ def test_mixed_skeleton_fit_learns_a_shared_deformation():
     model, facts = fit_sessions([session(8, 1), session(22, 2)], cfg, seed=0)
     assert [s["parts"] for s in facts["skeletons"]] == [8, 22]
     unseen = session(15, 3)
-    from deformnet.pretrained.fit import session_body
 
-    h = heldout_errors(model.for_body(session_body(unseen)), unseen, windows=256)
+    h = heldout_errors(model.for_body(unseen.body_model()), unseen, windows=256)
     rigid = float(np.sqrt(np.nanmean(np.square(h["rigid_mm"]))))
     assert h["net_all_mm"] < 0.8 * rigid  # measured 0.70x

@@ -29,7 +29,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from deformnet.body import BodyModel
 from deformnet.deformation import DeformationModel, build_net
 from deformnet.tokens import masked_mse
 from deformnet.windows import (
@@ -43,7 +42,7 @@ from deformnet.windows import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FitConfig", "TruthWindowBank", "fit_sessions", "session_body"]
+__all__ = ["FitConfig", "TruthWindowBank", "fit_sessions"]
 
 
 @dataclass(frozen=True)
@@ -69,14 +68,6 @@ class FitConfig:
     noise_mm: float = 0.0
     real_masks: float = 0.0
     log_every: int = 250
-
-
-def session_body(tokens) -> BodyModel:
-    """A session's rigid body model (its tokens' parts and body points)."""
-    return BodyModel.from_mapping(
-        {p: [float(c) for c in xyz] for p, xyz in zip(tokens.parts, tokens.body_points)},
-        name=tokens.body_name,
-    )
 
 
 class TruthWindowBank(WindowBank):
@@ -151,7 +142,7 @@ def _banks(sessions, half_window: int, cfg: FitConfig, seed: int, truths=None) -
             bank, cfg.batch_size, cfg.steps, cfg.masking, seed + 101 * g, cfg.noise_mm,
             cfg.augment, mirror_permutation(parts),
         )  # fmt: skip
-        out.append({"parts": parts, "body": session_body(toks[0]), "bank": bank,
+        out.append({"parts": parts, "body": toks[0].body_model(), "bank": bank,
                     "iter": iter(stream), "windows": len(bank)})  # fmt: skip
     return out
 
