@@ -169,6 +169,7 @@ class DeformConfig:
     ray_sd_factor: float = 6.0
     ray_disagreement: float = 0.5
     ray_outliers: bool = True
+    world_prior: bool = True
     gap_sigma: str = "solver"
 
     def __post_init__(self) -> None:

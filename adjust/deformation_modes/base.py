@@ -112,13 +112,15 @@ class Adjusting:
     def interp_observation(self) -> InterpObservation:
         """``deformation=interp``'s observation of this session."""
         c = self.cons
-        return InterpObservation(
+        obs = InterpObservation(
             torch.tensor(np.array(self.body.points)),
             torch.as_tensor(c.points),
             torch.as_tensor(c.observed),
             torch.as_tensor(c.noise_var),
             few_var=self.few_var,
         )
+        obs.world_prior_on = self.deform.world_prior
+        return obs
 
     def anchor_rays(self, res) -> tuple[np.ndarray, np.ndarray]:
         """The rays (T, K, 3) and across-ray variances (T, K) of the part-frames one camera

@@ -151,9 +151,10 @@ class NetMode(DeformationMode):
     def adjust(self, a: Adjusting) -> tuple[Any, dict]:
         res, interp_obs, interp_extra = a.rigid, None, {}
         init = None if res is None else res.poses
-        if a.cons is not None:  # the net starts from the interp poses
+        if a.cons is not None:  # the net starts from the interp poses: deformation=interp's
+            # own adjustment (its iterations too), so a net the check refuses leaves its tracks
             t1 = time.perf_counter()
-            res, interp_obs, interp_extra = a.interp_solve(a.solver_cfg, init)
+            res, interp_obs, interp_extra = a.interp_solve(a.deform_solver_cfg, init)
             init = res.poses
             a.timings["interp_s"] = time.perf_counter() - t1
         if self.decision is None:
@@ -407,7 +408,7 @@ class SelfNet(NetMode):
         )
         log.warning(
             "deformation=self: %s; too little data or time? The tracks are interpolated "
-            "(deformation=interp's model, adjusted to convergence; summary.json says "
+            "(deformation=interp's tracks; summary.json says "
             "deformation.mode: interp; adapt.require_better=false uses the net anyway; its "
             "checkpoint is %s)",
             reason,

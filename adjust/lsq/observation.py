@@ -19,6 +19,7 @@ The models (the tracker, `adjust.deformation_modes`, only picks one):
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -27,7 +28,7 @@ from torch import Tensor
 
 from adjust.lsq.geometry import rigid_points, so3_exp
 from adjust.lsq.smoother import across_ray_rms, ray_information, smooth_offsets
-from adjust.lsq.stochastic import OffsetCovariance, krige_between, krige_offsets
+from adjust.lsq.stochastic import OffsetCovariance, krige_between, krige_offsets, neighbours
 from deformnet.so3 import skew
 
 #: chi-square quantiles at p = 0.001: an observation its prediction contradicts
@@ -210,6 +211,10 @@ class InterpObservation:
         self._var_held: Tensor | None = None
         self._held: Tensor | None = None  # (T, K) the anchors held out
         self.outlier_rounds = 2
+        # the parts no camera pair sees also held near their global neighbours' prediction
+        # (``world_prior_on``: `world_prior`); ``_world`` its (W, information) after `prepare`
+        self.world_prior_on = False
+        self._world: tuple[Tensor, Tensor] | None = None
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
         self.neighbours = None  # (T, K, 3) body-frame prediction from the neighbouring frames
         self._M: Tensor | None = None  # (T, K, 3) body-frame model points
@@ -313,6 +318,16 @@ class InterpObservation:
             pred = np.where(smooth[..., None], ps, pred)
             var = np.where(smooth[..., None, None], vs, var[..., None] * np.eye(3))
         dt = poses.dtype
+        self._world = None
+        if self.world_prior_on:
+            vo = np.trace(var, axis1=-2, axis2=-1) / 3 if var.ndim == 4 else var.mean(-1)
+            Xr = np.einsum("tij,kj->tki", Rn, B) + tn[:, None, :]  # the rigid points
+            three = good if anchor is None else good & ~anchor
+            W, info = self._world_prior(X, three, Xr, nugget, vo)
+            self._world = (
+                torch.as_tensor(W, dtype=dt, device=poses.device),
+                torch.as_tensor(info, dtype=dt, device=poses.device),
+            )
         # the neighbours' prediction, also where the rigid point replaces it (diagnostics)
         self.neighbours = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         if self.measured_var is not None:  # measured part-frames: the rigid model point
@@ -323,6 +338,38 @@ class InterpObservation:
             var = np.where(good.reshape(*good.shape, *([1] * (var.ndim - 2))), mv[None], var)
         self._M = torch.as_tensor(B[None] + pred, dtype=dt, device=poses.device)
         self._var = torch.as_tensor(var, dtype=dt, device=poses.device)
+
+    @staticmethod
+    def _world_prior(X, three, rigid, nugget, offset_var) -> tuple[np.ndarray, np.ndarray]:
+        """Each part-frame without a 3D observation predicted in global coordinates from the
+        part's 3D observations in the neighbouring frames (`krige_offsets` on the points
+        themselves): X (T, K, 3) global mm, three (T, K) the 3D observations kept, rigid
+        (T, K, 3) the rigid model points at the current poses, nugget (K, 3) or None,
+        offset_var (T, K) mm^2 the part-frame's body-frame prediction's variance per axis.
+        How far a part goes in the world in h frames is measured on its rigid point over every
+        frame (the part's own 3D observations would measure it only while the part is seen,
+        e.g. while the animal stands still), and only between two observations where that
+        kriging is nearer than the part's spread over the session. Returns the prediction W
+        (T, K, 3) and its information (T, K) mm^-2 per axis, 1 / (kriging variance +
+        offset_var), 0 elsewhere. The model point R (B + o) + t of a part no camera pair sees
+        then also stays near where its neighbouring frames put it in the world: a body frame
+        turned by the parts that are seen (a head turning while the rear is hidden) no longer
+        carries the hidden parts with it."""
+        T, K, _ = X.shape
+        cov = OffsetCovariance.estimate(rigid, np.ones((T, K), bool), nugget=np.zeros((K, 3)))
+        if nugget is not None:
+            cov = replace(cov, nugget=np.repeat(nugget.mean(1, keepdims=True), 3, axis=1))
+        W, vw = krige_offsets(X, three, cov, skip_self=True)
+        prev, nxt = neighbours(three, skip_self=True)
+        inside = (prev >= 0) & (nxt < T) & (vw < cov.sill[None]).all(-1)
+        info = np.where(inside & ~three, 1.0 / np.maximum(vw.mean(-1) + offset_var, 1e-6), 0.0)
+        return W, info
+
+    def world_prior(self, poses: Tensor) -> tuple[Tensor, Tensor] | None:
+        """(W (T, K, 3) global mm, information (T, K) mm^-2 per axis) of ``world_prior`` (see
+        `_world_prior`), or None when it is off (``world_prior_on``)."""
+        self._ready(poses)
+        return self._world
 
     def _contradicted(self, o, good, anchor, u, ps, vs) -> np.ndarray:
         """(T, K) bool: the observations (of ``good``) that the smoother's prediction from every
@@ -423,6 +470,7 @@ class InterpObservation:
             raise ValueError(f"disagreement must be >= 0, got {disagreement}")
         out.ray_disagreement = float(disagreement)
         out.ray_outliers = bool(outliers) and rays is not None
+        out.world_prior_on = self.world_prior_on
         return out
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:
@@ -481,4 +529,5 @@ class InterpObservation:
         if self.rays is not None:
             out.rays, out.ray_var = self.rays[start:stop], self.ray_var[start:stop]
         out.gap_sigma = self.gap_sigma
+        out.world_prior_on = self.world_prior_on
         return out

@@ -95,6 +95,8 @@ class Linearisation:
     A: tuple[Tensor, ...] | None = None  # d(u, v)/dX_cam entries, (T, K, C) each
     JX: Tensor | None = None  # (T, K, 3, 6)
     poses: Tensor | None = None  # (T, 6) where linearised
+    wr: Tensor | None = None  # (T, K, 3) mm, the world prior minus the model point
+    winfo: Tensor | None = None  # (T, K) mm^-2 its information per axis (0: none)
 
     @property
     def e2(self) -> Tensor:
@@ -112,7 +114,13 @@ def evaluate(poses: Tensor, pb: Problem, jacobian: bool) -> Linearisation:
         r = None
     else:
         r, _ = track_residuals(poses, pb.cfg.constraint, rho=pb.rho, grid=pb.grid, jacobian=False)
-    return Linearisation(eu, ev, z, r, X, A, JX, poses)
+    wr = winfo = None
+    prior = getattr(pb.obs, "world_prior", None)
+    prior = prior(poses) if callable(prior) else None
+    if prior is not None:  # the parts no camera pair sees, held near their world neighbours
+        W, winfo = prior
+        wr = W - X
+    return Linearisation(eu, ev, z, r, X, A, JX, poses, wr, winfo)
 
 
 def deformation_var(obs: ObservationModel, poses: Tensor) -> Tensor | None:
@@ -158,6 +166,8 @@ def irls_weights(lin: Linearisation, pb: Problem, share: float) -> tuple[Tensor,
 def total_cost(lin: Linearisation, pb: Problem, wmix: Tensor) -> float:
     e2 = torch.where(pb.valid, lin.e2, torch.zeros_like(lin.eu))
     c = (pb.base * kernel_cost(e2 * wmix, pb.cfg.robust, pb.cfg.robust_scale)).sum()
+    if lin.wr is not None:
+        c = c + 0.5 * (lin.winfo * (lin.wr * lin.wr).sum(-1)).sum()
     return float(c) + 0.5 * pb.track_w * float((lin.r * lin.r).sum())
 
 
@@ -165,6 +175,9 @@ def normal_equations(lin: Linearisation, w: Tensor, pb: Problem) -> tuple[np.nda
     """Banded normal matrix (5, T, 6, 6) and right-hand side (T, 6) of the weighted GN step."""
     T, K, C = lin.eu.shape
     Hx, gx = normal_blocks_3d(lin.A, lin.eu, lin.ev, w, pb.W6, pb.Wg)
+    if lin.wr is not None:  # the world prior: information winfo I on each model point
+        Hx = Hx + lin.winfo[..., None, None] * torch.eye(3, dtype=Hx.dtype, device=Hx.device)
+        gx = gx + lin.winfo[..., None] * lin.wr
     Hx = Hx.reshape(T * K, 3, 3)
     gx = gx.reshape(T, K * 3, 1)
     JX = lin.JX.reshape(T * K, 3, 6)

@@ -358,6 +358,21 @@ def _adjust_poses(
     )
 
 
+#: frames either side within which a rejected 3D observation must be the part's only one
+#: for its two views to lose their trust (`isolated_pairs`)
+ISOLATED = 2
+
+
+def isolated_pairs(rejected: Tensor, trusted: Tensor) -> Tensor:
+    """(T, K) bool: the 3D observations rejected (T, K) that no other rejection of the same part
+    lies within ISOLATED frames of, made by exactly two trusted views (T, K, C)."""
+    r = rejected.to(torch.bool)
+    w = ISOLATED
+    pad = torch.nn.functional.pad(r.to(torch.float64).T[:, None], (w, w))  # (K, 1, T + 2w)
+    near = torch.nn.functional.conv1d(pad, torch.ones(1, 1, 2 * w + 1, dtype=torch.float64))
+    return r & (near[:, 0].T < 1.5) & (trusted.sum(-1) == 2)
+
+
 def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: float) -> dict:
     """Per-frame outputs at the final poses: residuals, weights, fused points, uncertainties."""
     cfg = pb.cfg
@@ -397,11 +412,21 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: floa
         # cameras that agree with each other outvote the prior: with a consensus, only its
         # views (two failing views need not agree: a correct one and a far outlier, or two
         # far outliers, fused, cost tens of mm)
+        # ... unless the observation rejected their 3D point as contradicting its neighbours,
+        # alone among the part's frames within ISOLATED frames, and only two views made it
+        # (they agree along their epipolar line, one of them may be wrong; a third view would
+        # have told; a run of rejections is the part moving fast, not a wrong view): then they
+        # are gated against the prediction like any other view, and outvote it only if
+        # neither passes
+        trusted, rejected = pb.trusted, getattr(pb.obs, "outliers", None)
+        if trusted is not None and rejected is not None:
+            trusted = trusted & ~isolated_pairs(rejected, trusted)[..., None]
         accepted, _ = innovation_gate(
-            lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px, agree=pb.trusted
+            lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px, agree=trusted
         )
-        if pb.trusted is not None:
-            accepted = accepted | (pb.trusted & pb.valid)
+        if trusted is not None:
+            trusted = torch.where(accepted.any(-1, keepdim=True), trusted, pb.trusted)
+            accepted = accepted | (trusted & pb.valid)
         w_fuse = accepted.to(dt) / cfg.sigma_det_px**2
         pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, 50, pb.W6, pb.Wg, tol=1e-4)
         rob = rob * accepted.to(dt)
