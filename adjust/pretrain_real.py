@@ -134,10 +134,11 @@ UNKEYED = ("input.calibration", "input.detections", "output.dir", "progress", "t
 
 
 #: the recipe's tracking beside adjust-track's defaults: the shipped net was trained on interp's
-#: tracks with the single views at their fused points from a robust rigid start
-#: (``deform.anchors=rays`` and ``deform.rigid_robust=none``, the defaults since stops 49 and 50,
-#: came after it), so `make pretrained` still rebuilds the shipped file
-RECIPE_TRACK = ("deform.anchors=fused", "deform.rigid_robust=cauchy")
+#: tracks with the single views at their fused points from a robust rigid start, without the
+#: world prior (``deform.anchors=rays``, ``deform.rigid_robust=none`` and ``deform.world_prior``,
+#: the defaults since stops 49, 50 and 52, came after it), so `make pretrained` still rebuilds
+#: the shipped file
+RECIPE_TRACK = ("deform.anchors=fused", "deform.rigid_robust=cauchy", "deform.world_prior=false")
 
 
 def track_config(scene: Path, out: Path, overrides=()) -> DictConfig:
