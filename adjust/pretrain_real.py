@@ -135,10 +135,15 @@ UNKEYED = ("input.calibration", "input.detections", "output.dir", "progress", "t
 
 #: the recipe's tracking beside adjust-track's defaults: the shipped net was trained on interp's
 #: tracks with the single views at their fused points from a robust rigid start, without the
-#: world prior (``deform.anchors=rays``, ``deform.rigid_robust=none`` and ``deform.world_prior``,
-#: the defaults since stops 49, 50 and 52, came after it), so `make pretrained` still rebuilds
-#: the shipped file
-RECIPE_TRACK = ("deform.anchors=fused", "deform.rigid_robust=cauchy", "deform.world_prior=false")
+#: world prior or the gated view pairs (``deform.anchors=rays``, ``deform.rigid_robust=none``,
+#: ``deform.world_prior`` and ``deform.gate_pairs``, the defaults since stops 49, 50 and 52,
+#: came after it), so `make pretrained` still rebuilds the shipped file
+RECIPE_TRACK = (
+    "deform.anchors=fused",
+    "deform.rigid_robust=cauchy",
+    "deform.world_prior=false",
+    "deform.gate_pairs=false",
+)
 
 
 def track_config(scene: Path, out: Path, overrides=()) -> DictConfig:

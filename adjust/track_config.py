@@ -170,6 +170,7 @@ class DeformConfig:
     ray_disagreement: float = 0.5
     ray_outliers: bool = True
     world_prior: bool = True
+    gate_pairs: bool = True
     gap_sigma: str = "solver"
 
     def __post_init__(self) -> None:

@@ -119,7 +119,7 @@ class Adjusting:
             torch.as_tensor(c.noise_var),
             few_var=self.few_var,
         )
-        obs.world_prior_on = self.deform.world_prior
+        obs.world_prior_on, obs.gate_pairs = self.deform.world_prior, self.deform.gate_pairs
         return obs
 
     def anchor_rays(self, res) -> tuple[np.ndarray, np.ndarray]:

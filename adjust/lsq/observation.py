@@ -215,6 +215,9 @@ class InterpObservation:
         # (``world_prior_on``: `world_prior`); ``_world`` its (W, information) after `prepare`
         self.world_prior_on = False
         self._world: tuple[Tensor, Tensor] | None = None
+        # the final fusion gates the two views of an isolated rejected 3D observation
+        # (`adjust.lsq.solver.isolated_pairs`) instead of accepting them as a consensus
+        self.gate_pairs = False
         self.outliers = None  # (T, K) observations rejected as contradicting their neighbours
         self.neighbours = None  # (T, K, 3) body-frame prediction from the neighbouring frames
         self._M: Tensor | None = None  # (T, K, 3) body-frame model points
@@ -470,7 +473,7 @@ class InterpObservation:
             raise ValueError(f"disagreement must be >= 0, got {disagreement}")
         out.ray_disagreement = float(disagreement)
         out.ray_outliers = bool(outliers) and rays is not None
-        out.world_prior_on = self.world_prior_on
+        out.world_prior_on, out.gate_pairs = self.world_prior_on, self.gate_pairs
         return out
 
     def set_measured_var(self, measured_var: Tensor | None) -> None:
@@ -529,5 +532,5 @@ class InterpObservation:
         if self.rays is not None:
             out.rays, out.ray_var = self.rays[start:stop], self.ray_var[start:stop]
         out.gap_sigma = self.gap_sigma
-        out.world_prior_on = self.world_prior_on
+        out.world_prior_on, out.gate_pairs = self.world_prior_on, self.gate_pairs
         return out

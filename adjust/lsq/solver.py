@@ -419,7 +419,7 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: floa
         # are gated against the prediction like any other view, and outvote it only if
         # neither passes
         trusted, rejected = pb.trusted, getattr(pb.obs, "outliers", None)
-        if trusted is not None and rejected is not None:
+        if trusted is not None and rejected is not None and getattr(pb.obs, "gate_pairs", False):
             trusted = trusted & ~isolated_pairs(rejected, trusted)[..., None]
         accepted, _ = innovation_gate(
             lin.X, prior, pb.xy, pb.valid, pb.cams, cfg.sigma_det_px, agree=trusted
