@@ -403,6 +403,22 @@ class NetObservation(DeformableObservation):
         self._ready(poses)
         return _rotate_axes_var(so3_exp(poses[:, :3]), self._var.to(poses.dtype))
 
+    def world_prior(self, poses: Tensor) -> tuple[Tensor, Tensor] | None:
+        """interp's world prior (`InterpObservation.world_prior`, as of its last `prepare`):
+        the parts no camera pair sees held near their world neighbours here too."""
+        self._ready(poses)
+        return self.interp._world
+
+    @property
+    def outliers(self) -> Tensor | None:
+        """(T, K) the 3D observations interp rejected (the final fusion's `gate_pairs`)."""
+        return self.interp.outliers
+
+    @property
+    def gate_pairs(self) -> bool:
+        """interp's ``gate_pairs``: the final fusion gates an isolated rejected pair's views."""
+        return self.interp.gate_pairs
+
     def points(self, poses: Tensor, jacobian: bool = True):
         """X (T, K, 3) and, if asked, dX_t/d(delta_t) (T, K, 3, 6).
 
