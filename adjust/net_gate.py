@@ -80,8 +80,8 @@ def heldout_check(
     net (`mode` ``default``), ``report`` for a checkpoint (the user's own net, used as given:
     a ``deformation=self`` run's checkpoint reproduces its tracks).
     Returns (net_parts (K,) bool numpy or None for all, facts); all False: the tracks are
-    interpolated, ``deformation=interp``'s model adjusted to convergence (the solver's
-    iterations, not ``deform.max_iterations``; logged loudly). step: frames between the
+    ``deformation=interp``'s (the net modes start from interp's own adjustment; logged
+    loudly). step: frames between the
     net's tokens (`adjust.deformation_modes.deform_step`; None: the net's)."""
     spec = str(require_better).lower()
     if spec not in REQUIRE_BETTER:
