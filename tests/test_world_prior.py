@@ -110,3 +110,22 @@ def test_isolated_pairs():
     trusted[10, 1, 2] = True  # three views
     out = isolated_pairs(rejected, trusted)
     assert out.nonzero().tolist() == [[0, 1], [3, 0]]
+
+
+def test_a_chunk_of_the_observation_keeps_its_settings():
+    """`InterpObservation.window` (the solver's chunks, sessions over `solver.chunk_size`
+    frames) carries every setting of the whole: the rays' disagreement and outlier check, the
+    world prior, the gated pairs, the gaps' sigma."""
+    T, K = 40, 2
+    body = torch.zeros(K, 3, dtype=F64)
+    data = torch.randn(T, K, 3, dtype=F64)
+    obs = InterpObservation(body, data, torch.ones(T, K, dtype=torch.bool))
+    obs.world_prior_on, obs.gate_pairs = True, True
+    rays = np.tile(np.array([0.0, 0.0, 1.0]), (T, K, 1))
+    a = obs.anchored(data.numpy(), np.ones((T, K)), np.ones((T, K), int), None, rays,
+                     np.ones((T, K)), disagreement=0.5, outliers=True)  # fmt: skip
+    w = a.window(5, 30)
+    assert w is not a and w.observed.shape == (25, K)
+    for name in ("ray_disagreement", "ray_outliers", "world_prior_on", "gate_pairs", "gap_sigma"):
+        assert getattr(w, name) == getattr(a, name), name
+    assert (w.ray_disagreement, w.ray_outliers) == (0.5, True)

@@ -531,6 +531,8 @@ class InterpObservation:
             out.anchor_var = self.anchor_var[start:stop]
         if self.rays is not None:
             out.rays, out.ray_var = self.rays[start:stop], self.ray_var[start:stop]
+        # every setting of the whole (a chunk rejects its own outliers, at its own first poses)
         out.gap_sigma = self.gap_sigma
+        out.ray_disagreement, out.ray_outliers = self.ray_disagreement, self.ray_outliers
         out.world_prior_on, out.gate_pairs = self.world_prior_on, self.gate_pairs
         return out
