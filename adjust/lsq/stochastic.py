@@ -108,13 +108,55 @@ class OffsetCovariance:
         K = self.sill.shape[0]
         if h.ndim != 2 or h.shape[1] != K:
             raise ValueError(f"lags must be (T, {K}), got {h.shape}")
-        lag = np.concatenate(([0.0], self.lags.astype(np.float64)))
-        out = np.empty((*h.shape, 3))
-        for k in range(K):
-            for a in range(3):
-                g = np.concatenate(([0.0], self.gamma[k, a]))
-                out[:, k, a] = self.sill[k, a] - np.interp(h[:, k], lag, g, right=self.sill[k, a])
-        return np.maximum(out, 0.0)
+        top = float(self.lags[-1]) + 1.0
+        if h.shape[0] > top and (h >= 0).all():
+            whole = np.minimum(h, top).astype(np.int64)
+            if (whole == np.minimum(h, top)).all():  # whole lags: tabulated
+                return self.lag_covariance(whole)
+        return self._interpolated(h)
+
+    def _interpolated(self, h: np.ndarray) -> np.ndarray:
+        """`covariance` at lags h (T, K) float: every part and axis's semivariogram
+        interpolated at once, by np.interp's arithmetic (the same values: between two lags
+        slope * (h - lag_j) + g_j with slope = (g_{j+1} - g_j) / (lag_{j+1} - lag_j); at a lag
+        its value; before the first 0, beyond the last the sill)."""
+        T, K = h.shape
+        lag = np.concatenate(([0.0], self.lags.astype(np.float64)))  # (L + 1,)
+        n = lag.size
+        g = np.concatenate((np.zeros((K, 3, 1)), self.gamma), -1)  # (K, 3, L + 1)
+        g = np.ascontiguousarray(np.swapaxes(g, 1, 2))  # (K, L + 1, 3)
+        sill = np.broadcast_to(self.sill[None], (T, K, 3))
+        if n == 1:  # one lag (0): 0 there, the sill beyond
+            v = np.where((h > lag[0])[..., None], sill, 0.0)
+            return np.maximum(sill - v, 0.0)
+        slope = (g[:, 1:] - g[:, :-1]) / (lag[1:] - lag[:-1])[None, :, None]  # (K, L, 3)
+        j = np.clip(np.searchsorted(lag, h, side="right") - 1, 0, n - 2)  # (T, K)
+        rows = j + n * np.arange(K)
+        gj = np.take(g.reshape(K * n, 3), rows, axis=0)
+        gj1 = np.take(g.reshape(K * n, 3), rows + 1, axis=0)
+        sj = np.take(slope.reshape(K * (n - 1), 3), j + (n - 1) * np.arange(K), axis=0)
+        x = h[..., None]
+        lj = lag[j][..., None]
+        v = sj * (x - lj) + gj
+        v = np.where(x == lj, gj, v)
+        v = np.where(x == lag[-1], gj1, v)  # (j is then n - 2: the last lag's value)
+        v = np.where(x < lag[0], g[:, 0][None], v)
+        v = np.where(x > lag[-1], sill, v)
+        v = np.where(np.isnan(x), x, v)
+        return np.maximum(sill - v, 0.0)
+
+    def lag_covariance(self, h: np.ndarray) -> np.ndarray:
+        """`covariance` at whole lags h (T, K) int >= 0, the same values: with more frames than
+        lags tabulated at the lags 0..last + 1 (by the same np.interp, each lag's value is
+        np.interp's at that lag) and looked up, without a loop over the frames."""
+        h = np.asarray(h, dtype=np.int64)
+        K = self.sill.shape[0]
+        top = int(self.lags[-1]) + 1  # every lag beyond the last is the sill's (interp's right)
+        if h.shape[0] <= top:  # fewer frames than lags: interpolated directly
+            return self._interpolated(h.astype(np.float64))
+        table = self._interpolated(np.broadcast_to(np.arange(top + 1.0)[:, None], (top + 1, K)))
+        rows = np.minimum(h, top) * K + np.arange(K)  # (the table is (top + 1, K, 3))
+        return np.take(table.reshape((top + 1) * K, 3), rows, axis=0)
 
     @classmethod
     def estimate(
@@ -154,10 +196,15 @@ class OffsetCovariance:
             :, None
         ]
         raw = np.full((K, 3, lags.size), np.nan)
+        buf = np.empty_like(z)  # the squared differences of one lag, 0 where not both seen
         for i, h in enumerate(lags):
             both = m[h:] & m[:-h]
-            n = both.sum(0)
-            d2 = np.where(both[..., None], (o[h:] - o[:-h]) ** 2, 0.0).sum(0)
+            n = np.count_nonzero(both, axis=0)
+            d = buf[: T - h]  # (z: o where observed, so o's differences where both are)
+            np.subtract(z[h:], z[:-h], out=d)
+            np.multiply(d, d, out=d)
+            np.multiply(d, both[..., None], out=d)
+            d2 = d.sum(0)
             g = 0.5 * d2 / np.maximum(n, 1)[:, None]
             raw[:, :, i] = np.where((n >= min_pairs)[:, None], g, np.nan)
         # nugget: quadratic extrapolation to 0 from lags 1 and 2 (or a linear one from lag 1)
@@ -260,27 +307,32 @@ def krige_between(
     T, K, _ = o.shape
     t = np.arange(T)[:, None]
     has_p, has_n = prev >= 0, nxt < T
-    dp = np.where(has_p, t - prev, 0).astype(np.float64)
-    dn = np.where(has_n, nxt - t, 0).astype(np.float64)
-    kk = np.arange(K)[None]
-    op = np.where(has_p[..., None], o[np.clip(prev, 0, T - 1), kk], 0.0)
-    on = np.where(has_n[..., None], o[np.clip(nxt, 0, T - 1), kk], 0.0)
+    dpi = np.where(has_p, t - prev, 0)  # whole lags (frames)
+    dni = np.where(has_n, nxt - t, 0)
+    dp, dn = dpi.astype(np.float64), dni.astype(np.float64)
+    # the neighbours' rows of (T, K, ...) arrays flattened to (T K, ...): gathered by np.take
+    rp = np.clip(prev, 0, T - 1) * K + np.arange(K)
+    rn = np.clip(nxt, 0, T - 1) * K + np.arange(K)
+    flat = np.ascontiguousarray(o).reshape(T * K, 3)
+    op = np.where(has_p[..., None], np.take(flat, rp, axis=0), 0.0)
+    on = np.where(has_n[..., None], np.take(flat, rn, axis=0), 0.0)
     both = has_p & has_n
     span = np.where(both, dp + dn, 1.0)
     lp = np.where(both, dn / span, has_p.astype(np.float64))  # weight of the previous frame
     ln = np.where(both, dp / span, has_n.astype(np.float64))
     sill = cov.sill[None]
-    gp = sill - cov.covariance(dp)  # noise-free semivariogram at the lags, (T, K, 3)
-    gn = sill - cov.covariance(dn)
-    gpn = sill - cov.covariance(dp + dn)
+    gp = sill - cov.lag_covariance(dpi)  # noise-free semivariogram at the lags, (T, K, 3)
+    gn = sill - cov.lag_covariance(dni)
+    gpn = sill - cov.lag_covariance(dpi + dni)
     lp3, ln3 = lp[..., None], ln[..., None]
     pred = lp3 * op + ln3 * on
     if noise is None:
         obs_var = (lp3**2 + ln3**2) * cov.nugget[None]
     else:
         nz = np.asarray(noise, dtype=np.float64)
-        n_p = np.where(has_p[..., None], nz[np.clip(prev, 0, T - 1), kk], 0.0)
-        n_n = np.where(has_n[..., None], nz[np.clip(nxt, 0, T - 1), kk], 0.0)
+        nz = np.ascontiguousarray(np.broadcast_to(nz, (T, K, nz.shape[-1]))).reshape(T * K, -1)
+        n_p = np.where(has_p[..., None], np.take(nz, rp, axis=0), 0.0)
+        n_n = np.where(has_n[..., None], np.take(nz, rn, axis=0), 0.0)
         obs_var = lp3**2 * n_p + ln3**2 * n_n
     var = 2 * (lp3 * gp + ln3 * gn) - 2 * lp3 * ln3 * gpn + obs_var
     use_mean = ~(has_p | has_n)[..., None] | (var > sill)
