@@ -197,13 +197,14 @@ class OffsetCovariance:
         ]
         raw = np.full((K, 3, lags.size), np.nan)
         buf = np.empty_like(z)  # the squared differences of one lag, 0 where not both seen
+        mt = np.ascontiguousarray(m.T)  # (K, T): the pairs counted along contiguous rows
         for i, h in enumerate(lags):
-            both = m[h:] & m[:-h]
-            n = np.count_nonzero(both, axis=0)
+            n = np.count_nonzero(mt[:, h:] & mt[:, :-h], axis=1)
+            both = np.repeat((m[h:] & m[:-h])[..., None], 3, axis=-1)
             d = buf[: T - h]  # (z: o where observed, so o's differences where both are)
             np.subtract(z[h:], z[:-h], out=d)
             np.multiply(d, d, out=d)
-            np.multiply(d, both[..., None], out=d)
+            np.multiply(d, both, out=d)
             d2 = d.sum(0)
             g = 0.5 * d2 / np.maximum(n, 1)[:, None]
             raw[:, :, i] = np.where((n >= min_pairs)[:, None], g, np.nan)
