@@ -28,7 +28,13 @@ from torch import Tensor
 
 from adjust.lsq.geometry import rigid_points, so3_exp
 from adjust.lsq.smoother import across_ray_rms, ray_information, smooth_offsets
-from adjust.lsq.stochastic import OffsetCovariance, krige_between, krige_offsets, neighbours
+from adjust.lsq.stochastic import (
+    OffsetCovariance,
+    all_last,
+    krige_between,
+    krige_offsets,
+    neighbours,
+)
 from deformnet.so3 import skew
 
 #: chi-square quantiles at p = 0.001: an observation its prediction contradicts
@@ -364,7 +370,7 @@ class InterpObservation:
             cov = replace(cov, nugget=np.repeat(nugget.mean(1, keepdims=True), 3, axis=1))
         W, vw = krige_offsets(X, three, cov, skip_self=True)
         prev, nxt = neighbours(three, skip_self=True)
-        inside = (prev >= 0) & (nxt < T) & (vw < cov.sill[None]).all(-1)
+        inside = (prev >= 0) & (nxt < T) & all_last(vw < cov.sill[None])
         info = np.where(inside & ~three, 1.0 / np.maximum(vw.mean(-1) + offset_var, 1e-6), 0.0)
         return W, info
 

@@ -31,6 +31,15 @@ import numpy as np
 DEFAULT_LAGS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512)
 
 
+def all_last(b: np.ndarray) -> np.ndarray:
+    """``b.all(-1)`` of a bool array (..., n): for n = 3 (points) by its three slices, which
+    numpy does an order of magnitude faster than a reduction over a short last axis."""
+    b = np.asarray(b, dtype=bool)
+    if b.ndim and b.shape[-1] == 3:
+        return b[..., 0] & b[..., 1] & b[..., 2]
+    return b.all(-1)
+
+
 def detector_sigma(
     view_error: np.ndarray, used: np.ndarray, trim: float = 4.0, floor: float = 0.05
 ) -> tuple[float, np.ndarray]:
@@ -182,7 +191,7 @@ class OffsetCovariance:
         finite (its spread known otherwise, e.g. from its single views, `place_from_rays`).
         """
         o = np.asarray(offsets, dtype=np.float64)
-        m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
+        m = np.asarray(observed, dtype=bool) & all_last(np.isfinite(o))
         if o.ndim != 3 or o.shape[-1] != 3 or m.shape != o.shape[:2]:
             raise ValueError(f"offsets (T, K, 3) and observed (T, K), got {o.shape}, {m.shape}")
         T, K, _ = o.shape
@@ -273,7 +282,7 @@ def krige_offsets(
     l_p^2 noise_p + l_n^2 noise_n.
     """
     o = np.asarray(offsets, dtype=np.float64)
-    m = np.asarray(observed, dtype=bool) & np.isfinite(o).all(-1)
+    m = np.asarray(observed, dtype=bool) & all_last(np.isfinite(o))
     prev, nxt = neighbours(m, skip_self)
     return krige_between(o, prev, nxt, cov, noise)
 
