@@ -151,12 +151,13 @@ def _smooth_op(later: tuple, earlier: tuple) -> tuple:
     return Ei @ Ej, _mv(Ei, gj) + gi, Ei @ Lj @ _t(Ei) + Li
 
 
-def _prefix(elems: tuple, op, identity: tuple, from_start=None) -> tuple:
+def _prefix(elems: tuple, op, identity: tuple, from_start=None, keep=None) -> tuple:
     """Inclusive prefix scan of elements (arrays with the time axis first, T) under the
     associative op: the frames in blocks of SCAN_BLOCK, a loop within every block at once, the
     blocks' totals scanned the same way (recursively), then every frame composed with the total
     of the blocks before its own (vectorised; by from_start(total, element) where given: op for
-    a left operand that starts at the first frame). identity pads T to whole blocks."""
+    a left operand that starts at the first frame). identity pads T to whole blocks. keep: the
+    indices of the elements' parts returned (None: all), the others are not copied out."""
     T = elems[0].shape[0]
     L = min(SCAN_BLOCK, T)
     B = -(-T // L)
@@ -173,7 +174,8 @@ def _prefix(elems: tuple, op, identity: tuple, from_start=None) -> tuple:
         before = tuple(np.broadcast_to(p, a[:, 1:].shape) for p, a in zip(totals, x))
         for a, n in zip(x, (from_start or op)(before, tuple(a[:, 1:] for a in x))):
             a[:, 1:] = n
-    return tuple(np.swapaxes(a, 0, 1).reshape(B * L, *a.shape[2:])[:T] for a in x)
+    keep = range(len(x)) if keep is None else keep
+    return tuple(np.swapaxes(x[i], 0, 1).reshape(B * L, *x[i].shape[2:])[:T] for i in keep)
 
 
 def _smoothed_states(F, Q, P0, J, h) -> tuple[np.ndarray, np.ndarray]:
@@ -197,7 +199,7 @@ def _smoothed_states(F, Q, P0, J, h) -> tuple[np.ndarray, np.ndarray]:
     eta[0], Je[0] = 0.0, 0.0
     b = _mv(SP[..., :3], h)
     ident = (I6, np.zeros(6), np.zeros((6, 6)), np.zeros(6), np.zeros((6, 6)))
-    _, mf, Pf, _, _ = _prefix((A, b, _sym(SP), eta, Je), _filter_op, ident, _filter_from_start)
+    mf, Pf = _prefix((A, b, _sym(SP), eta, Je), _filter_op, ident, _filter_from_start, (1, 2))
     Pf = _sym(Pf)
     # Rauch-Tung-Striebel elements, then the reversed scan
     Pp = F @ Pf[:-1] @ Ft + Q
@@ -206,7 +208,7 @@ def _smoothed_states(F, Q, P0, J, h) -> tuple[np.ndarray, np.ndarray]:
     g = np.concatenate([mf[:-1] - _mv(E[:-1] @ F, mf[:-1]), mf[-1:]])
     Ls = np.concatenate([_sym(Pf[:-1] - E[:-1] @ F @ Pf[:-1]), Pf[-1:]])
     ident = (I6, np.zeros(6), np.zeros((6, 6)))
-    _, ms, Ps = _prefix((E[::-1], g[::-1], Ls[::-1]), _smooth_op, ident)
+    ms, Ps = _prefix((E[::-1], g[::-1], Ls[::-1]), _smooth_op, ident, keep=(1, 2))
     return ms[::-1], _sym(Ps[::-1])
 
 
