@@ -301,3 +301,32 @@ def test_observations_the_smoother_contradicts_are_rejected():
             assert not o.outliers.numpy()[[100, 150], 0].any()
     near = slice(140, 161)
     assert err[True][near].max() < 0.5 * err[False][near].max()
+
+
+def _interp_covariance(cov: OffsetCovariance, h: np.ndarray) -> np.ndarray:
+    """The definition `OffsetCovariance.covariance` vectorises: per part and axis, the sill
+    minus np.interp of the semivariogram (0 at lag 0, the sill beyond the last lag)."""
+    lag = np.concatenate(([0.0], cov.lags.astype(np.float64)))
+    out = np.empty((*h.shape, 3))
+    for k in range(h.shape[1]):
+        for a in range(3):
+            g = np.concatenate(([0.0], cov.gamma[k, a]))
+            out[:, k, a] = cov.sill[k, a] - np.interp(h[:, k], lag, g, right=cov.sill[k, a])
+    return np.maximum(out, 0.0)
+
+
+def test_the_vectorised_covariance_is_np_interps_to_the_bit():
+    rng = np.random.default_rng(1)
+    T, K = 1500, 5
+    o = np.cumsum(rng.standard_normal((T, K, 3)), 0) * 0.3
+    cov = OffsetCovariance.estimate(o, rng.random((T, K)) < 0.6)
+    top = int(cov.lags[-1])
+    for h in (
+        rng.integers(0, 3 * top, (T, K)).astype(float),  # whole lags: the tabulated path
+        rng.integers(0, 10, (T, K)).astype(float),
+        rng.random((T, K)) * 1.5 * top,  # between lags
+        np.array([[0.0] * K, [float(top)] * K, [top + 0.5] * K]),  # the ends, few frames
+    ):
+        assert np.array_equal(cov.covariance(h), _interp_covariance(cov, h))
+    hi = rng.integers(0, 3 * top, (T, K))
+    assert np.array_equal(cov.lag_covariance(hi), _interp_covariance(cov, hi.astype(float)))
