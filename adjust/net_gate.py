@@ -124,6 +124,9 @@ def heldout_check(
         "interp_mm": dict(zip(body.parts, map(float, int_mm))),
         "net_parts": [p for p, k in zip(body.parts, keep) if k],
     }
+    for k in ("beyond_share", "net_beyond_mm", "interp_beyond_mm"):  # the windows beyond reach
+        if k in h:
+            facts[k] = dict(zip(body.parts, map(float, h[k])))
     worse = ", ".join(p for p, b in zip(body.parts, better) if not b)
     figures = (h["net_all_mm"], h["interp_all_mm"], h["windows"])
     if not keep.any():
@@ -228,6 +231,7 @@ def net_vs_kriging(
     seed: int = 0,
     anchors: Anchors | None = None,
     net_anchors: bool = False,
+    beyond: bool = True,
 ) -> dict:
     """RMSE (mm) of the net and of `kriged_mid` (what ``deformation=interp`` predicts) on the
     same masked windows (`deformnet.windows`, training-like masks) of the recording's tokens
@@ -237,9 +241,15 @@ def net_vs_kriging(
     blocks; None: the whole recording); step: frames between tokens (None: the net's);
     anchors: the recording's single-view anchors, which the kriging uses as interp does
     (None: none); net_anchors: the net's window inputs include them too (as observed tokens,
-    ``deform.net_anchors``). Returns {"net_mm", "interp_mm" (per part lists), "targets",
-    "net_all_mm", "interp_all_mm", "windows", "baseline"}. ValueError when no block holds a
-    window."""
+    ``deform.net_anchors``). beyond: also judge the windows in which the part is alone, hidden
+    in every frame with its anchors (`_alone`), where the tracks take the net's prediction
+    beyond its window's reach of any observation (``deform.beyond_window``): each part's mean
+    squared errors near and beyond mixed by the share of its unobserved frames that lie that
+    far (`beyond_share`); False: the training-like windows only (before stop 53, when a net
+    that passed could make tracks worse in long gaps). Returns {"net_mm", "interp_mm" (per part
+    lists), "targets", "net_all_mm", "interp_all_mm", "windows", "baseline"} and, with
+    beyond, "beyond_share", "net_near_mm", "interp_near_mm", "net_beyond_mm",
+    "interp_beyond_mm" (per part). ValueError when no block holds a window."""
     step = int(model.step if step is None else step)
     spans = [(0, tokens.num_frames)] if blocks is None else [(int(a), int(b)) for a, b in blocks]
     bank = WindowBank([tokens.to_sequence(a, b) for a, b in spans], model.half_window, step)
@@ -249,6 +259,8 @@ def net_vs_kriging(
 
     def sums(b: dict) -> dict[str, Tensor]:
         a = None if anchors is None else anchors.window(recording[b["frames"]])
+        if a is not None and "alone" in b:  # the part alone in its window: no anchor either
+            a = (a[0], a[1] & ~b["alone"][:, None, :], a[2])
         nb = b
         if net_anchors and a is not None:
             deformed, observed, _ = with_single_views(b["deformed"], b["observed"], *a[:2])
@@ -262,7 +274,7 @@ def net_vs_kriging(
     total = summed_over(model, data.batches, sums)
     count = total.pop("count")
     rmse = rmse_by_part(total, count)
-    return {
+    out = {
         "net_mm": rmse["net"][0],
         "interp_mm": rmse["interp"][0],
         "targets": [int(c) for c in count],
@@ -271,3 +283,65 @@ def net_vs_kriging(
         "windows": sum(int(b["rigid"].shape[0]) for b in data.batches),
         "baseline": "interp's kriging" + ("" if anchors is None else " with single-view anchors"),
     }
+    if not beyond:
+        return out
+    # beyond the window: where no 3D observation and no anchor of a part lies within the
+    # net's reach, the tracks take the net's prediction from a window without that part
+    # (``deform.beyond_window``); the same windows with one part hidden throughout, weighed by
+    # the share of the part's unobserved frames that lie so far from any observation (over the
+    # whole recording: the held-out blocks are windows to judge by, not where the net is used)
+    far = beyond_share(tokens.observed, None if anchors is None else anchors.mask,
+                       model.half_window * step, [(0, tokens.num_frames)])  # fmt: skip
+    lone = FixedWindowBatches([_alone(bank, b) for b in data.batches])
+    t_far = summed_over(model, lone.batches, sums)
+    c_far = t_far.pop("count")
+    near_n, far_n = count.double(), c_far.double()
+    mixed = {}
+    for k in ("net", "interp"):
+        mse_near = total[k] / near_n.clamp_min(1)
+        mse_far = torch.where(far_n > 0, t_far[k] / far_n.clamp_min(1), mse_near)
+        mixed[k] = (1.0 - far) * mse_near + far * mse_far  # (K,) mm^2
+    w = near_n / near_n.sum().clamp_min(1)
+    out.update(
+        net_mm=[float(v) for v in mixed["net"].sqrt()],
+        interp_mm=[float(v) for v in mixed["interp"].sqrt()],
+        net_all_mm=float((w * mixed["net"]).sum().sqrt()),
+        interp_all_mm=float((w * mixed["interp"]).sum().sqrt()),
+        beyond_share=[round(float(v), 4) for v in far],
+        net_near_mm=rmse["net"][0],
+        interp_near_mm=rmse["interp"][0],
+        net_beyond_mm=[float(v) for v in (t_far["net"] / far_n.clamp_min(1)).sqrt()],
+        interp_beyond_mm=[float(v) for v in (t_far["interp"] / far_n.clamp_min(1)).sqrt()],
+    )
+    return out
+
+
+def _alone(bank: WindowBank, b: dict) -> dict:
+    """A copy of window batch b with one part per window (in turn) hidden in every frame and
+    the only target: the windows in which the net predicts a part from the others alone."""
+    B, W, K = b["observed"].shape
+    k = torch.arange(B) % K
+    alone = torch.nn.functional.one_hot(k, K).bool()  # (B, K)
+    observed = b["observed"] & ~alone[:, None, :]
+    deformed = torch.where(observed[..., None], b["deformed"], torch.zeros_like(b["deformed"]))
+    return {**b, "observed": observed, "deformed": deformed, "alone": alone,
+            "target_mask": b["target_mask"] & alone}  # fmt: skip
+
+
+def beyond_share(observed, anchors, reach: int, spans) -> Tensor:
+    """(K,) the share of each part's frames without a 3D observation (in the recording's
+    ``spans``) that have neither a 3D observation nor an anchor (mask (T, K) or None) within
+    ``reach`` frames: where the tracks take the net's prediction from a window without it."""
+    seen = torch.as_tensor(np.asarray(observed)).bool()
+    if anchors is not None:
+        seen = seen | torch.as_tensor(anchors).bool()
+    T, K = seen.shape
+    pad = torch.nn.functional.pad(seen.double().T[:, None], (reach, reach))
+    near = torch.nn.functional.conv1d(pad, torch.ones(1, 1, 2 * reach + 1, dtype=torch.float64))
+    near = near[:, 0].T > 0.5  # (T, K)
+    keep = torch.zeros(T, dtype=torch.bool)
+    for a, b in spans:
+        keep[a:b] = True
+    unobs = ~torch.as_tensor(np.asarray(observed)).bool() & keep[:, None]
+    far = unobs & ~near
+    return far.sum(0).double() / unobs.sum(0).double().clamp_min(1)

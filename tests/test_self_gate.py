@@ -15,10 +15,11 @@ import torch
 from torch import nn
 
 from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
-from adjust.net_gate import kriged_mid
+from adjust.net_gate import beyond_share, kriged_mid, net_vs_kriging
 from deformnet.body import default_mouse
 from deformnet.confutil import compose
 from deformnet.deformation import DeformationModel
+from deformnet.sessions import SessionTokens
 from deformnet.so3 import transform_points
 
 torch.set_num_threads(1)
@@ -238,3 +239,59 @@ def test_without_net_anchors_the_fine_tuning_sees_3d_observations_only(
     given = {}
     _self_run(scene, tmp_path / "plain", monkeypatch, "shift", given, ["deform.net_anchors=false"])
     assert given["tokens"].inputs is None
+
+
+def test_beyond_share_counts_the_unobserved_frames_out_of_any_observations_reach():
+    observed = np.zeros((40, 2), bool)
+    observed[[0, 39], 0] = True  # part 0: a 38-frame gap
+    observed[::3, 1] = True  # part 1: never more than 2 frames from an observation
+    anchors = np.zeros((40, 2), bool)
+    share = beyond_share(observed, None, 4, [(0, 40)])
+    assert share[0] == pytest.approx(30 / 38) and share[1] == 0.0  # frames 5-34 of 1-38
+    anchors[20, 0] = True  # an anchor in the gap's middle: frames 16-24 are within reach
+    with_anchor = beyond_share(observed, anchors, 4, [(0, 40)])
+    assert with_anchor[0] == pytest.approx(21 / 38)
+    assert beyond_share(observed, None, 4, [(0, 20)])[0] == pytest.approx(15 / 19)
+
+
+class _NearOnly(nn.Module):
+    """The window mean of the part's observed tokens (exact for a still part), 20 mm off where
+    the part is alone in its window (hidden throughout)."""
+
+    def forward(self, rigid_c, deformed_c, observed):
+        o = observed[..., None].to(rigid_c.dtype)
+        c = o.sum(-3)
+        mid = rigid_c[:, rigid_c.shape[1] // 2]
+        return torch.where(c > 0, (deformed_c * o).sum(-3) / c.clamp_min(1), mid + 20.0)
+
+
+def test_the_gate_judges_the_net_where_the_tracks_use_it_beyond_its_window():
+    """A part hidden for long stretches: beyond the window's reach of any observation the
+    tracks take the net's prediction from a window without that part. The gate before stop 53
+    (``beyond=False``) judged training-like windows only, where a part is rarely alone; with
+    ``beyond`` (the default) the windows with the part alone count too, weighed by the share of
+    its unobserved frames that lie so far from any observation: a net that errs there loses
+    to the kriging, which holds the mean offset (here 0.87 mm off)."""
+    body = default_mouse()
+    K, T = body.num_parts, 600
+    B = np.array(body.points)
+    rigid = np.broadcast_to(B, (T, K, 3)).copy()
+    truth = rigid + 0.5
+    observed = np.zeros((T, K), bool)
+    observed[(np.arange(T) % 100) < 40] = True  # 40 frames seen, 60 hidden, in turn
+    tokens = SessionTokens(rigid, truth, observed, tuple(body.parts), B, body.name)
+    model = DeformationModel(_NearOnly(), body, 12)
+    cov = _cov(K)
+    near = net_vs_kriging(model, tokens, cov, None, 1, windows=256, beyond=False)
+    both = net_vs_kriging(model, tokens, cov, None, 1, windows=256)
+    assert "beyond_share" not in near and both["net_near_mm"] == near["net_mm"]
+    # 12 frames' reach each side: 36 of each gap's 60 frames, 48 of the last (none after it)
+    share = (5 * 36 + 48) / 360
+    assert both["beyond_share"] == pytest.approx([share] * K, abs=1e-4)
+    assert min(both["net_beyond_mm"]) > 30.0  # 20 mm on each axis
+    assert both["interp_beyond_mm"] == pytest.approx([0.5 * 3**0.5] * K)
+    for k in range(K):  # each part's errors near and beyond, mixed by its share
+        mixed = (1 - share) * near["net_mm"][k] ** 2 + share * both["net_beyond_mm"][k] ** 2
+        assert both["net_mm"][k] == pytest.approx(mixed**0.5, rel=1e-3)
+    assert both["net_all_mm"] > 10 * near["net_all_mm"] > 0
+    assert both["net_all_mm"] > 20 * both["interp_all_mm"]
