@@ -292,8 +292,7 @@ def net_vs_kriging(
     # whole recording: the held-out blocks are windows to judge by, not where the net is used)
     far = beyond_share(tokens.observed, None if anchors is None else anchors.mask,
                        model.half_window * step, [(0, tokens.num_frames)])  # fmt: skip
-    lone = FixedWindowBatches([_alone(bank, b) for b in data.batches])
-    t_far = summed_over(model, lone.batches, sums)
+    t_far = summed_over(model, [_alone(b) for b in data.batches], sums)
     c_far = t_far.pop("count")
     near_n, far_n = count.double(), c_far.double()
     mixed = {}
@@ -316,7 +315,7 @@ def net_vs_kriging(
     return out
 
 
-def _alone(bank: WindowBank, b: dict) -> dict:
+def _alone(b: dict) -> dict:
     """A copy of window batch b with one part per window (in turn) hidden in every frame and
     the only target: the windows in which the net predicts a part from the others alone."""
     B, W, K = b["observed"].shape
