@@ -16,7 +16,7 @@ from torch import Tensor
 
 from adjust.io import InputError
 from adjust.lsq.observation import InterpObservation, with_single_views
-from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
+from adjust.lsq.stochastic import OffsetCovariance, count_within, krige_offsets
 from adjust.tokenize import session_tokens
 from deformnet.heldout import MIN_TARGETS, WINDOWS, rmse_by_part, summed_over, window_sums
 from deformnet.so3 import kabsch
@@ -331,16 +331,11 @@ def beyond_share(observed, anchors, reach: int, spans) -> Tensor:
     """(K,) the share of each part's frames without a 3D observation (in the recording's
     ``spans``) that have neither a 3D observation nor an anchor (mask (T, K) or None) within
     ``reach`` frames: where the tracks take the net's prediction from a window without it."""
-    seen = torch.as_tensor(np.asarray(observed)).bool()
-    if anchors is not None:
-        seen = seen | torch.as_tensor(anchors).bool()
-    T, K = seen.shape
-    pad = torch.nn.functional.pad(seen.double().T[:, None], (reach, reach))
-    near = torch.nn.functional.conv1d(pad, torch.ones(1, 1, 2 * reach + 1, dtype=torch.float64))
-    near = near[:, 0].T > 0.5  # (T, K)
-    keep = torch.zeros(T, dtype=torch.bool)
+    obs = np.asarray(observed, dtype=bool)
+    seen = obs if anchors is None else obs | np.asarray(anchors, dtype=bool)
+    keep = np.zeros(obs.shape[0], dtype=bool)
     for a, b in spans:
         keep[a:b] = True
-    unobs = ~torch.as_tensor(np.asarray(observed)).bool() & keep[:, None]
-    far = unobs & ~near
-    return far.sum(0).double() / unobs.sum(0).double().clamp_min(1)
+    unobs = ~obs & keep[:, None]
+    far = unobs & (count_within(seen, reach) == 0)
+    return torch.as_tensor(far.sum(0) / np.maximum(unobs.sum(0), 1), dtype=torch.float64)

@@ -51,6 +51,7 @@ from adjust.lsq.problem import (
     total_cost,
 )
 from adjust.lsq.robust import kernel_weight
+from adjust.lsq.stochastic import count_within
 from adjust.sym3 import sym3_inverse
 from deformnet.threads import torch_threads
 
@@ -367,10 +368,8 @@ def isolated_pairs(rejected: Tensor, trusted: Tensor) -> Tensor:
     """(T, K) bool: the 3D observations rejected (T, K) that no other rejection of the same part
     lies within ISOLATED frames of, made by exactly two trusted views (T, K, C)."""
     r = rejected.to(torch.bool)
-    w = ISOLATED
-    pad = torch.nn.functional.pad(r.to(torch.float64).T[:, None], (w, w))  # (K, 1, T + 2w)
-    near = torch.nn.functional.conv1d(pad, torch.ones(1, 1, 2 * w + 1, dtype=torch.float64))
-    return r & (near[:, 0].T < 1.5) & (trusted.sum(-1) == 2)
+    alone = torch.as_tensor(count_within(r.cpu().numpy(), ISOLATED) == 1, device=r.device)
+    return r & alone & (trusted.sum(-1) == 2)
 
 
 def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: float) -> dict:

@@ -258,6 +258,16 @@ def neighbours(observed: np.ndarray, skip_self: bool) -> tuple[np.ndarray, np.nd
     return prev, nxt
 
 
+def count_within(mask: np.ndarray, w: int) -> np.ndarray:
+    """(T, K) int: for each frame t and part, how many of the part's frames flagged in mask
+    (T, K) lie within w frames of t (t included)."""
+    m = np.asarray(mask, dtype=bool)
+    T, K = m.shape
+    cs = np.concatenate([np.zeros((1, K), np.int64), np.cumsum(m, axis=0, dtype=np.int64)])
+    t = np.arange(T)
+    return cs[np.minimum(t + w + 1, T)] - cs[np.maximum(t - w, 0)]
+
+
 def krige_offsets(
     offsets: np.ndarray,
     observed: np.ndarray,
