@@ -141,8 +141,6 @@ class ConsensusConfig:
 #: ``deform.measured``: a measured part-frame's prior in the net modes
 MEASURED = ("cv", "interp", "rigid", "net")
 JACOBIANS = ("frozen", "forward", "central")
-#: ``deform.gap_sigma``: `adjust.deformation_modes.gap_sigma.GAP_SIGMAS`' names
-GAP_SIGMAS = ("solver", "leave_runs_out", "anchors_out")
 #: ``deform.anchors``: how interp's second pass reads a part-frame one camera saw
 ANCHORS = ("fused", "rays")
 
@@ -171,7 +169,6 @@ class DeformConfig:
     ray_outliers: bool = True
     world_prior: bool = True
     gate_pairs: bool = True
-    gap_sigma: str = "solver"
 
     def __post_init__(self) -> None:
         if self.measured not in MEASURED:
@@ -191,15 +188,6 @@ class DeformConfig:
             raise InputError(f"deform.ray_sd_factor must be >= 1, got {self.ray_sd_factor}")
         if not float(self.ray_disagreement) >= 0.0:
             raise InputError(f"deform.ray_disagreement must be >= 0, got {self.ray_disagreement}")
-        if self.gap_sigma not in GAP_SIGMAS:
-            raise InputError(
-                f"deform.gap_sigma must be one of {', '.join(GAP_SIGMAS)}, got {self.gap_sigma!r}"
-            )
-        if self.gap_sigma != "solver" and self.anchors != "fused":
-            raise InputError(
-                f"deform.gap_sigma={self.gap_sigma} re-measures the fused kriging's gaps: "
-                "use it with deform.anchors=fused"
-            )
         if self.step is not None and int(self.step) < 1:
             raise InputError(f"deform.step must be an integer >= 1, got {self.step}")
 

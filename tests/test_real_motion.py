@@ -190,31 +190,6 @@ def test_single_views_anchor_the_gaps(scenes, tmp_path):
     assert rmse["true"] < 0.985 * rmse["false"], rmse  # 6.79 vs 6.99 mm when written
 
 
-def test_gap_sigma_changes_the_reported_sigma_of_the_gaps_only(scenes, tmp_path):
-    """deform.gap_sigma=leave_runs_out: interp's second pass reports the sigma of the part-frames
-    no view was fused into with the inflation measured on the anchors' views against a
-    prediction that left their runs out; the points are the defaults' to the bit, and so is the
-    sigma of every part-frame the cameras' consensus saw; on the gaps it differs (larger where
-    the check finds the kriging too sure)."""
-    scene = scenes[3]
-    res = {}
-    for name in ("solver", "leave_runs_out"):
-        out = tmp_path / name
-        ov = [f"deform.gap_sigma={name}", "deform.anchors=fused"]  # gap_sigma: fused's option
-        _run(scene / "calibration.toml", scene / "detections", out, ov)
-        res[name] = read_points3d(out / "points3d.csv")
-    a, b = res["solver"], res["leave_runs_out"]
-    assert np.array_equal(a["points"], b["points"], equal_nan=True)
-    parts = a["parts"]
-    sa = np.stack([np.asarray(a["extra"][f"{p}_sigma"], float) for p in parts], 1)
-    sb = np.stack([np.asarray(b["extra"][f"{p}_sigma"], float) for p in parts], 1)
-    nviews = np.load(scene / "truth.npz")["nviews"]
-    assert np.array_equal(sa[nviews >= 3], sb[nviews >= 3])  # seen by every camera: unchanged
-    changed = ~np.isclose(sa, sb, rtol=1e-6)
-    assert changed[nviews < 2].sum() > 50, changed.sum()
-    assert (sb[changed] > sa[changed]).mean() > 0.9
-
-
 def test_a_recording_that_is_missing_or_incomplete_is_named(tmp_path):
     """`load_motion`: a missing file and one without complete {part}_x,_y,_z columns are errors
     that name the file, not a pandas traceback or an empty track."""

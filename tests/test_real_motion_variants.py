@@ -14,11 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from adjust import track_config
-from adjust.deformation_modes.gap_sigma import GAP_SIGMAS, gap_sigma
-from adjust.io import InputError
 from adjust.lsq.observation import InterpObservation
-from adjust.lsq.stochastic import OffsetCovariance, krige_offsets, runs_out_neighbours
+from adjust.lsq.stochastic import OffsetCovariance, krige_offsets
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -136,54 +133,3 @@ def test_single_view_anchors_pull_a_gap_off_the_mean():
     assert np.all(anchored._var.numpy()[a] >= 9.0 - 1e-9)  # an anchor's prior: >= its own
     with pytest.raises(ValueError, match="point_sd"):
         obs.anchored(torch.tensor(X), torch.tensor(sd[:, :2]), torch.tensor(ncams))
-
-
-def test_a_held_out_run_of_anchors_is_predicted_from_outside_it():
-    """`runs_out_neighbours`: a part-frame in a run of held-out anchors is interpolated from the
-    nearest observations outside its whole run (as a gap of that length would be); elsewhere
-    from its strict neighbours. `InterpObservation.held_out` (``gap_sigma``) gives that
-    prediction, off the anchors it leaves out, while the usual one follows them."""
-    obs_m = np.zeros((12, 1), dtype=bool)
-    obs_m[[0, 3, 4, 5, 9, 11], 0] = True
-    held = np.zeros_like(obs_m)
-    held[[3, 4, 5], 0] = True
-    prev, nxt = runs_out_neighbours(obs_m, held)
-    assert prev[3:6, 0].tolist() == [0, 0, 0] and nxt[3:6, 0].tolist() == [9, 9, 9]
-    assert prev[7, 0] == 5 and nxt[7, 0] == 9  # not held: its strict neighbours
-    assert prev[9, 0] == 5 and nxt[9, 0] == 11 and prev[0, 0] == -1
-
-    body, X, observed, gap = _gap_scene()
-    T, K = observed.shape
-    obs = InterpObservation(
-        torch.tensor(body), torch.tensor(np.where(observed[..., None], X, np.nan)),
-        torch.tensor(observed), torch.full((T, K), 0.25, dtype=torch.float64),
-    )  # fmt: skip
-    ncams = np.where(observed, 2, 0)
-    ncams[gap.start + 40 : gap.stop - 40, 0] = 1  # one run of single views mid-gap
-    sd = torch.full((T, K), 1.0, dtype=torch.float64)
-    poses = torch.zeros(T, 6, dtype=torch.float64)
-    plain = obs.anchored(torch.tensor(X), sd, torch.tensor(ncams))
-    plain.prepare(poses)
-    assert plain.held_out(poses) is None
-    checked = obs.anchored(torch.tensor(X), sd, torch.tensor(ncams), gap_sigma("leave_runs_out"))
-    checked.prepare(poses)
-    Xh, cov_h, held_pf = checked.held_out(poses)
-    mid = (gap.start + gap.stop) // 2
-    assert bool(held_pf[mid, 0]) and int(held_pf.sum()) == int((ncams == 1).sum())
-    assert abs(float(checked._M[mid, 0, 0]) - (body[0, 0] + 20.0)) < 2.0  # follows the anchors
-    assert abs(float(Xh[mid, 0, 0]) - body[0, 0]) < 5.0  # held out: the mean across the gap
-    assert float(cov_h[mid, 0].trace()) > 10 * float(checked._var[mid, 0].sum())
-    assert torch.equal(checked._M, plain._M) and torch.equal(checked._var, plain._var)
-    every = obs.anchored(torch.tensor(X), sd, torch.tensor(ncams), gap_sigma("anchors_out"))
-    every.prepare(poses)
-    assert abs(float(every.held_out(poses)[0][mid, 0, 0]) - body[0, 0]) < 5.0
-    with pytest.raises(InputError, match="deform.gap_sigma"):
-        gap_sigma("bogus")
-
-
-def test_the_gap_sigma_settings_name_the_choices():
-    """``deform.gap_sigma``: the settings accept exactly the choices there are, a bad one is
-    refused with the setting's name."""
-    assert set(track_config.GAP_SIGMAS) == set(GAP_SIGMAS)
-    with pytest.raises(InputError, match="deform.gap_sigma"):
-        track_config.DeformConfig(gap_sigma="first_pass")

@@ -155,7 +155,7 @@ def test_anchored_with_rays_uses_the_smoother():
     ncams = torch.tensor(np.where(observed, 2, 1))
     sd = torch.full((T, K), 20.0, dtype=torch.float64)
     rv = torch.full((T, K), 0.25, dtype=torch.float64)
-    as_rays = obs.anchored(torch.tensor(fused), sd, ncams, None, torch.tensor(rays), rv)
+    as_rays = obs.anchored(torch.tensor(fused), sd, ncams, torch.tensor(rays), rv)
     as_rays.prepare(poses)
     J = np.zeros((T, K, 3, 3))
     J[observed] = np.eye(3) / np.maximum(as_rays.cov.nugget[0], 1e-6)
@@ -191,9 +191,6 @@ def test_the_anchor_settings_are_checked():
         DeformConfig(anchors="ray")
     with pytest.raises(InputError, match="ray_sd_factor"):
         DeformConfig(ray_sd_factor=0.5)
-    with pytest.raises(InputError, match="with deform.anchors=fused"):
-        DeformConfig(gap_sigma="leave_runs_out")
-    assert DeformConfig(gap_sigma="anchors_out", anchors="fused").gap_sigma == "anchors_out"
 
 
 def test_the_smoother_is_used_only_for_the_parts_it_predicts_better():
@@ -215,7 +212,7 @@ def test_the_smoother_is_used_only_for_the_parts_it_predicts_better():
     obs = InterpObservation(torch.zeros(K, 3, dtype=torch.float64), data, torch.tensor(Oa), noise)
     args = (torch.tensor(Fa), torch.full((T, K), 20.0, dtype=torch.float64), torch.tensor(ncams))
     poses = torch.zeros(T, 6, dtype=torch.float64)
-    as_rays = obs.anchored(*args, None, torch.tensor(np.concatenate([rays, rays], 1)),
+    as_rays = obs.anchored(*args, torch.tensor(np.concatenate([rays, rays], 1)),
                            torch.full((T, K), 0.25, dtype=torch.float64))  # fmt: skip
     as_rays.prepare(poses)
     as_fused = obs.anchored(*args)
@@ -241,7 +238,7 @@ def _one_part_observation(X, observed, rays, fused):
                             noise)  # fmt: skip
     args = (torch.tensor(fused), torch.full((T, K), 20.0, dtype=torch.float64),
             torch.tensor(np.where(observed, 2, 1)))  # fmt: skip
-    ray_args = (None, torch.tensor(rays), torch.full((T, K), 0.25, dtype=torch.float64))
+    ray_args = (torch.tensor(rays), torch.full((T, K), 0.25, dtype=torch.float64))
     return obs, args, ray_args, torch.zeros(T, 6, dtype=torch.float64)
 
 

@@ -115,17 +115,17 @@ def test_isolated_pairs():
 def test_a_chunk_of_the_observation_keeps_its_settings():
     """`InterpObservation.window` (the solver's chunks, sessions over `solver.chunk_size`
     frames) carries every setting of the whole: the rays' disagreement and outlier check, the
-    world prior, the gated pairs, the gaps' sigma."""
+    world prior, the gated pairs."""
     T, K = 40, 2
     body = torch.zeros(K, 3, dtype=F64)
     data = torch.randn(T, K, 3, dtype=F64)
     obs = InterpObservation(body, data, torch.ones(T, K, dtype=torch.bool))
     obs.world_prior_on, obs.gate_pairs = True, True
     rays = np.tile(np.array([0.0, 0.0, 1.0]), (T, K, 1))
-    a = obs.anchored(data.numpy(), np.ones((T, K)), np.ones((T, K), int), None, rays,
+    a = obs.anchored(data.numpy(), np.ones((T, K)), np.ones((T, K), int), rays,
                      np.ones((T, K)), disagreement=0.5, outliers=True)  # fmt: skip
     w = a.window(5, 30)
     assert w is not a and w.observed.shape == (25, K)
-    for name in ("ray_disagreement", "ray_outliers", "world_prior_on", "gate_pairs", "gap_sigma"):
+    for name in ("ray_disagreement", "ray_outliers", "world_prior_on", "gate_pairs"):
         assert getattr(w, name) == getattr(a, name), name
     assert (w.ray_disagreement, w.ray_outliers) == (0.5, True)

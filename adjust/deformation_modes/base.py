@@ -15,7 +15,6 @@ import numpy as np
 import torch
 
 from adjust.camera import CameraTensors
-from adjust.deformation_modes.gap_sigma import gap_sigma
 from adjust.io import Detections, InputError
 from adjust.lsq.observation import InterpObservation
 from adjust.lsq.smoother import view_rays
@@ -145,8 +144,7 @@ class Adjusting:
         ``cfg``: (the result, its observation, summary facts). With ``deform.single_views``
         it runs twice, the second time with the part-frames one camera saw among the
         observations its gaps are interpolated from (`InterpObservation.anchored`), read as
-        ``deform.anchors`` says, its gaps' reported sigma by
-        ``deform.gap_sigma`` (`adjust.deformation_modes.gap_sigma`)."""
+        ``deform.anchors`` says."""
         obs = self.interp_observation()
         res = self.solve(cfg, obs, init)
         facts = {}
@@ -157,7 +155,6 @@ class Adjusting:
                 res.points,
                 res.point_sd,
                 views,
-                gap_sigma(self.deform.gap_sigma),
                 *rays,
                 disagreement=self.deform.ray_disagreement,
                 outliers=self.deform.ray_outliers,

@@ -31,7 +31,6 @@ from adjust.lsq.smoother import across_ray_rms, ray_information, smooth_offsets
 from adjust.lsq.stochastic import (
     OffsetCovariance,
     all_last,
-    krige_between,
     krige_offsets,
     neighbours,
 )
@@ -207,15 +206,6 @@ class InterpObservation:
         self.ray_outliers = False
         self.ray_rejected: Tensor | None = None
         self._ray_rounds = 0
-        # how the gaps' reported uncertainty is calibrated (`anchored`'s ``gap_sigma``: an
-        # object with ``held_out(good, anchors)`` -> the previous and next observation (T, K)
-        # each anchor is predicted from when it is held out, or None; e.g.
-        # `adjust.deformation_modes.gap_sigma.LeaveRunsOut`); after `prepare`, that prediction
-        # in body coordinates and its body-axis variances (`held_out`)
-        self.gap_sigma = None
-        self._M_held: Tensor | None = None
-        self._var_held: Tensor | None = None
-        self._held: Tensor | None = None  # (T, K) the anchors held out
         self.outlier_rounds = 2
         # the parts no camera pair sees also held near their global neighbours' prediction
         # (``world_prior_on``: `world_prior`); ``_world`` its (W, information) after `prepare`
@@ -276,16 +266,6 @@ class InterpObservation:
                 break
             good = new
         self.outliers = torch.as_tensor(m & ~good)
-        held = None
-        if self.gap_sigma is not None and anchor is not None:
-            held = self.gap_sigma.held_out(good, anchor & good)
-        if held is not None:  # each anchor predicted without itself as a gap would be
-            p_h, v_h = krige_between(o, *held, self.cov, noise)
-            self._M_held = torch.as_tensor(B[None] + p_h, dtype=poses.dtype, device=poses.device)
-            self._var_held = torch.as_tensor(v_h, dtype=poses.dtype, device=poses.device)
-            self._held = torch.as_tensor(anchor & good, device=poses.device)
-        else:
-            self._M_held = self._var_held = self._held = None
         smooth = None
         if self.rays is not None and anchor is not None:
             # the smoother where no 3D observation is; a 3D-observed frame keeps the kriging
@@ -431,7 +411,6 @@ class InterpObservation:
         points,
         point_sd,
         ncams,
-        gap_sigma=None,
         rays=None,
         ray_var=None,
         disagreement=0.0,
@@ -449,8 +428,7 @@ class InterpObservation:
         where it is seen, `benchmarks/interp_variants.py`): the kriging across the gap then
         rests on these anchors instead of reverting to the part's mean, and the offsets'
         covariance (`prepare`) counts them too (the nugget: the 3D observations' noise). The
-        anchors are kept as ``anchors`` (T, K) and ``anchor_var`` (T, K). gap_sigma: how the
-        gaps' reported uncertainty is inflated (``gap_sigma`` above; None: the solver's own).
+        anchors are kept as ``anchors`` (T, K) and ``anchor_var`` (T, K).
         rays (T, K, 3), ray_var (T, K): each anchor read as its camera's ray (``rays`` above);
         disagreement >= 0: the weight of the smoother's and the kriging's disagreement in the
         smoothed part-frames' covariance (``ray_disagreement``); outliers: with rays, the
@@ -471,7 +449,6 @@ class InterpObservation:
         )
         out.anchors = one
         out.anchor_var = torch.where(one, sd * sd, torch.zeros_like(sd))
-        out.gap_sigma = gap_sigma
         if rays is not None:
             out.rays = torch.as_tensor(rays, dtype=self.data.dtype)
             out.ray_var = torch.as_tensor(ray_var, dtype=self.data.dtype)
@@ -504,19 +481,6 @@ class InterpObservation:
         self._ready(poses)
         return _rotate_axes_var(so3_exp(poses[:, :3]), self._var.to(poses.dtype))
 
-    def held_out(self, poses: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
-        """The anchors predicted while held out (``gap_sigma``): global points (T, K, 3) mm,
-        their deformation covariance (T, K, 3, 3) mm^2 (elsewhere the usual prediction) and
-        which part-frames were held out (T, K) bool, or None. The solver measures the gaps'
-        reported inflation on them (`adjust.lsq.solver`); the points and their weights never
-        see it."""
-        self._ready(poses)
-        if self._M_held is None:
-            return None
-        X, _ = _body_frame_points(poses, self._M_held, jacobian=False)
-        cov = _rotate_axes_var(so3_exp(poses[:, :3]), self._var_held.to(poses.dtype))
-        return X, cov, self._held
-
     def rigid_points(self, poses: Tensor) -> tuple[Tensor, Tensor]:
         return self.rigid.rigid_points(poses)
 
@@ -538,7 +502,6 @@ class InterpObservation:
         if self.rays is not None:
             out.rays, out.ray_var = self.rays[start:stop], self.ray_var[start:stop]
         # every setting of the whole (a chunk rejects its own outliers, at its own first poses)
-        out.gap_sigma = self.gap_sigma
         out.ray_disagreement, out.ray_outliers = self.ray_disagreement, self.ray_outliers
         out.world_prior_on, out.gate_pairs = self.world_prior_on, self.gate_pairs
         return out

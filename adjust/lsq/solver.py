@@ -33,7 +33,7 @@ from adjust.camera import CameraTensors
 from adjust.lsq import banded
 from adjust.lsq.config import SolverConfig
 from adjust.lsq.constraint import default_rho, make_grid
-from adjust.lsq.fusion import fuse_points, innovation_gate, posterior_cov, prior_inflation
+from adjust.lsq.fusion import fuse_points, innovation_gate, prior_inflation
 from adjust.lsq.geometry import retract, so3_exp, so3_log
 from adjust.lsq.init import initial_poses
 from adjust.lsq.lm import add_ridge, levenberg_marquardt
@@ -52,7 +52,6 @@ from adjust.lsq.problem import (
 )
 from adjust.lsq.robust import kernel_weight
 from adjust.lsq.stochastic import count_within
-from adjust.sym3 import sym3_inverse
 from deformnet.threads import torch_threads
 
 log = logging.getLogger(__name__)
@@ -429,19 +428,6 @@ def _frame_outputs(poses: Tensor, pose_cov: np.ndarray, pb: Problem, share: floa
         w_fuse = accepted.to(dt) / cfg.sigma_det_px**2
         pts, pcov = fuse_points(lin.X, prior, pb.xy, w_fuse, pb.cams, 50, pb.W6, pb.Wg, tol=1e-4)
         rob = rob * accepted.to(dt)
-        held_fn = getattr(pb.obs, "held_out", None)
-        held = held_fn(poses) if held_fn is not None else None
-        if held is not None:  # the reported uncertainty of the gaps: the inflation measured on
-            # the single views against a prediction that did not see them (the observation's
-            # held-out one, `InterpObservation.held_out`); the points stay as fused
-            X_h, dcov_h, held_pf = held
-            prior_h = model_cov + dcov_h + 1e-6 * eye
-            use = single & held_pf[..., None]  # the held-out anchors' own views
-            report = prior_inflation(X_h, prior_h, pb.xy, use, pb.cams, cfg.sigma_det_px)
-            alone = gap & (w_fuse.sum(-1) == 0)  # no view: the point is the prediction alone
-            infl = torch.where(alone, report[None, :], infl)
-            prior_inv = sym3_inverse(prior0 * infl[..., None, None])
-            pcov = posterior_cov(pts, prior_inv, pb.xy, w_fuse, pb.cams, pb.W6, pb.Wg)
     e = torch.stack((lin.eu, lin.ev), -1)
     res = torch.where(pb.valid[..., None], e, torch.full_like(e, float("nan")))
     inv_det = 1.0 / cfg.sigma_det_px**2

@@ -297,23 +297,6 @@ def krige_offsets(
     return krige_between(o, prev, nxt, cov, noise)
 
 
-def runs_out_neighbours(observed: np.ndarray, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The previous and next observed frame (T, K) (-1 / T where none) of each part-frame
-    with its whole run of ``held`` frames left out (held (T, K) bool; a run: consecutive held
-    frames of a part): on a held frame, the nearest observed frames outside its run; elsewhere
-    strictly before / after t, as `krige_offsets`'s."""
-    m = np.asarray(observed, dtype=bool)
-    h = np.asarray(held, dtype=bool)
-    T, _ = m.shape
-    prev_incl, next_incl = neighbours(m, skip_self=False)
-    before, after = neighbours(~h, skip_self=False)  # the last / next frame not held, t included
-    kk = np.arange(m.shape[1])[None]
-    prev = np.where(before >= 0, prev_incl[np.clip(before, 0, T - 1), kk], -1)
-    nxt = np.where(after < T, next_incl[np.clip(after, 0, T - 1), kk], T)
-    p_skip, n_skip = neighbours(m, skip_self=True)
-    return np.where(h, prev, p_skip), np.where(h, nxt, n_skip)
-
-
 def krige_between(
     o: np.ndarray,
     prev: np.ndarray,
