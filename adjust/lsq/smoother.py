@@ -180,6 +180,23 @@ def _smooth_op(later: tuple, earlier: tuple) -> tuple:
     return Ei @ Ej, _mv(Ei, gj) + gi, Ei @ Lj @ _t(Ei) + Li
 
 
+def _blocks(a: np.ndarray, L: int, pad) -> np.ndarray:
+    """(T, ...) -> (L, B, ...): the frames in blocks of L (B = ceil(T / L)), a frame's place in
+    its block first (so a loop's slices over it are contiguous), padded to whole blocks with
+    ``pad`` (broadcast to a frame's shape)."""
+    T = a.shape[0]
+    B = -(-T // L)
+    if B * L > T:
+        a = np.concatenate([a, np.broadcast_to(pad, (B * L - T, *a.shape[1:]))])
+    return np.ascontiguousarray(np.swapaxes(a.reshape(B, L, *a.shape[1:]), 0, 1))
+
+
+def _unblocked(x: np.ndarray, T: int) -> np.ndarray:
+    """`_blocks`' inverse: (L, B, ...) -> (T, ...), the padding dropped."""
+    L, B = x.shape[:2]
+    return np.swapaxes(x, 0, 1).reshape(B * L, *x.shape[2:])[:T]
+
+
 def _prefix(elems: tuple, op, identity: tuple, from_start=None, keep=None) -> tuple:
     """Inclusive prefix scan of elements (arrays with the time axis first, T) under the
     associative op: the frames in blocks of SCAN_BLOCK, a loop within every block at once, the
@@ -189,22 +206,17 @@ def _prefix(elems: tuple, op, identity: tuple, from_start=None, keep=None) -> tu
     indices of the elements' parts returned (None: all), the others are not copied out."""
     T = elems[0].shape[0]
     L = min(SCAN_BLOCK, T)
-    B = -(-T // L)
-    x = []  # (L, B, ...): a frame's place in its block first, so the loop's slices are contiguous
-    for a, e in zip(elems, identity):
-        if B * L > T:
-            a = np.concatenate([a, np.broadcast_to(e, (B * L - T, *a.shape[1:]))])
-        x.append(np.ascontiguousarray(np.swapaxes(a.reshape(B, L, *a.shape[1:]), 0, 1)))
+    x = [_blocks(a, L, e) for a, e in zip(elems, identity)]  # (L, B, ...)
     for i in range(1, L):
         for a, n in zip(x, op(tuple(a[i - 1] for a in x), tuple(a[i] for a in x))):
             a[i] = n
-    if B > 1:
+    if x[0].shape[1] > 1:
         totals = _prefix(tuple(a[-1, :-1] for a in x), op, identity, from_start)
         before = tuple(np.broadcast_to(p, a[:, 1:].shape) for p, a in zip(totals, x))
         for a, n in zip(x, (from_start or op)(before, tuple(a[:, 1:] for a in x))):
             a[:, 1:] = n
     keep = range(len(x)) if keep is None else keep
-    return tuple(np.swapaxes(x[i], 0, 1).reshape(B * L, *x[i].shape[2:])[:T] for i in keep)
+    return tuple(_unblocked(x[i], T) for i in keep)
 
 
 def _kalman_step(m, C, Jo, h, F, Ft, Q, cond=None):
@@ -244,12 +256,7 @@ def _smoothed_states(F, Q, P0, J, h) -> tuple[np.ndarray, np.ndarray]:
     L = min(SCAN_BLOCK, T)
     B = -(-T // L)
     I6, Ft = np.eye(6), np.ascontiguousarray(_t(F))
-
-    def blocked(a):  # (T, G, ...) -> (L, B, G, ...), zero information after the last frame
-        a = np.concatenate([a, np.zeros((B * L - T, *a.shape[1:]))]) if B * L > T else a
-        return np.ascontiguousarray(np.swapaxes(a.reshape(B, L, *a.shape[1:]), 0, 1))
-
-    Jb, hb = blocked(J), blocked(h)
+    Jb, hb = _blocks(J, L, 0.0), _blocks(h, L, 0.0)  # no information after the last frame
     # each block's total, conditional on the state before it; the first block's is the
     # stationary prior's (A = 0): its "state before" is N(0, P0), and F P0 F^T + Q = P0
     A = np.broadcast_to(I6, (B, G, 6, 6)).copy()
@@ -294,15 +301,11 @@ def _smoothed_states(F, Q, P0, J, h) -> tuple[np.ndarray, np.ndarray]:
     ident = (I6, np.zeros(6), np.zeros((6, 6)))
     ms0, Ps0 = _prefix((E[0, ::-1], g[0, ::-1], Ls[0, ::-1]), _smooth_op, ident, keep=(1, 2))
     mn = np.concatenate([ms0[::-1][1:], np.zeros((1, G, 6))])  # (B, G, 6)
-    Pn = np.concatenate([Ps0[::-1][1:], np.zeros((1, G, 6, 6))])
+    Psn = np.concatenate([Ps0[::-1][1:], np.zeros((1, G, 6, 6))])
     Eo = E[..., :3, :]
     ms = _mv(Eo, mn) + g[..., :3]
-    Ps = _sym(Eo @ Pn @ _t(Eo) + Ls[..., :3, :3])
-
-    def unblocked(a):  # (L, B, G, ...) -> (T, G, ...)
-        return np.swapaxes(a, 0, 1).reshape(B * L, *a.shape[2:])[:T]
-
-    return unblocked(ms), unblocked(Ps)
+    Ps = _sym(Eo @ Psn @ _t(Eo) + Ls[..., :3, :3])
+    return _unblocked(ms, T), _unblocked(Ps, T)
 
 
 def smooth_offsets(
