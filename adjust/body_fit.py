@@ -216,6 +216,14 @@ def rigid_observation(body: BodyModel, cons) -> tuple:
     return RigidObservation(B, torch.as_tensor(mom)), facts
 
 
+def unplaced_parts(fit: BodyFitConfig, cons) -> np.ndarray:
+    """(K,) bool: the parts with fewer than ``body_fit.rays_below`` 3D observations, which no
+    two cameras see together often enough for the Procrustes model to place them
+    (`BodyModel.from_observations` puts them by translation only, or at the body's centre);
+    `refine_body` places them from their single-view rays."""
+    return np.asarray(cons.observed).sum(0) < int(fit.rays_below or 0)
+
+
 def refine_body(body: BodyModel, fit: BodyFitConfig, poses, det, weight, cams, cons, rigid_obs):
     """``body=auto``: the rigid model re-estimated from the detections themselves at the rigid
     adjustment's poses (`adjust.estimate.place_from_rays`: each part where its views' rays meet
@@ -233,7 +241,7 @@ def refine_body(body: BodyModel, fit: BodyFitConfig, poses, det, weight, cams, c
     parts with enough 3D observations, facts)."""
     mode = fit.refine
     below = int(fit.rays_below or 0)
-    few = cons.observed.sum(0) < below
+    few = unplaced_parts(fit, cons)
     which = np.ones_like(few) if mode == "views" else few
     if mode == "none" or few.all() or not which.any():
         return None
