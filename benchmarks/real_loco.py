@@ -243,6 +243,36 @@ def loco(
     return out
 
 
+def aggregate(results: dict, key: str, complete: bool = False) -> tuple[dict, dict]:
+    """Over all leave-outs: each method's median of ``key`` and the geometric mean of its
+    ratio to rigid's and interp's (leave-outs where both have it). ``complete``: only the
+    leave-outs where the method covers every confident detection (coverage 1)."""
+
+    def value(res: dict, m: str) -> float:
+        r = res.get(m)
+        if not isinstance(r, dict) or key not in r or (complete and r["coverage"] < 1.0):
+            return float("nan")
+        return float(r[key])
+
+    leave_outs = [res for r in results.values() for res in r["leave_out"].values()]
+    overall = {}
+    for m in METHODS:
+        vals = [v for v in (value(res, m) for res in leave_outs) if math.isfinite(v)]
+        if vals:
+            overall[m] = float(np.median(vals))
+    geo = {}
+    for ref in ("rigid", "interp"):
+        for m in METHODS:
+            logs = [
+                math.log(value(res, m) / value(res, ref))
+                for res in leave_outs
+                if math.isfinite(value(res, m)) and math.isfinite(value(res, ref))
+            ]
+            if logs and m != ref:
+                geo[f"{m}_over_{ref}"] = float(math.exp(np.mean(logs)))
+    return overall, geo
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", default="hand,fly,mouse_sleap")
@@ -287,39 +317,26 @@ def main(argv: list[str] | None = None) -> dict:
                     print(f"{left:<12}{m:<12}FAILED: {res[m]['error']}")
                     continue
                 print(f"{left:<12}{m:<12}" + "".join(f"{cell(res[m].get(c), 2):>18}" for c in cols))
-    # medians over all leave-outs of each method's common-subset median
-    overall = {}
-    for m in METHODS:
-        vals = [
-            res[m]["common_median_px"]
-            for r in results.values()
-            for res in r["leave_out"].values()
-            if m in res and "common_median_px" in res[m]
-        ]
-        if vals:
-            overall[m] = float(np.median(vals))
+    # medians over all leave-outs of each method's common-subset median (every method on the
+    # part-frames DLT covers too), and of its median over all confident detections (the methods
+    # that cover them all: beyond DLT's coverage, where the parts one camera sees are placed)
+    overall, geo = aggregate(results, "common_median_px")
     print(
         "\nmedian over leave-outs of the common-subset median error (px): "
         + ", ".join(f"{m} {v:.2f}" for m, v in overall.items())
     )
-    # geometric mean over leave-outs of the common-subset median relative to rigid / interp
-    geo = {}
-    for ref in ("rigid", "interp"):
-        for m in METHODS:
-            logs = [
-                math.log(res[m]["common_median_px"] / res[ref]["common_median_px"])
-                for r in results.values()
-                for res in r["leave_out"].values()
-                if all(
-                    q in res and math.isfinite(res[q].get("common_median_px", float("nan")))
-                    for q in (m, ref)
-                )
-            ]
-            if logs and m != ref:
-                geo[f"{m}_over_{ref}"] = float(math.exp(np.mean(logs)))
     print(
         "geometric mean over leave-outs of the common-subset median ratio: "
         + ", ".join(f"{k} {v:.3f}" for k, v in geo.items())
+    )
+    overall_all, geo_all = aggregate(results, "median_px", complete=True)
+    print(
+        "median over leave-outs of the median error over all confident detections (px; methods "
+        "that cover them all): " + ", ".join(f"{m} {v:.2f}" for m, v in overall_all.items())
+    )
+    print(
+        "geometric mean over leave-outs of that median's ratio: "
+        + ", ".join(f"{k} {v:.3f}" for k, v in geo_all.items())
     )
     checks = {}
     if "self" in overall:
@@ -341,6 +358,8 @@ def main(argv: list[str] | None = None) -> dict:
         **results,
         "overall_common_median_px": overall,
         "geomean_common_median_ratio": geo,
+        "overall_all_median_px": overall_all,
+        "geomean_all_median_ratio": geo_all,
         "checks": checks,
         "failures": failures,
         "load_avg_1min": round(os.getloadavg()[0], 2),
