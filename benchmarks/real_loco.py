@@ -246,15 +246,22 @@ def loco(
 def aggregate(results: dict, key: str, complete: bool = False) -> tuple[dict, dict]:
     """Over all leave-outs: each method's median of ``key`` and the geometric mean of its
     ratio to rigid's and interp's (leave-outs where both have it). ``complete``: only the
-    leave-outs where the method covers every confident detection (coverage 1)."""
+    methods that cover every confident detection (coverage 1) in every leave-out they ran in
+    (DLT's median over what it covers is not comparable)."""
+    leave_outs = [res for r in results.values() for res in r["leave_out"].values()]
+    partial = {
+        m
+        for res in leave_outs
+        for m in METHODS
+        if isinstance(res.get(m), dict) and res[m].get("coverage", 1.0) < 1.0
+    }
 
     def value(res: dict, m: str) -> float:
         r = res.get(m)
-        if not isinstance(r, dict) or key not in r or (complete and r["coverage"] < 1.0):
+        if not isinstance(r, dict) or key not in r or (complete and m in partial):
             return float("nan")
         return float(r[key])
 
-    leave_outs = [res for r in results.values() for res in r["leave_out"].values()]
     overall = {}
     for m in METHODS:
         vals = [v for v in (value(res, m) for res in leave_outs) if math.isfinite(v)]
