@@ -38,6 +38,9 @@ Aggregates over the leave-outs, per method: the median of the common-subset medi
 10 leave-outs, the mean of the 5th and 6th), and, scale-free, the geometric mean over the
 leave-outs of each method's common-subset median relative to rigid's and to interp's (below 1:
 lower error on average); ``self`` is also counted per leave-out (below rigid, below interp).
+The same two over each method's median over *all* confident detections, for the methods that
+cover them all (beyond DLT's coverage: the parts one camera sees, where the body model and the
+deformation place them; the common subset cannot show it).
 
     .venv/bin/python benchmarks/real_loco.py [--sessions hand,fly,mouse_sleap] [--no-anipose]
         [--no-kalman] [--no-disk] [-o deform.anchors=rays]  # -o: for every tracked method
