@@ -15,7 +15,8 @@ may train on). ``--frames N`` (<= 1000) crops the segment from its start.
 
 Scenes (cached under ``--work``, keyed by all their settings): every camera count of
 ``--cameras`` with the paper's 8 parts (renamed to the default mouse's names), plus the 22-part
-set (`MOTION_PARTS22`) and all 34 parts at 3 cameras (``--parts 8,22,34``), for each detector
+set (`MOTION_PARTS22`) and all 34 parts at 3 cameras (``--parts 8,22,34``; at other rigs with
+``--many-parts-cameras 2,3``), for each detector
 seed of ``--seeds``. Methods (``--methods``; default dlt,aniposelib,default,rigid):
 
 - ``dlt``: `adjust-triangulate` (likelihood-weighted linear triangulation, >= 2 views;
@@ -56,7 +57,7 @@ the base run's (a pose in another basin); and aniposelib on the two detector see
 change between them, the part of a seed's change that is the data's).
 
     .venv/bin/python benchmarks/real_motion.py [--split test] [--frames 1000] \\
-        [--cameras 2,3,4] [--parts 8,22,34] [--seeds 0,1] \\
+        [--cameras 2,3,4] [--parts 8,22,34] [--many-parts-cameras 3] [--seeds 0,1] \\
         [--methods dlt,aniposelib,default,rigid[,self,net]] [--adapt-minutes 3] \\
         [--no-stability] [--no-peer-stability] [--threads 1] [--data poses3d.csv] \\
         [--work DIR] [--out FILE] [-o deform.max_iterations=20 ...]
@@ -779,8 +780,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES,
                     help="frames from the segment's start (<= 1000)")  # fmt: skip
     ap.add_argument("--cameras", default="2,3,4", help="camera counts of the 8-part scenes")
-    ap.add_argument("--parts", default="8,22,34",
-                    help="part sets (22 and 34 at 3 cameras, if 3 is among --cameras)")  # fmt: skip
+    ap.add_argument("--parts", default="8,22,34", help="part sets (22, 34: see the next)")
+    ap.add_argument("--many-parts-cameras", default=str(MANY_PARTS_CAMERAS),
+                    help="camera counts of the 22- and 34-part scenes")  # fmt: skip
     ap.add_argument("--seeds", default="0,1", help="detector seeds")
     ap.add_argument("--methods", default="dlt,aniposelib,default,rigid",
                     help=f"comma list of {','.join(METHODS)}")  # fmt: skip
@@ -817,10 +819,10 @@ def main(argv: list[str] | None = None) -> dict:
     work = Path(args.work) / motion.tag
     start_frame = SPLITS[args.split]
     kinds = [(c, 8) for c in cameras if 8 in part_sets]
-    if MANY_PARTS_CAMERAS in cameras:
-        kinds += [(MANY_PARTS_CAMERAS, p) for p in part_sets if p != 8]
+    many = _ints(ap, args.many_parts_cameras, CAMERA_COUNTS, "--many-parts-cameras")
+    kinds += [(c, p) for c in cameras if c in many for p in part_sets if p != 8]
     if not kinds:
-        ap.error("no scene: --parts 22/34 need 3 among --cameras")
+        ap.error("no scene: --parts 22/34 need one of --many-parts-cameras among --cameras")
     log.info(
         "split %s: frames %d-%d; scenes %s x seeds %s; methods %s",
         args.split,
