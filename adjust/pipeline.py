@@ -30,6 +30,7 @@ from adjust.deformation_modes import Adjusting, mode_from_config
 from adjust.estimate import consensus
 from adjust.io import (
     UnknownPartsError,
+    calibration_units,
     check_cameras_usable,
     load_scene,
 )
@@ -258,6 +259,8 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
     summary = {
         "inputs": {
             "calibration": str(Path(calibration).resolve()),
+            # the file's declared length unit (null: none, read as mm); every output is in mm
+            "calibration_units": calibration_units(calibration),
             "detections": str(Path(detections).resolve()),
             "files": {c: str(f) for c, f in zip(det.cameras, det.files)},
         },

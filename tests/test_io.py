@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import logging
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -9,6 +12,7 @@ import pytest
 from adjust.camera import Camera
 from adjust.io import (
     InputError,
+    calibration_units,
     load_calibration,
     load_calibration_metadata,
     read_dlc,
@@ -246,3 +250,68 @@ def test_points3d_round_trip_with_nan(tmp_path):
         write_points3d(tmp_path / "p.csv", parts, pts, err, ncams, score, {"a_x": pose})
     with pytest.raises(ValueError, match="clashes"):
         write_points3d(tmp_path / "p.csv", parts, pts, err, ncams, score, {"M_00": pose})
+
+
+# --- length units ---------------------------------------------------------------------------
+
+
+def _in_units(text: str, factor: float, unit: str | None) -> str:
+    """CAM_TOML-like text with every translation times `factor` and ``[metadata] units``."""
+    out = re.sub(
+        r"translation = \[([^\]]*)\]",
+        lambda m: f"translation = {[float(v) * factor for v in m.group(1).split(',')]}",
+        text,
+    )
+    return out + (f'\n[metadata]\nunits = "{unit}"\n' if unit else "")
+
+
+@pytest.mark.parametrize(("unit", "factor"), [("cm", 0.1), ("m", 0.001), ("M", 0.001)])
+def test_calibration_in_cm_or_m_is_read_in_mm(tmp_path, unit, factor):
+    """[metadata] units: the translations (and mechanisms) come back in mm, so the cameras
+    (centres, projection matrices) are the mm file's; saved again, the file says mm."""
+    two = CAM_TOML + CAM_TOML.replace("cam_0", "cam_1").replace('"left"', '"right"').replace(
+        "[1.0, 2.0, 300.0]", "[-250.0, 2.0, 310.0]"
+    )
+    (tmp_path / "mm.toml").write_text(two)
+    path = tmp_path / f"{unit}.toml"
+    path.write_text(
+        _in_units(two, factor, unit) + f"\n[metadata.mechanisms]\nlever = [{90 * factor}, 0, 0]\n"
+    )
+    mm, conv = load_calibration(tmp_path / "mm.toml"), load_calibration(path)
+    for a, b in zip(mm, conv):
+        np.testing.assert_allclose(b.tvec, a.tvec, rtol=1e-12)
+        np.testing.assert_allclose(b.center, a.center, rtol=1e-12)
+        np.testing.assert_allclose(b.P, a.P, rtol=1e-12)
+    meta = load_calibration_metadata(path)
+    assert meta["units"] == "mm" and meta["mechanisms"]["lever"] == pytest.approx([90, 0, 0])
+    assert calibration_units(path) == unit.lower()
+    back = load_calibration(save_calibration(tmp_path / "again.toml", conv, meta))
+    np.testing.assert_allclose([c.tvec for c in back], [c.tvec for c in mm], rtol=1e-12)
+    with pytest.raises(ValueError, match="cameras are written in mm"):
+        save_calibration(tmp_path / "no.toml", conv, {"units": unit})
+
+
+def test_rig_in_metres_without_units_is_refused(tmp_path, caplog):
+    """A lab rig in metres read as mm (every mm setting 1000x off, a 4-7x larger error on real
+    motion) is an error that says how to declare the unit; declared, it is read."""
+    two = CAM_TOML + CAM_TOML.replace("cam_0", "cam_1").replace('"left"', '"right"').replace(
+        "[1.0, 2.0, 300.0]", "[-250.0, 2.0, 310.0]"
+    )
+    path = tmp_path / "calibration.toml"
+    path.write_text(_in_units(two, 0.001, None))
+    with pytest.raises(InputError, match=r'calibration.toml: its cameras lie within .* units = "m"'):
+        load_calibration(path)
+    path.write_text(_in_units(two, 0.001, "mm"))  # a tiny rig, said to be one: kept as it is
+    assert load_calibration(path)[1].tvec[0] == pytest.approx(-0.25)
+    path.write_text(_in_units(two, 0.1, None))  # in cm: read as mm, warned about
+    with caplog.at_level(logging.WARNING):
+        load_calibration(path)
+    assert 'add units = "cm"' in caplog.text
+    caplog.clear()
+    path.write_text(_in_units(two, 1.0, None))  # in mm: no word
+    with caplog.at_level(logging.WARNING):
+        load_calibration(path)
+    assert "units" not in caplog.text
+    path.write_text(_in_units(two, 0.001, "inch"))
+    with pytest.raises(InputError, match=r"\[metadata\] units = 'inch' is not a length unit"):
+        load_calibration(path)

@@ -38,3 +38,15 @@ def test_calibration_mechanisms_reads_the_metadata_table(tmp_path):
     wrong.write_text("[metadata.mechanisms]\nlever = 'here'\n")
     with pytest.raises(ValueError, match=r"wrong.toml \[metadata.mechanisms\]: mechanism 'lever'"):
         calibration_mechanisms(wrong)
+
+
+def test_calibration_mechanisms_in_the_files_units(tmp_path):
+    """A calibration in cm ([metadata] units) gives its mechanisms in mm; an unknown unit is an
+    error naming the file."""
+    cm = tmp_path / "cm.toml"
+    cm.write_text("[metadata]\nunits = 'cm'\n\n[metadata.mechanisms]\nlever = [9.0, 24.5, 1.8]\n")
+    assert calibration_mechanisms(cm)["lever"] == pytest.approx([90.0, 245.0, 18.0])
+    bad = tmp_path / "inch.toml"
+    bad.write_text("[metadata]\nunits = 'inch'\n\n[metadata.mechanisms]\nlever = [1, 2, 3]\n")
+    with pytest.raises(ValueError, match=r"inch.toml: \[metadata\] units = 'inch' is not a length"):
+        calibration_mechanisms(bad)

@@ -4,6 +4,7 @@ and a run whose tracks leave the data does not exit 0."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import hydra
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from adjust.apps.track import run
-from adjust.io import read_points3d
+from adjust.io import InputError, read_points3d
 from adjust.metrics import point_errors
 from adjust.scene.motion import (
     MOTION_FEET,
@@ -257,3 +258,31 @@ def test_two_views_along_an_epipolar_line_do_not_outvote_their_track(scenes, tmp
                                    - tr["points"], axis=-1)  # fmt: skip
     both = [(err[f][296, 5], err[f][370, 6]) for f in ("true", "false")]
     assert max(both[0]) < 10.0 and min(both[1]) > 30.0, both  # 1.6, 0.9 against 57.9, 45.6
+
+
+def test_a_calibration_in_metres_tracks_as_in_mm(scenes, tmp_path):
+    """The 3-camera scene's calibration rewritten in metres: with ``[metadata] units = "m"`` the
+    tracks are the mm file's (in mm); without it, a clear error, not a 7x larger RMSE read as
+    mm (the validation segment's 3-camera scene tracked in metres: 23.0 mm against 3.2)."""
+    scene = scenes[3]
+    text = (scene / "calibration.toml").read_text()
+    metres = re.sub(
+        r"translation = \[([^\]]*)\]",
+        lambda m: f"translation = {[float(v) / 1000 for v in m.group(1).split(',')]}",
+        text,
+    )
+    assert metres != text and "[metadata]\n" in metres
+    cal = tmp_path / "calibration.toml"
+    cal.write_text(metres)
+    with pytest.raises(InputError, match=r'its cameras lie within .* Add units = "m"'):
+        _run(cal, scene / "detections", tmp_path / "undeclared")
+    cal.write_text(metres.replace("[metadata]\n", '[metadata]\nunits = "m"\n'))
+    ext = ["deformation=rigid"]
+    summary, rmse = _track(scene, tmp_path / "mm", ext)
+    summary_m = _run(cal, scene / "detections", tmp_path / "m", ext)
+    assert summary_m["inputs"]["calibration_units"] == "m"
+    assert summary["inputs"]["calibration_units"] is None
+    a = read_points3d(tmp_path / "mm" / "points3d.csv")["points"]
+    b = read_points3d(tmp_path / "m" / "points3d.csv")["points"]
+    np.testing.assert_allclose(b, a, atol=1e-3)
+    assert rmse < 15.0

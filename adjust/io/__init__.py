@@ -1,6 +1,7 @@
 """Real file formats: anipose calibration TOML, DeepLabCut 2D tables, anipose-style points3d CSV.
 
-- `load_calibration` / `save_calibration`: anipose ``calibration.toml`` <-> list of `Camera`.
+- `load_calibration` / `save_calibration`: anipose ``calibration.toml`` <-> list of `Camera`
+  (mm; a file's ``[metadata] units``, `calibration_units`, is converted on reading).
 - `read_dlc` / `write_dlc_csv`: one DeepLabCut 2D table (CSV or H5) <-> `DLCTable`.
 - `load_detections` / `load_scene`: a folder with one DeepLabCut file per camera -> `Detections`
   (T, K, C, 2), matched to the calibration's cameras by name and to a body model by aliases;
@@ -12,6 +13,7 @@ part, frame or cell at fault. Every output is written atomically.
 """
 
 from adjust.io.calibration import (
+    calibration_units,
     load_calibration,
     load_calibration_metadata,
     recording_fps,
@@ -33,6 +35,7 @@ __all__ = [
     "Detections",
     "InputError",
     "UnknownPartsError",
+    "calibration_units",
     "check_cameras_usable",
     "load_calibration",
     "load_calibration_metadata",

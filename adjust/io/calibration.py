@@ -8,14 +8,19 @@ Layout (as aniposelib's ``CameraGroup.dump`` writes it)::
     matrix = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
     distortions = [k1, k2, p1, p2, k3]   # OpenCV order; 1 to 5 entries, padded with zeros
     rotation = [rx, ry, rz]              # Rodrigues vector, world -> camera
-    translation = [tx, ty, tz]           # world -> camera (mm)
-    [metadata]                           # optional, free-form
+    translation = [tx, ty, tz]           # world -> camera (the file's length unit)
+    [metadata]                           # optional, free-form; units = "mm" | "cm" | "m"
 
 Every top-level table other than ``metadata`` is a camera. Cameras come in the order of their
 section names, ``cam_N`` by number (``cam_2`` before ``cam_10``), other names after them in
 file order. ``fisheye = true`` is refused (only the pinhole model is implemented); other keys of
 a camera section are kept in `Camera.extra` and written back. Floats are written with ``repr``,
 so writing then reading gives bit-identical cameras.
+
+Lengths: mousetrack works in mm. A file whose ``[metadata] units`` is ``"cm"`` or ``"m"``
+(`deformnet.units`) is read with its translations and ``[metadata.mechanisms]`` converted to
+mm; one that declares none is read as mm, and refused when its cameras then lie within
+`MIN_RIG_MM` of their centre (a rig in metres read as mm: every mm setting would be 1000x off).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from adjust.io.errors import InputError
 from deformnet.atomic import write_text
 from deformnet.confutil import check_fps
 from deformnet.paths import regular_file
+from deformnet.units import LENGTH_UNITS, declared_unit
 
 try:  # Python >= 3.11
     import tomllib
@@ -106,7 +112,7 @@ def _array(path: Path, where: str, key: str, value, shape: tuple[int, ...]) -> n
     return arr
 
 
-def _camera(path: Path, section: str, item: dict) -> Camera:
+def _camera(path: Path, section: str, item: dict, unit_mm: float = 1.0) -> Camera:
     name = item.get("name", None)
     where = f"camera [{section}]" + (f" ('{name}')" if name is not None else "")
     missing = [k for k in _KNOWN if k not in item]
@@ -134,7 +140,7 @@ def _camera(path: Path, section: str, item: dict) -> Camera:
         )
     dist = _array(path, where, "distortions", np.pad(dist, (0, 5 - dist.size)), (5,))
     rvec = _array(path, where, "rotation", item["rotation"], (3,))
-    tvec = _array(path, where, "translation", item["translation"], (3,))
+    tvec = _array(path, where, "translation", item["translation"], (3,)) * unit_mm
     size = _array(path, where, "size", item["size"], (2,))
     if np.any(size < 0) or np.any(size != np.round(size)):
         raise InputError(
@@ -199,14 +205,37 @@ def _check_intrinsics(path: Path, where: str, K: np.ndarray, dist: np.ndarray, s
         )
 
 
-def _check_rig(path: Path, cameras: Sequence[Camera]) -> None:
+#: a rig whose cameras all lie within this many mm of their mean centre, in a file that
+#: declares no units, is refused: a lab rig in metres (0.2-1 apart) read as mm
+MIN_RIG_MM = 10.0
+#: ... and one within this many mm is warned about (a rig in centimetres read as mm)
+WARN_RIG_MM = 100.0
+
+
+def _check_rig(path: Path, cameras: Sequence[Camera], declared: bool = True) -> None:
     """Cameras that share one centre (e.g. one camera's extrinsics copied to all) cannot
-    triangulate: an error naming them."""
+    triangulate: an error naming them. Without declared units (``[metadata] units``), a rig
+    within `MIN_RIG_MM` of its centre is an error too (lengths in metres, read as mm)."""
     if len(cameras) < 2:
         return
     centres = np.array([c.center for c in cameras])
     spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
     scale = max(spread, 1e-9)
+    if not declared and MIN_RIG_MM <= spread < WARN_RIG_MM:
+        log.warning(
+            "%s: its cameras lie within %.3g mm of their centre, a small rig; if the file is in "
+            'centimetres, add units = "cm" under [metadata] (units = "mm" silences this)',
+            path,
+            spread,
+        )
+    if not declared and 0 < spread < MIN_RIG_MM:
+        raise InputError(
+            f"{path}: its cameras lie within {spread:.3g} of their centre, a rig under "
+            f"{2 * MIN_RIG_MM:g} mm across if the file is in mm (it is read as mm: its [metadata] "
+            "declares no units). Calibrated in metres or centimetres (the board's square "
+            'length)? Add units = "m" (or "cm") under [metadata] to have its lengths converted '
+            'to mm; units = "mm" reads them as they are'
+        )
     groups: list[list[str]] = []
     for ci in centres:
         same = [cameras[j].name for j in range(len(cameras)) if np.linalg.norm(centres[j] - ci)
@@ -236,23 +265,63 @@ def load_calibration(path: str | os.PathLike) -> list[Camera]:
     """
     path = Path(path)
     doc = _read_toml(path)
-    cameras = [_camera(path, s, doc[s]) for s in _camera_sections(path, doc)]
+    sections = _camera_sections(path, doc)
+    unit = _unit(path, doc.get("metadata"))
+    factor = LENGTH_UNITS[unit] if unit else 1.0
+    cameras = [_camera(path, s, doc[s], factor) for s in sections]
     names = [c.name for c in cameras]
     dups = sorted({n for n in names if names.count(n) > 1})
     if dups:
         raise InputError(f"{path}: duplicate camera names {dups}")
-    _check_rig(path, cameras)
-    log.info("read %d cameras from %s: %s", len(cameras), path, ", ".join(names))
+    _check_rig(path, cameras, declared=unit is not None)
+    log.info(
+        "read %d cameras from %s: %s%s",
+        len(cameras),
+        path,
+        ", ".join(names),
+        f" (lengths in {unit}, converted to mm)" if unit not in (None, "mm") else "",
+    )
     return cameras
 
 
+def _unit(path: Path, meta) -> str | None:
+    try:
+        return declared_unit(meta, str(path))
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def calibration_units(path: str | os.PathLike) -> str | None:
+    """The length unit a calibration file declares (``[metadata] units``), None where none."""
+    path = Path(path)
+    return _unit(path, _read_toml(path).get("metadata"))
+
+
 def load_calibration_metadata(path: str | os.PathLike) -> dict:
-    """The ``[metadata]`` table of an anipose calibration ({} if absent)."""
+    """The ``[metadata]`` table of an anipose calibration ({} if absent), in mm: where it
+    declares ``units`` other than mm, a copy whose ``mechanisms`` positions are converted and
+    whose ``units`` is ``"mm"`` (as `load_calibration`'s cameras: saved together, they agree)."""
     path = Path(path)
     meta = _read_toml(path).get("metadata", {})
     if not isinstance(meta, dict):
         raise InputError(f"{path}: 'metadata' must be a table, got {meta!r}")
-    return meta
+    unit = _unit(path, meta)
+    if unit in (None, "mm"):
+        return meta
+    out = {**meta, "units": "mm"}
+    mech = meta.get("mechanisms")
+    if isinstance(mech, dict):
+        out["mechanisms"] = {k: _scaled(v, LENGTH_UNITS[unit]) for k, v in mech.items()}
+    return out
+
+
+def _scaled(value, factor: float):
+    """A position (list of numbers) times `factor`; anything else as it is (the readers of the
+    mechanisms table name what is wrong with it)."""
+    try:
+        return (np.asarray(value, dtype=np.float64) * factor).tolist()
+    except (TypeError, ValueError):
+        return value
 
 
 def recording_fps(fps, metadata: dict, where: str = "the calibration") -> float | None:
@@ -330,9 +399,15 @@ def save_calibration(
     path: str | os.PathLike, cameras: Sequence[Camera], metadata: Mapping | None = None
 ) -> Path:
     """Write cameras (sections ``cam_0``, ``cam_1``, ... in the given order) and an optional
-    ``[metadata]`` table to an anipose ``calibration.toml``, atomically."""
+    ``[metadata]`` table to an anipose ``calibration.toml``, atomically. Cameras are in mm, so
+    a `metadata` ``units`` other than ``"mm"`` is a ValueError."""
     if not cameras:
         raise ValueError("no cameras to write")
+    if declared_unit(metadata, str(path)) not in (None, "mm"):
+        raise ValueError(
+            f"{path}: metadata units = {metadata['units']!r}, but cameras are written in mm "
+            '(units = "mm", or none)'
+        )
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
         raise ValueError(f"duplicate camera names {names}")

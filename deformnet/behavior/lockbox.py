@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from deformnet.units import unit_mm
+
 __all__ = ["mechanism_table", "calibration_mechanisms"]
 
 
@@ -34,8 +36,9 @@ def mechanism_table(table: Any, source: str) -> dict[str, list[float]]:
 
 
 def calibration_mechanisms(path: str | os.PathLike) -> dict[str, list[float]]:
-    """The ``[metadata.mechanisms]`` table of a calibration.toml, validated; ValueError naming
-    the file when it is missing, not TOML, or has no such table."""
+    """The ``[metadata.mechanisms]`` table of a calibration.toml, validated, in mm (the file's
+    ``[metadata] units``, `deformnet.units`); ValueError naming the file when it is missing, not
+    TOML, or has no such table."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"calibration file not found: {path}")
@@ -46,4 +49,6 @@ def calibration_mechanisms(path: str | os.PathLike) -> dict[str, list[float]]:
     table = meta.get("mechanisms") if isinstance(meta, Mapping) else None
     if not table:
         raise ValueError(f"{path}: no [metadata.mechanisms] table")
-    return mechanism_table(table, f"{path} [metadata.mechanisms]")
+    out = mechanism_table(table, f"{path} [metadata.mechanisms]")
+    factor = unit_mm(meta, str(path))
+    return {name: [factor * v for v in pos] for name, pos in out.items()}
