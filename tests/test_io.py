@@ -299,7 +299,7 @@ def test_rig_in_metres_without_units_is_refused(tmp_path, caplog):
     )
     path = tmp_path / "calibration.toml"
     path.write_text(_in_units(two, 0.001, None))
-    with pytest.raises(InputError, match=r'calibration.toml: its cameras lie within .* units = "m"'):
+    with pytest.raises(InputError, match=r'toml: its cameras lie within .* units = "m"'):
         load_calibration(path)
     path.write_text(_in_units(two, 0.001, "mm"))  # a tiny rig, said to be one: kept as it is
     assert load_calibration(path)[1].tvec[0] == pytest.approx(-0.25)
