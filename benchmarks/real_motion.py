@@ -11,7 +11,10 @@ CSV per camera, truth.npz) is what a user has (`adjust.scene.write_scene`).
 Split, fixed here before any choice was made: the **validation** segment is frames 1200-2199
 (``--split val``: settings may be chosen on it), the **test** segment frames 2400-3399
 (``--split test``, the default for reporting: the last third of the recording, which no net
-may train on). ``--frames N`` (<= 1000) crops the segment from its start.
+may train on). ``--frames N`` (<= 1000) crops the segment from its start. ``--stride N`` films
+every Nth frame of the segment (a camera at 1/N of the recording's frame rate; the median step
+of a part per frame grows from 0.34 mm to about N times that): ``--frames`` is then at most
+1000 / N (default: that), so the scenes stay inside their segment.
 
 Scenes (cached under ``--work``, keyed by all their settings): every camera count of
 ``--cameras`` with the paper's 8 parts (renamed to the default mouse's names), plus the 22-part
@@ -56,7 +59,7 @@ Beside each perturbation: the share of frames whose body orientation is more tha
 the base run's (a pose in another basin); and aniposelib on the two detector seeds (its RMSE's
 change between them, the part of a seed's change that is the data's).
 
-    .venv/bin/python benchmarks/real_motion.py [--split test] [--frames 1000] \\
+    .venv/bin/python benchmarks/real_motion.py [--split test] [--frames 1000] [--stride 1] \\
         [--cameras 2,3,4] [--parts 8,22,34] [--many-parts-cameras 3] [--seeds 0,1] \\
         [--methods dlt,aniposelib,default,rigid[,self,net]] [--adapt-minutes 3] \\
         [--no-stability] [--no-peer-stability] [--threads 1] [--data poses3d.csv] \\
@@ -161,20 +164,30 @@ class Motion:
         self.tag = hashlib.sha1(f"{self.path.resolve()}:{st.st_size}".encode()).hexdigest()[:8]
 
 
-def scene_key(split: str, start: int, frames: int, cameras: int, parts: int, seed: int) -> str:
-    return f"{split}_{start}-{start + frames}_c{cameras}_p{parts}_s{seed}"
+def scene_key(
+    split: str, start: int, frames: int, cameras: int, parts: int, seed: int, stride: int = 1
+) -> str:
+    tail = f"_x{stride}" if stride > 1 else ""
+    return f"{split}_{start}-{start + frames * stride}_c{cameras}_p{parts}_s{seed}{tail}"
 
 
 def film_scene(
-    out: Path, motion: Motion, start: int, frames: int, cameras: int, parts: int, seed: int
+    out: Path,
+    motion: Motion,
+    start: int,
+    frames: int,
+    cameras: int,
+    parts: int,
+    seed: int,
+    stride: int = 1,
 ) -> Path:
-    """Film frames [start, start + frames) with a `cameras` rig (detector seed `seed`), keep
-    the `parts`-part set and write the scene folder `out` (cached: kept if truth.npz is
-    there)."""
+    """Film `frames` frames from `start`, every `stride`-th, with a `cameras` rig (detector seed
+    `seed`), keep the `parts`-part set and write the scene folder `out` (cached: kept if
+    truth.npz is there)."""
     if (out / "truth.npz").exists():
         return out
     t0 = time.perf_counter()
-    X = motion.points[start : start + frames]
+    X = motion.points[start : start + frames * stride : stride]
     film_part_set(out, X, motion.parts, motion.floor, cameras, parts, seed=seed)
     log.info(
         "scene %s: %d frames, %d cameras, %d parts, seed %d (%.1f s)",
@@ -561,12 +574,13 @@ def stability(args, motion: Motion, start: int, work: Path, base_rows: dict) -> 
     variants.update({drop: ("drop", []), other: ("other", [])})
     res = {}
     for cams, nparts in STABILITY_SCENES:
-        key = scene_key(args.split, start, args.frames, cams, nparts, STABILITY_SEED)
+        key = scene_key(args.split, start, args.frames, cams, nparts, STABILITY_SEED, args.stride)
 
         def scene_of(which: str, cams=cams, nparts=nparts, key=key) -> Path:
             seed = OTHER_DETECTOR_SEED if which == "other" else STABILITY_SEED
-            k = scene_key(args.split, start, args.frames, cams, nparts, seed)
-            scene = film_scene(work / "scenes" / k, motion, start, args.frames, cams, nparts, seed)
+            k = scene_key(args.split, start, args.frames, cams, nparts, seed, args.stride)
+            scene = film_scene(work / "scenes" / k, motion, start, args.frames, cams, nparts, seed,
+                               args.stride)  # fmt: skip
             if which == "drop":
                 out = work / "scenes" / f"{key}_drop{DROP_FRACTION:g}_r{DROP_SEED}"
                 scene = drop_detections(scene, out, DROP_FRACTION, DROP_SEED)
@@ -777,8 +791,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--split", choices=sorted(SPLITS), default="test",
                     help="val: frames 1200-2199; test: 2400-3399 (reporting)")  # fmt: skip
-    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES,
-                    help="frames from the segment's start (<= 1000)")  # fmt: skip
+    ap.add_argument("--frames", type=int, default=None,
+                    help="frames from the segment start (<= 1000 / stride)")  # fmt: skip
+    ap.add_argument("--stride", type=int, default=1,
+                    help="film every Nth frame (1/N of the recording's frame rate)")  # fmt: skip
     ap.add_argument("--cameras", default="2,3,4", help="camera counts of the 8-part scenes")
     ap.add_argument("--parts", default="8,22,34", help="part sets (22, 34: see the next)")
     ap.add_argument("--many-parts-cameras", default=str(MANY_PARTS_CAMERAS),
@@ -799,8 +815,13 @@ def main(argv: list[str] | None = None) -> dict:
                     help="an adjust-track setting of every tracker run (repeat; with its own "
                     "--work: the runs' folders do not name it)")  # fmt: skip
     args = start(ap, argv)
-    if not 1 <= args.frames <= SEGMENT_FRAMES:
-        ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
+    if args.stride < 1:
+        ap.error(f"--stride must be >= 1, got {args.stride}")
+    most = SEGMENT_FRAMES // args.stride
+    if args.frames is None:
+        args.frames = most
+    if not 1 <= args.frames <= most:
+        ap.error(f"--frames must be within 1..{most} (1000 / --stride), got {args.frames}")
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     except ValueError:
@@ -824,10 +845,11 @@ def main(argv: list[str] | None = None) -> dict:
     if not kinds:
         ap.error("no scene: --parts 22/34 need one of --many-parts-cameras among --cameras")
     log.info(
-        "split %s: frames %d-%d; scenes %s x seeds %s; methods %s",
+        "split %s: frames %d-%d, every %d; scenes %s x seeds %s; methods %s",
         args.split,
         start_frame,
-        start_frame + args.frames - 1,
+        start_frame + args.frames * args.stride - 1,
+        args.stride,
         kinds,
         seeds,
         methods,
@@ -838,11 +860,11 @@ def main(argv: list[str] | None = None) -> dict:
     seed0_rows: dict[tuple, dict] = {}
     for cams, nparts in kinds:
         for seed in seeds:
-            key = scene_key(args.split, start_frame, args.frames, cams, nparts, seed)
+            key = scene_key(args.split, start_frame, args.frames, cams, nparts, seed, args.stride)
             info = {"cameras": cams, "parts": nparts, "seed": seed}
             try:
                 scene = film_scene(work / "scenes" / key, motion, start_frame, args.frames,
-                                   cams, nparts, seed)  # fmt: skip
+                                   cams, nparts, seed, args.stride)  # fmt: skip
             except Exception as exc:  # noqa: BLE001 - recorded, the others go on
                 log.warning("scene %s failed: %s", key, exc)
                 rows += [{**info, "method": m, "error": f"scene: {exc}"} for m in methods]
@@ -863,7 +885,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     print(
         f"\nreal motion ({data.name}), {args.split} segment: frames {start_frame}-"
-        f"{start_frame + args.frames - 1}; detector seeds {seeds}"
+        f"{start_frame + args.frames * args.stride - 1}"
+        + (f", one frame in {args.stride}" if args.stride > 1 else "")
+        + f"; detector seeds {seeds}"
     )
     print_tables(agg, scenes)
     print_part_calibration(agg)
@@ -884,7 +908,8 @@ def main(argv: list[str] | None = None) -> dict:
         "data": str(data),
         "split": args.split,
         "segment": [start_frame, start_frame + SEGMENT_FRAMES],
-        "frames": [start_frame, start_frame + args.frames],
+        "frames": [start_frame, start_frame + args.frames * args.stride],
+        "stride": args.stride,
         "seeds": seeds,
         "methods": methods,
         "scenes": scenes,

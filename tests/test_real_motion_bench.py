@@ -8,6 +8,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from adjust.scene.motion import MOTION_PAPER8, MOTION_PARTS22, part_set
@@ -81,3 +82,22 @@ def test_calibrated_parts_counts_the_parts_within_the_range():
         "c": {"seen": 0.9, "occluded": float("nan"), "unseen": float("nan")},
     }
     assert rm.calibrated_parts(per) == {"seen": [2, 3], "occluded": [1, 2]}
+
+
+def test_stride_films_every_nth_frame(tmp_path):
+    """--stride N: the scene is every Nth frame of the segment (a camera at 1/N of the
+    recording's rate), cached under its own key, and --frames stays within the segment."""
+    rm = _load()
+    if not rm.DATA.is_file():
+        pytest.skip(f"{rm.DATA} not present")
+    motion = rm.Motion(rm.DATA)
+    key = rm.scene_key("val", 1200, 40, 3, 8, 0, stride=3)
+    assert key == "val_1200-1320_c3_p8_s0_x3" and rm.scene_key("val", 1200, 40, 3, 8, 0) == (
+        "val_1200-1240_c3_p8_s0"
+    )
+    scene = rm.film_scene(tmp_path / key, motion, 1200, 40, 3, 8, 0, stride=3)
+    truth = np.load(scene / "truth.npz")
+    src = [motion.parts.index(p) for p in MOTION_PAPER8.values()]
+    np.testing.assert_allclose(truth["points"], motion.points[1200:1320:3][:, src], atol=1e-6)
+    with pytest.raises(SystemExit):
+        rm.main(["--stride", "3", "--frames", "400", "--work", str(tmp_path / "w")])
