@@ -17,8 +17,8 @@ priors, gates) is in mm. The scenes are `real_motion.py`'s 8-part validation sce
 Target: a declared unit gives the mm file's RMSE (within 2%: the translations' float rounding,
 divided and multiplied back, moved a 2-camera run by 0.9%, stop 56).
 
-    .venv/bin/python benchmarks/units.py [--cameras 2,3] [--seeds 0] [--methods default,rigid] \\
-        [--work DIR] [--out FILE]
+    .venv/bin/python benchmarks/units.py [--cameras 2,3] [--frames 1000] [--seeds 0] \\
+        [--methods default,rigid] [--work DIR] [--out FILE]
 """
 
 from __future__ import annotations
@@ -88,12 +88,15 @@ def rewrite(scene: Path, out: Path, mm_per_unit: float, unit: str | None) -> Pat
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cameras", default="2,3", help="camera counts (8 parts)")
+    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES, help="frames (<= 1000)")
     ap.add_argument("--seeds", default="0", help="detector seeds")
     ap.add_argument("--methods", default="default,rigid", help="default, rigid")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "units"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "units.json"))
     args = start(ap, argv)
+    if not 1 <= args.frames <= SEGMENT_FRAMES:
+        ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
     cameras = [int(c) for c in subset(ap, args.cameras, ("2", "3", "4"), "--cameras")]
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     methods = subset(ap, args.methods, ("default", "rigid"), "--methods")
@@ -103,9 +106,9 @@ def main(argv: list[str] | None = None) -> dict:
     rows: list[dict] = []
     for cams in cameras:
         for seed in seeds:
-            key = scene_key("val", start_frame, SEGMENT_FRAMES, cams, 8, seed)
-            base = film_scene(work / "scenes" / key, motion, start_frame, SEGMENT_FRAMES, cams,
-                              8, seed)  # fmt: skip
+            key = scene_key("val", start_frame, args.frames, cams, 8, seed)
+            base = film_scene(work / "scenes" / key, motion, start_frame, args.frames, cams, 8,
+                              seed)  # fmt: skip
             for name, mm_per_unit, unit in VARIANTS:
                 scene = rewrite(base, work / "units" / f"{key}_{name.replace(' ', '_')}",
                                 mm_per_unit, unit)  # fmt: skip

@@ -101,3 +101,20 @@ def test_stride_films_every_nth_frame(tmp_path):
     np.testing.assert_allclose(truth["points"], motion.points[1200:1320:3][:, src], atol=1e-6)
     with pytest.raises(SystemExit):
         rm.main(["--stride", "3", "--frames", "400", "--work", str(tmp_path / "w")])
+
+
+def test_units_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/units.py on 120 frames: the files in cm and m with the unit declared track as
+    the mm file does (its check), and read as mm they do not."""
+    spec = importlib.util.spec_from_file_location("units_bench", ROOT / "benchmarks" / "units.py")
+    units = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(units)
+    if not units.DATA.is_file():
+        pytest.skip(f"{units.DATA} not present")
+    res = units.main(
+        ["--frames", "120", "--cameras", "3", "--methods", "rigid",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "u.json")]
+    )  # fmt: skip
+    line = res["table"]["3 cameras, rigid"]
+    assert res["checks"]["declared_within_2pct"], line
+    assert line["m as mm / mm"] > 1.1, line
