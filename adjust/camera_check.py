@@ -25,11 +25,16 @@ For a camera that is off, the likely cause is diagnosed from the others' points:
   (`adjust.resection.resect`) fits it to a few pixels (the calibration's extrinsics are off);
 - else ``detections or intrinsics inconsistent``.
 
+Before that, a camera out of step in time with the others (its video started a few frames
+early or late) is found from the epipolar geometry and shifted back (`adjust.sync`, up to
+``input.max_frame_offset`` frames; the report's ``sync``).
+
 Modes (``input.camera_check``): ``warn`` (default): a camera that is off is excluded and a
-warning names it with its error and likely cause; ``error``: an `InputError` instead; ``off``:
-no check. ``input.exclude_cameras=[name, ...]`` drops cameras by hand before the check. The
-returned report (the apps put it in ``summary.json`` as ``camera_check``) lists every camera's
-leave-one-out error, the threshold, and the excluded cameras with error and cause.
+warning names it with its error and likely cause (one out of step is shifted back); ``error``:
+an `InputError` instead; ``off``: no check. ``input.exclude_cameras=[name, ...]`` drops
+cameras by hand before the check. The returned report (the apps put it in ``summary.json`` as
+``camera_check``) lists every camera's leave-one-out error, the threshold, the excluded cameras
+with error and cause, and the cameras shifted in time (``sync``).
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import Detections, InputError
 from adjust.resection import resect
 from adjust.settings import InputConfig
+from adjust.sync import check_sync
 from adjust.triangulate import triangulate
 
 log = logging.getLogger(__name__)
@@ -228,10 +234,12 @@ def check_cameras(
     min_px: float = MIN_PX,
     ratio: float = RATIO,
     fit_ratio: float = FIT_RATIO,
+    max_offset: int = 0,
 ) -> tuple[list[Camera], Detections, dict]:
-    """Drop the cameras named in `exclude`, then (mode warn/error) test each camera against the
-    others (see the module doc). Returns the kept cameras, their detections (T, K, C', 2) and
-    the report for the summary."""
+    """Drop the cameras named in `exclude`, then (mode warn/error) shift back a camera out of
+    step by up to `max_offset` frames (`adjust.sync.check_sync`; 0: none) and test each camera
+    against the others (see the module doc). Returns the kept cameras, their detections
+    (T, K, C', 2) and the report for the summary."""
     if mode not in MODES:
         raise InputError(f"input.camera_check must be one of {list(MODES)}, got {mode!r}")
     names = [c.name for c in cameras]
@@ -249,6 +257,7 @@ def check_cameras(
         raise InputError(f"fewer than 2 cameras left after excluding {exclude}: {names}")
     if mode == "off":
         return cams, det, report
+    det, report["sync"] = check_sync(cams, det, max_offset, mode)
     report.update(min_px=min_px, ratio=ratio, leave_one_out_px={}, others_px={})
     active = list(range(len(cams)))
     excluded: list[str] = []
@@ -357,7 +366,7 @@ def check_from_config(
 ) -> tuple[list[Camera], Detections, dict]:
     """`check_cameras` with the settings of an app's ``input`` node (an
     `adjust.settings.InputConfig` or the node it is read from): ``camera_check`` (error|warn|
-    off) and ``exclude_cameras`` (a list of names, or one name)."""
+    off), ``exclude_cameras`` (a list of names, or one name) and ``max_frame_offset``."""
     ic = InputConfig.from_config(inp)
     mode, exclude = ic.camera_check, list(ic.exclude_cameras)
-    return check_cameras(cameras, det, mode, exclude)
+    return check_cameras(cameras, det, mode, exclude, max_offset=ic.max_frame_offset)

@@ -191,6 +191,7 @@ _INPUT_SETTINGS = {
     "likelihood_threshold": ("float", 0.0, 1.0),
     "ignore_unknown_parts": ("bool", None, None),
     "allow_missing_parts": ("bool", None, None),
+    "max_frame_offset": ("int", 0, None),
 }
 
 
@@ -208,6 +209,7 @@ class InputConfig:
     allow_missing_parts: bool = False
     camera_check: str = "warn"  # error | warn | off (adjust.camera_check)
     exclude_cameras: tuple[str, ...] = ()
+    max_frame_offset: int = 30  # frames a camera may be out of step (adjust.sync; 0: no check)
 
     @classmethod
     def from_config(cls, node) -> InputConfig:

@@ -251,3 +251,30 @@ def test_a_chunk_without_two_cameras_is_left_empty_and_named(scene, tmp_path, ca
     assert not (tmp_path / "out" / "tokens.npz").exists() and "tokens" not in s["outputs"]
     with np.load(tmp_path / "out" / "accepted.npz") as z:
         assert z["accepted"].shape[0] == FRAMES and not z["accepted"][gap_rows].any()
+
+
+def test_a_camera_out_of_step_is_shifted_back_in_every_chunk(scene, runs, tmp_path):
+    """Camera 1's file starts 4 frames early: the sample finds the offset and every chunk reads
+    the camera shifted back (the chunks' frames beyond their own come from the overlap)."""
+    root, truth = scene
+    tmp, _, chunked = runs
+    late = tmp_path / "late"
+    (late / "detections").mkdir(parents=True)
+    (late / "calibration.toml").write_bytes((root / "calibration.toml").read_bytes())
+    name = None
+    for c, f in enumerate(sorted((root / "detections").iterdir())):
+        t = read_dlc(f)
+        xy, lik = t.xy, t.likelihood
+        if c == 1:
+            name = f.stem
+            xy = np.concatenate([np.full((4, *xy.shape[1:]), np.nan), xy[:-4]])
+            lik = np.concatenate([np.zeros((4, xy.shape[1])), lik[:-4]])
+        write_dlc_csv(late / "detections" / f.name, t.parts, xy, lik, frames=t.frames)
+    s = run(_cfg(late, tmp_path / "out", f"chunk_frames={CHUNK}"))
+    assert len(s["chunked"]["chunks"]) == 3
+    assert s["camera_check"]["sync"]["offsets"] == {name: 4}
+    b = read_points3d(tmp_path / "out" / "points3d.csv")["points"]
+    a = read_points3d(tmp / "chunked" / "points3d.csv")["points"]
+    err_a = np.sqrt(np.mean(np.sum((a - truth) ** 2, -1)))
+    err_b = np.sqrt(np.mean(np.sum((b - truth) ** 2, -1)))
+    assert err_b < 1.05 * err_a, (err_a, err_b)

@@ -5,6 +5,7 @@ and a run whose tracks leave the data does not exit 0."""
 from __future__ import annotations
 
 import re
+import shutil
 from pathlib import Path
 
 import hydra
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from adjust.apps.track import run
-from adjust.io import InputError, read_points3d
+from adjust.io import InputError, read_dlc, read_points3d, write_dlc_csv
 from adjust.metrics import point_errors
 from adjust.scene.motion import (
     MOTION_FEET,
@@ -286,3 +287,23 @@ def test_a_calibration_in_metres_tracks_as_in_mm(scenes, tmp_path):
     b = read_points3d(tmp_path / "m" / "points3d.csv")["points"]
     np.testing.assert_allclose(b, a, atol=1e-3)
     assert rmse < 15.0
+
+
+def test_a_camera_out_of_step_is_shifted_back(scenes, tmp_path):
+    """One camera's video started 5 frames early (its file's frame f + 5 is the others' frame
+    f): adjust-track finds it from the epipolar geometry, shifts it back and tracks as in step;
+    not looked for (input.max_frame_offset=0) the tracks are much worse, and nothing says so."""
+    scene = scenes[3]
+    shifted = tmp_path / "scene"
+    shutil.copytree(scene, shifted)
+    cam = sorted(p.stem for p in (scene / "detections").glob("*.csv"))[0]
+    table = read_dlc(scene / "detections" / f"{cam}.csv")
+    xy = np.concatenate([np.full((5, *table.xy.shape[1:]), np.nan), table.xy[:-5]])
+    lik = np.concatenate([np.zeros((5, table.xy.shape[1])), table.likelihood[:-5]])
+    write_dlc_csv(shifted / "detections" / f"{cam}.csv", table.parts, xy, lik)
+    _, base = _track(scene, tmp_path / "in_step")
+    summary, fixed = _track(shifted, tmp_path / "fixed")
+    assert summary["camera_check"]["sync"]["offsets"] == {cam: 5}
+    assert fixed < 1.05 * base, (fixed, base)
+    _, blind = _track(shifted, tmp_path / "blind", ["input.max_frame_offset=0"])
+    assert blind > 1.1 * base, (blind, base)

@@ -118,3 +118,20 @@ def test_units_benchmark_tiny_run(tmp_path, one_thread):
     line = res["table"]["3 cameras, rigid"]
     assert res["checks"]["declared_within_2pct"], line
     assert line["m as mm / mm"] > 1.1, line
+
+
+def test_sync_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/sync.py on 150 frames: a camera moved by 5 frames is found and shifted back
+    (its check), the real recordings show no offset."""
+    spec = importlib.util.spec_from_file_location("sync_bench", ROOT / "benchmarks" / "sync.py")
+    sync = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sync)
+    if not sync.DATA.is_file():
+        pytest.skip(f"{sync.DATA} not present")
+    res = sync.main(
+        ["--frames", "150", "--cameras", "3", "--lags", "5",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "s.json")]
+    )  # fmt: skip
+    assert res["checks"]["every_offset_found"] and res["checks"]["no_offset_on_real"], res
+    (row,) = res["rows"]
+    assert row["found"] == 5 and row["checked"]["rmse_all"] < row["unchecked"]["rmse_all"]

@@ -1,0 +1,158 @@
+"""A camera out of step in time: the real-motion scenes with one camera's detections moved by
+k frames (its video started k frames early: its file's frame f + k is the others' frame f),
+tracked with the offset not looked for (``input.max_frame_offset=0``, what adjust-track did
+before stop 56) and with the default check (`adjust.sync`: found from the epipolar geometry
+and shifted back); and the real recordings, which must show no offset.
+
+Scenes: `real_motion.py`'s 8-part validation scenes (frames 1200-2199, ``--cameras``,
+``--seeds``), the rig's last camera moved by each k of ``--lags``. Rows: RMSE all and seen by
+>= 2 cameras (mm) in step, moved and unchecked, moved and checked; the offset found. Targets:
+every offset found exactly, the checked RMSE within 5% of the in-step one; no offset on the
+real hand, fly and SLEAP mouse.
+
+    .venv/bin/python benchmarks/sync.py [--cameras 2,3] [--seeds 0] [--lags 1,2,5,15,-7] \\
+        [--frames 1000] [--work DIR] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import emit, print_table, start, subset  # noqa: E402
+from real_motion import (  # noqa: E402
+    DATA,
+    ROOT,
+    SEGMENT_FRAMES,
+    SPLITS,
+    Motion,
+    film_scene,
+    scene_key,
+    track_row,
+)
+
+from adjust.io import load_scene, read_dlc, write_dlc_csv  # noqa: E402
+from adjust.sync import check_sync  # noqa: E402
+from deformnet.paths import shared_dir  # noqa: E402
+
+log = logging.getLogger("benchmarks.sync")
+
+#: the real recordings: (folder, detections below it, file pattern)
+REAL = (
+    ("real-hand-4cam", "trial_000", None),
+    ("real-fly-3cam", ".", None),
+    ("real-mouse-sleap-4cam", ".", "*.analysis.h5"),
+)
+
+
+def moved(scene: Path, out: Path, camera: str, lag: int) -> Path:
+    """A copy of `scene` whose `camera`'s file has its rows moved by `lag` (its row f + lag
+    holds the others' frame f; rows with nothing to hold are empty)."""
+    if (out / "truth.npz").exists():
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(scene, out, ignore=shutil.ignore_patterns("truth.npz"))
+    table = read_dlc(scene / "detections" / f"{camera}.csv")
+    xy = np.full_like(table.xy, np.nan)
+    lik = np.zeros_like(table.likelihood)
+    if lag > 0:
+        xy[lag:], lik[lag:] = table.xy[:-lag], table.likelihood[:-lag]
+    else:
+        xy[:lag], lik[:lag] = table.xy[-lag:], table.likelihood[-lag:]
+    write_dlc_csv(out / "detections" / f"{camera}.csv", table.parts, xy, lik)
+    shutil.copy2(scene / "truth.npz", out / "truth.npz")  # last: the cache's mark
+    return out
+
+
+def tracked(scene: Path, runs: Path, name: str, truth, threads: int, extra=()) -> dict:
+    """adjust-track on `scene` (run `name`): RMSE all, seen by >= 2 cameras, offsets found."""
+    out = runs / scene.name / name
+    parts = [str(p) for p in truth["parts"]]
+    r = track_row(scene, out, [f"threads={threads}", *extra], truth["points"], truth["nviews"],
+                  parts)  # fmt: skip
+    sync = (json.loads((out / "summary.json").read_text()).get("camera_check") or {}).get("sync")
+    return {"rmse_all": r["rmse_all"], "rmse_seen2": r["rmse_seen2"],
+            "offsets": (sync or {}).get("offsets", {})}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cameras", default="2,3", help="camera counts (8 parts)")
+    ap.add_argument("--seeds", default="0", help="detector seeds")
+    ap.add_argument("--lags", default="1,2,5,15,-7", help="frames the camera is moved by")
+    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES, help="frames (<= 1000)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "sync"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "sync.json"))
+    args = start(ap, argv)
+    if not 1 <= args.frames <= SEGMENT_FRAMES:
+        ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
+    cameras = [int(c) for c in subset(ap, args.cameras, ("2", "3", "4"), "--cameras")]
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    lags = [int(k) for k in args.lags.split(",") if k.strip()]
+    if not lags or 0 in lags:
+        ap.error("--lags: non-zero frame offsets")
+    motion = Motion(DATA)
+    work = Path(args.work) / motion.tag
+    start_frame = SPLITS["val"]
+    rows: list[dict] = []
+    for cams in cameras:
+        for seed in seeds:
+            key = scene_key("val", start_frame, args.frames, cams, 8, seed)
+            base = film_scene(work / "scenes" / key, motion, start_frame, args.frames, cams, 8,
+                              seed)  # fmt: skip
+            truth = np.load(base / "truth.npz")
+            camera = sorted(p.stem for p in (base / "detections").glob("*.csv"))[-1]
+            runs = work / "runs"
+            in_step = tracked(base, runs, "in_step", truth, args.threads)
+            for lag in lags:
+                scene = moved(base, work / "moved" / f"{key}_{camera}{lag:+d}", camera, lag)
+                blind = tracked(scene, runs, "unchecked", truth, args.threads,
+                                ["input.max_frame_offset=0"])  # fmt: skip
+                checked = tracked(scene, runs, "checked", truth, args.threads)
+                rows.append({
+                    "cameras": cams, "seed": seed, "camera": camera, "lag": lag,
+                    "in_step": in_step, "unchecked": blind, "checked": checked,
+                    "found": checked["offsets"].get(camera, 0),
+                    "checked_over_in_step": checked["rmse_all"] / in_step["rmse_all"],
+                })  # fmt: skip
+                log.info("%s %s moved by %+d: found %s", key, camera, lag, checked["offsets"])
+    table = {
+        f"{r['cameras']} cameras s{r['seed']}, {r['lag']:+d}": {
+            "in step": r["in_step"]["rmse_all"],
+            "unchecked": r["unchecked"]["rmse_all"],
+            "checked": r["checked"]["rmse_all"],
+            "seen unch.": r["unchecked"]["rmse_seen2"],
+            "seen chk.": r["checked"]["rmse_seen2"],
+            "found": r["found"],
+        }
+        for r in rows
+    }
+    print("\nRMSE all / seen by >= 2 cameras (mm), one camera moved by k frames:")
+    print_table(table, [(k, k) for k in next(iter(table.values()))], 12)
+    real = {}
+    for folder, sub, pattern in REAL:
+        root = shared_dir() / "data" / folder
+        cams, det = load_scene(root / "calibration.toml", root / sub, None, pattern=pattern)
+        real[folder] = check_sync(cams, det, 30)[1]["offsets"]
+    print(f"\noffsets found on the real recordings: {real}")
+    checks = {
+        "every_offset_found": all(r["found"] == r["lag"] for r in rows),
+        "checked_within_5pct": all(r["checked_over_in_step"] < 1.05 for r in rows),
+        "no_offset_on_real": not any(real.values()),
+    }
+    print(f"checks: {checks}")
+    return emit({"seeds": seeds, "rows": rows, "real": real, "checks": checks}, args.out)
+
+
+if __name__ == "__main__":
+    main()
