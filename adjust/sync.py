@@ -10,7 +10,9 @@ symmetric distance (px) of each detection from the epipolar line of the other
 (`lag_curves`), for every lag |L| <= ``max_offset``. A synchronised pair agrees best at L = 0
 while the animal moves. The cameras' offsets o (integers) minimise the sum over the pairs of
 their medians at o_b - o_a (`solve_offsets`: coordinate descent from all zeros), referred to
-the most common offset (the majority is in step). A camera's offset is accepted only where
+the most common offset (the majority is in step; with two cameras, or a tie, the first
+camera of the calibration keeps its time: nothing in the detections tells which camera's
+frames are the session's). A camera's offset is accepted only where
 most of its pairs back it on their own (`_backs`): the pair's closest lag lies within a frame
 of it, and there the pair's median is at least ``SYNC_RATIO`` (1.1) times smaller than with the
 camera left at 0. A still animal gives flat curves and no offset (the real fly: pairs within 2%
