@@ -226,6 +226,23 @@ def _flip_camera(folder: Path, name: str) -> None:
     _save(folder, cams)
 
 
+def _in_metres(folder: Path, declared: bool) -> None:
+    """The calibration's translations in metres, with ``[metadata] units = "m"`` or none."""
+    import re
+
+    p = folder / "calibration.toml"
+    text = re.sub(
+        r"translation = \[([^\]]*)\]",
+        lambda m: "translation = " + repr([float(v) / 1000 for v in m.group(1).split(",")]),
+        p.read_text(),
+    )
+    if declared:
+        text = text.replace("[metadata]\n", '[metadata]\nunits = "m"\n', 1)
+        if 'units = "m"' not in text:
+            text += '\n[metadata]\nunits = "m"\n'
+    p.write_text(text)
+
+
 def _renumber(folder: Path, cam: str, fn: Callable[[int], int]) -> None:
     p = folder / "detections" / f"{cam}.csv"
     rows = _read(p)
@@ -337,6 +354,18 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
     @case("one file's frame numbers offset by 1000")
     def _(f):
         _renumber(f, "front", lambda i: i + 1000)
+
+    @case("one camera 4 frames out of step (its video started early)")
+    def _(f):
+        _renumber(f, "front", lambda i: i + 4)
+
+    @case("calibration in metres, no units", expect="error")
+    def _(f):
+        _in_metres(f, declared=False)
+
+    @case("calibration in metres, units = m")
+    def _(f):
+        _in_metres(f, declared=True)
 
     @case("duplicate frame number")
     def _(f):
