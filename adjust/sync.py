@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -42,6 +43,9 @@ SYNC_RATIO = 1.1  #: an offset must cut a pair's median epipolar distance by thi
 MIN_PAIRS = 50  #: part-frames a pair needs at a lag for its median there to count
 MAX_FRAMES = 4_000  #: frames the curves are measured on (in blocks spread over the session)
 BLOCK = 200  #: consecutive frames per block
+BLOCK_FRAMES = 250  #: frames per block whose own lag is measured (a lag that changes)
+MAX_BLOCKS = 40  #: ... and at most this many blocks (longer ones in long sessions)
+SPLIT_CAP_PX = 1.0  #: a frame's say in where a lag changes is capped at this difference (px)
 
 
 def frame_numbers(det: Detections) -> np.ndarray | None:
@@ -116,21 +120,23 @@ def _normalised(xy: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
 
 
 def lag_curves(
-    cameras: Sequence[Camera], det: Detections, max_offset: int
+    cameras: Sequence[Camera], det: Detections, max_offset: int, rows: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(lags (L,), curves (C, C, L)): curves[a, b, i] the median symmetric epipolar distance
     (px) between camera a at frame f and camera b at frame f + lags[i] over the parts both saw
     (NaN with fewer than `MIN_PAIRS`); curves[b, a] is curves[a, b] reversed in lag. Measured on
-    at most `MAX_FRAMES` rows, in blocks of `BLOCK` spread over the session."""
+    the frames of ``rows`` (None: at most `MAX_FRAMES` rows, in blocks of `BLOCK` spread over
+    the session)."""
     C = len(cameras)
     lags = np.arange(-max_offset, max_offset + 1)
     curves = np.full((C, C, lags.size), np.nan)
     frames = frame_numbers(det)
     T = len(frames)
-    rows = np.arange(T)
-    if T > MAX_FRAMES:  # blocks of consecutive rows: few rows beyond them to undistort
-        starts = np.linspace(0, T - BLOCK, MAX_FRAMES // BLOCK).astype(np.int64)
-        rows = np.unique((starts[:, None] + np.arange(BLOCK)[None]).ravel())
+    if rows is None:
+        rows = np.arange(T)
+        if T > MAX_FRAMES:  # blocks of consecutive rows: few rows beyond them to undistort
+            starts = np.linspace(0, T - BLOCK, MAX_FRAMES // BLOCK).astype(np.int64)
+            rows = np.unique((starts[:, None] + np.arange(BLOCK)[None]).ravel())
     focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
     order = np.argsort(frames, kind="stable")
     at = [_rows_at(frames, frames[rows] + L, order) for L in lags]  # rows of f + L
@@ -208,20 +214,143 @@ def solve_offsets(lags: np.ndarray, curves: np.ndarray, sweeps: int = 5) -> np.n
     return o - base
 
 
-def shift_cameras(det: Detections, offsets: dict[str, int]) -> Detections:
+def _nan_reduce(fn, x: np.ndarray, axis: int) -> np.ndarray:
+    """np.nanmedian / np.nanmean along `axis`, NaN where every value is (without its warning)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return fn(x, axis=axis)
+
+
+def _frame_costs(cameras, det, x_of, c: int, lag: int, offsets, rows) -> np.ndarray:
+    """(len(rows),) camera c at frame f + lag against each other camera d at f + o_d: the
+    median over the parts of their symmetric epipolar distance (px), averaged over the pairs
+    (NaN where no part was seen by both). ``x_of(r)``: normalised coordinates of rows r."""
+    frames = frame_numbers(det)
+    order = np.argsort(frames, kind="stable")
+    rc = _rows_at(frames, frames[rows] + lag, order)
+    fc = float(np.sqrt(cameras[c].K[0, 0] * cameras[c].K[1, 1]))
+    per = []
+    for d in range(len(cameras)):
+        if d == c:
+            continue
+        rd = _rows_at(frames, frames[rows] + int(offsets[d]), order)
+        ok = (rc >= 0) & (rd >= 0)
+        dist = np.full((len(rows), det.num_parts), np.nan)
+        if ok.any():
+            xc, xd = x_of(rc[ok])[:, :, c], x_of(rd[ok])[:, :, d]
+            both = np.isfinite(xc).all(-1) & np.isfinite(xd).all(-1)
+            fd = float(np.sqrt(cameras[d].K[0, 0] * cameras[d].K[1, 1]))
+            hc, hd = _homog(np.nan_to_num(xc)), _homog(np.nan_to_num(xd))
+            ld, inv_d = _lines(hc, essential(cameras[c], cameras[d]).T)
+            _, inv_c = _lines(hd, essential(cameras[c], cameras[d]))
+            dist[ok] = np.where(both, _symmetric(hd, ld, inv_d, inv_c, fc, fd), np.nan)
+        per.append(_nan_reduce(np.nanmedian, dist, 1))
+    return _nan_reduce(np.nanmean, np.stack(per), 0)
+
+
+def block_curves(cameras, det, max_offset: int) -> list[tuple[int, int, np.ndarray]]:
+    """`lag_curves` of each block of about `BLOCK_FRAMES` consecutive frames (at most
+    `MAX_BLOCKS` blocks, a longer one measured on its middle `BLOCK_FRAMES`): [(start, stop,
+    curves)], start / stop positions in the frames' order."""
+    order = np.argsort(frame_numbers(det), kind="stable")
+    n = max(1, len(order) // max(BLOCK_FRAMES, len(order) // MAX_BLOCKS))
+    edges = np.linspace(0, len(order), n + 1).astype(int)
+    out = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        mid = (a + b - BLOCK_FRAMES) // 2  # a longer block's lag from its middle frames
+        rows = order[a:b] if b - a <= BLOCK_FRAMES else order[mid : mid + BLOCK_FRAMES]
+        out.append((int(a), int(b), lag_curves(cameras, det, max_offset, rows=rows)[1]))
+    return out
+
+
+def block_lags(blocks, lags, offsets, c: int) -> list[tuple[int, int, int | None]]:
+    """Camera c's lag in each block of `block_curves` (the others at `offsets`): [(start, stop,
+    lag or None)]. The block's lag is the middle of the lags whose summed pair distance is
+    within 2% of its least (a slow animal leaves a broad minimum); it is c's own offset where it
+    lies within a frame of it, another lag where that is `SYNC_RATIO` below c's offset's and
+    most pairs put their own minimum within a frame of it; None otherwise (a still animal, a
+    camera with a wrong pose)."""
+    out = []
+    own_lag = int(offsets[c])
+    for start, stop, cb in blocks:
+        cost = np.array([_camera_cost(cb, lags, offsets, c, int(v)) for v in lags])
+        lag = None
+        if np.isfinite(cost).any():
+            low = np.nanmin(np.where(np.isfinite(cost), cost, np.nan))
+            mid = float(np.median(lags[cost <= 1.02 * low]))
+            best = int(lags[int(np.nanargmin(np.where(np.isfinite(cost), cost, np.nan)))])
+            v = int(mid) if mid == int(mid) else int(np.floor(mid) + (best > mid))
+            if abs(v - own_lag) <= 1:
+                lag = own_lag
+            else:
+                pairs = [d for d in range(cb.shape[0]) if d != c and np.isfinite(cb[c, d]).any()]
+                own = [int(lags[int(np.nanargmin(cb[c, d]))]) for d in pairs]
+                backed = sum(abs(o - (offsets[d] - v)) <= 1 for o, d in zip(own, pairs))
+                at_own = cost[own_lag + int(lags[-1])]
+                if at_own >= SYNC_RATIO * low and 2 * backed > len(pairs):
+                    lag = v
+        out.append((start, stop, lag))
+    return out
+
+
+def steps_of(cameras, det, blocks, lags, offsets, c: int) -> list[tuple[int, int]] | None:
+    """Where camera c changes its lag during the session (a dropped frame): [(first frame,
+    lag), ...] from the blocks that tell (`block_lags`; a change by one frame is taken for the
+    jitter of a broad minimum), each change placed at the frame that best splits the stretch
+    between two such blocks (per-frame epipolar costs at the two lags); None where every block
+    that tells agrees."""
+    known = []
+    for a, b, v in block_lags(blocks, lags, offsets, c):
+        if v is None:
+            continue
+        if known and abs(v - known[-1][2]) <= 1:  # a frame's jitter of a broad minimum:
+            v = known[-1][2]  # changes of one frame are not told from it
+        known.append((a, b, v))
+    if len({v for *_, v in known}) <= 1:
+        return None
+    frames = frame_numbers(det)
+    order = np.argsort(frames, kind="stable")
+    cache: dict[int, np.ndarray] = {}
+
+    def x_of(r: np.ndarray) -> np.ndarray:  # normalised rows, each undistorted once
+        new = np.array([i for i in np.unique(r) if int(i) not in cache], dtype=np.int64)
+        if new.size:
+            for i, row in zip(new, _normalised(det.xy[new], cameras)):
+                cache[int(i)] = row
+        return np.stack([cache[int(i)] for i in r])
+
+    steps = [(int(frames[order[0]]), known[0][2])]
+    for (s0, _, a), (_, e1, b) in zip(known, known[1:]):
+        if a == b:
+            continue
+        span = order[s0:e1]
+        ca = _frame_costs(cameras, det, x_of, c, a, offsets, span)
+        cb = _frame_costs(cameras, det, x_of, c, b, offsets, span)
+        # each frame weighs in for the lag that fits it better, by at most `SPLIT_CAP_PX` (a
+        # swap or an outlier cannot outvote the rest); the split leaves the most weight for a
+        # before it and for b after it
+        score = np.nan_to_num(np.clip(cb - ca, -SPLIT_CAP_PX, SPLIT_CAP_PX))
+        split = min(int(np.argmax(np.r_[0.0, np.cumsum(score)])), len(span) - 1)
+        steps.append((int(frames[span[split]]), b))
+    return steps
+
+
+def shift_cameras(det: Detections, offsets: dict) -> Detections:
     """The detections with camera ``name`` read at frame f from its row for frame f + offset
-    (missing where it has none)."""
-    if not any(offsets.values()):
+    (missing where it has none); an offset is an int or (T,) ints, one per row (a camera whose
+    lag changes during the session)."""
+    if not any(np.any(o) for o in offsets.values()):
         return det
     frames = frame_numbers(det)
     if frames is None:
         raise ValueError("labelled images (frames by name) have no time order to shift")
+    order = np.argsort(frames, kind="stable")
     xy, lik = det.xy.copy(), det.likelihood.copy()
     for name, o in offsets.items():
-        if not o:
+        if not np.any(o):
             continue
         c = det.cameras.index(name)
-        src = _rows_at(frames, frames + int(o))
+        src = _rows_at(frames, frames + np.asarray(o, dtype=np.int64), order)
         ok = src >= 0
         xy[:, :, c] = np.nan
         lik[:, :, c] = 0.0
@@ -230,13 +359,23 @@ def shift_cameras(det: Detections, offsets: dict[str, int]) -> Detections:
     return dataclasses.replace(det, xy=xy, likelihood=lik)
 
 
+def row_offsets(det: Detections, steps: Sequence[tuple[int, int]]) -> np.ndarray:
+    """(T,) int: each row's offset under `steps` [(first frame, offset), ...] (the first step's
+    offset before its frame too)."""
+    frames = frame_numbers(det)
+    firsts = np.array([f for f, _ in steps])
+    values = np.array([v for _, v in steps], dtype=np.int64)
+    return values[np.clip(np.searchsorted(firsts, frames, side="right") - 1, 0, None)]
+
+
 def check_sync(
     cameras: Sequence[Camera], det: Detections, max_offset: int, mode: str = "warn"
 ) -> tuple[Detections, dict]:
     """Find and undo frame offsets between the cameras (module doc). ``mode`` as the camera
     check's: warn = shift the camera back and say so, error = an `InputError` naming it, off =
     nothing. Returns the (shifted) detections and the report {"max_offset", "offsets" {name:
-    frames}, "epipolar_px" {name: [at 0, at the offset]}} (offsets only where found)."""
+    frames}, "epipolar_px" {name: [at 0, at the offset]}, "steps" {name: [[first frame,
+    offset], ...]} (a lag that changes during the session; `steps_of`)} (only where found)."""
     report: dict = {"max_offset": int(max_offset), "offsets": {}, "epipolar_px": {}}
     if mode == "off" or max_offset <= 0 or len(cameras) < 2 or frame_numbers(det) is None:
         return det, report
@@ -255,11 +394,25 @@ def check_sync(
         zero = _camera_cost(curves, lags, offsets, c, 0) / len(pairs)
         at = _camera_cost(curves, lags, offsets, c, int(offsets[c])) / len(pairs)
         report["epipolar_px"][cam.name] = [round(zero, 3), round(at, 3)]
-    if not found:
+    # a lag that changes during the session (a camera that dropped frames): block by block
+    accepted = np.array([found.get(cam.name, 0) for cam in cameras], dtype=np.int64)
+    blocks = block_curves(cameras, det, max_offset) if det.num_frames >= 2 * BLOCK_FRAMES else []
+    steps: dict[str, list[tuple[int, int]]] = {}
+    for c, cam in enumerate(cameras):
+        if len(cameras) == 2 and c == 0:  # two cameras: the first keeps the session's time
+            continue
+        st = steps_of(cameras, det, blocks, lags, accepted, c) if len(blocks) > 1 else None
+        if st is not None:
+            steps[cam.name] = st
+            found.pop(cam.name, None)
+            report["epipolar_px"].pop(cam.name, None)
+    if not found and not steps:
         return det, report
     report["offsets"] = found
+    report["steps"] = {n: [[f, v] for f, v in st] for n, st in steps.items()}
+    names = [cam.name for cam in cameras]
     for name, o in found.items():
-        c = [cam.name for cam in cameras].index(name)
+        c = names.index(name)
         zero, at = report["epipolar_px"][name]
         msg = (
             f"camera '{name}' ({det.files[c]}) is {abs(o)} frame{'s' * (abs(o) != 1)} out of "
@@ -267,10 +420,26 @@ def check_sync(
             f"frame f (its detections lie {zero:.1f} px from the other cameras' epipolar lines "
             f"in step, {at:.1f} px shifted; a video started early or late?)"
         )
-        if mode == "error":
-            raise InputError(
-                msg + "; fix its frame numbers, or set input.camera_check=warn to shift it back "
-                "(input.max_frame_offset=0: no check)"
-            )
-        log.warning("%s; SHIFTED back by %d frames (input.camera_check=warn)", msg, o)
-    return shift_cameras(det, found), report
+        _say(msg, mode, f"SHIFTED back by {o} frames")
+    for name, st in steps.items():
+        c = names.index(name)
+        said = ", ".join(f"{v:+d} from frame {f}" for f, v in st)
+        msg = (
+            f"camera '{name}' ({det.files[c]}) changes its step with the others during the "
+            f"session (its frame f + offset matches their frame f): {said} (dropped or "
+            "repeated frames?)"
+        )
+        _say(msg, mode, "SHIFTED back piecewise")
+    shifts: dict = dict(found)
+    shifts.update({n: row_offsets(det, st) for n, st in steps.items()})
+    return shift_cameras(det, shifts), report
+
+
+def _say(msg: str, mode: str, done: str) -> None:
+    """The warning (mode warn) or the error (mode error) about a camera out of step."""
+    if mode == "error":
+        raise InputError(
+            msg + "; fix its frame numbers, or set input.camera_check=warn to shift it back "
+            "(input.max_frame_offset=0: no check)"
+        )
+    log.warning("%s; %s (input.camera_check=warn)", msg, done)

@@ -9,11 +9,14 @@ Scenes: `real_motion.py`'s 8-part validation scenes (frames 1200-2199, ``--camer
 tells which one keeps the session's time: the first is taken to, `adjust.sync`). Rows: RMSE
 all and seen by >= 2 cameras (mm) in step, moved and unchecked, moved and checked; the offset
 found; "lost": in step, with the frames the moved file lost emptied (what shifting it back can
-give at best). Targets: every offset found exactly, the checked run the same as "lost"; no
-offset on the real hand, fly and SLEAP mouse.
+give at best). Then the same camera drops k frames at frame AT (``--drops AT:K``: its rows from
+AT on hold the frame k later, a lag that changes during the session): unchecked, checked, the
+change found. Targets: every offset found exactly, the checked run the same as "lost"; every
+drop found (lag -k, within `DROP_TOLERANCE` frames of AT); no offset on the real hand, fly and
+SLEAP mouse.
 
     .venv/bin/python benchmarks/sync.py [--cameras 2,3] [--seeds 0] [--lags 1,2,5,15,-7] \\
-        [--frames 1000] [--work DIR] [--out FILE]
+        [--drops 300:3,600:6] [--frames 1000] [--work DIR] [--out FILE]
 """
 
 from __future__ import annotations
@@ -47,6 +50,10 @@ from deformnet.paths import shared_dir  # noqa: E402
 
 log = logging.getLogger("benchmarks.sync")
 
+#: a change of lag found within this many frames of the drop counts as found (where the lags
+#: fit alike, e.g. a still animal, the frame is not defined better)
+DROP_TOLERANCE = 30
+
 #: the real recordings: (folder, detections below it, file pattern)
 REAL = (
     ("real-hand-4cam", "trial_000", None),
@@ -78,6 +85,23 @@ def moved(scene: Path, out: Path, camera: str, lag: int, back: bool = False) -> 
     return out
 
 
+def dropped(scene: Path, out: Path, camera: str, at: int, k: int) -> Path:
+    """A copy of `scene` whose `camera` dropped k frames at frame `at` (its rows from there hold
+    the frame k later; its last k rows are empty)."""
+    if (out / "truth.npz").exists():
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(scene, out, ignore=shutil.ignore_patterns("truth.npz"))
+    table = read_dlc(scene / "detections" / f"{camera}.csv")
+    xy, lik = table.xy.copy(), table.likelihood.copy()
+    xy[at:], lik[at:] = np.nan, 0.0
+    xy[at:-k], lik[at:-k] = table.xy[at + k :], table.likelihood[at + k :]
+    write_dlc_csv(out / "detections" / f"{camera}.csv", table.parts, xy, lik)
+    shutil.copy2(scene / "truth.npz", out / "truth.npz")  # last: the cache's mark
+    return out
+
+
 def tracked(scene: Path, runs: Path, name: str, truth, threads: int, extra=()) -> dict:
     """adjust-track on `scene` (run `name`): RMSE all, seen by >= 2 cameras, offsets found."""
     out = runs / scene.name / name
@@ -86,7 +110,8 @@ def tracked(scene: Path, runs: Path, name: str, truth, threads: int, extra=()) -
                   parts)  # fmt: skip
     sync = (json.loads((out / "summary.json").read_text()).get("camera_check") or {}).get("sync")
     return {"rmse_all": r["rmse_all"], "rmse_seen2": r["rmse_seen2"],
-            "offsets": (sync or {}).get("offsets", {})}  # fmt: skip
+            "offsets": (sync or {}).get("offsets", {}),
+            "steps": (sync or {}).get("steps", {})}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -94,6 +119,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--cameras", default="2,3", help="camera counts (8 parts)")
     ap.add_argument("--seeds", default="0", help="detector seeds")
     ap.add_argument("--lags", default="1,2,5,15,-7", help="frames the camera is moved by")
+    ap.add_argument("--drops", default="300:3,600:6",
+                    help="AT:K, the camera drops K frames at frame AT (comma list)")  # fmt: skip
     ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES, help="frames (<= 1000)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
     ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "sync"))
@@ -106,10 +133,17 @@ def main(argv: list[str] | None = None) -> dict:
     lags = [int(k) for k in args.lags.split(",") if k.strip()]
     if not lags or 0 in lags:
         ap.error("--lags: non-zero frame offsets")
+    try:
+        drops = [tuple(int(v) for v in d.split(":")) for d in args.drops.split(",") if d.strip()]
+    except ValueError:
+        ap.error(f"--drops: AT:K pairs, got {args.drops!r}")
+    if any(len(d) != 2 or d[1] < 1 or not 0 < d[0] < args.frames - d[1] for d in drops):
+        ap.error(f"--drops: AT:K with 0 < AT < frames - K and K >= 1, got {args.drops!r}")
     motion = Motion(DATA)
     work = Path(args.work) / motion.tag
     start_frame = SPLITS["val"]
     rows: list[dict] = []
+    drop_rows: list[dict] = []
     for cams in cameras:
         for seed in seeds:
             key = scene_key("val", start_frame, args.frames, cams, 8, seed)
@@ -135,6 +169,19 @@ def main(argv: list[str] | None = None) -> dict:
                     "checked_over_lost": checked["rmse_all"] / ref["rmse_all"],
                 })  # fmt: skip
                 log.info("%s %s moved by %+d: found %s", key, camera, lag, checked["offsets"])
+            for at, k in drops:
+                scene = dropped(base, work / "moved" / f"{key}_{camera}_drop{at}x{k}", camera,
+                                at, k)  # fmt: skip
+                blind = tracked(scene, runs, "unchecked", truth, args.threads,
+                                ["input.max_frame_offset=0"])  # fmt: skip
+                checked = tracked(scene, runs, "checked", truth, args.threads)
+                steps = checked["steps"].get(camera) or []
+                drop_rows.append({
+                    "cameras": cams, "seed": seed, "camera": camera, "at": at, "k": k,
+                    "in_step": in_step, "unchecked": blind, "checked": checked, "steps": steps,
+                    "found": len(steps) == 2 and steps[1][1] == -k and abs(steps[1][0] - at)
+                    <= DROP_TOLERANCE,
+                })  # fmt: skip
     table = {
         f"{r['cameras']} cameras s{r['seed']}, {r['lag']:+d}": {
             "in step": r["in_step"]["rmse_all"],
@@ -150,6 +197,20 @@ def main(argv: list[str] | None = None) -> dict:
     print("\nRMSE all / seen by >= 2 cameras (mm), one camera moved by k frames (lost: in step,")
     print("the frames the moved file lost emptied):")
     print_table(table, [(k, k) for k in next(iter(table.values()))], 12)
+    drops_table = {
+        f"{r['cameras']} cameras s{r['seed']}, {r['k']} at {r['at']}": {
+            "in step": r["in_step"]["rmse_all"],
+            "unchecked": r["unchecked"]["rmse_all"],
+            "checked": r["checked"]["rmse_all"],
+            "seen unch.": r["unchecked"]["rmse_seen2"],
+            "seen chk.": r["checked"]["rmse_seen2"],
+            "change at": r["steps"][1][0] if len(r["steps"]) > 1 else "-",
+        }
+        for r in drop_rows
+    }
+    if drops_table:
+        print("\nthe camera drops k frames at a frame (its lag changes during the session):")
+        print_table(drops_table, [(k, k) for k in next(iter(drops_table.values()))], 12)
     real = {}
     for folder, sub, pattern in REAL:
         root = shared_dir() / "data" / folder
@@ -159,10 +220,15 @@ def main(argv: list[str] | None = None) -> dict:
     checks = {
         "every_offset_found": all(r["found"] == r["lag"] for r in rows),
         "checked_equals_in_step": all(abs(r["checked_over_lost"] - 1) < 1e-6 for r in rows),
+        "every_drop_found": all(r["found"] for r in drop_rows),
+        "drops_checked_within_5pct": all(
+            r["checked"]["rmse_all"] < 1.05 * r["in_step"]["rmse_all"] for r in drop_rows
+        ),
         "no_offset_on_real": not any(real.values()),
     }
     print(f"checks: {checks}")
-    return emit({"seeds": seeds, "rows": rows, "real": real, "checks": checks}, args.out)
+    summary = {"seeds": seeds, "rows": rows, "drops": drop_rows, "real": real, "checks": checks}
+    return emit(summary, args.out)
 
 
 if __name__ == "__main__":

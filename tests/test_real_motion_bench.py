@@ -129,7 +129,7 @@ def test_sync_benchmark_tiny_run(tmp_path, one_thread):
     if not sync.DATA.is_file():
         pytest.skip(f"{sync.DATA} not present")
     res = sync.main(
-        ["--frames", "150", "--cameras", "3", "--lags", "5",
+        ["--frames", "150", "--cameras", "3", "--lags", "5", "--drops", "",
          "--work", str(tmp_path / "work"), "--out", str(tmp_path / "s.json")]
     )  # fmt: skip
     assert res["checks"]["every_offset_found"] and res["checks"]["no_offset_on_real"], res

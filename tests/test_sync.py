@@ -15,7 +15,7 @@ from adjust.camera import CameraTensors, project_cameras
 from adjust.camera_check import check_from_config
 from adjust.io import Detections, InputError, load_scene
 from adjust.scene import default_rig
-from adjust.sync import check_sync, epipolar_px, essential, shift_cameras
+from adjust.sync import check_sync, epipolar_px, essential, row_offsets, shift_cameras
 from deformnet.paths import shared_dir
 
 torch.set_num_threads(1)
@@ -161,3 +161,41 @@ def test_real_recordings_are_in_step(folder, pattern):
     cams, det = load_scene(root / "calibration.toml", dets, None, pattern=pattern)
     _, rep = check_sync(cams, det, 30)
     assert rep["offsets"] == {}, rep
+
+
+def _dropped(det: Detections, c: int, at: int, k: int) -> Detections:
+    """Camera c dropped k frames at frame `at`: its rows from there hold the frame k later."""
+    xy = det.xy.copy()
+    xy[at:, :, c] = np.nan
+    xy[at:-k, :, c] = det.xy[at + k :, :, c]
+    return dataclasses.replace(det, xy=xy)
+
+
+@pytest.mark.parametrize("ncams", [3, 2])
+def test_a_camera_that_drops_frames_is_shifted_back_piecewise(ncams, caplog):
+    """A camera drops 5 frames at frame 600 of 1200: in step before, 5 frames behind after.
+    The change is found block by block, placed within a few frames, and undone piecewise."""
+    cams = default_rig()[:ncams]
+    c = ncams - 1
+    det = _detections(cams, _points(1200))
+    drop = _dropped(det, c, 600, 5)
+    with caplog.at_level(logging.WARNING):
+        back, rep = check_sync(cams, drop, 30)
+    (first, second) = rep["steps"][cams[c].name]
+    assert first == [0, 0] and second[1] == -5 and abs(second[0] - 600) <= 10, rep
+    assert rep["offsets"] == {} and "changes its step" in caplog.text
+    assert "SHIFTED back piecewise" in caplog.text
+    rows = np.r_[0:595, 615:1200]  # away from the change (and its frames dropped)
+    ok = np.isfinite(back.xy[rows, :, c]).all(-1)
+    assert ok.mean() > 0.95
+    np.testing.assert_array_equal(back.xy[rows, :, c][ok], det.xy[rows, :, c][ok])
+    # a change of one frame is not told from a broad minimum's jitter: left alone
+    assert check_sync(cams, _dropped(det, c, 600, 1), 30)[1].get("steps") in (None, {})
+
+
+def test_row_offsets_follow_the_steps():
+    cams = default_rig()[:2]
+    det = dataclasses.replace(_detections(cams, _points(10, K=1)), frames=np.arange(100, 110))
+    np.testing.assert_array_equal(
+        row_offsets(det, [(100, 0), (104, -2), (108, 3)]), [0, 0, 0, 0, -2, -2, -2, -2, 3, 3]
+    )
