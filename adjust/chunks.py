@@ -77,7 +77,7 @@ from adjust.lsq.solver import RESULT_ARRAYS
 from adjust.session import with_session
 from adjust.settings import required
 from adjust.summary import report_result, result_summary, track_health
-from adjust.sync import shift_cameras
+from adjust.sync import row_offsets, shift_cameras
 from adjust.track_config import DEFAULT_CHUNK_FRAMES, MIN_CHUNK_FRAMES, ChunkConfig, TrackConfig
 from deformnet.outputs import OutputSet
 from deformnet.paths import output_dir
@@ -218,8 +218,10 @@ class ChunkHooks:
         if self.model is None:
             return check_from_config(cameras, det, input_cfg)
         cams, det = drop_cameras(cameras, det, self.model.excluded)
-        offsets = (self.model.camera_report.get("sync") or {}).get("offsets") or {}
-        det = shift_cameras(det, {n: o for n, o in offsets.items() if n in det.cameras})
+        sync = self.model.camera_report.get("sync") or {}
+        shifts: dict = {n: o for n, o in (sync.get("offsets") or {}).items()}
+        shifts.update({n: row_offsets(det, st) for n, st in (sync.get("steps") or {}).items()})
+        det = shift_cameras(det, {n: o for n, o in shifts.items() if n in det.cameras})
         a, b = self.keep
         counts = det.observed[a:b].sum(axis=(0, 1))
         self.usable = {c: int(n) for c, n in zip(det.cameras, counts)}
