@@ -62,44 +62,64 @@ REAL = (
 )
 
 
-def moved(scene: Path, out: Path, camera: str, lag: int, back: bool = False) -> Path:
-    """A copy of `scene` whose `camera`'s file has its rows moved by `lag` (its row f + lag
-    holds the others' frame f; rows with nothing to hold are empty); ``back``: in step, with
-    the frames that the moved file lost emptied instead (what shifting it back can give)."""
+def edited(scene: Path, out: Path, camera: str, edit) -> Path:
+    """A copy of `scene` whose `camera`'s detections (xy (T, K, 2), likelihood (T, K)) are
+    replaced by ``edit(xy, likelihood)`` (cached: kept if truth.npz is there)."""
     if (out / "truth.npz").exists():
         return out
     if out.exists():
         shutil.rmtree(out)
     shutil.copytree(scene, out, ignore=shutil.ignore_patterns("truth.npz"))
     table = read_dlc(scene / "detections" / f"{camera}.csv")
-    xy, lik = np.full_like(table.xy, np.nan), np.zeros_like(table.likelihood)
-    if back:  # frames T - lag.. (lag > 0) or ..-lag (lag < 0) have no row left
-        keep = slice(0, len(xy) - lag) if lag > 0 else slice(-lag, len(xy))
-        xy[keep], lik[keep] = table.xy[keep], table.likelihood[keep]
-    elif lag > 0:
-        xy[lag:], lik[lag:] = table.xy[:-lag], table.likelihood[:-lag]
-    else:
-        xy[:lag], lik[:lag] = table.xy[-lag:], table.likelihood[-lag:]
+    xy, lik = edit(table.xy, table.likelihood)
     write_dlc_csv(out / "detections" / f"{camera}.csv", table.parts, xy, lik)
     shutil.copy2(scene / "truth.npz", out / "truth.npz")  # last: the cache's mark
     return out
 
 
-def dropped(scene: Path, out: Path, camera: str, at: int, k: int) -> Path:
-    """A copy of `scene` whose `camera` dropped k frames at frame `at` (its rows from there hold
-    the frame k later; its last k rows are empty)."""
-    if (out / "truth.npz").exists():
-        return out
-    if out.exists():
-        shutil.rmtree(out)
-    shutil.copytree(scene, out, ignore=shutil.ignore_patterns("truth.npz"))
-    table = read_dlc(scene / "detections" / f"{camera}.csv")
-    xy, lik = table.xy.copy(), table.likelihood.copy()
-    xy[at:], lik[at:] = np.nan, 0.0
-    xy[at:-k], lik[at:-k] = table.xy[at + k :], table.likelihood[at + k :]
-    write_dlc_csv(out / "detections" / f"{camera}.csv", table.parts, xy, lik)
-    shutil.copy2(scene / "truth.npz", out / "truth.npz")  # last: the cache's mark
-    return out
+def moved(lag: int, back: bool = False):
+    """The edit moving a camera's rows by `lag` (its row f + lag holds the others' frame f;
+    rows with nothing to hold are empty); ``back``: in step, with the frames that the moved
+    file lost emptied instead (what shifting it back can give)."""
+
+    def edit(xy, lik):
+        new_xy, new_lik = np.full_like(xy, np.nan), np.zeros_like(lik)
+        if back:  # frames T - lag.. (lag > 0) or ..-lag (lag < 0) have no row left
+            keep = slice(0, len(xy) - lag) if lag > 0 else slice(-lag, len(xy))
+            new_xy[keep], new_lik[keep] = xy[keep], lik[keep]
+        elif lag > 0:
+            new_xy[lag:], new_lik[lag:] = xy[:-lag], lik[:-lag]
+        else:
+            new_xy[:lag], new_lik[:lag] = xy[-lag:], lik[-lag:]
+        return new_xy, new_lik
+
+    return edit
+
+
+def dropped(at: int, k: int):
+    """The edit of a camera that dropped k frames at frame `at` (its rows from there hold the
+    frame k later; its last k rows are empty)."""
+
+    def edit(xy, lik):
+        new_xy, new_lik = xy.copy(), lik.copy()
+        new_xy[at:], new_lik[at:] = np.nan, 0.0
+        new_xy[at:-k], new_lik[at:-k] = xy[at + k :], lik[at + k :]
+        return new_xy, new_lik
+
+    return edit
+
+
+def _cells(r: dict, **more) -> dict:
+    """A table row's RMSE cells (mm) of in-step, unchecked and checked runs (``more`` after
+    the in-step one)."""
+    return {
+        "in step": r["in_step"]["rmse_all"],
+        **more,
+        "unchecked": r["unchecked"]["rmse_all"],
+        "checked": r["checked"]["rmse_all"],
+        "seen unch.": r["unchecked"]["rmse_seen2"],
+        "seen chk.": r["checked"]["rmse_seen2"],
+    }
 
 
 def tracked(scene: Path, runs: Path, name: str, truth, threads: int, extra=()) -> dict:
@@ -156,8 +176,8 @@ def main(argv: list[str] | None = None) -> dict:
             in_step = tracked(base, runs, "in_step", truth, args.threads)
             for lag in lags:
                 name = f"{key}_{camera}{lag:+d}"
-                scene = moved(base, work / "moved" / name, camera, lag)
-                lost = moved(base, work / "moved" / f"{name}_lost", camera, lag, back=True)
+                scene = edited(base, work / "moved" / name, camera, moved(lag))
+                lost = edited(base, work / "moved" / f"{name}_lost", camera, moved(lag, True))
                 blind = tracked(scene, runs, "unchecked", truth, args.threads,
                                 ["input.max_frame_offset=0"])  # fmt: skip
                 checked = tracked(scene, runs, "checked", truth, args.threads)
@@ -170,8 +190,8 @@ def main(argv: list[str] | None = None) -> dict:
                 })  # fmt: skip
                 log.info("%s %s moved by %+d: found %s", key, camera, lag, checked["offsets"])
             for at, k in drops:
-                scene = dropped(base, work / "moved" / f"{key}_{camera}_drop{at}x{k}", camera,
-                                at, k)  # fmt: skip
+                name = f"{key}_{camera}_drop{at}x{k}"
+                scene = edited(base, work / "moved" / name, camera, dropped(at, k))
                 blind = tracked(scene, runs, "unchecked", truth, args.threads,
                                 ["input.max_frame_offset=0"])  # fmt: skip
                 checked = tracked(scene, runs, "checked", truth, args.threads)
@@ -184,12 +204,7 @@ def main(argv: list[str] | None = None) -> dict:
                 })  # fmt: skip
     table = {
         f"{r['cameras']} cameras s{r['seed']}, {r['lag']:+d}": {
-            "in step": r["in_step"]["rmse_all"],
-            "lost": r["in_step_lost"]["rmse_all"],
-            "unchecked": r["unchecked"]["rmse_all"],
-            "checked": r["checked"]["rmse_all"],
-            "seen unch.": r["unchecked"]["rmse_seen2"],
-            "seen chk.": r["checked"]["rmse_seen2"],
+            **_cells(r, lost=r["in_step_lost"]["rmse_all"]),
             "found": r["found"],
         }
         for r in rows
@@ -199,11 +214,7 @@ def main(argv: list[str] | None = None) -> dict:
     print_table(table, [(k, k) for k in next(iter(table.values()))], 12)
     drops_table = {
         f"{r['cameras']} cameras s{r['seed']}, {r['k']} at {r['at']}": {
-            "in step": r["in_step"]["rmse_all"],
-            "unchecked": r["unchecked"]["rmse_all"],
-            "checked": r["checked"]["rmse_all"],
-            "seen unch.": r["unchecked"]["rmse_seen2"],
-            "seen chk.": r["checked"]["rmse_seen2"],
+            **_cells(r),
             "change at": r["steps"][1][0] if len(r["steps"]) > 1 else "-",
         }
         for r in drop_rows
