@@ -140,6 +140,10 @@ def lag_curves(
     focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
     order = np.argsort(frames, kind="stable")
     at = [_rows_at(frames, frames[rows] + L, order) for L in lags]  # rows of f + L
+    # every lag on the same frames f (those with a row at every f + L): medians over other
+    # frames would differ by what the animal did there, not by the lag
+    common = np.logical_and.reduce([r >= 0 for r in at])
+    rows, at = rows[common], [r[common] for r in at]
     need = np.unique(np.concatenate([rows, *[r[r >= 0] for r in at]]))
     x = _normalised(det.xy[need], cameras)  # only the rows compared
     seen = np.isfinite(x).all(-1)  # (N, K, C)
@@ -282,6 +286,8 @@ def block_lags(blocks, lags, offsets, c: int) -> list[tuple[int, int, int | None
             v = int(mid) if mid == int(mid) else int(np.floor(mid) + (best > mid))
             if abs(v - own_lag) <= 1:
                 lag = own_lag
+            elif abs(v) >= int(lags[-1]):  # the least at the edge of the lags: a trend
+                lag = None
             else:
                 pairs = [d for d in range(cb.shape[0]) if d != c and np.isfinite(cb[c, d]).any()]
                 own = [int(lags[int(np.nanargmin(cb[c, d]))]) for d in pairs]
@@ -388,8 +394,8 @@ def check_sync(
             continue
         pairs = [d for d in range(len(cameras)) if d != c and np.isfinite(curves[c, d]).any()]
         backing = [d for d in pairs if _backs(curves, lags, offsets, c, d)]
-        if not pairs or 2 * len(backing) <= len(pairs):
-            continue
+        if not pairs or 2 * len(backing) <= len(pairs) or abs(offsets[c]) >= max_offset:
+            continue  # (a least at the edge of the lags: no minimum, a trend)
         found[cam.name] = int(offsets[c])
         zero = _camera_cost(curves, lags, offsets, c, 0) / len(pairs)
         at = _camera_cost(curves, lags, offsets, c, int(offsets[c])) / len(pairs)
