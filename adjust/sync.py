@@ -12,12 +12,18 @@ while the animal moves. The cameras' offsets o (integers) minimise the sum over 
 their medians at o_b - o_a (`solve_offsets`: coordinate descent from all zeros), referred to
 the most common offset (the majority is in step; with two cameras, or a tie, the first
 camera of the calibration keeps its time: nothing in the detections tells which camera's
-frames are the session's). A camera's offset is accepted only where
-most of its pairs back it on their own (`_backs`): the pair's closest lag lies within a frame
-of it, and there the pair's median is at least ``SYNC_RATIO`` (1.1) times smaller than with the
-camera left at 0. A still animal gives flat curves and no offset (the real fly: pairs within 2%
-of flat); a camera whose extrinsics are wrong gives pairs that disagree on the lag (the real
+frames are the session's). Every lag is compared on the same frames (those with a row at
+every lag). A camera's offset is accepted only where most of its pairs back it on their own
+(`_backs`): the pair's closest lag lies within a frame of it, and there the pair's median is
+at least ``SYNC_RATIO`` (1.1) times smaller than with the camera left at 0; and never at the
+edge of the lags (a trend, not a minimum). A still animal gives flat curves and no offset (the
+real fly); a camera whose extrinsics are wrong gives pairs that disagree on the lag (the real
 SLEAP mouse's `side`), and stays for the camera check.
+
+A lag that changes during the session (a camera that dropped frames) is found block by block
+(`block_curves`, `block_lags`, `steps_of`: blocks of `BLOCK_FRAMES` frames, the change placed
+by the frames' capped votes) and undone piecewise; a change by one frame is not told from the
+jitter of a slow animal's broad minimum.
 
 A camera with offset o is read as its row for frame f + o at frame f (`shift_cameras`; the
 frame numbers of the files, ``Detections.frames``, so a sample of rows is shifted exactly);
