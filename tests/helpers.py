@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
+from adjust.camera import CameraTensors, project_cameras
+from adjust.io import Detections
 from deformnet.body import default_mouse
 from deformnet.deformation import DeformationModel, build_net
 
@@ -83,3 +86,22 @@ def pinned(overrides) -> list[str]:
     """``overrides`` with `OLD_RECIPE`'s settings it does not set itself in front."""
     keys = {o.split("=")[0].lstrip("+~") for o in overrides}
     return [o for o in OLD_RECIPE if o.split("=")[0] not in keys] + list(overrides)
+
+
+def projected_detections(cams, X, noise: float, rng: np.random.Generator):
+    """`adjust.io.Detections` of points X (T, K, 3) mm seen by every camera of `cams`, with
+    Gaussian pixel noise of sd `noise` drawn from `rng`: parts p0.., likelihood 1, files
+    <camera>.csv, frames 0..T-1."""
+    ct = CameraTensors.from_cameras(cams, dtype=torch.float64)
+    xy = project_cameras(torch.as_tensor(X), ct).numpy()
+    xy = xy + rng.normal(0, noise, xy.shape)
+    T, K, C = xy.shape[:3]
+    return Detections(
+        tuple(c.name for c in cams),
+        tuple(f"p{k}" for k in range(K)),
+        xy,
+        np.ones((T, K, C)),
+        tuple(f"{c.name}.csv" for c in cams),
+        0.5,
+        np.arange(T),
+    )

@@ -8,8 +8,9 @@ import logging
 import numpy as np
 import pytest
 import torch
+from helpers import projected_detections
 
-from adjust.camera import Camera, CameraTensors, project_cameras
+from adjust.camera import Camera
 from adjust.camera_check import check_cameras, check_from_config
 from adjust.io import Detections, InputError, load_scene
 from adjust.scene import camera_look_at, default_rig
@@ -31,20 +32,7 @@ def _scene(cams, T=60, K=6, noise=0.5, seed=0) -> Detections:
     t = np.linspace(0, 2 * np.pi, T)
     centre = np.stack([150 + 60 * np.cos(t), 150 + 60 * np.sin(2 * t), 30 + 0 * t], -1)
     X = centre[:, None] + rng.normal(0, 20, (1, K, 3)) + rng.normal(0, 3, (T, K, 3))
-    ct = CameraTensors.from_cameras(cams, dtype=torch.float64)
-    xy = project_cameras(torch.as_tensor(X), ct).numpy() + rng.normal(
-        0, noise, (T, K, len(cams), 2)
-    )
-    C = len(cams)
-    return Detections(
-        tuple(c.name for c in cams),
-        tuple(f"p{k}" for k in range(K)),
-        xy,
-        np.ones((T, K, C)),
-        tuple(f"{c.name}.csv" for c in cams),
-        0.5,
-        np.arange(T),
-    )
+    return projected_detections(cams, X, noise, rng)
 
 
 def _with(det: Detections, c: int, xy: np.ndarray) -> Detections:

@@ -10,8 +10,8 @@ import logging
 import numpy as np
 import pytest
 import torch
+from helpers import projected_detections
 
-from adjust.camera import CameraTensors, project_cameras
 from adjust.camera_check import check_from_config
 from adjust.io import Detections, InputError, load_scene
 from adjust.scene import default_rig
@@ -33,20 +33,7 @@ def _points(T: int, K: int = 6, seed: int = 0, still: bool = False) -> np.ndarra
 
 
 def _detections(cams, X: np.ndarray, noise: float = 0.5, seed: int = 1) -> Detections:
-    rng = np.random.default_rng(seed)
-    ct = CameraTensors.from_cameras(cams, dtype=torch.float64)
-    xy = project_cameras(torch.as_tensor(X), ct).numpy()
-    xy = xy + rng.normal(0, noise, xy.shape)
-    T, K, C = xy.shape[:3]
-    return Detections(
-        tuple(c.name for c in cams),
-        tuple(f"p{k}" for k in range(K)),
-        xy,
-        np.ones((T, K, C)),
-        tuple(f"{c.name}.csv" for c in cams),
-        0.5,
-        np.arange(T),
-    )
+    return projected_detections(cams, X, noise, np.random.default_rng(seed))
 
 
 def _out_of_step(det: Detections, c: int, lag: int) -> Detections:
