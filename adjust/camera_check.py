@@ -27,7 +27,9 @@ For a camera that is off, the likely cause is diagnosed from the others' points:
 
 Before that, a camera out of step in time with the others (its video started a few frames
 early or late) is found from the epipolar geometry and shifted back (`adjust.sync`, up to
-``input.max_frame_offset`` frames; the report's ``sync``).
+``input.max_frame_offset`` frames; the report's ``sync``), and a camera turned during the
+session (bumped) has its detections after the move mapped back (`adjust.moves`, up to
+``input.max_camera_moves`` moves; the report's ``moved``).
 
 Modes (``input.camera_check``): ``warn`` (default): a camera that is off is excluded and a
 warning names it with its error and likely cause (one out of step is shifted back); ``error``:
@@ -48,6 +50,7 @@ import torch
 
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import Detections, InputError
+from adjust.moves import check_moves
 from adjust.resection import resect
 from adjust.settings import InputConfig
 from adjust.sync import check_sync
@@ -235,10 +238,12 @@ def check_cameras(
     ratio: float = RATIO,
     fit_ratio: float = FIT_RATIO,
     max_offset: int = 0,
+    max_moves: int = 0,
 ) -> tuple[list[Camera], Detections, dict]:
     """Drop the cameras named in `exclude`, then (mode warn/error) shift back a camera out of
-    step by up to `max_offset` frames (`adjust.sync.check_sync`; 0: none) and test each camera
-    against the others (see the module doc). Returns the kept cameras, their detections
+    step by up to `max_offset` frames (`adjust.sync.check_sync`; 0: none), map back up to
+    `max_moves` cameras turned mid-session (`adjust.moves.check_moves`; 0: none) and test each
+    camera against the others (see the module doc). Returns the kept cameras, their detections
     (T, K, C', 2) and the report for the summary."""
     if mode not in MODES:
         raise InputError(f"input.camera_check must be one of {list(MODES)}, got {mode!r}")
@@ -258,6 +263,7 @@ def check_cameras(
     if mode == "off":
         return cams, det, report
     det, report["sync"] = check_sync(cams, det, max_offset, mode)
+    det, report["moved"] = check_moves(cams, det, max_moves, mode)
     report.update(min_px=min_px, ratio=ratio, leave_one_out_px={}, others_px={})
     active = list(range(len(cams)))
     excluded: list[str] = []
@@ -366,7 +372,15 @@ def check_from_config(
 ) -> tuple[list[Camera], Detections, dict]:
     """`check_cameras` with the settings of an app's ``input`` node (an
     `adjust.settings.InputConfig` or the node it is read from): ``camera_check`` (error|warn|
-    off), ``exclude_cameras`` (a list of names, or one name) and ``max_frame_offset``."""
+    off), ``exclude_cameras`` (a list of names, or one name), ``max_frame_offset`` and
+    ``max_camera_moves``."""
     ic = InputConfig.from_config(inp)
     mode, exclude = ic.camera_check, list(ic.exclude_cameras)
-    return check_cameras(cameras, det, mode, exclude, max_offset=ic.max_frame_offset)
+    return check_cameras(
+        cameras,
+        det,
+        mode,
+        exclude,
+        max_offset=ic.max_frame_offset,
+        max_moves=ic.max_camera_moves,
+    )

@@ -74,6 +74,7 @@ from adjust.export import write_nwb
 from adjust.io import InputError, load_calibration, load_detections, match_files
 from adjust.io.scene import MIN_CAMERAS
 from adjust.lsq.solver import RESULT_ARRAYS
+from adjust.moves import apply_moves
 from adjust.session import with_session
 from adjust.settings import required
 from adjust.summary import report_result, result_summary, track_health
@@ -214,7 +215,8 @@ class ChunkHooks:
 
     def check_cameras(self, cameras, det, input_cfg):
         """`adjust.camera_check.check_from_config` on the sample; the chunks drop the cameras
-        it excluded, shift those it found out of step (`adjust.sync`), and report it."""
+        it excluded, shift those it found out of step (`adjust.sync`), map back those it found
+        moved (`adjust.moves`), and report it."""
         if self.model is None:
             return check_from_config(cameras, det, input_cfg)
         cams, det = drop_cameras(cameras, det, self.model.excluded)
@@ -222,6 +224,7 @@ class ChunkHooks:
         shifts: dict = {n: o for n, o in (sync.get("offsets") or {}).items()}
         shifts.update({n: row_offsets(det, st) for n, st in (sync.get("steps") or {}).items()})
         det = shift_cameras(det, {n: o for n, o in shifts.items() if n in det.cameras})
+        det = apply_moves(det, cams, (self.model.camera_report.get("moved") or {}).get("moves"))
         a, b = self.keep
         counts = det.observed[a:b].sum(axis=(0, 1))
         self.usable = {c: int(n) for c, n in zip(det.cameras, counts)}

@@ -192,6 +192,7 @@ _INPUT_SETTINGS = {
     "ignore_unknown_parts": ("bool", None, None),
     "allow_missing_parts": ("bool", None, None),
     "max_frame_offset": ("int", 0, None),
+    "max_camera_moves": ("int", 0, None),
 }
 
 
@@ -210,6 +211,7 @@ class InputConfig:
     camera_check: str = "warn"  # error | warn | off (adjust.camera_check)
     exclude_cameras: tuple[str, ...] = ()
     max_frame_offset: int = 30  # frames a camera may be out of step (adjust.sync; 0: no check)
+    max_camera_moves: int = 3  # cameras moved mid-session undone (adjust.moves; 0: no check)
 
     @classmethod
     def from_config(cls, node) -> InputConfig:

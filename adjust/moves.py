@@ -1,0 +1,445 @@
+"""Cameras that moved during the session: find a camera bumped mid-session (its mount knocked,
+slipped or turned) and map its detections after the move back into its calibrated view.
+
+    det, report = check_moves(cameras, det, max_moves=3, mode="warn")
+
+The calibration holds one pose per camera; a camera turned by a fraction of a degree in the
+middle of a session puts its later detections a few pixels off where the rig expects them.
+That is below the camera check's 25 px (`adjust.camera_check`), and the tracks come out worse
+with nothing said; a larger turn gets the whole camera excluded, its good frames too.
+
+For every frame and pair of cameras (a, b), the median over the parts both saw of the
+symmetric distance (px) of each detection from the other's epipolar line (`pair_series`). A
+camera c that moved at frame F raises its pairs' series from F on and leaves the other pairs
+as they were. Per camera, the mean of its pairs' series is split where one step fits it best
+(`split`: two levels, least absolute deviations); a move is a step whose higher level is at
+least ``STEP_RATIO`` (2) times and ``STEP_PX`` (1 px) above the lower, over at least
+``MIN_FRAMES`` frames on each side, while the pairs without c step by less than
+``OTHERS_RATIO`` (1.5).
+
+Every camera's turn about its centre on the higher side is then fitted to its pairs' epipolar
+constraints (`fit_rotation`: robust least squares over 3 parameters); the turn that leaves the
+rig's distances there lowest must cut their rise at least by half. Where several cameras'
+turns fit to within ``TELL_RATIO`` (1.25) of it (two cameras always: a turn of either about
+most axes; three in a plane, e.g. a top camera and two side cameras facing each other: a tilt
+of either side camera), the parts' continuity at the move tells (`jump_mm`: a wrong camera's
+turn makes the triangulated parts jump there, by ``JUMP_RATIO`` times and ``JUMP_MM`` more
+than the right one's); where it does not, the move is *unresolved*: warned about and
+reported, not mapped (a wrong camera's turn tracks worse than none). An accepted move is
+undone (`unrotate`: each detection's ray turned back into the calibrated camera; exact for a
+turn about the camera's centre, a camera also shifted keeps a parallax the report's
+``after_px`` shows) and the check repeats, up to ``max_moves`` moves. A turn that slides the
+images along the epipolar lines (a pan of one of two cameras facing each other, a roll of a
+few tenths of a degree) is not seen by any check on the detections.
+
+Modes (the camera check's): ``warn``: undone, with a warning naming camera, file and frame;
+``error``: an `InputError` instead; ``off``: no check. A move is placed to within the frames
+of the sample where the session is longer than `MAX_FRAMES` (a long session's chunks: within
+the gaps of the camera check's sample). A gradual drift, and a camera moved along its axis
+only, are not told. Detections: ``Detections`` (T, K, C, 2) px; rotations in radians
+(rotation vectors), world -> camera ``x = R X + t``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from scipy.optimize import least_squares
+from scipy.stats import theilslopes
+
+from adjust.camera import Camera, camera_to_pixels
+from adjust.io import Detections, InputError
+from adjust.sync import (
+    _homog,
+    _lines,
+    _nan_reduce,
+    _normalised,
+    _symmetric,
+    essential,
+    frame_numbers,
+)
+from adjust.triangulate import triangulate
+from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
+
+log = logging.getLogger(__name__)
+
+STEP_RATIO = 2.0  #: a move raises its camera's pairs' median epipolar distance this many times
+STEP_PX = 1.0  #: ... and by at least this much (px)
+OTHERS_RATIO = 1.5  #: ... while the pairs without the camera rise by less than this factor
+TELL_RATIO = 1.25  #: cameras whose turns fit to within this factor of the best are alike
+MIN_FRAMES = 50  #: frames with a measured distance each side of a move needs
+MIN_PARTS = 2  #: parts a pair must see together in a frame for the frame to count
+MAX_FRAMES = 20_000  #: frames measured (in blocks spread over a longer session)
+SAMPLE_BLOCK = 500  #: consecutive frames per block of that sample
+SPLIT_BLOCKS = 1_000  #: the step is first placed among at most this many block medians
+FIT_POINTS = 4_000  #: part-frames per pair the rotation is fitted to (spread over the side)
+HUBER_PX = 2.0  #: the fit's robust scale (px)
+JUMP_FRAMES = (8, 12, 16, 20, 24)  #: windows (frames each side of a move) whose parts'
+#: continuity tells which camera moved
+JUMP_MIN = 4  #: ... points a part needs on each side
+JUMP_RATIO = 2.0  #: the other camera's turn must make the parts jump this many times farther
+JUMP_MM = 0.5  #: ... and by this much more (mm)
+
+
+def _focal(cam: Camera) -> float:
+    return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+
+
+def _rotate(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Normalised points x (..., 2) turned by rotation Q (3, 3): the rays Q [x, 1], divided by
+    their depth (NaN where it is not positive)."""
+    r = _homog(x) @ Q.T
+    z = r[..., 2:]
+    return np.where(z > 1e-9, r[..., :2] / np.where(z > 1e-9, z, 1.0), np.nan)
+
+
+def pair_distances(x: np.ndarray, cams: Sequence[Camera], a: int, b: int) -> np.ndarray:
+    """(N, K) symmetric epipolar distance (px) between cameras a and b of normalised points x
+    (N, K, C, 2) (NaN where either did not see the part)."""
+    xa, xb = x[:, :, a], x[:, :, b]
+    both = np.isfinite(xa).all(-1) & np.isfinite(xb).all(-1)
+    ha, hb = _homog(np.nan_to_num(xa)), _homog(np.nan_to_num(xb))
+    E = essential(cams[a], cams[b])
+    lb, inv_b = _lines(ha, E.T)
+    _, inv_a = _lines(hb, E)
+    d = _symmetric(hb, lb, inv_b, inv_a, _focal(cams[a]), _focal(cams[b]))
+    return np.where(both, d, np.nan)
+
+
+def pair_series(x: np.ndarray, cams: Sequence[Camera], a: int, b: int) -> np.ndarray:
+    """(N,) each frame's median over the parts of `pair_distances` (NaN with fewer than
+    `MIN_PARTS` parts seen by both)."""
+    d = pair_distances(x, cams, a, b)
+    enough = np.isfinite(d).sum(1) >= MIN_PARTS
+    return np.where(enough, _nan_reduce(np.nanmedian, d, 1), np.nan)
+
+
+def split(s: np.ndarray, min_frames: int = MIN_FRAMES) -> tuple[int, float, float] | None:
+    """Where one step fits the series s (N,) best: (first index after it, the median before,
+    the median after), by least absolute deviations from two levels; first among block medians
+    (at most `SPLIT_BLOCKS`), then frame by frame near the chosen block edge. None where fewer
+    than 2 * `min_frames` values are finite."""
+    idx = np.flatnonzero(np.isfinite(s))
+    v = s[idx]
+    n = v.size
+    if n < 2 * min_frames:
+        return None
+    bs = max(int(np.ceil(n / SPLIT_BLOCKS)), 5)
+    nb = n // bs
+    bm = np.median(v[: nb * bs].reshape(nb, bs), axis=1)
+    lo_b = max(1, int(np.ceil(min_frames / bs)))
+    best, jb = np.inf, None
+    for j in range(lo_b, nb - lo_b + 1):
+        left, right = bm[:j], bm[j:]
+        cost = np.abs(left - np.median(left)).sum() + np.abs(right - np.median(right)).sum()
+        if cost < best:
+            best, jb = cost, j
+    if jb is None:
+        return None
+    m0, m1 = np.median(v[: jb * bs]), np.median(v[jb * bs :])
+    c0 = np.r_[0.0, np.cumsum(np.abs(v - m0))]  # cost of v[:i] at level m0
+    c1 = np.r_[0.0, np.cumsum(np.abs(v - m1))]
+    cost = c0 + (c1[-1] - c1)  # a split before index i
+    lo = max(min_frames, (jb - 2) * bs)
+    hi = min(n - min_frames, (jb + 2) * bs)
+    i = lo + int(np.argmin(cost[lo : hi + 1])) if hi >= lo else jb * bs
+    return int(idx[i]), float(np.median(v[:i])), float(np.median(v[i:]))
+
+
+def _mean_series(x, cams, c: int, others: Sequence[int]) -> np.ndarray:
+    return _nan_reduce(np.nanmean, np.stack([pair_series(x, cams, c, d) for d in others]), 0)
+
+
+def fit_rotation(
+    x: np.ndarray, cams: Sequence[Camera], c: int, others: Sequence[int], rows: np.ndarray
+) -> np.ndarray:
+    """(3, 3) rotation Q that turns camera c's normalised points of `rows` (x: (N, K, C, 2))
+    back into its calibrated view, fitted to the epipolar constraints of its pairs with
+    `others` (robust least squares, `HUBER_PX`; at most `FIT_POINTS` part-frames per pair)."""
+    data = []
+    for d in others:
+        xc, xd = x[rows, :, c].reshape(-1, 2), x[rows, :, d].reshape(-1, 2)
+        ok = np.flatnonzero(np.isfinite(xc).all(-1) & np.isfinite(xd).all(-1))
+        if ok.size > FIT_POINTS:
+            ok = ok[np.linspace(0, ok.size - 1, FIT_POINTS).astype(int)]
+        if ok.size:
+            E = essential(cams[c], cams[d])
+            data.append((E, xc[ok], xd[ok], _focal(cams[c]), _focal(cams[d])))
+
+    def residuals(w: np.ndarray) -> np.ndarray:
+        Q = rodrigues_to_matrix(torch.as_tensor(w)).numpy()
+        out = []
+        for E, xc, xd, fc, fd in data:
+            xq = _rotate(xc, Q)
+            hc, hd = _homog(np.nan_to_num(xq)), _homog(xd)
+            ld, inv_d = _lines(hc, E.T)
+            _, inv_c = _lines(hd, E)
+            r = (hd * ld).sum(-1) * 0.5 * (fd * inv_d + fc * inv_c)  # signed symmetric px
+            out.append(np.where(np.isfinite(xq).all(-1), r, 0.0))
+        return np.concatenate(out) if out else np.zeros(1)
+
+    fit = least_squares(residuals, np.zeros(3), loss="huber", f_scale=HUBER_PX, x_scale=1e-3)
+    return rodrigues_to_matrix(torch.as_tensor(fit.x)).numpy()
+
+
+def unrotate(xy: np.ndarray, cam: Camera, Q: np.ndarray) -> np.ndarray:
+    """Pixels xy (..., 2) of camera `cam` after it turned, mapped back into its calibrated view:
+    each ray turned by Q (3, 3) and projected with the camera's own intrinsics and distortion
+    (NaN stays NaN, as do rays turned behind it)."""
+    ok = np.isfinite(xy).all(-1)
+    out = np.full(xy.shape, np.nan)
+    if not ok.any():
+        return out
+    n = _normalised(xy[ok].reshape(-1, 1, 1, 2), [cam])[:, 0, 0]
+    ray = torch.as_tensor(_homog(n) @ Q.T)
+    u, v, _ = camera_to_pixels(ray, torch.as_tensor(cam.K), torch.as_tensor(cam.dist))
+    px = torch.stack((u, v), -1).numpy()
+    out[ok] = np.where((ray[:, 2] > 1e-9).numpy()[:, None], px, np.nan)
+    return out
+
+
+def apply_moves(det: Detections, cameras: Sequence[Camera], moves: Sequence[dict]) -> Detections:
+    """The detections with each move of the report undone: camera ``camera``'s rows of frames
+    ``first_frame`` <= f < ``end_frame`` (None: to the end) turned back by ``rotvec`` (the
+    frame numbers of the files, so a sample of rows or a chunk is mapped exactly)."""
+    if not moves:
+        return det
+    frames = frame_numbers(det)
+    if frames is None:
+        raise ValueError("labelled images (frames by name) have no time order to map")
+    by_name = {cam.name: cam for cam in cameras}
+    xy = det.xy.copy()
+    for m in moves:
+        if m["camera"] not in det.cameras:
+            continue
+        c = det.cameras.index(m["camera"])
+        rows = frames >= m["first_frame"]
+        if m.get("end_frame") is not None:
+            rows &= frames < m["end_frame"]
+        Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(m["rotvec"], float))).numpy()
+        xy[rows, :, c] = unrotate(xy[rows, :, c], by_name[m["camera"]], Q)
+    return dataclasses.replace(det, xy=xy)
+
+
+def _sample_rows(T: int) -> np.ndarray:
+    if T <= MAX_FRAMES:
+        return np.arange(T)
+    starts = np.linspace(0, T - SAMPLE_BLOCK, MAX_FRAMES // SAMPLE_BLOCK).astype(np.int64)
+    return np.unique((starts[:, None] + np.arange(SAMPLE_BLOCK)[None]).ravel())
+
+
+def _rig_level(x, cams, rows) -> float:
+    """The median over `rows` of the mean over every camera pair of `pair_series` (px)."""
+    C = len(cams)
+    s = _nan_reduce(
+        np.nanmean,
+        np.stack([pair_series(x[rows], cams, a, b) for a in range(C) for b in range(a + 1, C)]),
+        0,
+    )
+    s = s[np.isfinite(s)]
+    return float(np.median(s)) if s.size else float("nan")
+
+
+def jump_mm(
+    xy: np.ndarray, weight: np.ndarray, cams: Sequence[Camera], frames, first: int
+) -> float:
+    """How far the triangulated parts jump at frame `first` (mm): per part, a robust line
+    (Theil-Sen) through its points over the W frames before and one through those after, their
+    gap at the step; the length of the parts' median gap vector (a wrong camera's turn moves
+    every part alike, the lines' own errors differ part by part), over the parts with
+    `JUMP_MIN` points on each side; the median over the windows W of `JUMP_FRAMES` (the
+    animal's own motion bends the lines differently in each). NaN where no window has such a
+    part. xy (N, K, C, 2) px, weight (N, K, C), frames (N,) frame numbers of the rows."""
+    near = np.flatnonzero(np.abs(frames - (first - 0.5)) < max(JUMP_FRAMES))
+    if near.size < 2 * JUMP_MIN:
+        return float("nan")
+    X = triangulate(xy[near], weight[near], cams, robust=True).points.numpy()  # (n, K, 3)
+    f = frames[near].astype(float) - (first - 0.5)
+    out = []
+    for w in JUMP_FRAMES:
+        gaps = []
+        for k in range(X.shape[1]):
+            ends = []
+            for side in (f < 0, f > 0):
+                ok = side & (np.abs(f) < w) & np.isfinite(X[:, k]).all(-1)
+                if ok.sum() < JUMP_MIN:
+                    break
+                # per coordinate: a swapped pair of views puts a point tens of mm off
+                ends.append(np.array([theilslopes(X[ok, k, j], f[ok])[1] for j in range(3)]))
+            if len(ends) == 2:
+                gaps.append(ends[1] - ends[0])
+        if gaps:
+            out.append(float(np.linalg.norm(np.median(np.stack(gaps), 0))))
+    return float(np.median(out)) if out else float("nan")
+
+
+def _find(x, xy, weight, cams, frames) -> tuple[dict | None, str | None]:
+    """The next move in the sampled rows (normalised points x (N, K, C, 2), pixels xy, weights
+    (N, K, C), frame numbers `frames`), as (move, None); (None, why) where a step is seen but
+    not explained; (None, None) where there is none. The move has ``ambiguous`` where more
+    than one camera's turn explains it and the parts' continuity at the step does not tell."""
+    C = len(cams)
+    found = []
+    for c in range(C):
+        others = [d for d in range(C) if d != c]
+        sp = split(_mean_series(x, cams, c, others))
+        if sp is None:
+            continue
+        i, m0, m1 = sp
+        lo, hi = min(m0, m1), max(m0, m1)
+        if hi >= STEP_RATIO * lo and hi - lo >= STEP_PX:
+            found.append((hi / max(lo, 1e-9), c, i, m0, m1))
+    if not found:
+        return None, None
+    _, c, i, m0, m1 = max(found)
+    N = x.shape[0]
+    b0, b1 = (i, N) if m1 > m0 else (0, i)
+    low = min(m0, m1)
+    series = _mean_series(x, cams, c, [d for d in range(C) if d != c])
+    while True:  # a camera turned and put back: the higher side holds a second step
+        sp = split(series[b0:b1])
+        if sp is None:
+            break
+        j, n0, n1 = sp
+        if not (max(n0, n1) >= STEP_RATIO * min(n0, n1) and min(n0, n1) <= OTHERS_RATIO * low):
+            break
+        b0, b1 = (b0 + j, b1) if n1 > n0 else (b0, b0 + j)
+    bad = np.arange(b0, b1)
+    good = np.setdiff1d(np.arange(N), bad)
+    m0, m1 = low, float(np.nanmedian(series[bad]))
+    first = int(frames[bad[0]])
+    end = None if bad[-1] == N - 1 else int(frames[bad[-1]] + 1)
+    where = f"frames {first}-{'end' if end is None else end - 1}"
+    if C >= 3:
+        rest = [d for d in range(C) if d != c]
+        pairs = [pair_series(x, cams, a, b) for a in rest for b in rest if a < b]
+        s = _nan_reduce(np.nanmean, np.stack(pairs), 0)
+        sb, sg = s[bad][np.isfinite(s[bad])], s[good][np.isfinite(s[good])]
+        if sb.size and sg.size and np.median(sb) > OTHERS_RATIO * np.median(sg):
+            return None, (
+                f"the epipolar distances of every camera pair rise over {where} "
+                f"({np.median(sg):.1f} -> {np.median(sb):.1f} px without camera "
+                f"'{cams[c].name}'): not one camera's move"
+            )
+    at_good, at_bad = _rig_level(x, cams, good), _rig_level(x, cams, bad)
+    fits = []
+    for k in range(C):  # every camera's turn: which one explains the step
+        Q = fit_rotation(x, cams, k, [d for d in range(C) if d != k], bad)
+        xq = x.copy()
+        xq[bad, :, k] = _rotate(x[bad, :, k], Q)
+        fits.append((_rig_level(xq, cams, bad), k, Q))
+    fits.sort(key=lambda f: f[0])
+    level, k, Q = fits[0]
+    if not level - at_good <= 0.5 * (at_bad - at_good):
+        return None, (
+            f"the epipolar distances of camera '{cams[c].name}' rise over {where} "
+            f"({min(m0, m1):.1f} -> {max(m0, m1):.1f} px) and no turn of a camera explains it "
+            f"(the rig's {at_good:.1f} -> {at_bad:.1f} px, turned back at best {level:.1f} px)"
+        )
+    log.debug("camera move fits: %s", [(cams[f[1]].name, round(f[0], 3)) for f in fits])
+    alike = [f for f in fits if f[0] <= TELL_RATIO * level]
+    jumps = {}
+    if len(alike) > 1:  # the parts' continuity at the step tells which camera turned
+        for _, kk, QQ in alike:
+            xh = xy.copy()
+            xh[bad, :, kk] = unrotate(xy[bad, :, kk], cams[kk], QQ)
+            jumps[kk] = jump_mm(xh, weight, cams, frames, first if b0 > 0 else int(frames[b1]))
+        order = sorted(jumps, key=lambda kk: (not np.isfinite(jumps[kk]), jumps[kk]))
+        k = order[0]
+        Q = next(f[2] for f in alike if f[1] == k)
+        level = next(f[0] for f in alike if f[1] == k)
+    moved = {
+        "camera": cams[k].name,
+        "first_frame": first,
+        "end_frame": end,
+        "rotvec": [float(v) for v in _rotvec(Q)],
+        "degrees": float(np.degrees(np.linalg.norm(_rotvec(Q)))),
+        "others_px": round(at_good, 3),
+        "before_px": round(at_bad, 3),
+        "after_px": round(level, 3),
+    }
+    if jumps:
+        moved["jump_mm"] = {cams[kk].name: round(v, 3) for kk, v in jumps.items()}
+        ranked = sorted(jumps.values(), key=lambda v: (not np.isfinite(v), v))
+        if not (np.isfinite(ranked[0]) and ranked[1] >= JUMP_RATIO * ranked[0] + JUMP_MM):
+            moved["ambiguous"] = [cams[f[1]].name for f in alike]
+    return moved, None
+
+
+def _rotvec(Q: np.ndarray) -> np.ndarray:
+    return matrix_to_rodrigues(torch.as_tensor(Q)).numpy()
+
+
+def check_moves(
+    cameras: Sequence[Camera], det: Detections, max_moves: int = 3, mode: str = "warn"
+) -> tuple[Detections, dict]:
+    """Find and undo cameras that moved during the session (module doc). Returns the (mapped)
+    detections and the report {"max_moves", "moves": [{camera, first_frame, end_frame (None:
+    the end), rotvec, degrees, others_px, before_px, after_px[, jump_mm]}, ...], and where
+    found: "unresolved" (a move that more than one camera's turn explains: not mapped),
+    "unexplained" [why] (a step that no turn explains)}."""
+    report: dict = {"max_moves": int(max_moves), "moves": []}
+    frames = frame_numbers(det)
+    if mode == "off" or max_moves <= 0 or len(cameras) < 2 or frames is None:
+        return det, report
+    order = np.argsort(frames, kind="stable")
+    rows = order[_sample_rows(det.num_frames)]
+    x = _normalised(det.xy[rows], cameras)
+    xy, weight = det.xy[rows].copy(), det.weight()[rows]
+    names = [cam.name for cam in cameras]
+    for _ in range(int(max_moves)):
+        move, why = _find(x, xy, weight, cameras, frames[rows])
+        if move is None:
+            if why is not None:
+                report.setdefault("unexplained", []).append(why)
+                log.info("camera move check: %s", why)
+            break
+        c = names.index(move["camera"])
+        span = (
+            f"from frame {move['first_frame']}"
+            if move["end_frame"] is None
+            else f"over frames {move['first_frame']}-{move['end_frame'] - 1}"
+        )
+        if "ambiguous" in move:
+            which = move.pop("ambiguous")
+            files = ", ".join(f"'{n}' ({det.files[names.index(n)]})" for n in which)
+            msg = (
+                f"a camera moved {span}: the detections lie {move['before_px']:.1f} px from "
+                f"the other cameras' epipolar lines there against {move['others_px']:.1f} px "
+                f"elsewhere; a turn of any of cameras {files} explains it, and the parts' "
+                f"continuity at the move does not tell which (they jump by {move['jump_mm']} "
+                "mm), so the tracks there rest on a calibration that no longer holds"
+            )
+            if mode == "error":
+                raise InputError(
+                    msg + "; recalibrate for the frames after the move, or track the frames "
+                    "before it (input.camera_check=warn: tracked as calibrated, with a warning)"
+                )
+            log.warning("%s; NOT mapped back (input.camera_check=warn)", msg)
+            report["unresolved"] = {**move, "cameras": which}
+            break
+        msg = (
+            f"camera '{move['camera']}' ({det.files[c]}) moved {span}: turned by "
+            f"{move['degrees']:.2f} deg about its centre (its detections lie "
+            f"{move['before_px']:.1f} px from the other cameras' epipolar lines there, "
+            f"{move['others_px']:.1f} px elsewhere; turned back, {move['after_px']:.1f} px; a "
+            "camera bumped or its mount slipped?)"
+        )
+        if mode == "error":
+            raise InputError(
+                msg + "; recalibrate it for those frames, or set input.camera_check=warn to "
+                "map its detections back (input.max_camera_moves=0: no check)"
+            )
+        log.warning("%s; its detections there MAPPED back (input.camera_check=warn)", msg)
+        report["moves"].append(move)
+        sel = np.flatnonzero(frames[rows] >= move["first_frame"])
+        if move["end_frame"] is not None:
+            sel = sel[frames[rows][sel] < move["end_frame"]]
+        Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(move["rotvec"]))).numpy()
+        x[sel, :, c] = _rotate(x[sel, :, c], Q)
+        xy[sel, :, c] = unrotate(xy[sel, :, c], cameras[c], Q)
+    return apply_moves(det, cameras, report["moves"]), report
