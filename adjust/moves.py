@@ -71,7 +71,7 @@ STEP_RATIO = 2.0  #: a move raises its camera's pairs' median epipolar distance 
 STEP_PX = 1.0  #: ... and by at least this much (px)
 OTHERS_RATIO = 1.5  #: ... while the pairs without the camera rise by less than this factor
 TELL_RATIO = 1.25  #: cameras whose turns fit to within this factor of the best are alike
-MIN_FRAMES = 50  #: frames with a measured distance each side of a move needs
+MIN_FRAMES = 100  #: frames with a measured distance each side of a move needs
 MIN_PARTS = 2  #: parts a pair must see together in a frame for the frame to count
 MAX_FRAMES = 20_000  #: frames measured (in blocks spread over a longer session)
 SAMPLE_BLOCK = 500  #: consecutive frames per block of that sample
@@ -370,6 +370,25 @@ def _find(x, xy, weight, cams, frames) -> tuple[dict | None, str | None]:
     return moved, None
 
 
+def _refine(det, cameras, c: int, Q: np.ndarray, lo: int, hi: int, entering: bool) -> int:
+    """Where in the sample's gap (lo, hi] (frame numbers: lo the last sampled frame before the
+    change, hi the first after it) camera c's detections start (`entering`) or stop fitting its
+    turn Q better than its calibration: every frame of `det` there weighs in for the one that
+    fits it better, by at most 1 px (as `adjust.sync` places a change). Returns the first
+    frame of the new state."""
+    frames = frame_numbers(det)
+    rows = np.flatnonzero((frames > lo) & (frames <= hi))
+    rows = rows[np.argsort(frames[rows], kind="stable")]
+    others = [d for d in range(len(cameras)) if d != c]
+    x = _normalised(det.xy[rows], cameras)
+    raw = _mean_series(x, cameras, c, others)
+    x[:, :, c] = _rotate(x[:, :, c], Q)
+    score = np.nan_to_num(np.clip(raw - _mean_series(x, cameras, c, others), -1.0, 1.0))
+    prefix = np.r_[0.0, np.cumsum(score if entering else -score)]
+    i = int(np.argmin(prefix))  # before i the old state fits better, from i the new one
+    return int(frames[rows[i]]) if i < rows.size else int(hi)
+
+
 def _rotvec(Q: np.ndarray) -> np.ndarray:
     return matrix_to_rodrigues(torch.as_tensor(Q)).numpy()
 
@@ -399,6 +418,19 @@ def check_moves(
                 log.info("camera move check: %s", why)
             break
         c = names.index(move["camera"])
+        sampled = np.sort(frames[rows])
+        if rows.size < det.num_frames:  # a sample: place the move among every frame
+            Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(move["rotvec"]))).numpy()
+            before = sampled[sampled < move["first_frame"]]
+            if before.size and move["first_frame"] - before[-1] > 1:
+                move["first_frame"] = _refine(
+                    det, cameras, c, Q, int(before[-1]), move["first_frame"], True
+                )
+            if move["end_frame"] is not None:
+                last = sampled[sampled < move["end_frame"]][-1]
+                after = sampled[sampled >= move["end_frame"]]
+                if after.size and after[0] - last > 1:
+                    move["end_frame"] = _refine(det, cameras, c, Q, int(last), int(after[0]), False)
         span = (
             f"from frame {move['first_frame']}"
             if move["end_frame"] is None

@@ -243,6 +243,23 @@ def _in_metres(folder: Path, declared: bool) -> None:
     p.write_text(text)
 
 
+def _turn_camera(folder: Path, name: str, degrees: float) -> None:
+    """Camera `name` turned (a pan) by `degrees` from the session's middle frame on: its
+    detections from there are the turned camera's; its calibration stays (a bumped camera)."""
+    from scipy.spatial.transform import Rotation
+
+    from adjust.io import read_dlc, write_dlc_csv
+    from adjust.moves import unrotate
+
+    cam = next(c for c in _cams(folder) if c.name == name)
+    p = folder / "detections" / f"{name}.csv"
+    t = read_dlc(p)
+    xy, half = t.xy.copy(), len(t.xy) // 2
+    turn = Rotation.from_rotvec(np.radians(degrees) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    xy[half:] = unrotate(t.xy[half:], cam, turn)
+    write_dlc_csv(p, t.parts, xy, t.likelihood)
+
+
 def _renumber(folder: Path, cam: str, fn: Callable[[int], int]) -> None:
     p = folder / "detections" / f"{cam}.csv"
     rows = _read(p)
@@ -358,6 +375,10 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
     @case("one camera 4 frames out of step (its video started early)")
     def _(f):
         _renumber(f, "front", lambda i: i + 4)
+
+    @case("one camera turned 1 deg mid-session (bumped)")
+    def _(f):
+        _turn_camera(f, "front", 1.0)
 
     @case("calibration in metres, no units", expect="error")
     def _(f):

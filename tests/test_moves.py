@@ -209,3 +209,17 @@ def test_camera_check_maps_a_move_before_judging():
     assert rep0["moved"]["moves"] == [] and cams[2].name in rep0["excluded"]
     with pytest.raises(ValueError, match="input.max_camera_moves"):
         check_from_config(cams, moved, {"max_camera_moves": -1})
+
+
+def test_a_move_between_the_sampled_frames_is_placed_among_all(monkeypatch):
+    """A session longer than the sample (`MAX_FRAMES`, here 1,000 of 3,000 frames in blocks of
+    100): a move in a gap between two sampled blocks is placed among every frame there, not
+    at the next sampled one."""
+    monkeypatch.setattr("adjust.moves.MAX_FRAMES", 1000)
+    monkeypatch.setattr("adjust.moves.SAMPLE_BLOCK", 100)
+    cams = _rig(3)
+    X = _points(3000)
+    moved = _moved(cams, X, 1, 1550, np.deg2rad(0.4) * np.array([0.6, -0.8, 0.0]))
+    _, rep = check_moves(cams, moved, 3)
+    assert [m["camera"] for m in rep["moves"]] == [cams[1].name], rep
+    assert abs(rep["moves"][0]["first_frame"] - 1550) <= 3, rep

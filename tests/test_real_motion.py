@@ -11,10 +11,12 @@ from pathlib import Path
 import hydra
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from adjust.apps.track import run
-from adjust.io import InputError, read_dlc, read_points3d, write_dlc_csv
+from adjust.io import InputError, load_calibration, read_dlc, read_points3d, write_dlc_csv
 from adjust.metrics import point_errors
+from adjust.moves import unrotate
 from adjust.scene.motion import (
     MOTION_FEET,
     MOTION_PAPER8,
@@ -306,4 +308,27 @@ def test_a_camera_out_of_step_is_shifted_back(scenes, tmp_path):
     assert summary["camera_check"]["sync"]["offsets"] == {cam: 5}
     assert fixed < 1.05 * base, (fixed, base)
     _, blind = _track(shifted, tmp_path / "blind", ["input.max_frame_offset=0"])
+    assert blind > 1.1 * base, (blind, base)
+
+
+def test_a_camera_turned_mid_session_is_mapped_back(scenes, tmp_path):
+    """The `side` camera turned by 0.5 deg (a pan) at frame 200 of 400, its calibration left as
+    it was: adjust-track names it with the frame, maps its later detections back and tracks as
+    if it had not moved; not looked for (input.max_camera_moves=0) the tracks are worse, and
+    nothing says so."""
+    scene = scenes[3]
+    moved = tmp_path / "scene"
+    shutil.copytree(scene, moved)
+    cam = next(c for c in load_calibration(scene / "calibration.toml") if c.name == "side")
+    table = read_dlc(scene / "detections" / "side.csv")
+    xy = table.xy.copy()
+    turn = Rotation.from_rotvec(np.deg2rad(0.5) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    xy[200:] = unrotate(table.xy[200:], cam, turn)
+    write_dlc_csv(moved / "detections" / "side.csv", table.parts, xy, table.likelihood)
+    _, base = _track(scene, tmp_path / "unmoved")
+    summary, fixed = _track(moved, tmp_path / "fixed")
+    found = summary["camera_check"]["moved"]["moves"]
+    assert [m["camera"] for m in found] == ["side"] and abs(found[0]["first_frame"] - 200) <= 5
+    assert fixed < 1.05 * base, (fixed, base)
+    _, blind = _track(moved, tmp_path / "blind", ["input.max_camera_moves=0"])
     assert blind > 1.1 * base, (blind, base)
