@@ -24,9 +24,17 @@ from adjust.chunks import (
     plan_chunks,
     sample_rows,
 )
-from adjust.io import InputError, read_dlc, read_points3d, save_calibration, write_dlc_csv
+from adjust.io import (
+    InputError,
+    load_calibration,
+    read_dlc,
+    read_points3d,
+    save_calibration,
+    write_dlc_csv,
+)
 from adjust.io.dlc import iter_dlc
 from adjust.lsq import synthetic
+from adjust.moves import unrotate
 from adjust.pipeline import run
 from deformnet.body import default_mouse
 from deformnet.paths import CONF_DIR
@@ -273,6 +281,39 @@ def test_a_camera_out_of_step_is_shifted_back_in_every_chunk(scene, runs, tmp_pa
     s = run(_cfg(late, tmp_path / "out", f"chunk_frames={CHUNK}"))
     assert len(s["chunked"]["chunks"]) == 3
     assert s["camera_check"]["sync"]["offsets"] == {name: 4}
+    b = read_points3d(tmp_path / "out" / "points3d.csv")["points"]
+    a = read_points3d(tmp / "chunked" / "points3d.csv")["points"]
+    err_a = np.sqrt(np.mean(np.sum((a - truth) ** 2, -1)))
+    err_b = np.sqrt(np.mean(np.sum((b - truth) ** 2, -1)))
+    assert err_b < 1.05 * err_a, (err_a, err_b)
+
+
+def test_a_camera_turned_mid_session_is_mapped_back_in_every_chunk(scene, runs, tmp_path):
+    """Camera 1 turned by 1 deg (a pan, about 35 px) from frame 750 on, its calibration as it
+    was: the sample finds the move and every chunk maps that camera's detections back by frame
+    number, so the tracks are those of the unmoved session."""
+    root, truth = scene
+    tmp, _, chunked = runs
+    moved = tmp_path / "moved"
+    (moved / "detections").mkdir(parents=True)
+    (moved / "calibration.toml").write_bytes((root / "calibration.toml").read_bytes())
+    cams = load_calibration(root / "calibration.toml")
+    a = np.deg2rad(1.0)
+    turn = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    name = None
+    for c, f in enumerate(sorted((root / "detections").iterdir())):
+        t = read_dlc(f)
+        xy = t.xy.copy()
+        if c == 1:
+            name = f.stem
+            cam = next(k for k in cams if k.name in name)
+            xy[750:] = unrotate(t.xy[750:], cam, turn)
+        write_dlc_csv(moved / "detections" / f.name, t.parts, xy, t.likelihood, frames=t.frames)
+    s = run(_cfg(moved, tmp_path / "out", f"chunk_frames={CHUNK}"))
+    assert len(s["chunked"]["chunks"]) == 3
+    found = s["camera_check"]["moved"]["moves"]
+    assert [m["camera"] for m in found] == [cam.name] and abs(found[0]["first_frame"] - 750) <= 5
+    assert s["camera_check"]["excluded"] == {}
     b = read_points3d(tmp_path / "out" / "points3d.csv")["points"]
     a = read_points3d(tmp / "chunked" / "points3d.csv")["points"]
     err_a = np.sqrt(np.mean(np.sum((a - truth) ** 2, -1)))
