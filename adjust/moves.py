@@ -78,6 +78,7 @@ SAMPLE_BLOCK = 500  #: consecutive frames per block of that sample
 SPLIT_BLOCKS = 1_000  #: the step is first placed among at most this many block medians
 FIT_POINTS = 4_000  #: part-frames per pair the rotation is fitted to (spread over the side)
 HUBER_PX = 2.0  #: the fit's robust scale (px)
+PLACE_FRAMES = 25  #: a move's frame is placed again among this many frames each side
 JUMP_FRAMES = (8, 12, 16, 20, 24)  #: windows (frames each side of a move) whose parts'
 #: continuity tells which camera moved
 JUMP_MIN = 4  #: ... points a part needs on each side
@@ -110,11 +111,13 @@ def pair_distances(x: np.ndarray, cams: Sequence[Camera], a: int, b: int) -> np.
     return np.where(both, d, np.nan)
 
 
-def pair_series(x: np.ndarray, cams: Sequence[Camera], a: int, b: int) -> np.ndarray:
+def pair_series(
+    x: np.ndarray, cams: Sequence[Camera], a: int, b: int, min_parts: int = MIN_PARTS
+) -> np.ndarray:
     """(N,) each frame's median over the parts of `pair_distances` (NaN with fewer than
-    `MIN_PARTS` parts seen by both)."""
+    `min_parts` parts seen by both)."""
     d = pair_distances(x, cams, a, b)
-    enough = np.isfinite(d).sum(1) >= MIN_PARTS
+    enough = np.isfinite(d).sum(1) >= min_parts
     return np.where(enough, _nan_reduce(np.nanmedian, d, 1), np.nan)
 
 
@@ -150,8 +153,9 @@ def split(s: np.ndarray, min_frames: int = MIN_FRAMES) -> tuple[int, float, floa
     return int(idx[i]), float(np.median(v[:i])), float(np.median(v[i:]))
 
 
-def _mean_series(x, cams, c: int, others: Sequence[int]) -> np.ndarray:
-    return _nan_reduce(np.nanmean, np.stack([pair_series(x, cams, c, d) for d in others]), 0)
+def _mean_series(x, cams, c: int, others: Sequence[int], min_parts: int = MIN_PARTS) -> np.ndarray:
+    series = [pair_series(x, cams, c, d, min_parts) for d in others]
+    return _nan_reduce(np.nanmean, np.stack(series), 0)
 
 
 def fit_rotation(
@@ -244,16 +248,25 @@ def _rig_level(x, cams, rows) -> float:
     return float(np.median(s)) if s.size else float("nan")
 
 
-def jump_mm(
-    xy: np.ndarray, weight: np.ndarray, cams: Sequence[Camera], frames, first: int
-) -> float:
+def _near(det: Detections, frame: int) -> Detections:
+    """The rows of `det` within `max(JUMP_FRAMES)` frames of `frame`."""
+    frames = frame_numbers(det)
+    rows = np.flatnonzero(np.abs(frames - (frame - 0.5)) < max(JUMP_FRAMES))
+    return dataclasses.replace(
+        det, xy=det.xy[rows], likelihood=det.likelihood[rows], frames=frames[rows]
+    )
+
+
+def jump_mm(det: Detections, cams: Sequence[Camera], first: int) -> float:
     """How far the triangulated parts jump at frame `first` (mm): per part, a robust line
     (Theil-Sen) through its points over the W frames before and one through those after, their
     gap at the step; the length of the parts' median gap vector (a wrong camera's turn moves
     every part alike, the lines' own errors differ part by part), over the parts with
     `JUMP_MIN` points on each side; the median over the windows W of `JUMP_FRAMES` (the
     animal's own motion bends the lines differently in each). NaN where no window has such a
-    part. xy (N, K, C, 2) px, weight (N, K, C), frames (N,) frame numbers of the rows."""
+    part."""
+    frames = frame_numbers(det)
+    xy, weight = det.xy, det.weight()
     near = np.flatnonzero(np.abs(frames - (first - 0.5)) < max(JUMP_FRAMES))
     if near.size < 2 * JUMP_MIN:
         return float("nan")
@@ -277,11 +290,12 @@ def jump_mm(
     return float(np.median(out)) if out else float("nan")
 
 
-def _find(x, xy, weight, cams, frames) -> tuple[dict | None, str | None]:
-    """The next move in the sampled rows (normalised points x (N, K, C, 2), pixels xy, weights
-    (N, K, C), frame numbers `frames`), as (move, None); (None, why) where a step is seen but
-    not explained; (None, None) where there is none. The move has ``ambiguous`` where more
-    than one camera's turn explains it and the parts' continuity at the step does not tell."""
+def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
+    """The next move in the sampled rows (normalised points x (N, K, C, 2), frame numbers
+    `frames`) of the detections `det` (every row, the moves found so far undone), as (move,
+    None); (None, why) where a step is seen but not explained; (None, None) where there is
+    none. The move has ``ambiguous`` where more than one camera's turn explains it and the
+    parts' continuity at the step does not tell."""
     C = len(cams)
     found = []
     for c in range(C):
@@ -342,16 +356,32 @@ def _find(x, xy, weight, cams, frames) -> tuple[dict | None, str | None]:
         )
     log.debug("camera move fits: %s", [(cams[f[1]].name, round(f[0], 3)) for f in fits])
     alike = [f for f in fits if f[0] <= TELL_RATIO * level]
+    # the step was placed among the frames whose distances told (a pair seeing two parts, in
+    # the sample) by the mean over camera c's pairs: each candidate places it again among
+    # every frame in between and `PLACE_FRAMES` about it, by its own turn's fit
+    told = np.flatnonzero(np.isfinite(series))
+    lo = int(frames[told[told < b0][-1]]) if b0 > 0 and (told < b0).any() else None
+    last, hi = int(frames[told[told < b1][-1]]), int(frames[b1]) if b1 < N else None
+    placed = {}
+    for _, kk, QQ in alike:
+        f0 = first if lo is None else _refine(det, cams, kk, QQ, min(lo, first - PLACE_FRAMES),
+                                             first + PLACE_FRAMES, True)  # fmt: skip
+        f1 = end if hi is None else _refine(det, cams, kk, QQ, min(last, end - PLACE_FRAMES),
+                                           hi + PLACE_FRAMES, False)  # fmt: skip
+        placed[kk] = (f0, f1)
     jumps = {}
     if len(alike) > 1:  # the parts' continuity at the step tells which camera turned
         for _, kk, QQ in alike:
-            xh = xy.copy()
-            xh[bad, :, kk] = unrotate(xy[bad, :, kk], cams[kk], QQ)
-            jumps[kk] = jump_mm(xh, weight, cams, frames, first if b0 > 0 else int(frames[b1]))
+            f0, f1 = placed[kk]
+            step = f0 if lo is not None else f1  # where the calibration's state meets the turn
+            move = {"camera": cams[kk].name, "first_frame": f0, "end_frame": f1,
+                    "rotvec": _rotvec(QQ)}  # fmt: skip
+            jumps[kk] = jump_mm(apply_moves(_near(det, step), cams, [move]), cams, step)
         order = sorted(jumps, key=lambda kk: (not np.isfinite(jumps[kk]), jumps[kk]))
         k = order[0]
         Q = next(f[2] for f in alike if f[1] == k)
         level = next(f[0] for f in alike if f[1] == k)
+    first, end = placed[k]
     moved = {
         "camera": cams[k].name,
         "first_frame": first,
@@ -371,19 +401,18 @@ def _find(x, xy, weight, cams, frames) -> tuple[dict | None, str | None]:
 
 
 def _refine(det, cameras, c: int, Q: np.ndarray, lo: int, hi: int, entering: bool) -> int:
-    """Where in the sample's gap (lo, hi] (frame numbers: lo the last sampled frame before the
-    change, hi the first after it) camera c's detections start (`entering`) or stop fitting its
-    turn Q better than its calibration: every frame of `det` there weighs in for the one that
-    fits it better, by at most 1 px (as `adjust.sync` places a change). Returns the first
-    frame of the new state."""
+    """Where in (lo, hi] (frame numbers) camera c's detections start (`entering`) or stop
+    fitting its turn Q better than its calibration: every frame of `det` there weighs in for
+    the state that fits it better, by at most 1 px (as `adjust.sync` places a change). Returns
+    the new state's first frame."""
     frames = frame_numbers(det)
     rows = np.flatnonzero((frames > lo) & (frames <= hi))
     rows = rows[np.argsort(frames[rows], kind="stable")]
     others = [d for d in range(len(cameras)) if d != c]
     x = _normalised(det.xy[rows], cameras)
-    raw = _mean_series(x, cameras, c, others)
+    raw = _mean_series(x, cameras, c, others, 1)  # every part seen by a pair has a say
     x[:, :, c] = _rotate(x[:, :, c], Q)
-    score = np.nan_to_num(np.clip(raw - _mean_series(x, cameras, c, others), -1.0, 1.0))
+    score = np.nan_to_num(np.clip(raw - _mean_series(x, cameras, c, others, 1), -1.0, 1.0))
     prefix = np.r_[0.0, np.cumsum(score if entering else -score)]
     i = int(np.argmin(prefix))  # before i the old state fits better, from i the new one
     return int(frames[rows[i]]) if i < rows.size else int(hi)
@@ -408,29 +437,16 @@ def check_moves(
     order = np.argsort(frames, kind="stable")
     rows = order[_sample_rows(det.num_frames)]
     x = _normalised(det.xy[rows], cameras)
-    xy, weight = det.xy[rows].copy(), det.weight()[rows]
+    now = det  # the moves found so far undone
     names = [cam.name for cam in cameras]
     for _ in range(int(max_moves)):
-        move, why = _find(x, xy, weight, cameras, frames[rows])
+        move, why = _find(x, cameras, frames[rows], now)
         if move is None:
             if why is not None:
                 report.setdefault("unexplained", []).append(why)
                 log.info("camera move check: %s", why)
             break
         c = names.index(move["camera"])
-        sampled = np.sort(frames[rows])
-        if rows.size < det.num_frames:  # a sample: place the move among every frame
-            Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(move["rotvec"]))).numpy()
-            before = sampled[sampled < move["first_frame"]]
-            if before.size and move["first_frame"] - before[-1] > 1:
-                move["first_frame"] = _refine(
-                    det, cameras, c, Q, int(before[-1]), move["first_frame"], True
-                )
-            if move["end_frame"] is not None:
-                last = sampled[sampled < move["end_frame"]][-1]
-                after = sampled[sampled >= move["end_frame"]]
-                if after.size and after[0] - last > 1:
-                    move["end_frame"] = _refine(det, cameras, c, Q, int(last), int(after[0]), False)
         span = (
             f"from frame {move['first_frame']}"
             if move["end_frame"] is None
@@ -473,5 +489,5 @@ def check_moves(
             sel = sel[frames[rows][sel] < move["end_frame"]]
         Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(move["rotvec"]))).numpy()
         x[sel, :, c] = _rotate(x[sel, :, c], Q)
-        xy[sel, :, c] = unrotate(xy[sel, :, c], cameras[c], Q)
-    return apply_moves(det, cameras, report["moves"]), report
+        now = apply_moves(now, cameras, [move])
+    return now, report

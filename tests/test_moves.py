@@ -187,12 +187,11 @@ def test_jump_of_a_wrong_world():
     cams = _rig(3)
     X = _points(1200)[:200]  # about 0.6 mm per frame
     det = projected_detections(cams, X, 0.1, np.random.default_rng(2))
-    frames = np.arange(200)
-    assert jump_mm(det.xy, det.weight(), cams, frames, 100) < 1.0  # the parts own 1 mm jitter
+    assert jump_mm(det, cams, 100) < 1.0  # the parts own 1 mm jitter
     Y = X.copy()
     Y[100:] += [3.0, 0.0, 0.0]
     shifted = projected_detections(cams, Y, 0.1, np.random.default_rng(2))
-    assert abs(jump_mm(shifted.xy, shifted.weight(), cams, frames, 100) - 3.0) < 1.0
+    assert abs(jump_mm(shifted, cams, 100) - 3.0) < 1.0
 
 
 def test_camera_check_maps_a_move_before_judging():
