@@ -50,7 +50,7 @@ import torch
 
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import Detections, InputError
-from adjust.moves import check_moves
+from adjust.moves import check_moves, rig_px
 from adjust.resection import resect
 from adjust.settings import InputConfig
 from adjust.sync import check_sync
@@ -213,6 +213,36 @@ def _find_swap(det, cams, active, loo, min_px) -> tuple[int, int, float] | None:
     return best
 
 
+def _in_step_and_in_place(cams, det, max_offset: int, max_moves: int, mode: str):
+    """`adjust.sync.check_sync` and `adjust.moves.check_moves` in the order that leaves the
+    cameras agreeing best. Either can be fooled by what the other undoes: a bumped camera's
+    detections lie off at every lag, and a lag that the animal's motion happens to fit better
+    reads as an offset (two cameras); a camera out of step can look turned where the animal
+    walks one way. Both orders are tried quietly and the one whose detections lie closest to
+    the others' epipolar lines (`adjust.moves.rig_px`) is run (and said); where neither
+    finds anything, that is the result. Returns (detections, sync report, moves report)."""
+    quiet = [logging.getLogger(n) for n in ("adjust.sync", "adjust.moves")]
+    levels = [q.level for q in quiet]
+    for q in quiet:
+        q.setLevel(logging.ERROR)
+    try:
+        a, a_sync = check_sync(cams, det, max_offset, "warn")
+        a, a_moved = check_moves(cams, a, max_moves, "warn")
+        b, b_moved = check_moves(cams, det, max_moves, "warn")
+        b, b_sync = check_sync(cams, b, max_offset, "warn")
+    finally:
+        for q, level in zip(quiet, levels):
+            q.setLevel(level)
+    moves_first = b is not a and rig_px(cams, b) < rig_px(cams, a)
+    if moves_first:
+        det, moved = check_moves(cams, det, max_moves, mode)
+        det, sync = check_sync(cams, det, max_offset, mode)
+    else:
+        det, sync = check_sync(cams, det, max_offset, mode)
+        det, moved = check_moves(cams, det, max_moves, mode)
+    return det, sync, moved
+
+
 def drop_cameras(
     cameras: Sequence[Camera], det: Detections, names: Sequence[str]
 ) -> tuple[list[Camera], Detections]:
@@ -262,8 +292,9 @@ def check_cameras(
         raise InputError(f"fewer than 2 cameras left after excluding {exclude}: {names}")
     if mode == "off":
         return cams, det, report
-    det, report["sync"] = check_sync(cams, det, max_offset, mode)
-    det, report["moved"] = check_moves(cams, det, max_moves, mode)
+    det, report["sync"], report["moved"] = _in_step_and_in_place(
+        cams, det, max_offset, max_moves, mode
+    )
     report.update(min_px=min_px, ratio=ratio, leave_one_out_px={}, others_px={})
     active = list(range(len(cams)))
     excluded: list[str] = []

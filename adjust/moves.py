@@ -78,11 +78,12 @@ SAMPLE_BLOCK = 500  #: consecutive frames per block of that sample
 SPLIT_BLOCKS = 1_000  #: the step is first placed among at most this many block medians
 FIT_POINTS = 4_000  #: part-frames per pair the rotation is fitted to (spread over the side)
 HUBER_PX = 2.0  #: the fit's robust scale (px)
+PRIOR_RAD = np.deg2rad(1.0)  #: a turn this large weighs as one residual of `HUBER_PX` (prior)
 PLACE_FRAMES = 25  #: a move's frame is placed again among this many frames each side
 JUMP_FRAMES = (8, 12, 16, 20, 24)  #: windows (frames each side of a move) whose parts'
 #: continuity tells which camera moved
 JUMP_MIN = 4  #: ... points a part needs on each side
-JUMP_RATIO = 2.0  #: the other camera's turn must make the parts jump this many times farther
+JUMP_RATIO = 1.5  #: the other camera's turn must make the parts jump this many times farther
 JUMP_MM = 0.5  #: ... and by this much more (mm)
 
 
@@ -163,7 +164,9 @@ def fit_rotation(
 ) -> np.ndarray:
     """(3, 3) rotation Q that turns camera c's normalised points of `rows` (x: (N, K, C, 2))
     back into its calibrated view, fitted to the epipolar constraints of its pairs with
-    `others` (robust least squares, `HUBER_PX`; at most `FIT_POINTS` part-frames per pair)."""
+    `others` (robust least squares, `HUBER_PX`; at most `FIT_POINTS` part-frames per pair),
+    with a prior of `PRIOR_RAD` on the turn: a direction the constraints do not see (a slide
+    along the epipolar lines) stays at no turn."""
     data = []
     for d in others:
         xc, xd = x[rows, :, c].reshape(-1, 2), x[rows, :, d].reshape(-1, 2)
@@ -184,7 +187,10 @@ def fit_rotation(
             _, inv_c = _lines(hd, E)
             r = (hd * ld).sum(-1) * 0.5 * (fd * inv_d + fc * inv_c)  # signed symmetric px
             out.append(np.where(np.isfinite(xq).all(-1), r, 0.0))
-        return np.concatenate(out) if out else np.zeros(1)
+        # a turn that slides the image along the epipolar lines is not seen (two cameras;
+        # cameras in a plane): held at none rather than left to drift
+        out.append(HUBER_PX * np.asarray(w) / PRIOR_RAD)
+        return np.concatenate(out)
 
     fit = least_squares(residuals, np.zeros(3), loss="huber", f_scale=HUBER_PX, x_scale=1e-3)
     return rodrigues_to_matrix(torch.as_tensor(fit.x)).numpy()
@@ -236,6 +242,14 @@ def _sample_rows(T: int) -> np.ndarray:
     return np.unique((starts[:, None] + np.arange(SAMPLE_BLOCK)[None]).ravel())
 
 
+def rig_px(cameras: Sequence[Camera], det: Detections) -> float:
+    """How well the cameras agree (px): the median over the frames (at most `MAX_FRAMES`, in
+    blocks) of the mean over every camera pair of `pair_series`."""
+    rows = np.argsort(frame_numbers(det), kind="stable")[_sample_rows(det.num_frames)]
+    x = _normalised(det.xy[rows], cameras)
+    return _rig_level(x, cameras, np.arange(len(rows)))
+
+
 def _rig_level(x, cams, rows) -> float:
     """The median over `rows` of the mean over every camera pair of `pair_series` (px)."""
     C = len(cams)
@@ -257,14 +271,27 @@ def _near(det: Detections, frame: int) -> Detections:
     )
 
 
+def _at_step(f: np.ndarray, y: np.ndarray) -> float:
+    """A part's coordinate y at f = 0 (the step) from its values at frames f on one side: a
+    parabola through the points within 3 robust deviations (at least 2 mm) of a Theil-Sen line
+    (a swapped pair of views puts a point tens of mm off; a moving animal's path bends)."""
+    slope, icpt, *_ = theilslopes(y, f)
+    r = np.abs(y - (icpt + slope * f))
+    keep = r <= max(3 * 1.4826 * float(np.median(r)), 2.0)
+    if keep.sum() < 5:
+        return float(icpt)
+    return float(np.polyval(np.polyfit(f[keep], y[keep], 2), 0.0))
+
+
 def jump_mm(det: Detections, cams: Sequence[Camera], first: int) -> float:
-    """How far the triangulated parts jump at frame `first` (mm): per part, a robust line
-    (Theil-Sen) through its points over the W frames before and one through those after, their
-    gap at the step; the length of the parts' median gap vector (a wrong camera's turn moves
+    """How far the triangulated parts jump at frame `first` (mm): per part, a robust parabola
+    (`_at_step`) through its points over the W frames before and one through those after,
+    their gap at the step; the length of the parts' median gap vector (a wrong camera's turn moves
     every part alike, the lines' own errors differ part by part), over the parts with
     `JUMP_MIN` points on each side; the median over the windows W of `JUMP_FRAMES` (the
-    animal's own motion bends the lines differently in each). NaN where no window has such a
-    part."""
+    animal's own motion bends the paths differently in each). About 1 mm where the animal
+    moves slowly, 2-5 mm where it moves 2-3 mm per frame (the real motion at 100 fps). NaN
+    where no window has such a part."""
     frames = frame_numbers(det)
     xy, weight = det.xy, det.weight()
     near = np.flatnonzero(np.abs(frames - (first - 0.5)) < max(JUMP_FRAMES))
@@ -281,8 +308,7 @@ def jump_mm(det: Detections, cams: Sequence[Camera], first: int) -> float:
                 ok = side & (np.abs(f) < w) & np.isfinite(X[:, k]).all(-1)
                 if ok.sum() < JUMP_MIN:
                     break
-                # per coordinate: a swapped pair of views puts a point tens of mm off
-                ends.append(np.array([theilslopes(X[ok, k, j], f[ok])[1] for j in range(3)]))
+                ends.append(np.array([_at_step(f[ok], X[ok, k, j]) for j in range(3)]))
             if len(ends) == 2:
                 gaps.append(ends[1] - ends[0])
         if gaps:
