@@ -273,10 +273,13 @@ def resect(
             raise ValueError(f"K must be a finite (3, 3) matrix, got {K0.shape}")
         if N < 4 or 2 * N < 6 + n_free:
             raise ValueError(f"resection with known K (PnP) needs >= 4 points, got {N}")
-        ok, rvec, tvec = cv2.solvePnP(
-            X.numpy(), x.numpy(), K0.numpy(), dist0.numpy(),
-            flags=cv2.SOLVEPNP_SQPNP,  # global, any N >= 3, planar or not
-        )  # fmt: skip
+        try:
+            ok, rvec, tvec = cv2.solvePnP(
+                X.numpy(), x.numpy(), K0.numpy(), dist0.numpy(),
+                flags=cv2.SOLVEPNP_SQPNP,  # global, any N >= 3, planar or not
+            )  # fmt: skip
+        except cv2.error:  # SQPnP asserts on points that fix no pose (all nearly at one place)
+            ok = False
         if not ok:
             raise ValueError("cv2.solvePnP failed: degenerate configuration (collinear points?)")
         R0 = rodrigues_to_matrix(torch.as_tensor(rvec.reshape(3), dtype=torch.float64))

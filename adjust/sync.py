@@ -23,7 +23,8 @@ SLEAP mouse's `side`), and stays for the camera check.
 A lag that changes during the session (a camera that dropped frames) is found block by block
 (`block_curves`, `block_lags`, `steps_of`: blocks of `BLOCK_FRAMES` frames, the change placed
 by the frames' capped votes) and undone piecewise; a change by one frame is not told from the
-jitter of a slow animal's broad minimum.
+jitter of a slow animal's broad minimum, and with two cameras a new lag must hold for two
+blocks.
 
 A camera with offset o is read as its row for frame f + o at frame f (`shift_cameras`; the
 frame numbers of the files, ``Detections.frames``, so a sample of rows is shifted exactly);
@@ -311,7 +312,8 @@ def steps_of(cameras, det, blocks, lags, offsets, c: int) -> list[tuple[int, int
     lag), ...] from the blocks that tell (`block_lags`; a change by one frame is taken for the
     jitter of a broad minimum), each change placed at the frame that best splits the stretch
     between two such blocks (per-frame epipolar costs at the two lags); None where every block
-    that tells agrees."""
+    that tells agrees. With two cameras a lag other than c's own must be told by two blocks
+    (no other pair backs a block: a real hand's noisy 2-camera block read a 2-frame lag)."""
     known = []
     for a, b, v in block_lags(blocks, lags, offsets, c):
         if v is None:
@@ -319,6 +321,10 @@ def steps_of(cameras, det, blocks, lags, offsets, c: int) -> list[tuple[int, int
         if known and abs(v - known[-1][2]) <= 1:  # a frame's jitter of a broad minimum:
             v = known[-1][2]  # changes of one frame are not told from it
         known.append((a, b, v))
+    if len(cameras) == 2:  # no other pair backs a block's lag: a new lag needs two blocks
+        told = {v: sum(k[2] == v for k in known) for *_, v in known}
+        own = int(offsets[c])
+        known = [k for k in known if k[2] == own or told[k[2]] >= 2]
     if len({v for *_, v in known}) <= 1:
         return None
     frames = frame_numbers(det)
