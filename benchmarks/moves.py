@@ -41,13 +41,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import emit, print_table, start, subset  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,
-    ROOT,
-    SEGMENT_FRAMES,
     SPLITS,
     Motion,
     align,
     evaluate,
     film_scene,
+    input_args,
+    input_settings,
     run_aniposelib,
     scene_key,
     track_row,
@@ -84,26 +84,18 @@ def turn(scene: Path, out: Path, camera: str, at: int, degrees: float, axis: str
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cameras", default="2,3,4", help="camera counts (8 parts)")
-    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES, help="frames (<= 1000)")
-    ap.add_argument("--seeds", default="0", help="detector seeds")
+    input_args(ap, "moves", "2,3,4")
     ap.add_argument("--degrees", default="0.3,1", help="turns (degrees)")
     ap.add_argument("--axes", default="x,y", help="x (tilt), y (pan)")
     ap.add_argument("--split", default="test", choices=tuple(SPLITS), help="the segment")
     ap.add_argument("--at", default="300,700", help="frames the camera turns at")
     ap.add_argument("--no-peer", action="store_true", help="without aniposelib")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
-    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "moves"))
-    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "moves.json"))
     args = start(ap, argv)
-    if not 1 <= args.frames <= SEGMENT_FRAMES:
-        ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
+    cameras, seeds = input_settings(ap, args)
     ats = [int(a) for a in args.at.split(",") if a.strip()]
     if not ats or not all(0 < a < args.frames for a in ats):
         ap.error(f"--at must be frames within 1..{args.frames - 1}, got {args.at}")
-    cameras = [int(c) for c in subset(ap, args.cameras, ("2", "3", "4"), "--cameras")]
     axes = subset(ap, args.axes, tuple(AXES), "--axes")
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     degrees = [float(d) for d in args.degrees.split(",") if d.strip()]
     motion = Motion(DATA)
     work = Path(args.work) / motion.tag

@@ -171,6 +171,26 @@ def scene_key(
     return f"{split}_{start}-{start + frames * stride}_c{cameras}_p{parts}_s{seed}{tail}"
 
 
+def input_args(ap: argparse.ArgumentParser, name: str, cameras: str) -> None:
+    """The arguments of a benchmark of an input condition over the 8-part scenes (`sync.py`,
+    `units.py`, `moves.py`): ``--cameras``, ``--frames``, ``--seeds``, ``--threads``,
+    ``--work`` and ``--out`` (under ``runs/benchmarks/NAME``)."""
+    ap.add_argument("--cameras", default=cameras, help="camera counts (8 parts)")
+    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES, help="frames (<= 1000)")
+    ap.add_argument("--seeds", default="0", help="detector seeds")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / name))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / f"{name}.json"))
+
+
+def input_settings(ap: argparse.ArgumentParser, args) -> tuple[list[int], list[int]]:
+    """`input_args`' camera counts and seeds (a bad one is the parser's error)."""
+    if not 1 <= args.frames <= SEGMENT_FRAMES:
+        ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
+    cameras = [int(c) for c in subset(ap, args.cameras, ("2", "3", "4"), "--cameras")]
+    return cameras, [int(s) for s in args.seeds.split(",") if s.strip()]
+
+
 def film_scene(
     out: Path,
     motion: Motion,

@@ -32,14 +32,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import emit, print_table, start, subset  # noqa: E402
+from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,
-    ROOT,
-    SEGMENT_FRAMES,
     SPLITS,
     Motion,
     film_scene,
+    input_args,
+    input_settings,
     scene_key,
     track_row,
 )
@@ -136,20 +136,12 @@ def tracked(scene: Path, runs: Path, name: str, truth, threads: int, extra=()) -
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cameras", default="2,3", help="camera counts (8 parts)")
-    ap.add_argument("--seeds", default="0", help="detector seeds")
+    input_args(ap, "sync", "2,3")
     ap.add_argument("--lags", default="1,2,5,15,-7", help="frames the camera is moved by")
     ap.add_argument("--drops", default="300:3,600:6",
                     help="AT:K, the camera drops K frames at frame AT (comma list)")  # fmt: skip
-    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES, help="frames (<= 1000)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
-    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "sync"))
-    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "sync.json"))
     args = start(ap, argv)
-    if not 1 <= args.frames <= SEGMENT_FRAMES:
-        ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
-    cameras = [int(c) for c in subset(ap, args.cameras, ("2", "3", "4"), "--cameras")]
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    cameras, seeds = input_settings(ap, args)
     lags = [int(k) for k in args.lags.split(",") if k.strip()]
     if not lags or 0 in lags:
         ap.error("--lags: non-zero frame offsets")

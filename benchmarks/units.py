@@ -37,11 +37,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import emit, print_table, start, subset  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,
-    ROOT,
-    SEGMENT_FRAMES,
     SPLITS,
     Motion,
     film_scene,
+    input_args,
+    input_settings,
     scene_key,
     track_overrides,
     track_row,
@@ -87,18 +87,10 @@ def rewrite(scene: Path, out: Path, mm_per_unit: float, unit: str | None) -> Pat
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cameras", default="2,3", help="camera counts (8 parts)")
-    ap.add_argument("--frames", type=int, default=SEGMENT_FRAMES, help="frames (<= 1000)")
-    ap.add_argument("--seeds", default="0", help="detector seeds")
+    input_args(ap, "units", "2,3")
     ap.add_argument("--methods", default="default,rigid", help="default, rigid")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch default)")
-    ap.add_argument("--work", default=str(ROOT / "runs" / "benchmarks" / "units"))
-    ap.add_argument("--out", default=str(ROOT / "runs" / "benchmarks" / "units.json"))
     args = start(ap, argv)
-    if not 1 <= args.frames <= SEGMENT_FRAMES:
-        ap.error(f"--frames must be within 1..{SEGMENT_FRAMES}, got {args.frames}")
-    cameras = [int(c) for c in subset(ap, args.cameras, ("2", "3", "4"), "--cameras")]
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    cameras, seeds = input_settings(ap, args)
     methods = subset(ap, args.methods, ("default", "rigid"), "--methods")
     motion = Motion(DATA)
     work = Path(args.work) / motion.tag

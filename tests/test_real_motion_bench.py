@@ -135,3 +135,23 @@ def test_sync_benchmark_tiny_run(tmp_path, one_thread):
     assert res["checks"]["every_offset_found"] and res["checks"]["no_offset_on_real"], res
     (row,) = res["rows"]
     assert row["found"] == 5 and row["checked"]["rmse_all"] < row["unchecked"]["rmse_all"]
+
+
+def test_moves_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/moves.py on 300 frames (3 cameras, each turned 1 deg at frame 150 in turn):
+    every move mapped to the camera that turned, the tracks as unmoved (its checks), worse
+    unchecked."""
+    spec = importlib.util.spec_from_file_location("moves_bench", ROOT / "benchmarks" / "moves.py")
+    moves = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(moves)
+    if not moves.DATA.is_file():
+        pytest.skip(f"{moves.DATA} not present")
+    res = moves.main(
+        ["--split", "val", "--frames", "300", "--cameras", "3", "--degrees", "1", "--axes", "y",
+         "--at", "150", "--no-peer", "--work", str(tmp_path / "work"),
+         "--out", str(tmp_path / "m.json")]
+    )  # fmt: skip
+    checks = res["checks"]
+    assert checks["mapped_moves_right_camera"] and checks["mapped_within_5pct_of_unmoved"], res
+    assert checks["no_move_on_unmoved"] and checks["mapped"] == "3 of 3", checks
+    assert all(r["unchecked_all"] > 1.1 * r["unmoved_all"] for r in res["rows"]), res["rows"]
