@@ -17,10 +17,13 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "benchmarks" / "real_motion.py"
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("real_motion_bench", SCRIPT)
+def _load(name: str = "real_motion"):
+    """benchmarks/NAME.py as a module (skipped where the real motion is not present)."""
+    spec = importlib.util.spec_from_file_location(f"{name}_bench", SCRIPT.parent / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)  # puts benchmarks/ on sys.path for its own imports
+    if not mod.DATA.is_file():
+        pytest.skip(f"{mod.DATA} not present")
     return mod
 
 
@@ -106,11 +109,7 @@ def test_stride_films_every_nth_frame(tmp_path):
 def test_units_benchmark_tiny_run(tmp_path, one_thread):
     """benchmarks/units.py on 120 frames: the files in cm and m with the unit declared track as
     the mm file does (its check), and read as mm they do not."""
-    spec = importlib.util.spec_from_file_location("units_bench", ROOT / "benchmarks" / "units.py")
-    units = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(units)
-    if not units.DATA.is_file():
-        pytest.skip(f"{units.DATA} not present")
+    units = _load("units")
     res = units.main(
         ["--frames", "120", "--cameras", "3", "--methods", "rigid",
          "--work", str(tmp_path / "work"), "--out", str(tmp_path / "u.json")]
@@ -123,11 +122,7 @@ def test_units_benchmark_tiny_run(tmp_path, one_thread):
 def test_sync_benchmark_tiny_run(tmp_path, one_thread):
     """benchmarks/sync.py on 150 frames: a camera moved by 5 frames is found and shifted back
     (its check), the real recordings show no offset."""
-    spec = importlib.util.spec_from_file_location("sync_bench", ROOT / "benchmarks" / "sync.py")
-    sync = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sync)
-    if not sync.DATA.is_file():
-        pytest.skip(f"{sync.DATA} not present")
+    sync = _load("sync")
     res = sync.main(
         ["--frames", "150", "--cameras", "3", "--lags", "5", "--drops", "",
          "--work", str(tmp_path / "work"), "--out", str(tmp_path / "s.json")]
@@ -141,11 +136,7 @@ def test_moves_benchmark_tiny_run(tmp_path, one_thread):
     """benchmarks/moves.py on 300 frames (3 cameras, each turned 1 deg at frame 150 in turn):
     every move mapped to the camera that turned, the tracks as unmoved (its checks), worse
     unchecked."""
-    spec = importlib.util.spec_from_file_location("moves_bench", ROOT / "benchmarks" / "moves.py")
-    moves = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(moves)
-    if not moves.DATA.is_file():
-        pytest.skip(f"{moves.DATA} not present")
+    moves = _load("moves")
     res = moves.main(
         ["--split", "val", "--frames", "300", "--cameras", "3", "--degrees", "1", "--axes", "y",
          "--at", "150", "--no-peer", "--work", str(tmp_path / "work"),
