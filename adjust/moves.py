@@ -32,12 +32,16 @@ turn about the camera's centre, a camera also shifted keeps a parallax the repor
 images along the epipolar lines (a pan of one of two cameras facing each other, a roll of a
 few tenths of a degree) is not seen by any check on the detections.
 
+The step is found among at most `MAX_FRAMES` frames (blocks spread over a longer session);
+each candidate camera then places it among every frame about it by its own turn (`_refine`;
+in a long session tracked in chunks the camera check sees only its sample, so there a move is
+placed within the gaps between the sample's blocks).
+
 Modes (the camera check's): ``warn``: undone, with a warning naming camera, file and frame;
-``error``: an `InputError` instead; ``off``: no check. A move is placed to within the frames
-of the sample where the session is longer than `MAX_FRAMES` (a long session's chunks: within
-the gaps of the camera check's sample). A gradual drift, and a camera moved along its axis
-only, are not told. Detections: ``Detections`` (T, K, C, 2) px; rotations in radians
-(rotation vectors), world -> camera ``x = R X + t``.
+``error``: an `InputError` instead; ``off``: no check. A gradual drift, a camera moved
+without turning, and a move within `MIN_FRAMES` of a session's ends are not told.
+Detections: ``Detections`` (T, K, C, 2) px; rotations in radians (rotation vectors), world ->
+camera ``x = R X + t``.
 """
 
 from __future__ import annotations
@@ -54,13 +58,13 @@ from scipy.stats import theilslopes
 from adjust.camera import Camera, camera_to_pixels
 from adjust.io import Detections, InputError
 from adjust.sync import (
-    _homog,
-    _lines,
-    _nan_reduce,
-    _normalised,
-    _symmetric,
+    epipolar_lines,
     essential,
     frame_numbers,
+    homog,
+    nan_reduce,
+    normalised_points,
+    symmetric_px,
 )
 from adjust.triangulate import triangulate
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
@@ -94,7 +98,7 @@ def _focal(cam: Camera) -> float:
 def _rotate(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Normalised points x (..., 2) turned by rotation Q (3, 3): the rays Q [x, 1], divided by
     their depth (NaN where it is not positive)."""
-    r = _homog(x) @ Q.T
+    r = homog(x) @ Q.T
     z = r[..., 2:]
     return np.where(z > 1e-9, r[..., :2] / np.where(z > 1e-9, z, 1.0), np.nan)
 
@@ -104,11 +108,11 @@ def pair_distances(x: np.ndarray, cams: Sequence[Camera], a: int, b: int) -> np.
     (N, K, C, 2) (NaN where either did not see the part)."""
     xa, xb = x[:, :, a], x[:, :, b]
     both = np.isfinite(xa).all(-1) & np.isfinite(xb).all(-1)
-    ha, hb = _homog(np.nan_to_num(xa)), _homog(np.nan_to_num(xb))
+    ha, hb = homog(np.nan_to_num(xa)), homog(np.nan_to_num(xb))
     E = essential(cams[a], cams[b])
-    lb, inv_b = _lines(ha, E.T)
-    _, inv_a = _lines(hb, E)
-    d = _symmetric(hb, lb, inv_b, inv_a, _focal(cams[a]), _focal(cams[b]))
+    lb, inv_b = epipolar_lines(ha, E.T)
+    _, inv_a = epipolar_lines(hb, E)
+    d = symmetric_px(hb, lb, inv_b, inv_a, _focal(cams[a]), _focal(cams[b]))
     return np.where(both, d, np.nan)
 
 
@@ -119,7 +123,7 @@ def pair_series(
     `min_parts` parts seen by both)."""
     d = pair_distances(x, cams, a, b)
     enough = np.isfinite(d).sum(1) >= min_parts
-    return np.where(enough, _nan_reduce(np.nanmedian, d, 1), np.nan)
+    return np.where(enough, nan_reduce(np.nanmedian, d, 1), np.nan)
 
 
 def split(s: np.ndarray, min_frames: int = MIN_FRAMES) -> tuple[int, float, float] | None:
@@ -156,7 +160,7 @@ def split(s: np.ndarray, min_frames: int = MIN_FRAMES) -> tuple[int, float, floa
 
 def _mean_series(x, cams, c: int, others: Sequence[int], min_parts: int = MIN_PARTS) -> np.ndarray:
     series = [pair_series(x, cams, c, d, min_parts) for d in others]
-    return _nan_reduce(np.nanmean, np.stack(series), 0)
+    return nan_reduce(np.nanmean, np.stack(series), 0)
 
 
 def fit_rotation(
@@ -182,9 +186,9 @@ def fit_rotation(
         out = []
         for E, xc, xd, fc, fd in data:
             xq = _rotate(xc, Q)
-            hc, hd = _homog(np.nan_to_num(xq)), _homog(xd)
-            ld, inv_d = _lines(hc, E.T)
-            _, inv_c = _lines(hd, E)
+            hc, hd = homog(np.nan_to_num(xq)), homog(xd)
+            ld, inv_d = epipolar_lines(hc, E.T)
+            _, inv_c = epipolar_lines(hd, E)
             r = (hd * ld).sum(-1) * 0.5 * (fd * inv_d + fc * inv_c)  # signed symmetric px
             out.append(np.where(np.isfinite(xq).all(-1), r, 0.0))
         # a turn that slides the image along the epipolar lines is not seen (two cameras;
@@ -204,8 +208,8 @@ def unrotate(xy: np.ndarray, cam: Camera, Q: np.ndarray) -> np.ndarray:
     out = np.full(xy.shape, np.nan)
     if not ok.any():
         return out
-    n = _normalised(xy[ok].reshape(-1, 1, 1, 2), [cam])[:, 0, 0]
-    ray = torch.as_tensor(_homog(n) @ Q.T)
+    n = normalised_points(xy[ok].reshape(-1, 1, 1, 2), [cam])[:, 0, 0]
+    ray = torch.as_tensor(homog(n) @ Q.T)
     u, v, _ = camera_to_pixels(ray, torch.as_tensor(cam.K), torch.as_tensor(cam.dist))
     px = torch.stack((u, v), -1).numpy()
     out[ok] = np.where((ray[:, 2] > 1e-9).numpy()[:, None], px, np.nan)
@@ -246,14 +250,14 @@ def rig_px(cameras: Sequence[Camera], det: Detections) -> float:
     """How well the cameras agree (px): the median over the frames (at most `MAX_FRAMES`, in
     blocks) of the mean over every camera pair of `pair_series`."""
     rows = np.argsort(frame_numbers(det), kind="stable")[_sample_rows(det.num_frames)]
-    x = _normalised(det.xy[rows], cameras)
+    x = normalised_points(det.xy[rows], cameras)
     return _rig_level(x, cameras, np.arange(len(rows)))
 
 
 def _rig_level(x, cams, rows) -> float:
     """The median over `rows` of the mean over every camera pair of `pair_series` (px)."""
     C = len(cams)
-    s = _nan_reduce(
+    s = nan_reduce(
         np.nanmean,
         np.stack([pair_series(x[rows], cams, a, b) for a in range(C) for b in range(a + 1, C)]),
         0,
@@ -357,7 +361,7 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
     if C >= 3:
         rest = [d for d in range(C) if d != c]
         pairs = [pair_series(x, cams, a, b) for a in rest for b in rest if a < b]
-        s = _nan_reduce(np.nanmean, np.stack(pairs), 0)
+        s = nan_reduce(np.nanmean, np.stack(pairs), 0)
         sb, sg = s[bad][np.isfinite(s[bad])], s[good][np.isfinite(s[good])]
         if sb.size and sg.size and np.median(sb) > OTHERS_RATIO * np.median(sg):
             return None, (
@@ -435,7 +439,7 @@ def _refine(det, cameras, c: int, Q: np.ndarray, lo: int, hi: int, entering: boo
     rows = np.flatnonzero((frames > lo) & (frames <= hi))
     rows = rows[np.argsort(frames[rows], kind="stable")]
     others = [d for d in range(len(cameras)) if d != c]
-    x = _normalised(det.xy[rows], cameras)
+    x = normalised_points(det.xy[rows], cameras)
     raw = _mean_series(x, cameras, c, others, 1)  # every part seen by a pair has a say
     x[:, :, c] = _rotate(x[:, :, c], Q)
     score = np.nan_to_num(np.clip(raw - _mean_series(x, cameras, c, others, 1), -1.0, 1.0))
@@ -462,7 +466,7 @@ def check_moves(
         return det, report
     order = np.argsort(frames, kind="stable")
     rows = order[_sample_rows(det.num_frames)]
-    x = _normalised(det.xy[rows], cameras)
+    x = normalised_points(det.xy[rows], cameras)
     now = det  # the moves found so far undone
     names = [cam.name for cam in cameras]
     for _ in range(int(max_moves)):

@@ -86,17 +86,18 @@ def essential(a: Camera, b: Camera) -> np.ndarray:
     return tx @ R
 
 
-def _homog(x: np.ndarray) -> np.ndarray:
+def homog(x: np.ndarray) -> np.ndarray:
+    """Homogeneous coordinates (..., 3) of points x (..., 2)."""
     return np.concatenate([x, np.ones((*x.shape[:-1], 1))], axis=-1)
 
 
-def _lines(h: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def epipolar_lines(h: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Epipolar lines h @ M of homogeneous points h (..., 3) and 1 / the norm of their normals."""
     line = h @ M
     return line, 1.0 / np.maximum(np.linalg.norm(line[..., :2], axis=-1), 1e-12)
 
 
-def _symmetric(hb, lb, inv_b, inv_a, fa: float, fb: float) -> np.ndarray:
+def symmetric_px(hb, lb, inv_b, inv_a, fa: float, fb: float) -> np.ndarray:
     """The mean of b's distance (px) from a's epipolar line lb and a's from b's (inverse normal
     norms inv_b, inv_a): both share the residual |x_b^T E x_a|."""
     r = np.abs((hb * lb).sum(-1))
@@ -106,13 +107,13 @@ def _symmetric(hb, lb, inv_b, inv_a, fa: float, fb: float) -> np.ndarray:
 def epipolar_px(E: np.ndarray, xa: np.ndarray, xb: np.ndarray, fa: float, fb: float) -> np.ndarray:
     """Symmetric epipolar distance (px) of normalised points xa, xb (N, 2): the mean of b's
     distance from a's epipolar line (times fb) and a's from b's (times fa)."""
-    ha, hb = _homog(xa), _homog(xb)
-    lb, inv_b = _lines(ha, E.T)  # lines in b
-    _, inv_a = _lines(hb, E)  # lines in a
-    return _symmetric(hb, lb, inv_b, inv_a, fa, fb)
+    ha, hb = homog(xa), homog(xb)
+    lb, inv_b = epipolar_lines(ha, E.T)  # lines in b
+    _, inv_a = epipolar_lines(hb, E)  # lines in a
+    return symmetric_px(hb, lb, inv_b, inv_a, fa, fb)
 
 
-def _normalised(xy: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
+def normalised_points(xy: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
     """(N, K, C, 2) undistorted normalised coordinates of detections xy (N, K, C, 2) px (NaN
     where missing)."""
     out = np.full(xy.shape, np.nan)
@@ -152,20 +153,20 @@ def lag_curves(
     common = np.logical_and.reduce([r >= 0 for r in at])
     rows, at = rows[common], [r[common] for r in at]
     need = np.unique(np.concatenate([rows, *[r[r >= 0] for r in at]]))
-    x = _normalised(det.xy[need], cameras)  # only the rows compared
+    x = normalised_points(det.xy[need], cameras)  # only the rows compared
     seen = np.isfinite(x).all(-1)  # (N, K, C)
     pairs = [(np.searchsorted(need, rows[r >= 0]), np.searchsorted(need, r[r >= 0])) for r in at]
     for a in range(C):
         for b in range(a + 1, C):
             E = essential(cameras[a], cameras[b])
-            ha, hb = _homog(x[:, :, a]), _homog(x[:, :, b])
-            lb, inv_b = _lines(ha, E.T)  # every row's lines, once per pair
-            _, inv_a = _lines(hb, E)
+            ha, hb = homog(x[:, :, a]), homog(x[:, :, b])
+            lb, inv_b = epipolar_lines(ha, E.T)  # every row's lines, once per pair
+            _, inv_a = epipolar_lines(hb, E)
             for i, (ra, rb) in enumerate(pairs):
                 both = seen[ra, :, a] & seen[rb, :, b]
                 if both.sum() < MIN_PAIRS:
                     continue
-                d = _symmetric(hb[rb], lb[ra], inv_b[ra], inv_a[rb], focal[a], focal[b])
+                d = symmetric_px(hb[rb], lb[ra], inv_b[ra], inv_a[rb], focal[a], focal[b])
                 curves[a, b, i] = float(np.median(d[both]))
             curves[b, a] = curves[a, b, ::-1]
     return lags, curves
@@ -225,7 +226,7 @@ def solve_offsets(lags: np.ndarray, curves: np.ndarray, sweeps: int = 5) -> np.n
     return o - base
 
 
-def _nan_reduce(fn, x: np.ndarray, axis: int) -> np.ndarray:
+def nan_reduce(fn, x: np.ndarray, axis: int) -> np.ndarray:
     """np.nanmedian / np.nanmean along `axis`, NaN where every value is (without its warning)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -251,13 +252,13 @@ def _frame_costs(cameras, det, x_of, c: int, lag: int, offsets, rows) -> np.ndar
             xc, xd = x_of(rc[ok])[:, :, c], x_of(rd[ok])[:, :, d]
             both = np.isfinite(xc).all(-1) & np.isfinite(xd).all(-1)
             fd = float(np.sqrt(cameras[d].K[0, 0] * cameras[d].K[1, 1]))
-            hc, hd = _homog(np.nan_to_num(xc)), _homog(np.nan_to_num(xd))
+            hc, hd = homog(np.nan_to_num(xc)), homog(np.nan_to_num(xd))
             E = essential(cameras[c], cameras[d])
-            ld, inv_d = _lines(hc, E.T)
-            _, inv_c = _lines(hd, E)
-            dist[ok] = np.where(both, _symmetric(hd, ld, inv_d, inv_c, fc, fd), np.nan)
-        per.append(_nan_reduce(np.nanmedian, dist, 1))
-    return _nan_reduce(np.nanmean, np.stack(per), 0)
+            ld, inv_d = epipolar_lines(hc, E.T)
+            _, inv_c = epipolar_lines(hd, E)
+            dist[ok] = np.where(both, symmetric_px(hd, ld, inv_d, inv_c, fc, fd), np.nan)
+        per.append(nan_reduce(np.nanmedian, dist, 1))
+    return nan_reduce(np.nanmean, np.stack(per), 0)
 
 
 def block_curves(cameras, det, max_offset: int) -> list[tuple[int, int, np.ndarray]]:
@@ -334,7 +335,7 @@ def steps_of(cameras, det, blocks, lags, offsets, c: int) -> list[tuple[int, int
     def x_of(r: np.ndarray) -> np.ndarray:  # normalised rows, each undistorted once
         new = np.array([i for i in np.unique(r) if int(i) not in cache], dtype=np.int64)
         if new.size:
-            for i, row in zip(new, _normalised(det.xy[new], cameras)):
+            for i, row in zip(new, normalised_points(det.xy[new], cameras)):
                 cache[int(i)] = row
         return np.stack([cache[int(i)] for i in r])
 
