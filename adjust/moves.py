@@ -84,6 +84,8 @@ FIT_POINTS = 4_000  #: part-frames per pair the rotation is fitted to (spread ov
 HUBER_PX = 2.0  #: the fit's robust scale (px)
 PRIOR_RAD = np.deg2rad(1.0)  #: a turn this large weighs as one residual of `HUBER_PX` (prior)
 PLACE_FRAMES = 25  #: a move's frame is placed again among this many frames each side
+CELL_PX = 128  #: image cells within which distances before and after a step are compared
+MIN_PLACED = 50  #: part-frames at shared places each side needs
 JUMP_FRAMES = (8, 12, 16, 20, 24)  #: windows (frames each side of a move) whose parts'
 #: continuity tells which camera moved
 JUMP_MIN = 4  #: ... points a part needs on each side
@@ -320,6 +322,36 @@ def jump_mm(det: Detections, cams: Sequence[Camera], first: int) -> float:
     return float(np.median(out)) if out else float("nan")
 
 
+def same_place(x, cams, c: int, good, bad) -> tuple[float, float] | None:
+    """Camera c's epipolar distances (px) on the rows `good` and `bad`, compared where the
+    parts were at the same places: part-frames binned by their cells (`CELL_PX`) in camera c's
+    image and in the other camera's (so the 3D place, its depth too), pooled over c's pairs;
+    (median on the good rows, median on the bad rows) over the cells both hold, or None with
+    fewer than `MIN_PLACED` part-frames on either side. A calibration's error differs from
+    place to place in the images (a lens model a little off), so an animal that stays
+    somewhere for a while raises the distances without any camera moving; a move raises them
+    at the same places."""
+    pools: tuple[list, list] = ([], [])
+    for d in range(len(cams)):
+        if d == c:
+            continue
+        dist = pair_distances(x, cams, c, d)  # (N, K)
+        cell = np.concatenate(
+            [np.floor(x[:, :, k] * _focal(cams[k]) / CELL_PX) for k in (c, d)], axis=-1
+        )  # (N, K, 4): the place in both images (a 3D place, its depth too)
+        keys: tuple[dict, dict] = ({}, {})
+        for side, rows in enumerate((good, bad)):
+            ok = np.isfinite(dist[rows])
+            for key, v in zip(map(tuple, cell[rows][ok].astype(np.int64)), dist[rows][ok]):
+                keys[side].setdefault(key, []).append(v)
+        for key in keys[0].keys() & keys[1].keys():
+            for side in (0, 1):
+                pools[side].extend(keys[side][key])
+    if min(len(pools[0]), len(pools[1])) < MIN_PLACED:
+        return None
+    return float(np.median(pools[0])), float(np.median(pools[1]))
+
+
 def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
     """The next move in the sampled rows (normalised points x (N, K, C, 2), frame numbers
     `frames`) of the detections `det` (every row, the moves found so far undone), as (move,
@@ -369,6 +401,14 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
                 f"({np.median(sg):.1f} -> {np.median(sb):.1f} px without camera "
                 f"'{cams[c].name}'): not one camera's move"
             )
+    here = same_place(x, cams, c, good, bad)
+    if here is None or not (here[1] >= STEP_RATIO * here[0] and here[1] - here[0] >= STEP_PX):
+        return None, (
+            f"the epipolar distances of camera '{cams[c].name}' rise over {where}, but not "
+            f"against frames where the parts were at the same places in the images "
+            f"({'too few of them' if here is None else f'{here[0]:.1f} -> {here[1]:.1f} px'}): "
+            "the calibration's error differs from place to place, not a move"
+        )
     at_good, at_bad = _rig_level(x, cams, good), _rig_level(x, cams, bad)
     fits = []
     for k in range(C):  # every camera's turn: which one explains the step
