@@ -384,6 +384,13 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
         if not (max(n0, n1) >= STEP_RATIO * min(n0, n1) and min(n0, n1) <= OTHERS_RATIO * low):
             break
         b0, b1 = (b0 + j, b1) if n1 > n0 else (b0, b0 + j)
+    if b0 == 0:  # the calibration is taken to hold at the session's start
+        return None, (
+            f"the epipolar distances of camera '{cams[c].name}' are higher from the session's "
+            f"start to frame {int(frames[b1])} than after: the calibration is taken to hold at "
+            "the start (an animal that stays in one place first, where the calibration is a "
+            "little off, looks so), not a move"
+        )
     bad = np.arange(b0, b1)
     good = np.setdiff1d(np.arange(N), bad)
     m0, m1 = low, float(np.nanmedian(series[bad]))

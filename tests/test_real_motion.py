@@ -4,6 +4,7 @@ and a run whose tracks leave the data does not exit 0."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import shutil
 from pathlib import Path
@@ -14,9 +15,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from adjust.apps.track import run
-from adjust.io import InputError, load_calibration, read_dlc, read_points3d, write_dlc_csv
+from adjust.io import (
+    InputError,
+    load_calibration,
+    load_scene,
+    read_dlc,
+    read_points3d,
+    write_dlc_csv,
+)
 from adjust.metrics import point_errors
-from adjust.moves import unrotate
+from adjust.moves import check_moves, unrotate
 from adjust.scene.motion import (
     MOTION_FEET,
     MOTION_PAPER8,
@@ -332,3 +340,23 @@ def test_a_camera_turned_mid_session_is_mapped_back(scenes, tmp_path):
     assert fixed < 1.05 * base, (fixed, base)
     _, blind = _track(moved, tmp_path / "blind", ["input.max_camera_moves=0"])
     assert blind > 1.1 * base, (blind, base)
+
+
+def test_a_lens_model_a_little_off_reads_no_move(tmp_path):
+    """Every camera's k1 off by 0.05 and its focal length by 1% (a calibration a little off,
+    not moved): the mouse stays in one place for its first 270 frames, where the calibration's
+    error is larger, and the epipolar distances step down when it leaves. No camera moved, and
+    none is said to have (before the same-place and session-start rules, the top camera was
+    mapped by 0.47 deg over frames 0-269)."""
+    scene = _scene(tmp_path / "scene", 4, frames=1000)
+    cams = load_calibration(scene / "calibration.toml")
+    _, det = load_scene(scene / "calibration.toml", scene / "detections", None)
+    k1, focal = [-1, 1, 1, 1], [-1, -1, 1, 1]
+    off = []
+    for cam, a, b in zip(cams, k1, focal):
+        K = cam.K.copy()
+        K[0, 0] *= 1 + 0.01 * b
+        K[1, 1] *= 1 + 0.01 * b
+        off.append(dataclasses.replace(cam, K=K, dist=cam.dist + [0.05 * a, 0, 0, 0, 0]))
+    _, rep = check_moves(off, det, 3)
+    assert rep["moves"] == [] and "unresolved" not in rep, rep
