@@ -90,6 +90,8 @@ PRIOR_RAD = np.deg2rad(1.0)  #: a turn this large weighs as one residual of `HUB
 PLACE_FRAMES = 25  #: a move's frame is placed again among this many frames each side
 CELL_PX = 128  #: image cells within which distances before and after a step are compared
 MIN_PLACED = 50  #: part-frames at shared places each side needs
+SAME_RATIO = 1.5  #: there the step must still be this large (a 0.3-degree tilt: 1.9x)
+SAME_PX = 0.5  #: ... and this many px
 JUMP_FRAMES = (8, 12, 16, 20, 24)  #: windows (frames each side of a move) whose parts'
 #: continuity tells which camera moved
 JUMP_MIN = 4  #: ... points a part needs on each side
@@ -412,14 +414,6 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
                 f"({np.median(sg):.1f} -> {np.median(sb):.1f} px without camera "
                 f"'{cams[c].name}'): not one camera's move"
             )
-    here = same_place(x, cams, c, good, bad)
-    if here is None or not (here[1] >= STEP_RATIO * here[0] and here[1] - here[0] >= STEP_PX):
-        return None, (
-            f"the epipolar distances of camera '{cams[c].name}' rise over {where}, but not "
-            f"against frames where the parts were at the same places in the images "
-            f"({'too few of them' if here is None else f'{here[0]:.1f} -> {here[1]:.1f} px'}): "
-            "the calibration's error differs from place to place, not a move"
-        )
     at_good, at_bad = _rig_level(x, cams, good), _rig_level(x, cams, bad)
     fits = []
     for k in range(C):  # every camera's turn: which one explains the step
@@ -463,6 +457,14 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
         Q = next(f[2] for f in alike if f[1] == k)
         level = next(f[0] for f in alike if f[1] == k)
     first, end = placed[k]
+    here = same_place(x, cams, k, good, bad)
+    if here is None or not (here[1] >= SAME_RATIO * here[0] and here[1] - here[0] >= SAME_PX):
+        return None, (
+            f"the epipolar distances of camera '{cams[k].name}' rise over {where}, but not "
+            f"against frames where the parts were at the same places in the images "
+            f"({'too few of them' if here is None else f'{here[0]:.1f} -> {here[1]:.1f} px'}): "
+            "the calibration's error differs from place to place, not a move"
+        )
     moved = {
         "camera": cams[k].name,
         "first_frame": first,
