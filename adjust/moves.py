@@ -15,15 +15,16 @@ as they were. Per camera, the mean of its pairs' series is split where one step 
 (`split`: two levels, least absolute deviations); a move is a step whose higher level is at
 least ``STEP_RATIO`` (2) times and ``STEP_PX`` (1 px) above the lower, over at least
 ``MIN_FRAMES`` frames on each side, while the pairs without c step by less than
-``OTHERS_RATIO`` (1.5); it must hold where the parts were at the same places in the images
-(`same_place`: a calibration's error differs from place to place, and an animal that stays
-somewhere for a while steps the distances too), and it must not begin at the session's start
+``OTHERS_RATIO`` (1.5); it must not begin at the session's start
 (the calibration is taken to hold there: a lens model a little off read moves over the
 first few hundred frames, where the mouse stayed in one place).
 
 Every camera's turn about its centre on the higher side is then fitted to its pairs' epipolar
 constraints (`fit_rotation`: robust least squares over 3 parameters); the turn that leaves the
-rig's distances there lowest must cut their rise at least by half. Where several cameras'
+rig's distances there lowest must cut their rise at least by half, and the step must hold
+for that camera where the parts were at the same places in the images (`same_place`,
+``SAME_RATIO`` 1.5x: a calibration's error differs from place to place, and an animal that
+stays somewhere for a while steps the distances too). Where several cameras'
 turns fit to within ``TELL_RATIO`` (1.25) of it (two cameras always: a turn of either about
 most axes; three in a plane, e.g. a top camera and two side cameras facing each other: a tilt
 of either side camera), the parts' continuity at the move tells (`jump_mm`: a wrong camera's
