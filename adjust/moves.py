@@ -366,10 +366,11 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
     none. The move has ``ambiguous`` where more than one camera's turn explains it and the
     parts' continuity at the step does not tell."""
     C = len(cams)
-    found = []
+    found, series_of = [], {}
     for c in range(C):
         others = [d for d in range(C) if d != c]
-        sp = split(_mean_series(x, cams, c, others))
+        series_of[c] = _mean_series(x, cams, c, others)
+        sp = split(series_of[c])
         if sp is None:
             continue
         i, m0, m1 = sp
@@ -382,7 +383,7 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
     N = x.shape[0]
     b0, b1 = (i, N) if m1 > m0 else (0, i)
     low = min(m0, m1)
-    series = _mean_series(x, cams, c, [d for d in range(C) if d != c])
+    series = series_of[c]
     while True:  # a camera turned and put back: the higher side holds a second step
         sp = split(series[b0:b1])
         if sp is None:
