@@ -29,14 +29,17 @@ Before that, a camera out of step in time with the others (its video started a f
 early or late) is found from the epipolar geometry and shifted back (`adjust.sync`, up to
 ``input.max_frame_offset`` frames; the report's ``sync``), and a camera turned during the
 session (bumped) has its detections after the move mapped back (`adjust.moves`, up to
-``input.max_camera_moves`` moves; the report's ``moved``).
+``input.max_camera_moves`` moves; the report's ``moved``). After it, a kept camera whose
+exposures fall a fraction of a frame before or after the others' (no common trigger, or a
+clock that drifts) has its detections interpolated in time to their frames
+(`adjust.subframe`, ``input.subframe_sync``; the report's ``subframe``).
 
 Modes (``input.camera_check``): ``warn`` (default): a camera that is off is excluded and a
 warning names it with its error and likely cause (one out of step is shifted back); ``error``:
 an `InputError` instead; ``off``: no check. ``input.exclude_cameras=[name, ...]`` drops
 cameras by hand before the check. The returned report (the apps put it in ``summary.json`` as
 ``camera_check``) lists every camera's leave-one-out error, the threshold, the excluded cameras
-with error and cause, and the cameras shifted in time (``sync``).
+with error and cause, and the cameras shifted in time (``sync``, ``subframe``).
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ from adjust.io import Detections, InputError
 from adjust.moves import check_moves, rig_px
 from adjust.resection import resect
 from adjust.settings import InputConfig
+from adjust.subframe import check_subframe
 from adjust.sync import check_sync
 from adjust.triangulate import triangulate
 
@@ -269,12 +273,14 @@ def check_cameras(
     fit_ratio: float = FIT_RATIO,
     max_offset: int = 0,
     max_moves: int = 0,
+    subframe: bool = False,
 ) -> tuple[list[Camera], Detections, dict]:
     """Drop the cameras named in `exclude`, then (mode warn/error) shift back a camera out of
     step by up to `max_offset` frames (`adjust.sync.check_sync`; 0: none), map back up to
-    `max_moves` cameras turned mid-session (`adjust.moves.check_moves`; 0: none) and test each
-    camera against the others (see the module doc). Returns the kept cameras, their detections
-    (T, K, C', 2) and the report for the summary."""
+    `max_moves` cameras turned mid-session (`adjust.moves.check_moves`; 0: none), test each
+    camera against the others (see the module doc) and, with `subframe`, interpolate in time
+    a kept camera out of step by a fraction of a frame (`adjust.subframe.check_subframe`).
+    Returns the kept cameras, their detections (T, K, C', 2) and the report for the summary."""
     if mode not in MODES:
         raise InputError(f"input.camera_check must be one of {list(MODES)}, got {mode!r}")
     names = [c.name for c in cameras]
@@ -395,6 +401,8 @@ def check_cameras(
             unjudged,
             ", ".join(f"{k} {v:.1f}" for k, v in loo_px.items() if k not in unjudged) or "-",
         )
+    if subframe:
+        det, report["subframe"] = check_subframe(cams, det, mode)
     return cams, det, report
 
 
@@ -403,8 +411,8 @@ def check_from_config(
 ) -> tuple[list[Camera], Detections, dict]:
     """`check_cameras` with the settings of an app's ``input`` node (an
     `adjust.settings.InputConfig` or the node it is read from): ``camera_check`` (error|warn|
-    off), ``exclude_cameras`` (a list of names, or one name), ``max_frame_offset`` and
-    ``max_camera_moves``."""
+    off), ``exclude_cameras`` (a list of names, or one name), ``max_frame_offset``,
+    ``max_camera_moves`` and ``subframe_sync``."""
     ic = InputConfig.from_config(inp)
     mode, exclude = ic.camera_check, list(ic.exclude_cameras)
     return check_cameras(
@@ -414,4 +422,5 @@ def check_from_config(
         exclude,
         max_offset=ic.max_frame_offset,
         max_moves=ic.max_camera_moves,
+        subframe=ic.subframe_sync,
     )

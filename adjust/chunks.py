@@ -77,6 +77,7 @@ from adjust.lsq.solver import RESULT_ARRAYS
 from adjust.moves import apply_moves
 from adjust.session import with_session
 from adjust.settings import required
+from adjust.subframe import resample
 from adjust.summary import report_result, result_summary, track_health
 from adjust.sync import row_offsets, shift_cameras
 from adjust.track_config import DEFAULT_CHUNK_FRAMES, MIN_CHUNK_FRAMES, ChunkConfig, TrackConfig
@@ -216,7 +217,8 @@ class ChunkHooks:
     def check_cameras(self, cameras, det, input_cfg):
         """`adjust.camera_check.check_from_config` on the sample; the chunks drop the cameras
         it excluded, shift those it found out of step (`adjust.sync`), map back those it found
-        moved (`adjust.moves`), and report it."""
+        moved (`adjust.moves`), interpolate those a fraction of a frame out of step
+        (`adjust.subframe`), and report it."""
         if self.model is None:
             return check_from_config(cameras, det, input_cfg)
         cams, det = drop_cameras(cameras, det, self.model.excluded)
@@ -225,6 +227,8 @@ class ChunkHooks:
         shifts.update({n: row_offsets(det, st) for n, st in (sync.get("steps") or {}).items()})
         det = shift_cameras(det, {n: o for n, o in shifts.items() if n in det.cameras})
         det = apply_moves(det, cams, (self.model.camera_report.get("moved") or {}).get("moves"))
+        sub = (self.model.camera_report.get("subframe") or {}).get("offsets") or {}
+        det = resample(det, {n: o for n, o in sub.items() if n in det.cameras})
         a, b = self.keep
         counts = det.observed[a:b].sum(axis=(0, 1))
         self.usable = {c: int(n) for c, n in zip(det.cameras, counts)}

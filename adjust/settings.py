@@ -193,6 +193,7 @@ _INPUT_SETTINGS = {
     "allow_missing_parts": ("bool", None, None),
     "max_frame_offset": ("int", 0, None),
     "max_camera_moves": ("int", 0, None),
+    "subframe_sync": ("bool", None, None),
 }
 
 
@@ -212,6 +213,7 @@ class InputConfig:
     exclude_cameras: tuple[str, ...] = ()
     max_frame_offset: int = 30  # frames a camera may be out of step (adjust.sync; 0: no check)
     max_camera_moves: int = 3  # cameras moved mid-session undone (adjust.moves; 0: no check)
+    subframe_sync: bool = True  # a fraction of a frame out of step: interpolated (adjust.subframe)
 
     @classmethod
     def from_config(cls, node) -> InputConfig:

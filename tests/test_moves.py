@@ -230,9 +230,10 @@ def test_a_move_between_the_sampled_frames_is_placed_among_all(monkeypatch):
     [("real-hand-4cam", None), ("real-fly-3cam", None), ("real-mouse-sleap-4cam", "*.analysis.h5")],
 )
 def test_every_camera_subset_of_the_real_recordings(folder, pattern):
-    """The camera check on every subset of two or more cameras of the real recordings: no
-    move, no offset and no change of lag (a 2-camera pair of the hand once read a 2-frame lag
-    in its first block), and no traceback (a resection of nearly coincident points)."""
+    """The camera check on every subset of two or more cameras of the real recordings: no move, no
+    offset (whole frames or a fraction, `adjust.subframe`) and no change of lag (a 2-camera pair of
+    the hand once read a 2-frame lag in its first block), and no traceback (a resection of nearly
+    coincident points)."""
     root = DATA / folder
     dets = root / "trial_000" if folder == "real-hand-4cam" else root
     cams, det = load_scene(root / "calibration.toml", dets, None, pattern=pattern)
@@ -243,3 +244,4 @@ def test_every_camera_subset_of_the_real_recordings(folder, pattern):
             _, _, rep = check_from_config(sub_cams, sub, {})
             assert rep["moved"]["moves"] == [] and "unresolved" not in rep["moved"], (keep, rep)
             assert rep["sync"]["offsets"] == {} and not rep["sync"].get("steps"), (keep, rep)
+            assert rep["subframe"]["offsets"] == {}, (keep, rep)

@@ -146,3 +146,20 @@ def test_moves_benchmark_tiny_run(tmp_path, one_thread):
     assert checks["mapped_moves_right_camera"] and checks["mapped_within_5pct_of_unmoved"], res
     assert checks["no_move_on_unmoved"] and checks["mapped"] == "3 of 3", checks
     assert all(r["unchecked_all"] > 1.1 * r["unmoved_all"] for r in res["rows"]), res["rows"]
+
+
+def test_subframe_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/subframe.py on 400 frames (3 cameras, the front one half a frame late): the
+    offset found on the late camera, none in step (its checks), and the seen part-frames
+    tracked better checked than unchecked."""
+    sub = _load("subframe")
+    res = sub.main(
+        ["--split", "val", "--frames", "400", "--cameras", "3", "--late", "0.5",
+         "--strides", "1", "--late-cameras", "front", "--no-peer",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "s.json")]
+    )  # fmt: skip
+    checks = res["checks"]
+    assert checks["found_right_camera_within_0.1"] and checks["no_offset_in_step"], res
+    (row,) = res["rows"]
+    assert set(row["found"]) == {"front"}, row
+    assert row["checked_seen"] < row["unchecked_seen"], row
