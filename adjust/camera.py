@@ -1,4 +1,5 @@
-"""Pinhole cameras with OpenCV's 5-coefficient distortion, as pure batched torch functions.
+"""Pinhole cameras with OpenCV's 5-coefficient distortion, or its fisheye model, as pure batched
+torch functions.
 
 The distortion polynomial, its derivative and its inverse live in `adjust.distortion`
 (`undistort_points` is re-exported here); `camera_to_pixels` is the one forward projection
@@ -7,7 +8,8 @@ The distortion polynomial, its derivative and its inverse live in `adjust.distor
 
 Conventions (stated once): world -> camera ``x_cam = R X + t``; pixels with the origin at the
 centre of the top-left pixel (OpenCV's convention); distortion (k1, k2, p1, p2, k3) as in
-OpenCV; 3D in mm, angles in radians. Shapes: C cameras, leading dims ``...`` broadcast.
+OpenCV, or a fisheye camera's (k1, k2, k3, k4, 0) as in ``cv2.fisheye`` (``fisheye``); 3D in
+mm, angles in radians. Shapes: C cameras, leading dims ``...`` broadcast.
 """
 
 from __future__ import annotations
@@ -48,7 +50,8 @@ class Camera:
     """One calibrated camera (numpy, float64).
 
     K: (3, 3) intrinsics; dist: (5,) k1 k2 p1 p2 k3; rvec: (3,) Rodrigues world->camera;
-    tvec: (3,) translation (mm); size: (width, height) px.
+    tvec: (3,) translation (mm); size: (width, height) px; fisheye: OpenCV's fisheye model
+    (``cv2.fisheye``, anipose's ``fisheye = true``), dist then (k1, k2, k3, k4, 0).
     """
 
     name: str
@@ -58,6 +61,7 @@ class Camera:
     tvec: np.ndarray
     size: tuple[int, int] = (0, 0)
     extra: dict = field(default_factory=dict)  # other calibration keys, kept for round trips
+    fisheye: bool = False
 
     def __post_init__(self) -> None:
         for key, shape in (("K", (3, 3)), ("dist", (5,)), ("rvec", (3,)), ("tvec", (3,))):
@@ -70,6 +74,12 @@ class Camera:
                     f"camera '{self.name}': {key} has non-finite values: {arr.tolist()}"
                 )
             object.__setattr__(self, key, arr)
+        object.__setattr__(self, "fisheye", bool(self.fisheye))
+        if self.fisheye and self.dist[4] != 0:
+            raise ValueError(
+                f"camera '{self.name}': a fisheye camera has 4 distortion coefficients (k1 k2 "
+                f"k3 k4), got {self.dist.tolist()}"
+            )
 
     @property
     def R(self) -> np.ndarray:
@@ -95,11 +105,13 @@ class Camera:
         t: np.ndarray,
         dist: np.ndarray | None = None,
         size: tuple[int, int] = (0, 0),
+        fisheye: bool = False,
     ) -> Camera:
         """Camera from K (3, 3), a rotation matrix R (3, 3), t (3,) and optional dist (5,)."""
         R = _check_shape(name, "R", np.asarray(R, dtype=np.float64), (3, 3))
         rvec = matrix_to_rodrigues(torch.as_tensor(R)).numpy()
-        return cls(name, K, np.zeros(5) if dist is None else dist, rvec, t, size)
+        d = np.zeros(5) if dist is None else dist
+        return cls(name, K, d, rvec, t, size, fisheye=fisheye)
 
     @classmethod
     def from_projection_matrix(
@@ -117,13 +129,15 @@ class Camera:
 
 @dataclass(frozen=True)
 class CameraTensors:
-    """C cameras stacked as tensors: K (C, 3, 3), R (C, 3, 3), t (C, 3), dist (C, 5)."""
+    """C cameras stacked as tensors: K (C, 3, 3), R (C, 3, 3), t (C, 3), dist (C, 5), fisheye
+    (C,) bool or None (no fisheye camera)."""
 
     K: Tensor
     R: Tensor
     t: Tensor
     dist: Tensor
     names: tuple[str, ...] = ()
+    fisheye: Tensor | None = None
 
     @classmethod
     def from_cameras(
@@ -143,6 +157,7 @@ class CameraTensors:
             stack("tvec"),
             stack("dist"),
             tuple(c.name for c in cameras),
+            fisheye_mask(cameras, device),
         )
 
     @property
@@ -169,15 +184,28 @@ class CameraTensors:
         return CameraTensors(
             *(x.to(dtype=dtype, device=device) for x in (self.K, self.R, self.t, self.dist)),
             self.names,
+            None if self.fisheye is None else self.fisheye.to(device=device),
         )
 
 
+def fisheye_mask(cameras, device=None) -> Tensor | None:
+    """(C,) bool tensor of the cameras' ``fisheye`` flags, or None where none is one."""
+    flags = [bool(getattr(c, "fisheye", False)) for c in cameras]
+    return torch.tensor(flags, device=device) if any(flags) else None
+
+
 def project_points(
-    X: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor | None = None
+    X: Tensor,
+    K: Tensor,
+    R: Tensor,
+    t: Tensor,
+    dist: Tensor | None = None,
+    fisheye: Tensor | None = None,
 ) -> Tensor:
     """Project world points to pixels.
 
-    X: (..., 3) mm; K: (..., 3, 3); R: (..., 3, 3); t: (..., 3); dist: (..., 5) or None.
+    X: (..., 3) mm; K: (..., 3, 3); R: (..., 3, 3); t: (..., 3); dist: (..., 5) or None;
+    fisheye: None or a bool tensor of dist's leading dims (`adjust.distortion`).
     Leading dims broadcast (e.g. X (T, K, 1, 3) with cameras (C, ...) -> (T, K, C, 2)).
     Returns (..., 2) pixels. Points at or behind the camera give non-finite-free but
     meaningless values; use `depth` to test visibility.
@@ -188,19 +216,25 @@ def project_points(
             f"{tuple(K.shape)}, {tuple(R.shape)}, {tuple(t.shape)}"
         )
     Xc = (R @ X[..., None]).squeeze(-1) + t
-    u, v, _ = camera_to_pixels(Xc, K, dist)
+    u, v, _ = camera_to_pixels(Xc, K, dist, fisheye=fisheye)
     return torch.stack((u, v), -1)
 
 
 def camera_to_pixels(
-    Xc: Tensor, K: Tensor, dist: Tensor | None = None, jacobian: bool = False, skew: bool = True
+    Xc: Tensor,
+    K: Tensor,
+    dist: Tensor | None = None,
+    jacobian: bool = False,
+    skew: bool = True,
+    fisheye: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, tuple[Tensor, ...] | None]:
     """The one forward projection: camera coordinates -> pixels (pinhole, OpenCV distortion
     (`adjust.distortion`), skew), optionally with its analytic derivative.
 
     Xc: (..., 3) mm in camera coordinates; K: (..., 3, 3); dist: (..., 5) or None (no
-    distortion); the leading dims of K and dist broadcast against Xc's (e.g. Xc (T, K, C, 3)
-    with K (C, 3, 3)). Returns u, v (...) px and, with `jacobian`, the six entries
+    distortion); fisheye: None or a bool tensor of dist's leading dims (those cameras use the
+    fisheye model); the leading dims of K and dist broadcast against Xc's (e.g. Xc (T, K, C,
+    3) with K (C, 3, 3)). Returns u, v (...) px and, with `jacobian`, the six entries
     (A00, A01, A02, A10, A11, A12) (...) of d(u, v)/dXc (px/mm), else None. Depths below
     1e-9 mm in magnitude are clamped to 1e-9 (points at or behind the camera give finite but
     meaningless pixels: test visibility with `depth`). ``skew=False`` drops the K[0, 1] terms
@@ -216,7 +250,7 @@ def camera_to_pixels(
     fx, s, cx = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2]
     fy, cy = K[..., 1, 1], K[..., 1, 2]
     if dist is not None:
-        xd, yd, D = distort_components(x, y, dist, jacobian)
+        xd, yd, D = distort_components(x, y, dist, jacobian, fisheye)
     else:
         xd, yd, D = x, y, None
     u = fx * xd + cx
@@ -254,7 +288,7 @@ def depth(X: Tensor, R: Tensor, t: Tensor) -> Tensor:
 
 def project_cameras(X: Tensor, cams: CameraTensors) -> Tensor:
     """Project points into every camera.  X: (..., 3) -> (..., C, 2) pixels."""
-    return project_points(X[..., None, :], cams.K, cams.R, cams.t, cams.dist)
+    return project_points(X[..., None, :], cams.K, cams.R, cams.t, cams.dist, cams.fisheye)
 
 
 def look_at_pose(
@@ -311,7 +345,7 @@ def reprojection_errors(
         )
     if observed is not None and observed.shape != xy.shape[:-1]:
         raise ValueError(f"observed must have shape {tuple(xy.shape[:-1])}, got {observed.shape}")
-    proj = project_points(points[..., None, :], cams.K, cams.R, cams.t, cams.dist)
+    proj = project_points(points[..., None, :], cams.K, cams.R, cams.t, cams.dist, cams.fisheye)
     sq = ((proj - xy) ** 2).sum(-1)
     good = torch.isfinite(sq) if observed is None else observed & torch.isfinite(sq)
     sq = torch.where(good, sq, torch.ones_like(sq))

@@ -163,7 +163,10 @@ def _diagnose(det, cams, active, c, X, err) -> tuple[str, str]:
         level = quiet.level
         quiet.setLevel(logging.ERROR)  # its "large error" warning is expected here
         try:
-            fit = resect(Xs, xs, K=cam.K, dist=cam.dist, name=cam.name, size=cam.size, max_iter=30)
+            fit = resect(
+                Xs, xs, K=cam.K, dist=cam.dist, name=cam.name, size=cam.size, max_iter=30,
+                fisheye=cam.fisheye,
+            )  # fmt: skip
         except ValueError:
             fit = None
         finally:

@@ -271,8 +271,12 @@ def write_nwb(
         dev = CalibratedCamera(
             name=cam.name,
             description=f"calibrated camera, image size {cam.size[0]} x {cam.size[1]} px; "
-            "x_cam = R X + t (mm, X in the frame of the pose series), pinhole with OpenCV "
-            "distortion k1 k2 p1 p2 k3",
+            "x_cam = R X + t (mm, X in the frame of the pose series), "
+            + (
+                "OpenCV's fisheye model (cv2.fisheye), distortion k1 k2 k3 k4 0"
+                if cam.fisheye
+                else "pinhole with OpenCV distortion k1 k2 p1 p2 k3"
+            ),
             intrinsic_matrix=np.asarray(cam.K, dtype=np.float64),
             rotation_matrix=R,
             translation_vector=t,

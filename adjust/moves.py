@@ -219,7 +219,9 @@ def unrotate(xy: np.ndarray, cam: Camera, Q: np.ndarray) -> np.ndarray:
         return out
     n = normalised_points(xy[ok].reshape(-1, 1, 1, 2), [cam])[:, 0, 0]
     ray = torch.as_tensor(homog(n) @ Q.T)
-    u, v, _ = camera_to_pixels(ray, torch.as_tensor(cam.K), torch.as_tensor(cam.dist))
+    u, v, _ = camera_to_pixels(
+        ray, torch.as_tensor(cam.K), torch.as_tensor(cam.dist), fisheye=torch.tensor(cam.fisheye)
+    )
     px = torch.stack((u, v), -1).numpy()
     out[ok] = np.where((ray[:, 2] > 1e-9).numpy()[:, None], px, np.nan)
     return out

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import Camera, decompose_projection_matrix, project_points
+from adjust.camera import Camera, decompose_projection_matrix, project_points, undistort_points
 from adjust.lsq import lm
 from deformnet.so3 import matrix_to_rodrigues, rodrigues_to_matrix
 
@@ -232,6 +232,7 @@ def resect(
     fit_skew: bool = False,
     fit_dist: Sequence[str] = (),
     max_iter: int = 200,
+    fisheye: bool = False,
 ) -> Camera:
     """Resect one camera from N known 3D points and their (distorted) pixel positions.
 
@@ -242,7 +243,9 @@ def resect(
     coplanar); cv2.solvePnP start, LM over r, t (+ ``fit_dist``). ``dist`` (5,) is the known
     (or starting) distortion, default none. Returns a `Camera`; ``extra`` holds ``rms_px``
     (final RMS reprojection error per point) and ``n_points``. Raises ValueError for too few,
-    non-finite or (DLT) coplanar points.
+    non-finite or (DLT) coplanar points. ``fisheye``: the camera is OpenCV's fisheye model with
+    K and ``dist`` (k1 k2 k3 k4) known; its pose is resected from the ideal (undistorted)
+    pixels, the RMS measured in the image's.
     """
     X, x = _as_points(object_points, image_points)
     if X.dim() != 2:
@@ -255,6 +258,21 @@ def resect(
             raise ValueError(f"dist must be <= 5 finite coefficients, got {dist0.tolist()}")
         dist0 = torch.cat((dist0, torch.zeros(5 - dist0.numel(), dtype=torch.float64)))
     n_free = len(_dist_mask(fit_dist))
+    if fisheye:
+        if K is None or n_free:
+            raise ValueError(
+                "a fisheye camera is resected with its intrinsics known (K and dist given, "
+                "fit_dist empty)"
+            )
+        K1 = torch.as_tensor(K, dtype=torch.float64)
+        flag = torch.tensor(True)
+        ideal = undistort_points(x, K1, dist0, pixels=True, fisheye=flag)
+        cam = resect(X, ideal, K1, name=name, size=size, max_iter=max_iter)
+        cam = Camera.from_matrices(name, cam.K, cam.R, cam.tvec, dist0.numpy(), size, True)
+        seen = project_points(X, K1, torch.as_tensor(cam.R), torch.as_tensor(cam.tvec), dist0, flag)
+        rms = float(((seen - x) ** 2).sum(-1).mean().sqrt())
+        cam.extra.update(rms_px=rms, n_points=int(N))
+        return cam
     if K is None:
         n_unknown = 10 + int(fit_skew) + n_free
         if N < 6 or 2 * N < n_unknown:

@@ -121,7 +121,10 @@ def normalised_points(xy: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
         ok = np.isfinite(xy[:, :, c]).all(-1)
         if ok.any():
             n = undistort_points(
-                torch.as_tensor(xy[:, :, c][ok]), torch.as_tensor(cam.K), torch.as_tensor(cam.dist)
+                torch.as_tensor(xy[:, :, c][ok]),
+                torch.as_tensor(cam.K),
+                torch.as_tensor(cam.dist),
+                fisheye=torch.tensor(cam.fisheye),
             )
             out[:, :, c][ok] = n.numpy()
     return out

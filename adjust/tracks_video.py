@@ -24,7 +24,8 @@ __all__ = ["project_points", "tracks_video"]
 # ---------------------------------------------------------------------------------------------
 def project_points(points: np.ndarray, camera) -> np.ndarray:
     """(..., 3) world mm -> (..., 2) px through one `adjust.camera.Camera` (pinhole + OpenCV
-    distortion, cv2.projectPoints); NaN in, NaN out."""
+    distortion, cv2.projectPoints; a fisheye camera's, cv2.fisheye.projectPoints); NaN in, NaN
+    out."""
     X = np.asarray(points, dtype=np.float64)
     flat = X.reshape(-1, 3)
     ok = np.isfinite(flat).all(-1)
@@ -32,9 +33,13 @@ def project_points(points: np.ndarray, camera) -> np.ndarray:
     if ok.any():
         R = np.asarray(camera.R, dtype=np.float64)
         rvec, _ = cv2.Rodrigues(R)
-        p, _ = cv2.projectPoints(
-            flat[ok], rvec, np.asarray(camera.tvec, np.float64), camera.K, camera.dist
-        )
+        tvec = np.asarray(camera.tvec, np.float64)
+        if getattr(camera, "fisheye", False):
+            p, _ = cv2.fisheye.projectPoints(
+                flat[ok][:, None], rvec, tvec, camera.K, camera.dist[:4]
+            )
+        else:
+            p, _ = cv2.projectPoints(flat[ok], rvec, tvec, camera.K, camera.dist)
         uv[ok] = p.reshape(-1, 2)
     return uv.reshape(X.shape[:-1] + (2,))
 

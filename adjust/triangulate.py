@@ -216,8 +216,9 @@ def _triangulate_flat(
     xy0 = torch.where(observed[..., None], xy, pp.expand_as(xy))
     w = torch.where(observed, weight, torch.zeros_like(weight))
     # camera-major (C, N) layout: per-camera constants broadcast along contiguous rows
+    fish = None if cams.fisheye is None else cams.fisheye[:, None]
     xn = undistort_points(
-        xy0.transpose(0, 1), cams.K[:, None], cams.dist[:, None], iters=undistort_iters
+        xy0.transpose(0, 1), cams.K[:, None], cams.dist[:, None], undistort_iters, fisheye=fish
     )
     xnx, xny = xn[..., 0].contiguous(), xn[..., 1].contiguous()  # (C, N)
     f2 = cams.K[:, 0, 0] * cams.K[:, 1, 1]

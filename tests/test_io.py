@@ -86,7 +86,11 @@ def test_calibration_pads_distortions_and_orders_sections(tmp_path):
         (("rotation = [0.1, 0.2, 0.3]\n", ""), ["missing", "rotation"]),
         (("[0.0, 0.0, 1.0]]", "[0.0, 0.0]]"), ["matrix"]),
         (("rotation = [0.1, 0.2, 0.3]", "rotation = [0.1, 0.2]"), ["rotation", "(3,)"]),
-        (("distortions = [-0.1]", "distortions = [-0.1]\nfisheye = true"), ["fisheye"]),
+        (("distortions = [-0.1]", 'distortions = [-0.1]\nfisheye = "yes"'), ["fisheye"]),
+        (
+            ("distortions = [-0.1]", "distortions = [-0.1, 0, 0, 0, 0.1]\nfisheye = true"),
+            ["at most 4"],
+        ),
         (("distortions = [-0.1]", "distortions = [1, 2, 3, 4, 5, 6, 7, 8]"), ["distortions"]),
     ],
 )

@@ -192,6 +192,7 @@ def run(cfg: DictConfig) -> dict:
                 size=size if prior is None or size is not None else prior.size,
                 fit_skew=fit_skew,
                 fit_dist=fit_dist,
+                fisheye=prior is not None and prior.fisheye,
             )
         except ValueError as exc:
             raise InputError(f"{f} (camera '{name}', {len(names)} points): {exc}") from None

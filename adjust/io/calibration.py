@@ -13,8 +13,9 @@ Layout (as aniposelib's ``CameraGroup.dump`` writes it)::
 
 Every top-level table other than ``metadata`` is a camera. Cameras come in the order of their
 section names, ``cam_N`` by number (``cam_2`` before ``cam_10``), other names after them in
-file order. ``fisheye = true`` is refused (only the pinhole model is implemented); other keys of
-a camera section are kept in `Camera.extra` and written back. Floats are written with ``repr``,
+file order. ``fisheye = true`` (aniposelib's ``FisheyeCamera``) is OpenCV's fisheye model, its
+``distortions`` k1 k2 k3 k4 (`adjust.distortion`; `Camera.fisheye`); other keys of a camera
+section are kept in `Camera.extra` and written back. Floats are written with ``repr``,
 so writing then reading gives bit-identical cameras.
 
 Lengths: mousetrack works in mm. A file whose ``[metadata] units`` is ``"cm"`` or ``"m"``
@@ -121,11 +122,9 @@ def _camera(path: Path, section: str, item: dict, unit_mm: float = 1.0) -> Camer
     if not isinstance(name, str | int) or isinstance(name, bool) or str(name) == "":
         raise InputError(f"{path}: {where}: 'name' must be a non-empty string, got {name!r}")
     name = str(name)
-    if item.get("fisheye", False):
-        raise InputError(
-            f"{path}: {where}: fisheye cameras are not supported (only the pinhole model with "
-            "OpenCV's 5 distortion coefficients); recalibrate without fisheye"
-        )
+    fisheye = item.get("fisheye", False)
+    if not isinstance(fisheye, bool):
+        raise InputError(f"{path}: {where}: 'fisheye' must be true or false, got {fisheye!r}")
     K = _array(path, where, "matrix", item["matrix"], (3, 3))
     try:
         dist = np.array(item["distortions"], dtype=np.float64).reshape(-1)
@@ -133,10 +132,12 @@ def _camera(path: Path, section: str, item: dict, unit_mm: float = 1.0) -> Camer
         raise InputError(
             f"{path}: {where}: 'distortions' must be a list of numbers, got {item['distortions']!r}"
         ) from None
-    if dist.size > 5:
+    most = 4 if fisheye else 5
+    if dist.size > most:
         raise InputError(
-            f"{path}: {where}: 'distortions' has {dist.size} entries; at most 5 (k1 k2 p1 p2 k3) "
-            "are supported"
+            f"{path}: {where}: 'distortions' has {dist.size} entries; at most {most} ("
+            + ("k1 k2 k3 k4, OpenCV's fisheye model" if fisheye else "k1 k2 p1 p2 k3")
+            + ") are supported"
         )
     dist = _array(path, where, "distortions", np.pad(dist, (0, 5 - dist.size)), (5,))
     rvec = _array(path, where, "rotation", item["rotation"], (3,))
@@ -147,10 +148,11 @@ def _camera(path: Path, section: str, item: dict, unit_mm: float = 1.0) -> Camer
             f"{path}: {where}: 'size' must be two non-negative integers [width, height], got "
             f"{item['size']!r}"
         )
-    extra = {k: v for k, v in item.items() if k not in _KNOWN}
-    _check_intrinsics(path, where, K, dist, size)
+    extra = {k: v for k, v in item.items() if k not in _KNOWN and k != "fisheye"}
+    _check_intrinsics(path, where, K, dist, size, fisheye)
     try:
-        return Camera(name, K, dist, rvec, tvec, (int(size[0]), int(size[1])), extra)
+        wh = (int(size[0]), int(size[1]))
+        return Camera(name, K, dist, rvec, tvec, wh, extra, fisheye=fisheye)
     except ValueError as exc:  # Camera's own checks
         raise InputError(f"{path}: {where}: {exc}") from None
 
@@ -160,10 +162,13 @@ def _camera(path: Path, section: str, item: dict, unit_mm: float = 1.0) -> Camer
 RADIAL_FACTOR = (0.02, 100.0)
 
 
-def _check_intrinsics(path: Path, where: str, K: np.ndarray, dist: np.ndarray, size) -> None:
+def _check_intrinsics(
+    path: Path, where: str, K: np.ndarray, dist: np.ndarray, size, fisheye: bool = False
+) -> None:
     """Physically impossible intrinsics are an error: focal lengths <= 0, a third row of K
     other than [0, 0, 1], a principal point far outside the image, a distortion that folds the
-    image over or scales the corner radius absurdly (e.g. k1 = 1e6)."""
+    image over or scales the corner radius absurdly (e.g. k1 = 1e6). A fisheye's radius is
+    its angle theta_d(theta) (`adjust.distortion`), checked the same way."""
     if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9) or K[1, 0] != 0:
         raise InputError(
             f"{path}: {where}: 'matrix' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]]; got rows "
@@ -184,6 +189,9 @@ def _check_intrinsics(path: Path, where: str, K: np.ndarray, dist: np.ndarray, s
         inner = min(w, h) / 2 / max(fx, fy)
     else:
         corner = inner = 1.0  # ~ a 90 degree field of view when the image size is unknown
+    if fisheye:
+        _check_fisheye(path, where, dist, corner, inner)
+        return
     k1, k2, p1, p2, k3 = dist
     r = np.linspace(0.0, corner, 201)
     r2 = r * r
@@ -202,6 +210,30 @@ def _check_intrinsics(path: Path, where: str, K: np.ndarray, dist: np.ndarray, s
     if max(abs(p1), abs(p2)) > 0.5:
         raise InputError(
             f"{path}: {where}: tangential distortion p1={p1:g}, p2={p2:g} is absurd (|p| <= 0.5)"
+        )
+
+
+def _check_fisheye(path: Path, where: str, dist: np.ndarray, corner: float, inner: float) -> None:
+    """A fisheye's theta_d = theta (1 + k1 theta^2 + ...) must scale theta within
+    `RADIAL_FACTOR` up to the image corner (its angle: corner = theta_d there) and increase
+    within the inscribed circle."""
+    k1, k2, k3, k4 = dist[:4]
+    th = np.linspace(0.0, np.pi / 2 * 0.999, 2001)
+    t2 = th * th
+    factor = 1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+    thd = th * factor
+    # the image's corner and inscribed circle are distorted radii: theta_d up to them
+    reach = thd <= corner
+    inside = thd <= inner
+    lo, hi = RADIAL_FACTOR
+    folds = np.any(np.diff(thd[inside]) <= 0)
+    f = factor[reach] if reach.any() else factor[:1]
+    if f.min() < lo or f.max() > hi or folds:
+        raise InputError(
+            f"{path}: {where}: fisheye distortion {dist[:4].tolist()} is not a real lens within "
+            f"the image: the factor 1 + k1 t^2 + k2 t^4 + k3 t^6 + k4 t^8 reaches "
+            f"{f.min():.3g} to {f.max():.3g} up to the image corner (theta_d = {corner:.3g}; "
+            f"expected {lo:g} to {hi:g}, theta_d increasing within {inner:.3g})"
         )
 
 
@@ -384,10 +416,12 @@ def _camera_dict(cam: Camera) -> dict:
         "name": cam.name,
         "size": [int(cam.size[0]), int(cam.size[1])],
         "matrix": cam.K.tolist(),
-        "distortions": cam.dist.tolist(),
+        "distortions": (cam.dist[:4] if cam.fisheye else cam.dist).tolist(),
         "rotation": cam.rvec.tolist(),
         "translation": cam.tvec.tolist(),
     }
+    if cam.fisheye:
+        d["fisheye"] = True
     for k, v in cam.extra.items():
         if k in d:
             raise ValueError(f"camera '{cam.name}': extra key '{k}' clashes with a standard key")

@@ -157,13 +157,14 @@ def project_components(
     X: (..., 3) -> u, v, z (..., C) and, if `jacobian`, the six entries (A00, A01, A02, A10, A11,
     A12) of d(u, v)/d(X_cam) (..., C) each, the derivative w.r.t. *camera* coordinates (chain
     with the camera rotation: d(u, v)/dX = A R_c). Skips the distortion terms when no camera
-    has distortion and the skew terms when none has skew. The model is
+    has distortion (nor is a fisheye) and the skew terms when none has skew. The model is
     `adjust.camera.camera_to_pixels`, the one projection.
     """
     Xc = torch.einsum("...j,cij->...ci", X, cams.R) + cams.t  # (..., C, 3)
-    dist = cams.dist if bool((cams.dist != 0).any()) else None
+    fisheye = cams.fisheye
+    dist = cams.dist if fisheye is not None or bool((cams.dist != 0).any()) else None
     skewed = bool((cams.K[:, 0, 1] != 0).any())
-    u, v, A = camera_to_pixels(Xc, cams.K, dist, jacobian, skew=skewed)
+    u, v, A = camera_to_pixels(Xc, cams.K, dist, jacobian, skew=skewed, fisheye=fisheye)
     return u, v, Xc[..., 2], A
 
 

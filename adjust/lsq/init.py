@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from adjust.camera import CameraTensors, project_cameras
+from adjust.camera import CameraTensors, project_cameras, undistort_points
 from adjust.lsq.geometry import so3_exp, so3_log
 from adjust.lsq.memory import release_freed_memory
 from adjust.triangulate import triangulate
@@ -127,6 +127,7 @@ def pnp_poses(
         return {}
     K_ = cams.K.detach().cpu().numpy()
     dist = cams.dist.detach().cpu().numpy()
+    fish = np.zeros(len(dist), bool) if cams.fisheye is None else cams.fisheye.cpu().numpy()
     Rc = cams.R.detach().cpu().numpy()
     tc = cams.t.detach().cpu().numpy()
     out: dict[int, np.ndarray] = {}
@@ -138,11 +139,18 @@ def pnp_poses(
         sel = valid[t, :, c]
         obj = body[sel].astype(np.float64)
         img = xy[t, sel, c].astype(np.float64)
+        dc = dist[c]
+        if fish[c]:  # OpenCV's PnP knows the pinhole model: its ideal pixels, no distortion
+            img = undistort_points(
+                torch.as_tensor(img), cams.K[c].detach().cpu(), cams.dist[c].detach().cpu(),
+                pixels=True, fisheye=torch.tensor(True),
+            ).numpy()  # fmt: skip
+            dc = np.zeros(5)
         try:
-            okp, rvec, tvec = cv2.solvePnP(obj, img, K_[c], dist[c], flags=cv2.SOLVEPNP_EPNP)
+            okp, rvec, tvec = cv2.solvePnP(obj, img, K_[c], dc, flags=cv2.SOLVEPNP_EPNP)
             if okp:
                 okp, rvec, tvec = cv2.solvePnP(
-                    obj, img, K_[c], dist[c], rvec, tvec, True, flags=cv2.SOLVEPNP_ITERATIVE
+                    obj, img, K_[c], dc, rvec, tvec, True, flags=cv2.SOLVEPNP_ITERATIVE
                 )
         except cv2.error:
             continue
@@ -154,7 +162,7 @@ def pnp_poses(
         Xc = obj @ Rp.T + tvec.reshape(3)
         if np.any(Xc[:, 2] <= 0):
             continue
-        proj, _ = cv2.projectPoints(obj, rvec, tvec, K_[c], dist[c])
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, K_[c], dc)
         if np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, -1))) > max_error_px:
             continue
         r = so3_log(torch.as_tensor(R)).numpy()

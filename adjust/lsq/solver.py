@@ -269,7 +269,7 @@ def _adjust_poses(
     w_t = torch.ones((T, K, C), dtype=dt) if weight is None else as_stored(weight, dt)
     if w_t.shape != (T, K, C):
         raise ValueError(f"weight must have shape ({T}, {K}, {C}), got {tuple(w_t.shape)}")
-    cams = CameraTensors(cams.K.to(dt), cams.R.to(dt), cams.t.to(dt), cams.dist.to(dt), cams.names)
+    cams = cams.to(dtype=dt)
     valid = torch.isfinite(xy_t).all(-1) & torch.isfinite(w_t) & (w_t > cfg.min_weight)
     xy0 = MaskedRows(xy_t, valid[..., None], dt)  # xy0[a:b]: one chunk's, made on demand
     base = MaskedRows(w_t, valid, dt)

@@ -35,12 +35,14 @@ def camera_look_at(
     size: Sequence[int] = (1280, 1024),
     dist: Sequence[float] | None = None,
     principal_point: Sequence[float] | None = None,
+    fisheye: bool = False,
 ) -> Camera:
     """A pinhole camera at `position` (mm) looking at `look_at`, image "up" towards `up`.
 
     Camera axes (OpenCV): z along the viewing direction, x to the image right, y down the
     image. `focal_px` is one focal length or (fx, fy); `size` is (width, height) px; the
-    principal point defaults to the image centre ((W-1)/2, (H-1)/2).
+    principal point defaults to the image centre ((W-1)/2, (H-1)/2); `fisheye`: OpenCV's
+    fisheye model, `dist` then k1 k2 k3 k4.
     """
     pos = _vec(position, 3, f"camera '{name}': position")
     target = _vec(look_at, 3, f"camera '{name}': look_at")
@@ -61,7 +63,11 @@ def camera_look_at(
     if d.size > 5:
         raise ValueError(f"camera '{name}': dist has at most 5 coefficients, got {d.size}")
     rvec = matrix_to_rodrigues(torch.as_tensor(R)).numpy()
-    return Camera(name=str(name), K=K, dist=d, rvec=rvec, tvec=t, size=w_h)
+    if not isinstance(fisheye, bool):
+        raise ValueError(f"camera '{name}': fisheye must be true or false, got {fisheye!r}")
+    if fisheye and d.size > 4:
+        raise ValueError(f"camera '{name}': a fisheye's dist has at most 4 coefficients (k1-k4)")
+    return Camera(name=str(name), K=K, dist=d, rvec=rvec, tvec=t, size=w_h, fisheye=fisheye)
 
 
 @dataclass(frozen=True)
@@ -83,12 +89,14 @@ class RigConfig:
         return cls(**d)
 
 
-_CAMERA_KEYS = {"size", "focal_px", "position", "look_at", "up", "dist", "principal_point"}
+_CAMERA_KEYS = {
+    "size", "focal_px", "position", "look_at", "up", "dist", "principal_point", "fisheye"
+}  # fmt: skip
 
 
 def rig_from_config(rig_cfg: Any) -> list[Camera]:
     """Cameras from a rig config: ``{up: [..], cameras: {name: {size, focal_px, position,
-    look_at, up?, dist?, principal_point?}}}`` (see ``conf/rig/default.yaml``)."""
+    look_at, up?, dist?, principal_point?, fisheye?}}}`` (see ``conf/rig/default.yaml``)."""
     rig = to_plain(rig_cfg)
     if not isinstance(rig, Mapping) or not isinstance(rig.get("cameras"), Mapping):
         raise ValueError("rig config needs a 'cameras' mapping {name: {position, look_at, ...}}")
@@ -118,6 +126,7 @@ def rig_from_config(rig_cfg: Any) -> list[Camera]:
                 size=spec["size"],
                 dist=spec.get("dist"),
                 principal_point=spec.get("principal_point"),
+                fisheye=spec.get("fisheye", False),
             )
         )
     return cams
