@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import hydra
@@ -12,7 +13,7 @@ import torch
 
 from adjust.apps.calibrate import run
 from adjust.camera import CameraTensors, project_cameras
-from adjust.io import InputError, load_calibration, write_dlc_csv
+from adjust.io import InputError, load_calibration, save_calibration, write_dlc_csv
 from adjust.scene import default_rig
 from deformnet.paths import CONF_DIR
 
@@ -87,8 +88,6 @@ def test_calibrate_with_known_intrinsics_and_dlc_labels(tmp_path):
     cams = default_rig()
     pts = _box_points()
     p3, folder = _write(tmp_path, pts, cams, drop=("lever_0", "box_0_1"))
-    from adjust.io import save_calibration
-
     save_calibration(tmp_path / "intr.toml", cams)
     # the top camera's labels as a DeepLabCut labels file (one image)
     rows = [ln.split(",") for ln in (folder / "top.csv").read_text().splitlines()[1:]]
@@ -132,3 +131,19 @@ def test_calibrate_refuses(tmp_path, case, message):
         run(_cfg(tmp_path, p3, folder, *extra))
     assert "\n" not in str(exc.value)
     assert not (tmp_path / "out" / "calibration.toml").exists()
+
+
+def test_calibrate_fisheye_cameras_with_known_intrinsics(tmp_path):
+    """Known intrinsics from a fisheye calibration (``fisheye = true``): the poses are resected
+    through the fisheye model and the written calibration keeps it."""
+    d = np.array([0.05, -0.02, 0.004, 0.0, 0.0])
+    cams = [replace(c, dist=d, fisheye=True) for c in default_rig()]
+    p3, folder = _write(tmp_path, _box_points(), cams, noise=0.1)
+    save_calibration(tmp_path / "intr.toml", cams)
+    summary = run(_cfg(tmp_path, p3, folder, f"input.intrinsics={tmp_path / 'intr.toml'}"))
+    got = {c.name: c for c in load_calibration(tmp_path / "out" / "calibration.toml")}
+    for cam in cams:
+        assert got[cam.name].fisheye and np.allclose(got[cam.name].dist, d)
+        rep = summary["cameras"][cam.name]
+        assert rep["rms_px"] < 0.3, rep
+        assert np.linalg.norm(np.array(rep["center_mm"]) - cam.center) < 3.0, rep
