@@ -220,7 +220,16 @@ class ChunkHooks:
         moved (`adjust.moves`), interpolate those a fraction of a frame out of step
         (`adjust.subframe`), and report it."""
         if self.model is None:
-            return check_from_config(cameras, det, input_cfg)
+            cams, det, report = check_from_config(cameras, det, input_cfg)
+            renumbered = (report.get("rates") or {}).get("renumbered") or {}
+            if renumbered:
+                raise InputError(
+                    f"cameras {sorted(renumbered)} were recorded at another frame rate than "
+                    f"the others ({renumbered}); a session tracked in chunks (chunk_frames) is "
+                    "cut by frame number and cannot renumber them: resample their files to the "
+                    "others' rate, or track the session whole (chunk_frames=0)"
+                )
+            return cams, det, report
         cams, det = drop_cameras(cameras, det, self.model.excluded)
         sync = self.model.camera_report.get("sync") or {}
         shifts: dict = {n: o for n, o in (sync.get("offsets") or {}).items()}

@@ -194,6 +194,7 @@ _INPUT_SETTINGS = {
     "max_frame_offset": ("int", 0, None),
     "max_camera_moves": ("int", 0, None),
     "subframe_sync": ("bool", None, None),
+    "rate_check": ("bool", None, None),
 }
 
 
@@ -214,6 +215,7 @@ class InputConfig:
     max_frame_offset: int = 30  # frames a camera may be out of step (adjust.sync; 0: no check)
     max_camera_moves: int = 3  # cameras moved mid-session undone (adjust.moves; 0: no check)
     subframe_sync: bool = True  # a fraction of a frame out of step: interpolated (adjust.subframe)
+    rate_check: bool = True  # a camera at k x (or 1/k of) the others' frame rate (adjust.rates)
 
     @classmethod
     def from_config(cls, node) -> InputConfig:

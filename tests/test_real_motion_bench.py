@@ -163,3 +163,18 @@ def test_subframe_benchmark_tiny_run(tmp_path, one_thread):
     (row,) = res["rows"]
     assert set(row["found"]) == {"front"}, row
     assert row["checked_seen"] < row["unchecked_seen"], row
+
+
+def test_rates_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/rates.py on 400 frames (3 cameras, the front one at twice and at half the
+    others' frame rate): found with the right ratio, tracked as the scene at one rate (its
+    checks), and worse unchecked."""
+    rates = _load("rates")
+    res = rates.main(
+        ["--split", "val", "--frames", "400", "--cameras", "3", "--ratios", "2,-2",
+         "--rate-cameras", "front", "--no-peer",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "r.json")]
+    )  # fmt: skip
+    assert res["checks"]["found_every_camera"], res
+    assert res["checks"]["checked_within_5pct_of_one_rate"], res
+    assert all(r["unchecked_all"] > 1.1 * r["checked_all"] for r in res["rows"]), res["rows"]
