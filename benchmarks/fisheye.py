@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
 import shutil
 import sys
@@ -40,12 +39,10 @@ from real_motion import (  # noqa: E402
     DATA,
     SPLITS,
     Motion,
-    align,
-    evaluate,
+    checked_row,
     input_args,
     input_settings,
-    run_aniposelib,
-    track_row,
+    peer_row,
 )
 
 from adjust.camera import Camera  # noqa: E402
@@ -106,13 +103,6 @@ def read_dlc_folder(scene: Path, rig: list[Camera]) -> dict[str, np.ndarray]:
     return out
 
 
-def tracked(scene: Path, out: Path, tr, threads: str) -> tuple[dict, dict]:
-    """`track_row` of the scene against its truth `tr`, and its summary's camera check."""
-    parts = [str(p) for p in tr["parts"]]
-    r = track_row(scene, out, [threads], tr["points"], tr["nviews"], parts)
-    return r, json.loads((out / "summary.json").read_text())["camera_check"]
-
-
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     input_args(ap, "fisheye", "2,3,4")
@@ -153,15 +143,9 @@ def main(argv: list[str] | None = None) -> dict:
                     shutil.rmtree(pin)
                 shutil.copytree(scene, pin, ignore=shutil.ignore_patterns("aniposelib.npz"))
                 save_calibration(pin / "calibration.toml", [c for c, _ in refits])
-            tr = np.load(scene / "truth.npz")
-            parts = [str(p) for p in tr["parts"]]
-
-            fish, fish_check = tracked(scene, work / "runs" / key / "fisheye", tr, threads)
-            pinr, pin_check = tracked(pin, work / "runs" / key / "pinhole", tr, threads)
-            peer = {}
-            if not args.no_peer:
-                est, eparts, _ = run_aniposelib(scene, 8, DATA.parent / "skeleton.csv")
-                peer = evaluate(align(est, eparts, parts), tr["points"], tr["nviews"])
+            fish, fish_check = checked_row(scene, work / "runs" / key / "fisheye", [threads])
+            pinr, pin_check = checked_row(pin, work / "runs" / key / "pinhole", [threads])
+            peer = {} if args.no_peer else peer_row(scene)
             label = f"{ncams} cams s{seed}"
             rows[label] = {
                 "cameras": ncams, "seed": seed,

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import logging
 import shutil
 import sys
@@ -43,14 +42,12 @@ from real_motion import (  # noqa: E402
     DATA,
     SPLITS,
     Motion,
-    align,
-    evaluate,
+    checked_row,
     film_scene,
     input_args,
     input_settings,
-    run_aniposelib,
+    peer_row,
     scene_key,
-    track_row,
 )
 
 from adjust.io import load_calibration, read_dlc, write_dlc_csv  # noqa: E402
@@ -99,25 +96,14 @@ def main(argv: list[str] | None = None) -> dict:
     degrees = [float(d) for d in args.degrees.split(",") if d.strip()]
     motion = Motion(DATA)
     work = Path(args.work) / motion.tag
-    skeleton = DATA.parent / "skeleton.csv"
     threads = f"threads={args.threads}" if args.threads else "threads=null"
     rows: list[dict] = []
 
     def tracked(scene: Path, name: str, extra=()) -> tuple[dict, dict]:
-        tr = np.load(scene / "truth.npz")
-        parts = [str(p) for p in tr["parts"]]
-        out = work / "runs" / scene.name / name
-        r = track_row(scene, out, [threads, *extra], tr["points"], tr["nviews"], parts)
-        summary = json.loads((out / "summary.json").read_text())
-        return r, summary.get("camera_check") or {}
+        return checked_row(scene, work / "runs" / scene.name / name, [threads, *extra])
 
     def peer(scene: Path) -> dict:
-        if args.no_peer:
-            return {}
-        tr = np.load(scene / "truth.npz")
-        est, eparts, _ = run_aniposelib(scene, 8, skeleton)
-        return evaluate(align(est, eparts, [str(p) for p in tr["parts"]]), tr["points"],
-                        tr["nviews"])  # fmt: skip
+        return {} if args.no_peer else peer_row(scene)
 
     for ncams in cameras:
         for seed in seeds:

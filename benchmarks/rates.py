@@ -8,8 +8,9 @@ frames renumbered to the others').
 Scenes: `real_motion.py`'s 8-part scenes of the test segment (frames 2400-3399; nothing was
 chosen on it; ``--split val`` for the validation one; ``--cameras``, ``--seeds``); each camera
 in turn (two cameras: the second; the first keeps the session's time). Rows: RMSE all and seen
-by >= 2 cameras (mm) of the scene at one rate (2: all cameras at 50 fps; -2: all at 100 fps
-with the slow camera's odd frames emptied, what renumbering can give at best), unchecked,
+by >= 2 cameras (mm) of the scene at one rate, the same detections as renumbering can give at
+best (2: all cameras at 50 fps, the fast camera's even frames; -2: all at 100 fps with the slow
+camera's odd frames emptied), unchecked,
 checked; what the check found (ratio, phase) and the cameras it excluded. aniposelib has no
 such check (it pairs rows by index); its RMSE on the scene at one rate is given for scale.
 
@@ -42,7 +43,7 @@ from real_motion import (  # noqa: E402
     film_scene,
     input_args,
     input_settings,
-    run_aniposelib,
+    peer_row,
     scene_key,
 )
 from tracking import run_track  # noqa: E402
@@ -68,6 +69,18 @@ def faster(base: Path, fast: Path, out: Path, camera: str) -> Path:
     copy_scene(base, out)
     shutil.copy2(fast / "detections" / f"{camera}.csv", out / "detections" / f"{camera}.csv")
     shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
+    return out
+
+
+def decimated(base: Path, fast: Path, out: Path, camera: str) -> Path:
+    """`base` with `camera`'s file the even rows of its file in `fast`, renumbered 0, 1, ...:
+    the same detections at one rate (what renumbering the faster camera can give at best)."""
+    if (out / "truth.npz").exists():
+        return out
+    copy_scene(base, out)
+    t = read_dlc(fast / "detections" / f"{camera}.csv")
+    write_dlc_csv(out / "detections" / f"{camera}.csv", t.parts, t.xy[::2], t.likelihood[::2])
+    shutil.copy2(base / "truth.npz", out / "truth.npz")
     return out
 
 
@@ -129,13 +142,7 @@ def main(argv: list[str] | None = None) -> dict:
         return r, summ.get("camera_check") or {}
 
     def peer(scene: Path) -> float | None:
-        if args.no_peer:
-            return None
-        tr = np.load(scene / "truth.npz")
-        est, eparts, _ = run_aniposelib(scene, 8, DATA.parent / "skeleton.csv")
-        got = evaluate(align(est, eparts, [str(p) for p in tr["parts"]]), tr["points"],
-                       tr["nviews"])  # fmt: skip
-        return got["rmse_all"]
+        return None if args.no_peer else peer_row(scene)["rmse_all"]
 
     for ratio in ratios:
         for ncams in cameras:
@@ -151,7 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
                                if not only or n in only]:  # fmt: skip
                     tag = f"{base.name}_{camera}_ratio{ratio}"
                     if ratio == 2:
-                        ref_scene = base
+                        ref_scene = decimated(base, fast, work / "one_rate" / tag, camera)
                         scene = faster(base, fast, work / "mixed" / tag, camera)
                     else:
                         ref_scene = slower(base, work / "lost" / tag, camera, lost=True)

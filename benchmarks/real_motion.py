@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import logging
 import math
 import os
@@ -389,6 +390,24 @@ def track_row(scene: Path, out: Path, overrides: list[str], truth, nviews, truth
         row["net_parts"] = (d["heldout"] or {}).get("net_parts")
     row["diverged"] = diverged(row)
     return row
+
+
+def checked_row(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dict]:
+    """`track_row` of an 8-part scene against its own truth.npz, and its run's camera check
+    (``summary.json`` ``camera_check``): the input-condition benchmarks' run (`moves.py`,
+    `subframe.py`, `fisheye.py`)."""
+    tr = np.load(scene / "truth.npz")
+    parts = [str(p) for p in tr["parts"]]
+    row = track_row(scene, out, overrides, tr["points"], tr["nviews"], parts)
+    summary = json.loads((out / "summary.json").read_text())
+    return row, summary.get("camera_check") or {}
+
+
+def peer_row(scene: Path) -> dict:
+    """aniposelib on an 8-part scene (`run_aniposelib`, cached), evaluated on its truth.npz."""
+    tr = np.load(scene / "truth.npz")
+    est, eparts, _ = run_aniposelib(scene, 8, DATA.parent / "skeleton.csv")
+    return evaluate(align(est, eparts, [str(p) for p in tr["parts"]]), tr["points"], tr["nviews"])
 
 
 def body_scale(body: dict):

@@ -27,7 +27,6 @@ step; checked no worse than unchecked in the geometric mean of each rate.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import shutil
 import sys
@@ -43,14 +42,12 @@ from real_motion import (  # noqa: E402
     DATA,
     SPLITS,
     Motion,
-    align,
-    evaluate,
+    checked_row,
     film_scene,
     input_args,
     input_settings,
-    run_aniposelib,
+    peer_row,
     scene_key,
-    track_row,
 )
 
 from adjust.io import load_calibration  # noqa: E402
@@ -113,26 +110,16 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error(f"--strides must be positive integers, got {args.strides}")
     motion = Motion(DATA)
     work = Path(args.work) / motion.tag
-    skeleton = DATA.parent / "skeleton.csv"
     threads = f"threads={args.threads}" if args.threads else "threads=null"
     start_frame = SPLITS[args.split]
     rows: list[dict] = []
 
     def tracked(scene: Path, name: str, extra=()) -> tuple[dict, dict]:
-        tr = np.load(scene / "truth.npz")
-        parts = [str(p) for p in tr["parts"]]
-        out = work / "runs" / scene.name / name
-        r = track_row(scene, out, [threads, *extra], tr["points"], tr["nviews"], parts)
-        summary = json.loads((out / "summary.json").read_text())
-        return r, (summary.get("camera_check") or {}).get("subframe") or {}
+        row, check = checked_row(scene, work / "runs" / scene.name / name, [threads, *extra])
+        return row, check.get("subframe") or {}
 
     def peer(scene: Path) -> dict:
-        if args.no_peer:
-            return {}
-        tr = np.load(scene / "truth.npz")
-        est, eparts, _ = run_aniposelib(scene, 8, skeleton)
-        return evaluate(align(est, eparts, [str(p) for p in tr["parts"]]), tr["points"],
-                        tr["nviews"])  # fmt: skip
+        return {} if args.no_peer else peer_row(scene)
 
     for stride in strides:
         frames = args.frames // stride  # the segment's frames (1000), every stride-th
