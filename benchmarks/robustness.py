@@ -260,6 +260,13 @@ def _turn_camera(folder: Path, name: str, degrees: float) -> None:
     write_dlc_csv(p, t.parts, xy, t.likelihood)
 
 
+def _double_rate(rows: list[list[str]]) -> list[list[str]]:
+    """A detection file's rows as a camera at twice the rate films them: each frame twice,
+    numbered 2 f and 2 f + 1."""
+    body = [[str(2 * int(r[0]) + k), *r[1:]] for r in rows[3:] for k in (0, 1)]
+    return rows[:3] + body
+
+
 def _renumber(folder: Path, cam: str, fn: Callable[[int], int]) -> None:
     p = folder / "detections" / f"{cam}.csv"
     rows = _read(p)
@@ -376,6 +383,8 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
     def _(f):
         _renumber(f, "front", lambda i: i + 4)
 
+    rewrite("one camera at twice the others' frame rate", ("front",), _double_rate)
+
     @case("one camera turned 1 deg mid-session (bumped)")
     def _(f):
         _turn_camera(f, "front", 1.0)
@@ -487,9 +496,13 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         extra = dataclasses.replace(cams[0], name="back", tvec=cams[0].tvec + 100.0)
         _save(f, [*cams, extra])
 
-    @case("fisheye calibration")
+    @case("fisheye flag with 5 distortion coefficients")
     def _(f):
         _toml(f, 'name = "top"', 'name = "top"\nfisheye = true')
+
+    @case("fisheye flag on a pinhole camera (4 coefficients)")
+    def _(f):
+        _replace_camera(f, 0, fisheye=True)
 
     @case("calibration is not TOML")
     def _(f):
