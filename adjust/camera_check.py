@@ -25,16 +25,17 @@ For a camera that is off, the likely cause is diagnosed from the others' points:
   (`adjust.resection.resect`) fits it to a few pixels (the calibration's extrinsics are off);
 - else ``detections or intrinsics inconsistent``.
 
-Before that, a camera recorded at a whole multiple or fraction of the others' frame rate has its
-frames renumbered to theirs (`adjust.rates`, ``input.rate_check``; the report's ``rates``), a
-camera out of step in time with the others (its video started a few frames
-early or late) is found from the epipolar geometry and shifted back (`adjust.sync`, up to
-``input.max_frame_offset`` frames; the report's ``sync``), and a camera turned during the
-session (bumped) has its detections after the move mapped back (`adjust.moves`, up to
-``input.max_camera_moves`` moves; the report's ``moved``). After it, a kept camera whose
-exposures fall a fraction of a frame before or after the others' (no common trigger, or a
-clock that drifts) has its detections interpolated in time to their frames
-(`adjust.subframe`, ``input.subframe_sync``; the report's ``subframe``).
+Before that, detections made on scaled or cropped videos are mapped into the calibrated images
+(`adjust.pixels`, ``input.pixel_check``; the report's ``pixels``), a camera recorded at a whole
+multiple or fraction of the others' frame rate has its frames renumbered to theirs
+(`adjust.rates`, ``input.rate_check``; the report's ``rates``), a camera out of step in time
+with the others (its video started a few frames early or late) is found from the epipolar
+geometry and shifted back (`adjust.sync`, up to ``input.max_frame_offset`` frames; the report's
+``sync``), and a camera turned during the session (bumped) has its detections after the move
+mapped back (`adjust.moves`, up to ``input.max_camera_moves`` moves; the report's ``moved``).
+After it, a kept camera whose exposures fall a fraction of a frame before or after the others'
+(no common trigger) has its detections interpolated in time to their
+frames (`adjust.subframe`, ``input.subframe_sync``; the report's ``subframe``).
 
 Modes (``input.camera_check``): ``warn`` (default): a camera that is off is excluded and a
 warning names it with its error and likely cause (one out of step is shifted back); ``error``:
@@ -56,6 +57,7 @@ import torch
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import Detections, InputError
 from adjust.moves import check_moves, rig_px
+from adjust.pixels import check_pixels
 from adjust.rates import check_rates
 from adjust.resection import resect
 from adjust.settings import InputConfig
@@ -281,14 +283,16 @@ def check_cameras(
     max_moves: int = 0,
     subframe: bool = False,
     rates: bool = False,
+    pixels: bool = False,
 ) -> tuple[list[Camera], Detections, dict]:
     """Drop the cameras named in `exclude`, then (mode warn/error) shift back a camera out of
     step by up to `max_offset` frames (`adjust.sync.check_sync`; 0: none), map back up to
     `max_moves` cameras turned mid-session (`adjust.moves.check_moves`; 0: none), test each
     camera against the others (see the module doc) and, with `subframe`, interpolate in time
     a kept camera out of step by a fraction of a frame (`adjust.subframe.check_subframe`);
-    first, with `rates`, renumber a camera at a whole multiple or fraction of the others'
-    frame rate (`adjust.rates.check_rates`).
+    first, with `pixels`, map detections made on scaled or cropped videos into the calibrated
+    images (`adjust.pixels.check_pixels`) and, with `rates`, renumber a camera at a whole
+    multiple or fraction of the others' frame rate (`adjust.rates.check_rates`).
     Returns the kept cameras, their detections (T, K, C', 2) and the report for the summary."""
     if mode not in MODES:
         raise InputError(f"input.camera_check must be one of {list(MODES)}, got {mode!r}")
@@ -307,6 +311,8 @@ def check_cameras(
         raise InputError(f"fewer than 2 cameras left after excluding {exclude}: {names}")
     if mode == "off":
         return cams, det, report
+    if pixels:
+        det, report["pixels"] = check_pixels(cams, det, mode)
     if rates:
         det, report["rates"] = check_rates(cams, det, mode)
     det, report["sync"], report["moved"] = _in_step_and_in_place(
@@ -423,7 +429,7 @@ def check_from_config(
     """`check_cameras` with the settings of an app's ``input`` node (an
     `adjust.settings.InputConfig` or the node it is read from): ``camera_check`` (error|warn|
     off), ``exclude_cameras`` (a list of names, or one name), ``max_frame_offset``,
-    ``max_camera_moves``, ``subframe_sync`` and ``rate_check``."""
+    ``max_camera_moves``, ``subframe_sync``, ``rate_check`` and ``pixel_check``."""
     ic = InputConfig.from_config(inp)
     mode, exclude = ic.camera_check, list(ic.exclude_cameras)
     return check_cameras(
@@ -435,4 +441,5 @@ def check_from_config(
         max_moves=ic.max_camera_moves,
         subframe=ic.subframe_sync,
         rates=ic.rate_check,
+        pixels=ic.pixel_check,
     )

@@ -75,6 +75,7 @@ from adjust.io import InputError, load_calibration, load_detections, match_files
 from adjust.io.scene import MIN_CAMERAS
 from adjust.lsq.solver import RESULT_ARRAYS
 from adjust.moves import apply_moves
+from adjust.pixels import apply as apply_pixel_maps
 from adjust.session import with_session
 from adjust.settings import required
 from adjust.subframe import resample
@@ -216,8 +217,9 @@ class ChunkHooks:
 
     def check_cameras(self, cameras, det, input_cfg):
         """`adjust.camera_check.check_from_config` on the sample; the chunks drop the cameras
-        it excluded, shift those it found out of step (`adjust.sync`), map back those it found
-        moved (`adjust.moves`), interpolate those a fraction of a frame out of step
+        it excluded, map those whose detections were on scaled or cropped videos
+        (`adjust.pixels`), shift those it found out of step (`adjust.sync`), map back those it
+        found moved (`adjust.moves`), interpolate those a fraction of a frame out of step
         (`adjust.subframe`), and report it."""
         if self.model is None:
             cams, det, report = check_from_config(cameras, det, input_cfg)
@@ -231,6 +233,10 @@ class ChunkHooks:
                 )
             return cams, det, report
         cams, det = drop_cameras(cameras, det, self.model.excluded)
+        mapped = (self.model.camera_report.get("pixels") or {}).get("mapped") or {}
+        det = apply_pixel_maps(
+            det, {n: (m["scale"], m["offset"]) for n, m in mapped.items() if n in det.cameras}
+        )
         sync = self.model.camera_report.get("sync") or {}
         shifts: dict = {n: o for n, o in (sync.get("offsets") or {}).items()}
         shifts.update({n: row_offsets(det, st) for n, st in (sync.get("steps") or {}).items()})

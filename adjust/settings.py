@@ -195,6 +195,7 @@ _INPUT_SETTINGS = {
     "max_camera_moves": ("int", 0, None),
     "subframe_sync": ("bool", None, None),
     "rate_check": ("bool", None, None),
+    "pixel_check": ("bool", None, None),
 }
 
 
@@ -216,6 +217,7 @@ class InputConfig:
     max_camera_moves: int = 3  # cameras moved mid-session undone (adjust.moves; 0: no check)
     subframe_sync: bool = True  # a fraction of a frame out of step: interpolated (adjust.subframe)
     rate_check: bool = True  # a camera at k x (or 1/k of) the others' frame rate (adjust.rates)
+    pixel_check: bool = True  # detections on scaled or cropped videos (adjust.pixels)
 
     @classmethod
     def from_config(cls, node) -> InputConfig:

@@ -178,3 +178,17 @@ def test_rates_benchmark_tiny_run(tmp_path, one_thread):
     assert res["checks"]["found_every_camera"], res
     assert res["checks"]["checked_within_5pct_of_one_rate"], res
     assert all(r["unchecked_all"] > 1.1 * r["checked_all"] for r in res["rows"]), res["rows"]
+
+
+def test_pixels_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/pixels.py on 300 frames (3 cameras: every video downsampled 2x, each camera
+    cropped in turn): the spoilt cameras mapped, none other, tracked as calibrated (its
+    checks); unchecked worse."""
+    px = _load("pixels")
+    res = px.main(
+        ["--split", "val", "--frames", "300", "--cameras", "3", "--no-peer",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "p.json")]
+    )  # fmt: skip
+    assert res["checks"]["mapped_the_spoilt_cameras"], res
+    assert res["checks"]["checked_within_5pct_of_calibrated"], res
+    assert all(r["unchecked_all"] > 1.2 * r["checked_all"] for r in res["rows"].values()), res

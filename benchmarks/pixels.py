@@ -1,0 +1,136 @@
+"""Detections on videos other than the calibrated ones: the real-motion scenes with every
+camera's video downsampled (``--factor``, 2: the pose estimator ran on half-size videos) or one
+camera's video cropped (``--crop``, at (200, 150) px: DeepLabCut's ``cropping``), the
+calibration as it was; tracked with the pixel frames not looked for (``input.pixel_check=false``,
+what adjust-track did before stop 58) and with the default check (`adjust.pixels`: the map
+fitted to the epipolar geometry, the detections mapped back).
+
+Scenes: `real_motion.py`'s 8-part scenes of the test segment (frames 2400-3399; nothing was
+chosen on it; ``--split val`` for the validation one; ``--cameras``, ``--seeds``); downsampled
+as a resize does (pixel centres: u = (x + 0.5) / f - 0.5); each camera cropped in turn (two
+cameras: the second; the first keeps its frame). Rows: RMSE all and seen by >= 2 cameras (mm)
+as calibrated, unchecked, checked; the map found; the cameras excluded. aniposelib has no such
+check; its RMSE as calibrated is given for scale.
+
+Checks: every spoilt camera mapped, none other; checked within 5% of the scene as calibrated.
+
+    .venv/bin/python benchmarks/pixels.py [--split test] [--cameras 2,3,4] [--seeds 0] \\
+        [--factor 2] [--crop 200,150] [--no-peer] [--work DIR] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import emit, print_table, start  # noqa: E402
+from real_motion import (  # noqa: E402
+    DATA,
+    SPLITS,
+    Motion,
+    checked_row,
+    film_scene,
+    input_args,
+    input_settings,
+    peer_row,
+    scene_key,
+)
+
+from adjust.io import load_calibration, read_dlc, write_dlc_csv  # noqa: E402
+
+log = logging.getLogger("benchmarks.pixels")
+
+SAME = 1.05  #: checked must track within this factor of the scene as calibrated
+
+
+def spoilt(base: Path, out: Path, edits: dict) -> Path:
+    """A copy of `base` with each camera's detections u -> edits[camera](u) (cached)."""
+    if (out / "truth.npz").exists():
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
+    for cam, fn in edits.items():
+        t = read_dlc(base / "detections" / f"{cam}.csv")
+        write_dlc_csv(out / "detections" / f"{cam}.csv", t.parts, fn(t.xy), t.likelihood)
+    shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    input_args(ap, "pixels", "2,3,4")
+    ap.add_argument("--factor", type=float, default=2.0, help="every video downsampled by")
+    ap.add_argument("--crop", default="200,150", help="one camera's crop origin x,y (px)")
+    ap.add_argument("--split", default="test", choices=tuple(SPLITS), help="the segment")
+    ap.add_argument("--no-peer", action="store_true", help="without aniposelib")
+    args = start(ap, argv)
+    cameras, seeds = input_settings(ap, args)
+    crop = np.array([float(v) for v in args.crop.split(",")])
+    if crop.shape != (2,) or args.factor <= 0:
+        ap.error(f"--crop must be x,y and --factor > 0, got {args.crop}, {args.factor}")
+    motion = Motion(DATA)
+    work = Path(args.work) / motion.tag
+    threads = f"threads={args.threads}" if args.threads else "threads=null"
+    start_frame = SPLITS[args.split]
+    f = args.factor
+    rows: dict[str, dict] = {}
+    for ncams in cameras:
+        for seed in seeds:
+            key = scene_key(args.split, start_frame, args.frames, ncams, 8, seed)
+            base = film_scene(work / "scenes" / key, motion, start_frame, args.frames, ncams, 8,
+                              seed)  # fmt: skip
+            ref, _ = checked_row(base, work / "runs" / key / "as_calibrated", [threads])
+            peer = None if args.no_peer else peer_row(base)["rmse_all"]
+            names = [c.name for c in load_calibration(base / "calibration.toml")]
+            cases = {f"downsampled {f:g}x": {n: (lambda xy: (xy + 0.5) / f - 0.5) for n in names}}
+            for cam in names[1:] if ncams == 2 else names:
+                cases[f"{cam} cropped"] = {cam: (lambda xy: xy - crop)}
+            for case, edits in cases.items():
+                tag = f"{key}_{case.replace(' ', '_')}"
+                scene = spoilt(base, work / "spoilt" / tag, edits)
+                blind, blind_check = checked_row(scene, work / "runs" / tag / "unchecked",
+                                                 [threads, "input.pixel_check=false"])  # fmt: skip
+                fixed, check = checked_row(scene, work / "runs" / tag / "checked", [threads])
+                mapped = (check.get("pixels") or {}).get("mapped") or {}
+                rows[f"{ncams} cams s{seed} {case}"] = {
+                    "cameras": ncams, "seed": seed, "case": case, "spoilt": sorted(edits),
+                    "calibrated_all": ref["rmse_all"], "calibrated_seen": ref["rmse_seen2"],
+                    "unchecked_all": blind["rmse_all"], "unchecked_seen": blind["rmse_seen2"],
+                    "checked_all": fixed["rmse_all"], "checked_seen": fixed["rmse_seen2"],
+                    "mapped": {n: [m["scale"], m["offset"]] for n, m in mapped.items()},
+                    "excluded_unchecked": sorted(blind_check.get("excluded") or {}),
+                    "excluded_checked": sorted(check.get("excluded") or {}),
+                    "peer_calibrated_all": peer,
+                }  # fmt: skip
+                log.info("%s: %s", tag, rows[f"{ncams} cams s{seed} {case}"])
+    cols = [("calibrated_all", "calibrated"), ("unchecked_all", "unchecked"),
+            ("checked_all", "checked"), ("peer_calibrated_all", "anip. calib."),
+            ("calibrated_seen", "seen calib."), ("unchecked_seen", "seen unch."),
+            ("checked_seen", "seen chk.")]  # fmt: skip
+    print(f"\nRMSE all / seen by >= 2 cameras (mm), {args.split} segment, pixel frames spoilt:")
+    print_table(rows, cols, 11)
+    print("\nmapped (camera: scale, offset); excluded unchecked / checked:")
+    for label, r in rows.items():
+        print(f"  {label}: {r['mapped'] or 'none'}; {r['excluded_unchecked']} / "
+              f"{r['excluded_checked']}")  # fmt: skip
+    checks = {
+        "mapped_the_spoilt_cameras": all(sorted(r["mapped"]) == r["spoilt"] for r in rows.values()),
+        "checked_within_5pct_of_calibrated": all(
+            r["checked_all"] <= SAME * r["calibrated_all"] for r in rows.values()
+        ),
+    }
+    print(f"\nchecks: {checks}")
+    return emit({"split": args.split, "seeds": seeds, "factor": f, "crop": crop.tolist(),
+                 "rows": rows, "checks": checks}, args.out)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
