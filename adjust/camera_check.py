@@ -405,7 +405,16 @@ def check_cameras(
     report["cameras_used"] = kept
     loo_px = report["leave_one_out_px"]
     unjudged = [k for k, v in loo_px.items() if not np.isfinite(v)]
-    if not excluded and loo_px and not unjudged:
+    if not excluded and loo_px and not unjudged and max(loo_px.values()) > min_px:
+        log.warning(
+            "camera check: no camera agrees with the others to within %.0f px (leave-one-out "
+            "median %s px): a calibration that does not belong to these detections? (videos "
+            "downsampled or cropped before the pose estimator are looked for: "
+            "input.pixel_check)",
+            min_px,
+            ", ".join(f"{k} {v:.1f}" for k, v in loo_px.items()),
+        )
+    elif not excluded and loo_px and not unjudged:
         log.info(
             "camera check: all %d cameras agree (leave-one-out median %s px)",
             len(kept),
