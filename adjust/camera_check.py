@@ -58,7 +58,7 @@ from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.io import Detections, InputError
 from adjust.moves import check_moves, rig_px
 from adjust.pixels import check_pixels
-from adjust.rates import check_rates
+from adjust.rates import check_rates, pair_medians
 from adjust.resection import resect
 from adjust.settings import InputConfig
 from adjust.subframe import check_subframe
@@ -321,6 +321,20 @@ def check_cameras(
     report.update(min_px=min_px, ratio=ratio, leave_one_out_px={}, others_px={})
     active = list(range(len(cams)))
     excluded: list[str] = []
+    if len(cams) == 2:  # no camera to outvote the other: say how far apart they are
+        px = float(pair_medians(cams, det)[0, 1])
+        report["pair_px"] = px
+        if px > min_px:
+            log.warning(
+                "camera check: cameras '%s' and '%s' disagree: their detections lie %.1f px "
+                "(median) from each other's epipolar lines (more than %.0f px; with two "
+                "cameras neither can be excluded): a calibration that does not belong to these "
+                "detections, or videos downsampled or cropped (input.pixel_check)?",
+                cams[0].name,
+                cams[1].name,
+                px,
+                min_px,
+            )
     while len(active) >= 3:
         loo, rest, npts, pts = {}, {}, {}, {}
         for c in active:

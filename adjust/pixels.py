@@ -132,6 +132,11 @@ def fit_camera(cameras: Sequence[Camera], det: Detections, c: int, refs: Sequenc
     return s, (dx, dy)
 
 
+def _resized(s: float):
+    """The map of a video resized by 1 / s (pixel centres: x = s u + (s - 1) / 2)."""
+    return s, ((s - 1) / 2, (s - 1) / 2)
+
+
 def _without(med: np.ndarray, o: int, c: int) -> float:
     """Camera o's median over its pairs' medians, camera c's pair left out (inf where none)."""
     v = np.array([med[o, q] for q in range(len(med)) if q not in (o, c)])
@@ -175,7 +180,7 @@ def check_pixels(
 
     best, best_px = maps, before
     for s in SCALES:  # a downsampled rig: every camera alike
-        trial = {n: (s, ((s - 1) / 2, (s - 1) / 2)) for n in names}
+        trial = {n: _resized(s) for n in names}
         px = score(trial)
         if np.nanmedian(px) * BETTER <= np.nanmedian(best_px):
             best, best_px = trial, px
@@ -202,7 +207,7 @@ def check_pixels(
             maps = trial
     for c in range(C):  # a video edit: a resize by a plain ratio, or a crop (snapped, refitted)
         m = maps[names[c]]
-        if m == identity:
+        if m == identity or m == _resized(m[0]):  # the rig's resize: a plain ratio already
             continue
         nice = min((1.0, *SCALES), key=lambda v: abs(m[0] / v - 1))
         fit = None

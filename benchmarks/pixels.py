@@ -12,7 +12,9 @@ cameras: the second; the first keeps its frame). Rows: RMSE all and seen by >= 2
 as calibrated, unchecked, checked; the map found; the cameras excluded. aniposelib has no such
 check; its RMSE as calibrated is given for scale.
 
-Checks: every spoilt camera mapped, none other; checked within 5% of the scene as calibrated.
+Checks: every spoilt camera mapped, none other; checked within 5% of the scene as calibrated. A
+run adjust-track refuses (its health check: the tracks cannot be trusted, a non-zero exit) is
+recorded as refused, its scores NaN.
 
     .venv/bin/python benchmarks/pixels.py [--split test] [--cameras 2,3,4] [--seeds 0] \\
         [--factor 2] [--crop 200,150] [--no-peer] [--work DIR] [--out FILE]
@@ -64,6 +66,17 @@ def spoilt(base: Path, out: Path, edits: dict) -> Path:
     return out
 
 
+def attempt(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dict]:
+    """`checked_row`, or NaN scores and the reason where adjust-track refuses the scene (its
+    tracks cannot be trusted: a non-zero exit, not a wrong result)."""
+    try:
+        return checked_row(scene, out, overrides)
+    except Exception as exc:  # noqa: BLE001 - recorded in the row
+        why = f"{type(exc).__name__}: {str(exc).splitlines()[0][:300]}"
+        log.warning("%s refused: %s", scene.name, why)
+        return {"rmse_all": float("nan"), "rmse_seen2": float("nan"), "refused": why}, {}
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     input_args(ap, "pixels", "2,3,4")
@@ -96,9 +109,9 @@ def main(argv: list[str] | None = None) -> dict:
             for case, edits in cases.items():
                 tag = f"{key}_{case.replace(' ', '_')}"
                 scene = spoilt(base, work / "spoilt" / tag, edits)
-                blind, blind_check = checked_row(scene, work / "runs" / tag / "unchecked",
-                                                 [threads, "input.pixel_check=false"])  # fmt: skip
-                fixed, check = checked_row(scene, work / "runs" / tag / "checked", [threads])
+                blind, blind_check = attempt(scene, work / "runs" / tag / "unchecked",
+                                             [threads, "input.pixel_check=false"])  # fmt: skip
+                fixed, check = attempt(scene, work / "runs" / tag / "checked", [threads])
                 mapped = (check.get("pixels") or {}).get("mapped") or {}
                 rows[f"{ncams} cams s{seed} {case}"] = {
                     "cameras": ncams, "seed": seed, "case": case, "spoilt": sorted(edits),
@@ -109,6 +122,8 @@ def main(argv: list[str] | None = None) -> dict:
                     "excluded_unchecked": sorted(blind_check.get("excluded") or {}),
                     "excluded_checked": sorted(check.get("excluded") or {}),
                     "peer_calibrated_all": peer,
+                    "refused_unchecked": blind.get("refused"),
+                    "refused_checked": fixed.get("refused"),
                 }  # fmt: skip
                 log.info("%s: %s", tag, rows[f"{ncams} cams s{seed} {case}"])
     cols = [("calibrated_all", "calibrated"), ("unchecked_all", "unchecked"),
@@ -117,15 +132,17 @@ def main(argv: list[str] | None = None) -> dict:
             ("checked_seen", "seen chk.")]  # fmt: skip
     print(f"\nRMSE all / seen by >= 2 cameras (mm), {args.split} segment, pixel frames spoilt:")
     print_table(rows, cols, 11)
-    print("\nmapped (camera: scale, offset); excluded unchecked / checked:")
+    print("\nmapped (camera: scale, offset); excluded unchecked / checked; refused:")
     for label, r in rows.items():
         print(f"  {label}: {r['mapped'] or 'none'}; {r['excluded_unchecked']} / "
-              f"{r['excluded_checked']}")  # fmt: skip
+              f"{r['excluded_checked']}; {r['refused_unchecked'] or '-'} / "
+              f"{r['refused_checked'] or '-'}")  # fmt: skip
     checks = {
         "mapped_the_spoilt_cameras": all(sorted(r["mapped"]) == r["spoilt"] for r in rows.values()),
         "checked_within_5pct_of_calibrated": all(
             r["checked_all"] <= SAME * r["calibrated_all"] for r in rows.values()
         ),
+        "refused": sum(bool(r["refused_checked"]) for r in rows.values()),
     }
     print(f"\nchecks: {checks}")
     return emit({"split": args.split, "seeds": seeds, "factor": f, "crop": crop.tolist(),
