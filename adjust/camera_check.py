@@ -321,19 +321,17 @@ def check_cameras(
     report.update(min_px=min_px, ratio=ratio, leave_one_out_px={}, others_px={})
     active = list(range(len(cams)))
     excluded: list[str] = []
-    if len(cams) == 2:  # no camera to outvote the other: say how far apart they are
+    if len(cams) == 2:  # no camera to outvote the other: one beyond min_px leaves one camera
         px = float(pair_medians(cams, det)[0, 1])
         report["pair_px"] = px
         if px > min_px:
-            log.warning(
-                "camera check: cameras '%s' and '%s' disagree: their detections lie %.1f px "
-                "(median) from each other's epipolar lines (more than %.0f px; with two "
-                "cameras neither can be excluded): a calibration that does not belong to these "
-                "detections, or videos downsampled or cropped (input.pixel_check)?",
-                cams[0].name,
-                cams[1].name,
-                px,
-                min_px,
+            raise InputError(
+                f"cameras '{cams[0].name}' ({det.files[0]}) and '{cams[1].name}' "
+                f"({det.files[1]}) disagree: their detections lie {px:.1f} px (median) from "
+                f"each other's epipolar lines (more than {min_px:.0f} px), and with two "
+                "cameras neither can be excluded: a calibration that does not belong to these "
+                "detections, or videos cropped in a way the pixel check cannot tell? Fix the "
+                "calibration or the files (input.camera_check=off tracks them anyway)"
             )
     while len(active) >= 3:
         loo, rest, npts, pts = {}, {}, {}, {}

@@ -241,6 +241,12 @@ def test_every_camera_subset_of_the_real_recordings(folder, pattern):
     for k in range(2, len(names) + 1):
         for keep in itertools.combinations(names, k):
             sub_cams, sub = drop_cameras(cams, det, [n for n in names if n not in keep])
+            if folder == "real-mouse-sleap-4cam" and keep in (("back", "side"), ("mid", "side")):
+                # the SLEAP mouse's `side` has a wrong pose (its `top` shares it): two cameras
+                # that disagree by 39-61 px, neither to be excluded, are an error naming both
+                with pytest.raises(InputError, match="disagree"):
+                    check_from_config(sub_cams, sub, {})
+                continue
             _, _, rep = check_from_config(sub_cams, sub, {})
             assert rep["moved"]["moves"] == [] and "unresolved" not in rep["moved"], (keep, rep)
             assert rep["sync"]["offsets"] == {} and not rep["sync"].get("steps"), (keep, rep)
