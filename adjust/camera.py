@@ -190,7 +190,7 @@ class CameraTensors:
 
 def fisheye_mask(cameras, device=None) -> Tensor | None:
     """(C,) bool tensor of the cameras' ``fisheye`` flags, or None where none is one."""
-    flags = [bool(getattr(c, "fisheye", False)) for c in cameras]
+    flags = [bool(c.fisheye) for c in cameras]
     return torch.tensor(flags, device=device) if any(flags) else None
 
 

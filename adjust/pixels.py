@@ -37,12 +37,11 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
-import torch
 
-from adjust.camera import Camera, undistort_points
+from adjust.camera import Camera
 from adjust.io import Detections, InputError
-from adjust.rates import _camera_px, pair_medians
-from adjust.sync import essential
+from adjust.rates import camera_px, pair_medians
+from adjust.sync import essential, normalised_points
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +68,9 @@ def apply(det: Detections, maps: dict) -> Detections:
 
 
 def _ideal(xy: np.ndarray, cam: Camera) -> np.ndarray:
-    """Ideal (undistorted) pixels of xy (..., 2) in `cam` (NaN stays NaN)."""
-    ok = np.isfinite(xy).all(-1)
-    out = np.full(xy.shape, np.nan)
-    if ok.any():
-        out[ok] = undistort_points(
-            torch.as_tensor(xy[ok]), torch.as_tensor(cam.K), torch.as_tensor(cam.dist),
-            pixels=True, fisheye=torch.tensor(cam.fisheye),
-        ).numpy()  # fmt: skip
-    return out
+    """Ideal (undistorted) pixels of xy (N, K, 2) in `cam` (NaN stays NaN)."""
+    n = normalised_points(xy[:, :, None], [cam])[:, :, 0]
+    return n @ cam.K[:2, :2].T + cam.K[:2, 2]
 
 
 def fit_camera(cameras: Sequence[Camera], det: Detections, c: int, refs: Sequence[int], scale=None):
@@ -167,7 +160,7 @@ def check_pixels(
         rows = np.linspace(0, det.num_frames - 1, MAX_ROWS).astype(np.int64)
     sub = dataclasses.replace(det, xy=det.xy[rows], likelihood=det.likelihood[rows], frames=None)
     base = pair_medians(cameras, sub)
-    before = np.array([_camera_px(base, c) for c in range(C)])
+    before = np.array([camera_px(base, c) for c in range(C)])
     if not np.isfinite(before).any() or np.nanmax(before) <= PLAUSIBLE_PX:
         return det, report
     names = [cam.name for cam in cameras]
@@ -176,7 +169,7 @@ def check_pixels(
 
     def score(m: dict) -> np.ndarray:
         med = pair_medians(cameras, apply(sub, {n: v for n, v in m.items() if v != identity}))
-        return np.array([_camera_px(med, c) for c in range(C)])
+        return np.array([camera_px(med, c) for c in range(C)])
 
     best, best_px = maps, before
     for s in SCALES:  # a downsampled rig: every camera alike
@@ -228,7 +221,7 @@ def check_pixels(
             maps[names[c]] = fit
     after = score(maps)
     for c in range(C):
-        rest = np.delete(np.delete(pair_medians(cameras, sub), c, 0), c, 1)
+        rest = np.delete(np.delete(base, c, 0), c, 1)
         rest_px = float(np.nanmedian(rest)) if np.isfinite(rest).any() else float("nan")
         plausible = max(PLAUSIBLE_PX, 2 * rest_px) if np.isfinite(rest_px) else PLAUSIBLE_PX
         m = maps[names[c]]

@@ -125,7 +125,7 @@ def pair_medians(cameras: Sequence[Camera], det: Detections) -> np.ndarray:
     return out
 
 
-def _camera_px(m: np.ndarray, c: int) -> float:
+def camera_px(m: np.ndarray, c: int) -> float:
     """Camera c's median over its pairs' medians (NaN where none counts)."""
     v = np.delete(m[c], c)
     v = v[np.isfinite(v)]
@@ -152,13 +152,13 @@ def check_rates(
         if k is None:
             continue
         base = pair_medians(cameras, det)
-        before = _camera_px(base, c)
+        before = camera_px(base, c)
         rest = np.delete(np.delete(base, c, 0), c, 1)
         rest_px = float(np.nanmedian(rest)) if np.isfinite(rest).any() else float("nan")
         best = None
         for p in range(abs(k)):
             cand = renumber(det, c, k, p)
-            px = _camera_px(pair_medians(cameras, cand), c)
+            px = camera_px(pair_medians(cameras, cand), c)
             if np.isfinite(px) and (best is None or px < best[1]):
                 best = (p, px, cand)
         if best is None:

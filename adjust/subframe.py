@@ -46,12 +46,13 @@ import numpy as np
 from adjust.camera import Camera
 from adjust.io import Detections, InputError
 from adjust.sync import (
-    _rows_at,
+    block_rows,
     epipolar_lines,
     essential,
     frame_numbers,
     homog,
     normalised_points,
+    rows_at,
 )
 
 log = logging.getLogger(__name__)
@@ -162,13 +163,9 @@ def measure(cameras: Sequence[Camera], det: Detections) -> dict | None:
     C = len(cameras)
     if frames is None or C < 2:
         return None
-    T = det.num_frames
-    rows = np.arange(T)
-    if T > MAX_ROWS:  # blocks of consecutive rows spread over the session
-        starts = np.linspace(0, T - BLOCK_ROWS, MAX_ROWS // BLOCK_ROWS).astype(np.int64)
-        rows = np.unique((starts[:, None] + np.arange(BLOCK_ROWS)[None]).ravel())
+    rows = block_rows(det.num_frames, MAX_ROWS, BLOCK_ROWS)
     order = np.argsort(frames, kind="stable")
-    nb = [_rows_at(frames, frames[rows] + s, order) for s in (-2, -1, 1, 2)]
+    nb = [rows_at(frames, frames[rows] + s, order) for s in (-2, -1, 1, 2)]
     need = np.unique(np.concatenate([rows, *[r[r >= 0] for r in nb]]))
     x = np.full(det.xy.shape, np.nan)
     x[need] = normalised_points(det.xy[need], cameras)
@@ -239,13 +236,13 @@ def resample(det: Detections, offsets: dict[str, float]) -> Detections:
         src, srcl = det.xy[:, :, c], det.likelihood[:, :, c]
         spike = spikes(
             src,
-            _rows(src, _rows_at(frames, frames - 1, order), np.nan),
-            _rows(src, _rows_at(frames, frames + 1, order), np.nan),
+            _rows(src, rows_at(frames, frames - 1, order), np.nan),
+            _rows(src, rows_at(frames, frames + 1, order), np.nan),
         )
         p = frames + o
         i = np.floor(p).astype(np.int64)
         s = (p - i)[:, None]
-        r1, r2 = _rows_at(frames, i, order), _rows_at(frames, i + 1, order)
+        r1, r2 = rows_at(frames, i, order), rows_at(frames, i + 1, order)
         p1, p2 = _rows(src, r1, np.nan), _rows(src, r2, np.nan)
         l1, l2 = _rows(srcl, r1, 0.0), _rows(srcl, r2, 0.0)
         s1, s2 = _rows(spike, r1, False), _rows(spike, r2, False)

@@ -66,7 +66,16 @@ def frame_numbers(det: Detections) -> np.ndarray | None:
     return frames.astype(np.int64)
 
 
-def _rows_at(frames: np.ndarray, target: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
+def block_rows(T: int, most: int, block: int) -> np.ndarray:
+    """Rows 0..T-1, or, for T > `most`, blocks of `block` consecutive rows spread evenly over
+    them (`most` rows in all): consecutive rows keep each frame's neighbours at hand."""
+    if T <= most:
+        return np.arange(T)
+    starts = np.linspace(0, T - block, most // block).astype(np.int64)
+    return np.unique((starts[:, None] + np.arange(block)[None]).ravel())
+
+
+def rows_at(frames: np.ndarray, target: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
     """Row of each target frame number in ``frames``, -1 where absent (``order``: frames'
     argsort, when the caller has it)."""
     if order is None:
@@ -143,14 +152,11 @@ def lag_curves(
     curves = np.full((C, C, lags.size), np.nan)
     frames = frame_numbers(det)
     T = len(frames)
-    if rows is None:
-        rows = np.arange(T)
-        if T > MAX_FRAMES:  # blocks of consecutive rows: few rows beyond them to undistort
-            starts = np.linspace(0, T - BLOCK, MAX_FRAMES // BLOCK).astype(np.int64)
-            rows = np.unique((starts[:, None] + np.arange(BLOCK)[None]).ravel())
+    if rows is None:  # blocks of consecutive rows: few rows beyond them to undistort
+        rows = block_rows(T, MAX_FRAMES, BLOCK)
     focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
     order = np.argsort(frames, kind="stable")
-    at = [_rows_at(frames, frames[rows] + L, order) for L in lags]  # rows of f + L
+    at = [rows_at(frames, frames[rows] + L, order) for L in lags]  # rows of f + L
     # every lag on the same frames f (those with a row at every f + L): medians over other
     # frames would differ by what the animal did there, not by the lag
     common = np.logical_and.reduce([r >= 0 for r in at])
@@ -242,13 +248,13 @@ def _frame_costs(cameras, det, x_of, c: int, lag: int, offsets, rows) -> np.ndar
     (NaN where no part was seen by both). ``x_of(r)``: normalised coordinates of rows r."""
     frames = frame_numbers(det)
     order = np.argsort(frames, kind="stable")
-    rc = _rows_at(frames, frames[rows] + lag, order)
+    rc = rows_at(frames, frames[rows] + lag, order)
     fc = float(np.sqrt(cameras[c].K[0, 0] * cameras[c].K[1, 1]))
     per = []
     for d in range(len(cameras)):
         if d == c:
             continue
-        rd = _rows_at(frames, frames[rows] + int(offsets[d]), order)
+        rd = rows_at(frames, frames[rows] + int(offsets[d]), order)
         ok = (rc >= 0) & (rd >= 0)
         dist = np.full((len(rows), det.num_parts), np.nan)
         if ok.any():
@@ -373,7 +379,7 @@ def shift_cameras(det: Detections, offsets: dict) -> Detections:
         if not np.any(o):
             continue
         c = det.cameras.index(name)
-        src = _rows_at(frames, frames + np.asarray(o, dtype=np.int64), order)
+        src = rows_at(frames, frames + np.asarray(o, dtype=np.int64), order)
         ok = src >= 0
         xy[:, :, c] = np.nan
         lik[:, :, c] = 0.0

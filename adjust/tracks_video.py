@@ -34,7 +34,7 @@ def project_points(points: np.ndarray, camera) -> np.ndarray:
         R = np.asarray(camera.R, dtype=np.float64)
         rvec, _ = cv2.Rodrigues(R)
         tvec = np.asarray(camera.tvec, np.float64)
-        if getattr(camera, "fisheye", False):
+        if camera.fisheye:
             p, _ = cv2.fisheye.projectPoints(
                 flat[ok][:, None], rvec, tvec, camera.K, camera.dist[:4]
             )

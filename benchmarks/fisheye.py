@@ -36,11 +36,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
-    DATA,
+    DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
-    Motion,
     checked_row,
     input_args,
+    input_run,
     input_settings,
     peer_row,
 )
@@ -116,9 +116,7 @@ def main(argv: list[str] | None = None) -> dict:
     k = [float(v) for v in args.k.split(",")]
     if len(k) != 4:
         ap.error(f"--k must be 4 numbers k1,k2,k3,k4, got {args.k}")
-    motion = Motion(DATA)
-    work = Path(args.work) / motion.tag
-    threads = f"threads={args.threads}" if args.threads else "threads=null"
+    motion, work, threads = input_run(args)
     start_frame = SPLITS[args.split]
     X = motion.points[start_frame : start_frame + args.frames]
     src, names = part_set(8, motion.parts)

@@ -39,12 +39,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit, print_table, start, subset  # noqa: E402
 from real_motion import (  # noqa: E402
-    DATA,
+    DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
-    Motion,
     checked_row,
     film_scene,
     input_args,
+    input_run,
     input_settings,
     peer_row,
     scene_key,
@@ -94,9 +94,7 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error(f"--at must be frames within 1..{args.frames - 1}, got {args.at}")
     axes = subset(ap, args.axes, tuple(AXES), "--axes")
     degrees = [float(d) for d in args.degrees.split(",") if d.strip()]
-    motion = Motion(DATA)
-    work = Path(args.work) / motion.tag
-    threads = f"threads={args.threads}" if args.threads else "threads=null"
+    motion, work, threads = input_run(args)
     rows: list[dict] = []
 
     def tracked(scene: Path, name: str, extra=()) -> tuple[dict, dict]:

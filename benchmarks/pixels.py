@@ -34,12 +34,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
-    DATA,
+    DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
-    Motion,
     checked_row,
     film_scene,
     input_args,
+    input_run,
     input_settings,
     peer_row,
     scene_key,
@@ -89,9 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
     crop = np.array([float(v) for v in args.crop.split(",")])
     if crop.shape != (2,) or args.factor <= 0:
         ap.error(f"--crop must be x,y and --factor > 0, got {args.crop}, {args.factor}")
-    motion = Motion(DATA)
-    work = Path(args.work) / motion.tag
-    threads = f"threads={args.threads}" if args.threads else "threads=null"
+    motion, work, threads = input_run(args)
     start_frame = SPLITS[args.split]
     f = args.factor
     rows: dict[str, dict] = {}

@@ -35,13 +35,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
-    DATA,
+    DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
-    Motion,
     align,
     evaluate,
     film_scene,
     input_args,
+    input_run,
     input_settings,
     peer_row,
     scene_key,
@@ -122,9 +122,7 @@ def main(argv: list[str] | None = None) -> dict:
     ratios = [int(r) for r in args.ratios.split(",") if r.strip()]
     if not ratios or any(r not in (2, -2) for r in ratios):
         ap.error(f"--ratios must be among 2, -2, got {args.ratios}")
-    motion = Motion(DATA)
-    work = Path(args.work) / motion.tag
-    threads = f"threads={args.threads}" if args.threads else "threads=null"
+    motion, work, threads = input_run(args)
     start_frame = SPLITS[args.split]
     rows: list[dict] = []
 

@@ -192,6 +192,14 @@ def input_settings(ap: argparse.ArgumentParser, args) -> tuple[list[int], list[i
     return cameras, [int(s) for s in args.seeds.split(",") if s.strip()]
 
 
+def input_run(args) -> tuple[Motion, Path, str]:
+    """The recording, the work folder of `input_args`' benchmark (below ``--work``, by the
+    recording's tag) and adjust-track's ``threads=`` override from ``--threads``."""
+    motion = Motion(DATA)
+    threads = f"threads={args.threads}" if args.threads else "threads=null"
+    return motion, Path(args.work) / motion.tag, threads
+
+
 def film_scene(
     out: Path,
     motion: Motion,

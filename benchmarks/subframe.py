@@ -39,12 +39,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
-    DATA,
+    DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
     Motion,
     checked_row,
     film_scene,
     input_args,
+    input_run,
     input_settings,
     peer_row,
     scene_key,
@@ -108,9 +109,7 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error(f"--late must be fractions of a frame within (-1, 1), not 0: {args.late}")
     if not strides or any(s < 1 for s in strides):
         ap.error(f"--strides must be positive integers, got {args.strides}")
-    motion = Motion(DATA)
-    work = Path(args.work) / motion.tag
-    threads = f"threads={args.threads}" if args.threads else "threads=null"
+    motion, work, threads = input_run(args)
     start_frame = SPLITS[args.split]
     rows: list[dict] = []
 
