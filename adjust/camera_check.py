@@ -28,7 +28,9 @@ For a camera that is off, the likely cause is diagnosed from the others' points:
 Before that, detections made on scaled or cropped videos are mapped into the calibrated images
 (`adjust.pixels`, ``input.pixel_check``; the report's ``pixels``), a camera recorded at a whole
 multiple or fraction of the others' frame rate has its frames renumbered to theirs
-(`adjust.rates`, ``input.rate_check``; the report's ``rates``), a camera out of step in time
+(`adjust.rates`, ``input.rate_check``; the report's ``rates``), a camera whose left/right parts
+are named the other way round from the others' has them swapped back (`adjust.sides`,
+``input.side_check``; the report's ``sides``), a camera out of step in time
 with the others (its video started a few frames early or late) is found from the epipolar
 geometry and shifted back (`adjust.sync`, up to ``input.max_frame_offset`` frames; the report's
 ``sync``), and a camera turned during the session (bumped) has its detections after the move
@@ -61,6 +63,7 @@ from adjust.pixels import check_pixels
 from adjust.rates import check_rates, pair_medians
 from adjust.resection import resect
 from adjust.settings import InputConfig
+from adjust.sides import check_sides
 from adjust.subframe import check_subframe
 from adjust.sync import check_sync
 from adjust.triangulate import triangulate
@@ -284,6 +287,8 @@ def check_cameras(
     subframe: bool = False,
     rates: bool = False,
     pixels: bool = False,
+    sides: bool = False,
+    reference=None,
 ) -> tuple[list[Camera], Detections, dict]:
     """Drop the cameras named in `exclude`, then (mode warn/error) shift back a camera out of
     step by up to `max_offset` frames (`adjust.sync.check_sync`; 0: none), map back up to
@@ -292,7 +297,9 @@ def check_cameras(
     a kept camera out of step by a fraction of a frame (`adjust.subframe.check_subframe`);
     first, with `pixels`, map detections made on scaled or cropped videos into the calibrated
     images (`adjust.pixels.check_pixels`) and, with `rates`, renumber a camera at a whole
-    multiple or fraction of the others' frame rate (`adjust.rates.check_rates`).
+    multiple or fraction of the others' frame rate (`adjust.rates.check_rates`), and with
+    `sides` swap back a camera whose left/right parts are named the other way round
+    (`adjust.sides.check_sides`; `reference`, a named body model, decides a tie).
     Returns the kept cameras, their detections (T, K, C', 2) and the report for the summary."""
     if mode not in MODES:
         raise InputError(f"input.camera_check must be one of {list(MODES)}, got {mode!r}")
@@ -315,6 +322,8 @@ def check_cameras(
         det, report["pixels"] = check_pixels(cams, det, mode)
     if rates:
         det, report["rates"] = check_rates(cams, det, mode)
+    if sides:
+        det, report["sides"] = check_sides(cams, det, mode, reference)
     det, report["sync"], report["moved"] = _in_step_and_in_place(
         cams, det, max_offset, max_moves, mode
     )
@@ -445,12 +454,14 @@ def check_cameras(
 
 
 def check_from_config(
-    cameras: Sequence[Camera], det: Detections, inp
+    cameras: Sequence[Camera], det: Detections, inp, reference=None
 ) -> tuple[list[Camera], Detections, dict]:
     """`check_cameras` with the settings of an app's ``input`` node (an
     `adjust.settings.InputConfig` or the node it is read from): ``camera_check`` (error|warn|
     off), ``exclude_cameras`` (a list of names, or one name), ``max_frame_offset``,
-    ``max_camera_moves``, ``subframe_sync``, ``rate_check`` and ``pixel_check``."""
+    ``max_camera_moves``, ``subframe_sync``, ``rate_check``, ``pixel_check`` and
+    ``side_check`` (`reference`: a named body model whose left and right decide a tie of the
+    side check; None: the first camera keeps its labels)."""
     ic = InputConfig.from_config(inp)
     mode, exclude = ic.camera_check, list(ic.exclude_cameras)
     return check_cameras(
@@ -463,4 +474,6 @@ def check_from_config(
         subframe=ic.subframe_sync,
         rates=ic.rate_check,
         pixels=ic.pixel_check,
+        sides=ic.side_check,
+        reference=reference,
     )

@@ -78,6 +78,7 @@ from adjust.moves import apply_moves
 from adjust.pixels import apply as apply_pixel_maps
 from adjust.session import with_session
 from adjust.settings import required
+from adjust.sides import swap as swap_sides
 from adjust.subframe import resample
 from adjust.summary import report_result, result_summary, track_health
 from adjust.sync import row_offsets, shift_cameras
@@ -215,14 +216,15 @@ class ChunkHooks:
         )
         return cameras, det
 
-    def check_cameras(self, cameras, det, input_cfg):
+    def check_cameras(self, cameras, det, input_cfg, reference=None):
         """`adjust.camera_check.check_from_config` on the sample; the chunks drop the cameras
         it excluded, map those whose detections were on scaled or cropped videos
-        (`adjust.pixels`), shift those it found out of step (`adjust.sync`), map back those it
+        (`adjust.pixels`), swap the left and right parts of those labelled the other way
+        round (`adjust.sides`), shift those it found out of step (`adjust.sync`), map back those it
         found moved (`adjust.moves`), interpolate those a fraction of a frame out of step
         (`adjust.subframe`), and report it."""
         if self.model is None:
-            cams, det, report = check_from_config(cameras, det, input_cfg)
+            cams, det, report = check_from_config(cameras, det, input_cfg, reference)
             renumbered = (report.get("rates") or {}).get("renumbered") or {}
             if renumbered:
                 raise InputError(
@@ -237,6 +239,8 @@ class ChunkHooks:
         det = apply_pixel_maps(
             det, {n: (m["scale"], m["offset"]) for n, m in mapped.items() if n in det.cameras}
         )
+        swapped = (self.model.camera_report.get("sides") or {}).get("swapped") or {}
+        det = swap_sides(det, {n: v["pairs"] for n, v in swapped.items() if n in det.cameras})
         sync = self.model.camera_report.get("sync") or {}
         shifts: dict = {n: o for n, o in (sync.get("offsets") or {}).items()}
         shifts.update({n: row_offsets(det, st) for n, st in (sync.get("steps") or {}).items()})

@@ -125,7 +125,7 @@ def track(cfg: DictConfig, chunk: ChunkHooks | None = None) -> dict:
             body_facts["other_parts"] = list(exc.parts)
         frame_of = body
     check = check_from_config if chunk is None else chunk.check_cameras
-    cameras, det, camera_report = check(cameras, det, tc.input)
+    cameras, det, camera_report = check(cameras, det, tc.input, None if auto else body)
     check_cameras_usable(det, where)  # one camera: depth unobserved, refused
     cams = CameraTensors.from_cameras(cameras, dtype=torch.float64)
     timings["load_s"] = time.perf_counter() - t0

@@ -196,6 +196,7 @@ _INPUT_SETTINGS = {
     "subframe_sync": ("bool", None, None),
     "rate_check": ("bool", None, None),
     "pixel_check": ("bool", None, None),
+    "side_check": ("bool", None, None),
 }
 
 
@@ -218,6 +219,7 @@ class InputConfig:
     subframe_sync: bool = True  # a fraction of a frame out of step: interpolated (adjust.subframe)
     rate_check: bool = True  # a camera at k x (or 1/k of) the others' frame rate (adjust.rates)
     pixel_check: bool = True  # detections on scaled or cropped videos (adjust.pixels)
+    side_check: bool = True  # a camera with left and right the other way round (adjust.sides)
 
     @classmethod
     def from_config(cls, node) -> InputConfig:

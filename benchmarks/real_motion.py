@@ -411,10 +411,11 @@ def checked_row(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dic
     return row, summary.get("camera_check") or {}
 
 
-def peer_row(scene: Path) -> dict:
-    """aniposelib on an 8-part scene (`run_aniposelib`, cached), evaluated on its truth.npz."""
+def peer_row(scene: Path, nparts: int = 8) -> dict:
+    """aniposelib on a scene of `nparts` parts (`run_aniposelib`, cached), evaluated on its
+    truth.npz."""
     tr = np.load(scene / "truth.npz")
-    est, eparts, _ = run_aniposelib(scene, 8, DATA.parent / "skeleton.csv")
+    est, eparts, _ = run_aniposelib(scene, nparts, DATA.parent / "skeleton.csv")
     return evaluate(align(est, eparts, [str(p) for p in tr["parts"]]), tr["points"], tr["nviews"])
 
 

@@ -267,6 +267,16 @@ def _double_rate(rows: list[list[str]]) -> list[list[str]]:
     return rows[:3] + body
 
 
+def _sides_swapped(rows: list[list[str]]) -> list[list[str]]:
+    """A detection file's rows with its left/right parts named the other way round (the
+    bodyparts header row's names exchanged: ``left_x`` <-> ``right_x``)."""
+    swap = {"left": "right", "right": "left"}
+    head = [
+        "_".join(swap.get(w, w) for w in c.split("_")) if i else c for i, c in enumerate(rows[1])
+    ]
+    return [rows[0], head, *rows[2:]]
+
+
 def _renumber(folder: Path, cam: str, fn: Callable[[int], int]) -> None:
     p = folder / "detections" / f"{cam}.csv"
     rows = _read(p)
@@ -384,6 +394,7 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         _renumber(f, "front", lambda i: i + 4)
 
     rewrite("one camera at twice the others' frame rate", ("front",), _double_rate)
+    rewrite("one camera's left and right named the other way round", ("side",), _sides_swapped)
 
     @case("one camera turned 1 deg mid-session (bumped)")
     def _(f):

@@ -114,8 +114,9 @@ def toy_sequence(
 
 def mirror_permutation(parts: Sequence[str]) -> list[int] | None:
     """Part order of the mirror image: each left/right part (``left_*``/``right_*``,
-    ``l_*``/``r_*``, ``*_left``/``*_right``, ``*_l``/``*_r``, any case) swapped with its twin,
-    the others in place; None when no part has a twin (nothing to mirror)."""
+    ``l_*``/``r_*``, ``*_left``/``*_right``, ``*_l``/``*_r``, and an ``l``/``r`` before a
+    digit, ``L1A``/``R1A`` as insects' legs are named; any case) swapped with its twin, the
+    others in place; None when no part has a twin (nothing to mirror)."""
     names = [str(p) for p in parts]
     low = {n.lower(): i for i, n in enumerate(names)}
     swaps = (("left_", "right_"), ("l_", "r_"))
@@ -133,6 +134,8 @@ def mirror_permutation(parts: Sequence[str]) -> list[int] | None:
             for x, y in ((a, b), (b, a)):
                 if twin is None and m.endswith(x):
                     twin = m[: -len(x)] + y
+        if twin is None and len(m) > 1 and m[0] in "lr" and m[1].isdigit():
+            twin = {"l": "r", "r": "l"}[m[0]] + m[1:]
         if twin is not None and twin in low:
             perm[i] = low[twin]
             found = True

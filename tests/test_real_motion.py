@@ -36,6 +36,7 @@ from adjust.scene.motion import (
 from adjust.summary import TrackingFailed, track_health
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, real_mouse_motion_dir
+from deformnet.windows import mirror_permutation
 
 DATA = real_mouse_motion_dir() / "poses3d.csv"
 START, FRAMES = 1200, 400  # the benchmark's validation segment (benchmarks/real_motion.py)
@@ -360,3 +361,26 @@ def test_a_lens_model_a_little_off_reads_no_move(tmp_path):
         off.append(dataclasses.replace(cam, K=K, dist=cam.dist + [0.05 * a, 0, 0, 0, 0]))
     _, rep = check_moves(off, det, 3)
     assert rep["moves"] == [] and "unresolved" not in rep, rep
+
+
+def test_a_camera_labelled_left_and_right_the_other_way_round(scenes, tmp_path):
+    """Two cameras, the first one's left and right parts named the other way round (a view
+    labelled by the image's sides): the geometry ties, the default mouse's handedness names
+    the first camera, which is swapped back, and the tracks are those of the scene as
+    labelled; not looked for (input.side_check=false) they are much worse, and nothing says
+    so."""
+    scene = scenes[2]
+    swapped = tmp_path / "scene"
+    shutil.copytree(scene, swapped)
+    cam = load_calibration(scene / "calibration.toml")[0].name
+    table = read_dlc(scene / "detections" / f"{cam}.csv")
+    perm = mirror_permutation(table.parts)
+    write_dlc_csv(swapped / "detections" / f"{cam}.csv", table.parts, table.xy[:, perm],
+                  table.likelihood[:, perm])  # fmt: skip
+    _, base = _track(scene, tmp_path / "as_labelled")
+    summary, fixed = _track(swapped, tmp_path / "fixed")
+    got = summary["camera_check"]["sides"]["swapped"]
+    assert set(got) == {cam} and got[cam]["decided_by"] == ["the body model 'mouse'"], got
+    assert fixed < 1.02 * base, (fixed, base)
+    _, blind = _track(swapped, tmp_path / "blind", ["input.side_check=false"])
+    assert blind > 1.5 * base, (blind, base)

@@ -192,3 +192,18 @@ def test_pixels_benchmark_tiny_run(tmp_path, one_thread):
     assert res["checks"]["mapped_the_spoilt_cameras"], res
     assert res["checks"]["checked_within_5pct_of_calibrated"], res
     assert all(r["unchecked_all"] > 1.2 * r["checked_all"] for r in res["rows"].values()), res
+
+
+def test_sides_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/sides.py on 300 frames (2 cameras, each with every pair or all but the first
+    swapped in turn): the swapped pairs found, nothing else, tracked as labelled (its checks);
+    unchecked worse."""
+    sd = _load("sides")
+    res = sd.main(
+        ["--split", "val", "--frames", "300", "--cameras", "2", "--no-peer",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "s.json")]
+    )  # fmt: skip
+    n = res["checks"]["runs"]
+    assert n == 4 and res["checks"]["found_the_swapped_pairs"] == n, res
+    assert res["checks"]["checked_within_2pct_of_labelled"] == n, res
+    assert all(r["unchecked_all"] > 1.2 * r["checked_all"] for r in res["rows"].values()), res
