@@ -63,7 +63,7 @@ from adjust.pixels import check_pixels
 from adjust.rates import check_rates, pair_medians
 from adjust.resection import resect
 from adjust.settings import InputConfig
-from adjust.sides import check_sides
+from adjust.sides import check_sides, combine
 from adjust.subframe import check_subframe
 from adjust.sync import check_sync
 from adjust.triangulate import triangulate
@@ -327,6 +327,9 @@ def check_cameras(
     det, report["sync"], report["moved"] = _in_step_and_in_place(
         cams, det, max_offset, max_moves, mode
     )
+    if sides:  # again: a camera out of step or turned is told once it is put right
+        det, again = check_sides(cams, det, mode, reference)
+        report["sides"] = combine(report["sides"], again)
     report.update(min_px=min_px, ratio=ratio, leave_one_out_px={}, others_px={})
     active = list(range(len(cams)))
     excluded: list[str] = []

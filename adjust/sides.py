@@ -6,29 +6,30 @@ the other cameras, and swap them back.
 A pose estimator trained for one camera with its labels given by the image's left and right (a
 view from below, a view through a mirror), or a file whose columns were mislabelled, reports the
 animal's left paw as ``right_*`` in that camera only, for every pair or for some. Unnoticed
-(before stop 59), two cameras tracked 3-4x worse with exit 0 (the paired parts lie about 10 px
+(before stop 59), two cameras tracked 2.7-3.8x worse with exit 0 (the paired parts lie about 10 px
 from each other's epipolar lines, below the camera check's 25 px); with three or four, the
 camera was excluded as "detections or intrinsics inconsistent", its other parts lost too.
 
 The left/right pairs are named by `deformnet.windows.mirror_permutation` (``left_*``, ``*_R``,
 ``L1A``, ...). For each camera pair, the median symmetric epipolar distance of the paired parts
 is measured as labelled and with one camera's pairs crossed (`medians`). A pair of cameras
-*crosses* where crossed is `BETTER` times closer and within `PLAUSIBLE_PX` (or twice the pair's
-unpaired parts' median: a rig with noisier detections), and is *as labelled* the other way
+*crosses* where crossed is `BETTER` times closer and within `PLAUSIBLE_PX` (or twice the rig's
+least unpaired parts' median: a rig with noisier detections), and is *as labelled* the other way
 round; other camera pairs tell nothing. The cameras' labelling (which are swapped) is the one
 that explains every telling camera pair (`labelling`), with the fewest cameras swapped. This is
 done for every left/right pair at once (a whole camera the other way round), then for each pair
 on its own (some of its pairs). Where labellings tie (two cameras, or two of four), the geometry
-does not tell which camera is the other way round: the first camera of the calibration keeps
-its labels, unless the body model's own left and right tell where one is given (`reference`, a
-named body such as the default mouse): the ties are judged jointly, the labelling whose
-triangulated parts are turned the body's way (`handedness`: the tetrahedra of 4 parts whose
-sign the pairs' exchange changes) chosen, and each tie kept where its own pairs' tetrahedra are
-turned its way in `HANDED` of them over `MIN_FRAMES` frames or more (said in the warning either
-way). Runs in the
-camera check after the pixel and frame-rate checks, before the sync check
-(`adjust.camera_check`); ``input.camera_check=error`` stops instead, ``input.side_check=false``
-does not look. Detections: ``Detections`` (T, K, C, 2) px."""
+does not tell which camera is the other way round: the first camera of the calibration keeps its
+labels, unless the body model's own left and right tell where one is given (`reference`, a named
+body such as the default mouse): the ties are judged jointly, the labelling whose triangulated
+parts are turned the body's way (`handedness`: the tetrahedra of 4 parts whose sign the pairs'
+exchange changes) chosen, and each tie kept where its own pairs' tetrahedra are turned its way
+in `HANDED` of them over `MIN_FRAMES` frames or more (said in the warning either way). Runs in
+the camera check after the pixel and frame-rate checks, before the sync and move checks (a
+camera the other way round confuses them), and again after them (a camera out of step or turned
+has its pairs told only once it is put right) (`adjust.camera_check`; `combine`);
+``input.camera_check=error`` stops instead, ``input.side_check=false`` does not look.
+Detections: ``Detections`` (T, K, C, 2) px."""
 
 from __future__ import annotations
 
@@ -49,7 +50,7 @@ from deformnet.windows import mirror_permutation
 log = logging.getLogger(__name__)
 
 BETTER = 2.0  #: crossed pairs must lie this many times closer to the lines (or farther)
-PLAUSIBLE_PX = 5.0  #: ... and within this median distance (or twice the unpaired parts')
+PLAUSIBLE_PX = 5.0  #: ... and within this median distance (or twice the rig's least unpaired)
 MIN_PAIRS = 20  #: part-frames a camera pair needs, as labelled and crossed
 MAX_ROWS = 3_000  #: rows measured (spread over the session)
 MAX_CAMERAS = 12  #: labellings are enumerated (2^C)
@@ -121,19 +122,37 @@ def medians(
 
 def telling(same: np.ndarray, crossed: np.ndarray, alone: np.ndarray) -> dict:
     """{(a, b): True (the pair crosses) or False (as labelled)} for the camera pairs whose
-    medians tell (see the module doc)."""
+    medians tell (see the module doc). `alone`: the unpaired parts' medians (C, C); the rig's
+    least of them sets how close "close" is (a camera disturbed otherwise, e.g. turned
+    mid-session, has its own pairs' medians raised: not a measure of the rig's noise)."""
     out = {}
     C = same.shape[0]
+    finite = alone[np.isfinite(alone)]
+    plausible = max(PLAUSIBLE_PX, 2.0 * float(finite.min())) if finite.size else PLAUSIBLE_PX
     for a, b in itertools.combinations(range(C), 2):
-        s, x, u = same[a, b], crossed[a, b], alone[a, b]
+        s, x = same[a, b], crossed[a, b]
         if not (np.isfinite(s) and np.isfinite(x)):
             continue
-        plausible = max(PLAUSIBLE_PX, 2.0 * u) if np.isfinite(u) else PLAUSIBLE_PX
         if s >= BETTER * x and x <= plausible:
             out[(a, b)] = True
         elif x >= BETTER * s and s <= plausible:
             out[(a, b)] = False
     return out
+
+
+def combine(first: dict, then: dict) -> dict:
+    """Two `check_sides` reports of one session (the second on the first's output) as one: a
+    camera's pairs swapped by both are swapped by neither."""
+    out = {n: dict(v, pairs=[list(p) for p in v["pairs"]]) for n, v in first["swapped"].items()}
+    for name, v in then["swapped"].items():
+        if name not in out:
+            out[name] = v
+            continue
+        had = {tuple(p) for p in out[name]["pairs"]}
+        pairs = had ^ {tuple(p) for p in v["pairs"]}
+        by = sorted(set(out[name]["decided_by"]) | set(v["decided_by"]))
+        out[name] = dict(v, pairs=sorted(list(p) for p in pairs), decided_by=by)
+    return {"swapped": {n: v for n, v in out.items() if v["pairs"]}}
 
 
 def labelling(C: int, tells: dict) -> list[tuple[int, ...]]:

@@ -18,7 +18,7 @@ from adjust.camera_check import check_from_config, drop_cameras
 from adjust.chunks import ChunkHooks, SessionModel
 from adjust.io import InputError, load_scene
 from adjust.scene import default_rig
-from adjust.sides import check_sides, handedness, labelling, swap, swap_all
+from adjust.sides import check_sides, combine, handedness, labelling, swap, swap_all
 from deformnet.body import BodyModel
 from deformnet.paths import CONF_DIR, shared_dir
 from deformnet.windows import mirror_permutation
@@ -51,6 +51,18 @@ def test_left_and_right_pairs_by_name():
     assert mirror_permutation(["Nose", "Ear_R", "Ear_L", "Shoulder_left", "Shoulder_right"]) == [
         0, 2, 1, 4, 3]  # fmt: skip
     assert mirror_permutation(["nose", "L", "R", "l1"]) is None  # no twin for l1; L alone no side
+
+
+def test_combine_two_passes():
+    """A pair swapped in both passes is swapped in neither; a camera left with none is dropped."""
+    a = {"swapped": {"top": {"pairs": [["l", "r"], ["la", "ra"]], "decided_by": ["x"]},
+                     "side": {"pairs": [["l", "r"]], "decided_by": ["x"]}}}  # fmt: skip
+    b = {"swapped": {"top": {"pairs": [["la", "ra"]], "decided_by": ["y"]},
+                     "side": {"pairs": [["l", "r"]], "decided_by": ["y"]},
+                     "front": {"pairs": [["l", "r"]], "decided_by": ["y"]}}}  # fmt: skip
+    got = combine(a, b)["swapped"]
+    assert got["top"]["pairs"] == [["l", "r"]] and got["top"]["decided_by"] == ["x", "y"]
+    assert "side" not in got and got["front"]["pairs"] == [["l", "r"]]
 
 
 def test_labelling_explains_every_telling_pair_with_fewest_swapped():
@@ -152,3 +164,20 @@ def test_error_mode_config_and_chunks():
     _, got, _ = ChunkHooks(None, 0, det.num_frames, model=model, keep=(0, det.num_frames)
                            ).check_cameras(cams, bad, {})  # fmt: skip
     np.testing.assert_array_equal(got.xy, det.xy)
+
+
+def test_a_camera_out_of_step_and_the_other_way_round():
+    """The last camera 3 frames out of step and its left and right the other way round: the
+    camera check shifts it back and swaps its pairs (the side check runs before the sync check
+    and again after it)."""
+    cams = default_rig()[:3]
+    det = _det(cams, T=600)
+    k = 2
+    xy, lk = det.xy.copy(), det.likelihood.copy()
+    xy[:-3, :, k], xy[-3:, :, k] = det.xy[3:, :, k], np.nan
+    lk[:-3, :, k], lk[-3:, :, k] = det.likelihood[3:, :, k], 0.0
+    bad = swap_all(dataclasses.replace(det, xy=xy, likelihood=lk), [cams[k].name])
+    _, got, rep = check_from_config(cams, bad, {}, MOUSE)
+    assert rep["sync"]["offsets"] == {cams[k].name: -3}, rep["sync"]
+    assert set(rep["sides"]["swapped"]) == {cams[k].name} and rep["excluded"] == {}, rep
+    np.testing.assert_allclose(got.xy[5:-5], det.xy[5:-5])
