@@ -1,6 +1,6 @@
 """Pixel frames: find detections made on videos other than the calibrated ones, scaled (the
-videos downsampled for the pose estimator) or shifted (cropped: DeepLabCut's ``cropping``), and
-map them back into the calibrated images.
+videos downsampled for the pose estimator), shifted (cropped: DeepLabCut's ``cropping``) or
+flipped, and map them back into the calibrated images.
 
     det, report = check_pixels(cameras, det)
 
@@ -19,16 +19,22 @@ looked for. Else:
   detection's residual linear in (s, dx, dy), least squares, residuals beyond `CUT` MADs left
   out). Against one camera's lines (two cameras) the scale is not told (they meet at the
   epipole: any scale about it fits) and is held at 1: a crop; an offset along nearly parallel
-  lines is not told either, and is not fitted.
+  lines is not told either, and is not fitted;
+- then, for a camera still far from the others' lines, its video flipped (`FLIPS`: left to
+  right, upside down, by a half turn; x = W - 1 - u along each flipped axis, `flip_map`): a view
+  from below mirrored to look like one from above before the pose estimator. The flip that
+  brings its camera closest to the others is kept if it does so by `BETTER`; with two cameras
+  either camera may be the flipped one (a flip, unlike a crop, is told by the geometry).
 
-A map must be a video edit: its scale within `SNAP` of 1 or of a `SCALES` ratio (then refitted
-with that scale; a scale of 1 needs an offset of `MIN_CROP_PX` or more): a calibration a little
-off (a focal length 2% off is a scale about the principal point) is not mapped. A camera's map
-is kept where it brings its median distance (`adjust.rates.pair_medians`) down
-by `BETTER` (3x) and to within `PLAUSIBLE_PX` or twice the other pairs'; its detections are
+A scale-and-offset map must be a video edit: its scale within `SNAP` of 1 or of a `SCALES` ratio
+(then refitted with that scale; a scale of 1 needs an offset of `MIN_CROP_PX` or more): a
+calibration a little off (a focal length 2% off is a scale about the principal point) is not
+mapped. A camera's map is kept where it brings its median distance (`adjust.rates.pair_medians`)
+down by `BETTER` (3x) and to within `PLAUSIBLE_PX` or twice the other pairs'; its detections are
 mapped, with a warning naming the scale and offset. Runs first in the camera check
 (`adjust.camera_check`); ``input.camera_check=error`` stops instead, ``input.pixel_check=
-false`` does not look. Detections: ``Detections`` (T, K, C, 2) px."""
+false`` does not look.
+Detections: ``Detections`` (T, K, C, 2) px."""
 
 from __future__ import annotations
 
@@ -53,17 +59,28 @@ MAX_ROWS = 3_000  #: rows a fit uses (spread over the session)
 MAX_SE_PX = 1.0  #: an offset fitted to one camera's lines must be this well fixed (px)
 SNAP = 0.005  #: a fitted scale within this fraction of 1 or of a `SCALES` ratio is that ratio
 MIN_CROP_PX = 10.0  #: a crop (scale 1) moves the image by at least this many px
+FLIPS = {"left to right": (-1.0, 1.0), "upside down": (1.0, -1.0), "by a half turn": (-1.0, -1.0)}
+
+
+def flip_map(how: str, size) -> tuple:
+    """The map (s, d) of a video flipped `how` (`FLIPS`), its image `size` (W, H) px: x = W - 1
+    - u (pixel centres) along each flipped axis."""
+    sx, sy = FLIPS[how]
+    W, H = size
+    return (sx, sy), (W - 1.0 if sx < 0 else 0.0, H - 1.0 if sy < 0 else 0.0)
 
 
 def apply(det: Detections, maps: dict) -> Detections:
     """The detections with camera ``name``'s pixels u mapped to s u + d, ``maps[name]`` = (s,
-    (dx, dy))."""
+    (dx, dy)); s a number, or (sx, sy) per axis (a flip)."""
     if not maps:
         return det
     xy = det.xy.copy()
     for name, (s, d) in maps.items():
         c = det.cameras.index(name)
-        xy[:, :, c] = s * det.xy[:, :, c] + np.asarray(d, dtype=np.float64)
+        xy[:, :, c] = np.asarray(s, dtype=np.float64) * det.xy[:, :, c] + np.asarray(
+            d, dtype=np.float64
+        )
     return dataclasses.replace(det, xy=xy)
 
 
@@ -219,6 +236,23 @@ def check_pixels(
             maps[names[c]] = identity
         else:
             maps[names[c]] = fit
+    flipped: dict[str, str] = {}
+    for _ in range(C):  # a flipped video: the flip that best brings a camera to the others
+        px_now = score(maps)
+        trials = [(name, how) for c, name in enumerate(names) for how in FLIPS
+                  if maps[name] == identity and px_now[c] > PLAUSIBLE_PX
+                  and min(cameras[c].size) > 0]  # fmt: skip
+        if not trials:
+            break
+        got = []
+        for name, how in trials:
+            trial = dict(maps)
+            trial[name] = flip_map(how, cameras[names.index(name)].size)
+            got.append((float(score(trial)[names.index(name)]), name, how, trial))
+        px, name, how, trial = min(got, key=lambda g: g[0])
+        if not px * BETTER <= px_now[names.index(name)]:
+            break
+        maps, flipped[name] = trial, how
     after = score(maps)
     for c in range(C):
         rest = np.delete(np.delete(base, c, 0), c, 1)
@@ -229,14 +263,22 @@ def check_pixels(
             maps[names[c]] = identity
             continue
         s, (dx, dy) = m
-        msg = (
-            f"camera '{names[c]}' ({det.files[c]}): its detections fit the calibration's image "
-            f"as x = {s:.4g} u + ({dx:.1f}, {dy:.1f}) px (they lie {before[c]:.1f} px from the "
-            f"other cameras' epipolar lines as read, {after[c]:.1f} px mapped; videos "
-            f"{'downsampled' if s > 1.01 else 'upsampled' if s < 0.99 else 'cropped'}"
-            f"{' or cropped' if abs(s - 1) > 0.01 and max(abs(dx), abs(dy)) > abs(s - 1) else ''}"
-            " before the pose estimator?)"
-        )
+        far = f"they lie {before[c]:.1f} px from the other cameras' epipolar lines as read"
+        if names[c] in flipped:
+            msg = (
+                f"camera '{names[c]}' ({det.files[c]}): its detections fit the calibration's "
+                f"image flipped {flipped[names[c]]} ({far}, {after[c]:.1f} px flipped back; "
+                "video flipped before the pose estimator?)"
+            )
+        else:
+            what = "downsampled" if s > 1.01 else "upsampled" if s < 0.99 else "cropped"
+            if abs(s - 1) > 0.01 and max(abs(dx), abs(dy)) > abs(s - 1):
+                what += " or cropped"
+            msg = (
+                f"camera '{names[c]}' ({det.files[c]}): its detections fit the calibration's "
+                f"image as x = {s:.4g} u + ({dx:.1f}, {dy:.1f}) px ({far}, {after[c]:.1f} px "
+                f"mapped; videos {what} before the pose estimator?)"
+            )
         if mode == "error":
             raise InputError(
                 msg + "; give detections in the calibrated videos' pixels, or set "
@@ -244,9 +286,10 @@ def check_pixels(
             )
         log.warning("%s; its detections MAPPED into the calibrated image", msg)
         report["mapped"][names[c]] = {
-            "scale": round(s, 6),
+            "scale": [float(v) for v in s] if names[c] in flipped else round(s, 6),
             "offset": [round(dx, 3), round(dy, 3)],
             "epipolar_px": [round(float(before[c]), 3), round(float(after[c]), 3)],
+            **({"flip": flipped[names[c]]} if names[c] in flipped else {}),
         }
     kept = {n: maps[n] for n in report["mapped"]}
     return apply(det, kept), report

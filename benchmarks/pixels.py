@@ -1,9 +1,10 @@
-"""Detections on videos other than the calibrated ones: the real-motion scenes with every
-camera's video downsampled (``--factor``, 2: the pose estimator ran on half-size videos) or one
-camera's video cropped (``--crop``, at (200, 150) px: DeepLabCut's ``cropping``), the
-calibration as it was; tracked with the pixel frames not looked for (``input.pixel_check=false``,
-what adjust-track did before stop 58) and with the default check (`adjust.pixels`: the map
-fitted to the epipolar geometry, the detections mapped back).
+"""Detections on videos other than the calibrated ones: the real-motion scenes with every camera's
+video downsampled (``--factor``, 2: the pose estimator ran on half-size videos) or one camera's
+video cropped (``--crop``, at (200, 150) px: DeepLabCut's ``cropping``), or one camera's video
+mirrored left to right (``--cases flip``: a view from below flipped to look like one from
+above), the calibration as it was; tracked with the pixel frames not looked for
+(``input.pixel_check=false``, what adjust-track did before stop 58) and with the default check
+(`adjust.pixels`: the map fitted to the epipolar geometry, the detections mapped back).
 
 Scenes: `real_motion.py`'s 8-part scenes of the test segment (frames 2400-3399; nothing was
 chosen on it; ``--split val`` for the validation one; ``--cameras``, ``--seeds``); downsampled
@@ -17,7 +18,8 @@ run adjust-track refuses (its health check: the tracks cannot be trusted, a non-
 recorded as refused, its scores NaN.
 
     .venv/bin/python benchmarks/pixels.py [--split test] [--cameras 2,3,4] [--seeds 0] \\
-        [--factor 2] [--crop 200,150] [--no-peer] [--work DIR] [--out FILE]
+        [--factor 2] [--crop 200,150] [--cases resize,crop,flip] [--no-peer] [--work DIR] \\
+        [--out FILE]
 """
 
 from __future__ import annotations
@@ -50,6 +52,22 @@ from adjust.io import load_calibration, read_dlc, write_dlc_csv  # noqa: E402
 log = logging.getLogger("benchmarks.pixels")
 
 SAME = 1.05  #: checked must track within this factor of the scene as calibrated
+KINDS = {
+    "resize": "every video downsampled by --factor",
+    "crop": "each camera's video cropped at --crop in turn (two cameras: the second)",
+    "flip": "each camera's video mirrored left to right in turn",
+}
+
+
+def flipped(width: int):
+    """The pixels of a video mirrored left to right (u = W - 1 - x: pixel centres)."""
+
+    def edit(xy: np.ndarray) -> np.ndarray:
+        out = xy.copy()
+        out[..., 0] = width - 1 - xy[..., 0]
+        return out
+
+    return edit
 
 
 def spoilt(base: Path, out: Path, edits: dict) -> Path:
@@ -82,10 +100,14 @@ def main(argv: list[str] | None = None) -> dict:
     input_args(ap, "pixels", "2,3,4")
     ap.add_argument("--factor", type=float, default=2.0, help="every video downsampled by")
     ap.add_argument("--crop", default="200,150", help="one camera's crop origin x,y (px)")
+    ap.add_argument("--cases", default="resize,crop", help=f"some of {list(KINDS)}")
     ap.add_argument("--split", default="test", choices=tuple(SPLITS), help="the segment")
     ap.add_argument("--no-peer", action="store_true", help="without aniposelib")
     args = start(ap, argv)
     cameras, seeds = input_settings(ap, args)
+    kinds = [k for k in args.cases.split(",") if k.strip()]
+    if not kinds or set(kinds) - set(KINDS):
+        ap.error(f"--cases must be some of {list(KINDS)}, got {args.cases!r}")
     crop = np.array([float(v) for v in args.crop.split(",")])
     if crop.shape != (2,) or args.factor <= 0:
         ap.error(f"--crop must be x,y and --factor > 0, got {args.crop}, {args.factor}")
@@ -100,10 +122,15 @@ def main(argv: list[str] | None = None) -> dict:
                               seed)  # fmt: skip
             ref, _ = checked_row(base, work / "runs" / key / "as_calibrated", [threads])
             peer = None if args.no_peer else peer_row(base)["rmse_all"]
-            names = [c.name for c in load_calibration(base / "calibration.toml")]
-            cases = {f"downsampled {f:g}x": {n: (lambda xy: (xy + 0.5) / f - 0.5) for n in names}}
-            for cam in names[1:] if ncams == 2 else names:
+            rig = load_calibration(base / "calibration.toml")
+            names = [c.name for c in rig]
+            cases = {}
+            if "resize" in kinds:
+                cases[f"downsampled {f:g}x"] = {n: (lambda xy: (xy + 0.5) / f - 0.5) for n in names}
+            for cam in (names[1:] if ncams == 2 else names) if "crop" in kinds else ():
                 cases[f"{cam} cropped"] = {cam: (lambda xy: xy - crop)}
+            for cam in names if "flip" in kinds else ():  # either of two: a flip is told
+                cases[f"{cam} flipped"] = {cam: flipped(rig[names.index(cam)].size[0])}
             for case, edits in cases.items():
                 tag = f"{key}_{case.replace(' ', '_')}"
                 scene = spoilt(base, work / "spoilt" / tag, edits)

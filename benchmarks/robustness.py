@@ -277,6 +277,22 @@ def _sides_swapped(rows: list[list[str]]) -> list[list[str]]:
     return [rows[0], head, *rows[2:]]
 
 
+def _flipped_x(width: int) -> Callable[[list[list[str]]], list[list[str]]]:
+    """A rows edit: the x of every detection as in the video mirrored left to right (W - 1 - x,
+    pixel centres)."""
+
+    def edit(rows: list[list[str]]) -> list[list[str]]:
+        xs = [j for j, c in enumerate(rows[2]) if c == "x"]
+        out = [list(r) for r in rows]
+        for r in out[3:]:
+            for j in xs:
+                if j < len(r) and r[j].strip():
+                    r[j] = repr(width - 1 - float(r[j]))
+        return out
+
+    return edit
+
+
 def _renumber(folder: Path, cam: str, fn: Callable[[int], int]) -> None:
     p = folder / "detections" / f"{cam}.csv"
     rows = _read(p)
@@ -395,6 +411,10 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
 
     rewrite("one camera at twice the others' frame rate", ("front",), _double_rate)
     rewrite("one camera's left and right named the other way round", ("side",), _sides_swapped)
+
+    @case("one camera's video flipped left to right")
+    def _(f):
+        _rewrite(f, "front", _flipped_x(next(c for c in _cams(f) if c.name == "front").size[0]))
 
     @case("one camera turned 1 deg mid-session (bumped)")
     def _(f):

@@ -76,6 +76,28 @@ def test_a_cropped_camera_is_mapped_back_alone(ncams):
     assert np.nanmedian(np.abs(out.xy[:, :, -1] - truth.xy[:, :, -1])) < 1.0
 
 
+@pytest.mark.parametrize(("ncams", "c", "axes"), [(3, 1, "x"), (3, 0, "y"), (3, 2, "xy"),
+                                                 (2, 0, "x"), (2, 1, "x")])  # fmt: skip
+def test_a_flipped_camera_is_mapped_back(ncams, c, axes, caplog):
+    """Camera c's video mirrored left to right (x), upside down (y) or both (a half turn)
+    before the pose estimator: that camera alone is mapped back (either of two cameras: a
+    flip is no crop, the geometry tells which)."""
+    cams = default_rig()[:ncams]
+    det, truth = _det(cams)
+    W, H = cams[c].size
+    flip = np.array([-1.0 if "x" in axes else 1.0, -1.0 if "y" in axes else 1.0])
+    offset = np.array([W - 1.0 if "x" in axes else 0.0, H - 1.0 if "y" in axes else 0.0])
+    bad = _edit(det, c, lambda xy: flip * xy + offset)
+    with caplog.at_level(logging.WARNING, logger="adjust.pixels"):
+        out, rep = check_pixels(cams, bad)
+    name = cams[c].name
+    assert set(rep["mapped"]) == {name}, rep
+    m = rep["mapped"][name]
+    assert m["scale"] == flip.tolist() and np.allclose(m["offset"], offset), m
+    np.testing.assert_allclose(out.xy, det.xy, atol=1e-9)
+    assert "flipped" in caplog.text and "MAPPED" in caplog.text
+
+
 def test_cameras_as_calibrated_and_real_recordings_are_left_alone():
     cams = default_rig()
     det, _ = _det(cams)
