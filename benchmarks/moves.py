@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
-import shutil
 import sys
 from pathlib import Path
 
@@ -48,9 +47,10 @@ from real_motion import (  # noqa: E402
     input_settings,
     peer_row,
     scene_key,
+    spoil_scene,
 )
 
-from adjust.io import load_calibration, read_dlc, write_dlc_csv  # noqa: E402
+from adjust.io import load_calibration  # noqa: E402
 from adjust.moves import unrotate  # noqa: E402
 
 log = logging.getLogger("benchmarks.moves")
@@ -62,21 +62,16 @@ SAME = 1.05  #: a mapped move must track within this factor of the unmoved scene
 def turn(scene: Path, out: Path, camera: str, at: int, degrees: float, axis: str) -> Path:
     """A copy of `scene` whose `camera` turned by `degrees` about its `axis` from frame `at` on
     (its calibration unchanged): each detection moved to where the turned camera sees it."""
-    if (out / "truth.npz").exists():
-        return out
-    if out.exists():
-        shutil.rmtree(out)
-    shutil.copytree(scene, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
     cam = next(c for c in load_calibration(scene / "calibration.toml") if c.name == camera)
     # the turned camera sees x' = dR x: its rays are the calibrated ones turned by dR
     dR = Rotation.from_rotvec(np.deg2rad(degrees) * np.asarray(AXES[axis])).as_matrix()
-    path = scene / "detections" / f"{camera}.csv"
-    table = read_dlc(path)
-    xy = table.xy.copy()
-    xy[at:] = unrotate(table.xy[at:], cam, dR)
-    write_dlc_csv(out / "detections" / f"{camera}.csv", table.parts, xy, table.likelihood)
-    shutil.copy2(scene / "truth.npz", out / "truth.npz")  # last: the cache's mark
-    return out
+
+    def turned(table):
+        xy = table.xy.copy()
+        xy[at:] = unrotate(table.xy[at:], cam, dR)
+        return xy, table.likelihood
+
+    return spoil_scene(scene, out, {camera: turned})
 
 
 def main(argv: list[str] | None = None) -> dict:

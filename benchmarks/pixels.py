@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
 import sys
 from pathlib import Path
 
@@ -45,9 +44,10 @@ from real_motion import (  # noqa: E402
     input_settings,
     peer_row,
     scene_key,
+    spoil_scene,
 )
 
-from adjust.io import load_calibration, read_dlc, write_dlc_csv  # noqa: E402
+from adjust.io import load_calibration  # noqa: E402
 
 log = logging.getLogger("benchmarks.pixels")
 
@@ -71,17 +71,10 @@ def flipped(width: int):
 
 
 def spoilt(base: Path, out: Path, edits: dict) -> Path:
-    """A copy of `base` with each camera's detections u -> edits[camera](u) (cached)."""
-    if (out / "truth.npz").exists():
-        return out
-    if out.exists():
-        shutil.rmtree(out)
-    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
-    for cam, fn in edits.items():
-        t = read_dlc(base / "detections" / f"{cam}.csv")
-        write_dlc_csv(out / "detections" / f"{cam}.csv", t.parts, fn(t.xy), t.likelihood)
-    shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
-    return out
+    """A copy of `base` with each camera's detections u -> edits[camera](u) (`spoil_scene`)."""
+    return spoil_scene(
+        base, out, {cam: (lambda t, fn=fn: (fn(t.xy), t.likelihood)) for cam, fn in edits.items()}
+    )
 
 
 def attempt(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dict]:

@@ -98,7 +98,7 @@ from peers.anipose import (  # noqa: E402
 from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from tracking import run_track, scene_inputs, view_fractions  # noqa: E402
 
-from adjust.io import load_scene, read_points3d  # noqa: E402
+from adjust.io import load_scene, read_dlc, read_points3d, write_dlc_csv  # noqa: E402
 from adjust.scene.motion import (  # noqa: E402
     MOTION_FEET,
     film_part_set,
@@ -198,6 +198,24 @@ def input_run(args) -> tuple[Motion, Path, str]:
     motion = Motion(DATA)
     threads = f"threads={args.threads}" if args.threads else "threads=null"
     return motion, Path(args.work) / motion.tag, threads
+
+
+def spoil_scene(base: Path, out: Path, edits: dict) -> Path:
+    """A copy of scene `base` at `out` (cached: kept if its truth.npz is there) with each camera
+    ``c`` of `edits` given new detections, ``edits[c](table)`` -> (xy, likelihood) from its
+    `adjust.io.read_dlc` table; the input-condition benchmarks' spoilt scenes. truth.npz is
+    copied last (the cache's mark); a cached aniposelib result is not copied."""
+    if (out / "truth.npz").exists():
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
+    for cam, fn in edits.items():
+        t = read_dlc(base / "detections" / f"{cam}.csv")
+        xy, likelihood = fn(t)
+        write_dlc_csv(out / "detections" / f"{cam}.csv", t.parts, xy, likelihood)
+    shutil.copy2(base / "truth.npz", out / "truth.npz")
+    return out
 
 
 def film_scene(

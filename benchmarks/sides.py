@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
-import shutil
 import sys
 from pathlib import Path
 
@@ -46,9 +45,10 @@ from real_motion import (  # noqa: E402
     input_settings,
     peer_row,
     scene_key,
+    spoil_scene,
 )
 
-from adjust.io import load_calibration, read_dlc, write_dlc_csv  # noqa: E402
+from adjust.io import load_calibration, read_dlc  # noqa: E402
 from adjust.sides import side_pairs  # noqa: E402
 
 log = logging.getLogger("benchmarks.sides")
@@ -65,18 +65,11 @@ def swapped_scene(base: Path, out: Path, cam: str, case: str) -> tuple[Path, lis
     and the pairs swapped."""
     t = read_dlc(base / "detections" / f"{cam}.csv")
     pairs = side_pairs(t.parts)[(1 if case == "but_first" else 0) :]
-    named = sorted([t.parts[i], t.parts[j]] for i, j in pairs)
-    if (out / "truth.npz").exists():
-        return out, named
-    if out.exists():
-        shutil.rmtree(out)
-    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
     perm = list(range(len(t.parts)))
     for i, j in pairs:
         perm[i], perm[j] = j, i
-    write_dlc_csv(out / "detections" / f"{cam}.csv", t.parts, t.xy[:, perm], t.likelihood[:, perm])
-    shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
-    return out, named
+    spoil_scene(base, out, {cam: lambda t: (t.xy[:, perm], t.likelihood[:, perm])})
+    return out, sorted([t.parts[i], t.parts[j]] for i, j in pairs)
 
 
 def main(argv: list[str] | None = None) -> dict:
