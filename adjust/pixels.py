@@ -23,8 +23,10 @@ looked for. Else:
 - then, for a camera still far from the others' lines, its video flipped (`FLIPS`: left to
   right, upside down, by a half turn; x = W - 1 - u along each flipped axis, `flip_map`): a view
   from below mirrored to look like one from above before the pose estimator. The flip that
-  brings its camera closest to the others is kept if it does so by `BETTER`; with two cameras
-  either camera may be the flipped one (a flip, unlike a crop, is told by the geometry).
+  brings its camera closest to the others is kept if it does so by `BETTER` and to within
+  `PLAUSIBLE_PX` itself (two camera files swapped with each other came 3x closer flipped by a
+  half turn, to 60 px); with two cameras either camera may be the flipped one (a flip, unlike
+  a crop, is told by the geometry).
 
 A scale-and-offset map must be a video edit: its scale within `SNAP` of 1 or of a `SCALES` ratio
 (then refitted with that scale; a scale of 1 needs an offset of `MIN_CROP_PX` or more): a
@@ -250,7 +252,7 @@ def check_pixels(
             trial[name] = flip_map(how, cameras[names.index(name)].size)
             got.append((float(score(trial)[names.index(name)]), name, how, trial))
         px, name, how, trial = min(got, key=lambda g: g[0])
-        if not px * BETTER <= px_now[names.index(name)]:
+        if not (px * BETTER <= px_now[names.index(name)] and px <= PLAUSIBLE_PX):
             break
         maps, flipped[name] = trial, how
     after = score(maps)
@@ -258,6 +260,8 @@ def check_pixels(
         rest = np.delete(np.delete(base, c, 0), c, 1)
         rest_px = float(np.nanmedian(rest)) if np.isfinite(rest).any() else float("nan")
         plausible = max(PLAUSIBLE_PX, 2 * rest_px) if np.isfinite(rest_px) else PLAUSIBLE_PX
+        if names[c] in flipped:  # a flip brings its camera to the rig itself, not near it
+            plausible = PLAUSIBLE_PX
         m = maps[names[c]]
         if m == identity or not (after[c] <= plausible and after[c] * BETTER <= before[c]):
             maps[names[c]] = identity
