@@ -117,6 +117,9 @@ def hydra_app(
 
     def main(cfg: DictConfig) -> None:
         run_app(quiet_run if quiet else run, cfg, check)
+        # done and committed: a Ctrl-C during Hydra's and Python's teardown changes nothing
+        # (it killed the process with Python's own exit, -2, after a complete run)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     main.__wrapped__ = run  # Hydra names the job (and its log file) after run's module
     return hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base=None)(main)
