@@ -49,7 +49,7 @@ import numpy as np
 from adjust.camera import Camera
 from adjust.io import Detections, InputError
 from adjust.rates import camera_px, pair_medians
-from adjust.sync import essential, normalised_points
+from adjust.sync import essential, normalised_points, spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -174,9 +174,7 @@ def check_pixels(
     C = len(cameras)
     if mode == "off" or C < 2:
         return det, report
-    rows = np.arange(det.num_frames)
-    if rows.size > MAX_ROWS:
-        rows = np.linspace(0, det.num_frames - 1, MAX_ROWS).astype(np.int64)
+    rows = spread_rows(det.num_frames, MAX_ROWS)
     sub = dataclasses.replace(det, xy=det.xy[rows], likelihood=det.likelihood[rows], frames=None)
     base = pair_medians(cameras, sub)
     before = np.array([camera_px(base, c) for c in range(C)])

@@ -32,7 +32,12 @@ import numpy as np
 
 from adjust.camera import Camera
 from adjust.io import Detections, InputError
-from adjust.sync import epipolar_px, essential, frame_numbers, normalised_points
+from adjust.sync import (
+    epipolar_medians,
+    frame_numbers,
+    normalised_points,
+    spread_rows,
+)
 
 log = logging.getLogger(__name__)
 
@@ -107,22 +112,9 @@ def renumber(det: Detections, c: int, k: int, phase: int) -> Detections:
 def pair_medians(cameras: Sequence[Camera], det: Detections) -> np.ndarray:
     """(C, C) median symmetric epipolar distance (px) of each camera pair at the same frame
     (NaN with fewer than `MIN_PAIRS` part-frames); measured on at most `MAX_ROWS` rows."""
-    C = len(cameras)
-    rows = np.arange(det.num_frames)
-    if rows.size > MAX_ROWS:
-        rows = np.linspace(0, det.num_frames - 1, MAX_ROWS).astype(np.int64)
-    x = normalised_points(det.xy[rows], cameras)
-    focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
-    out = np.full((C, C), np.nan)
-    for a in range(C):
-        for b in range(a + 1, C):
-            both = np.isfinite(x[:, :, a]).all(-1) & np.isfinite(x[:, :, b]).all(-1)
-            if both.sum() < MIN_PAIRS:
-                continue
-            E = essential(cameras[a], cameras[b])
-            d = epipolar_px(E, x[:, :, a][both], x[:, :, b][both], focal[a], focal[b])
-            out[a, b] = out[b, a] = float(np.median(d))
-    return out
+    x = normalised_points(det.xy[spread_rows(det.num_frames, MAX_ROWS)], cameras)
+    parts = range(det.num_parts)
+    return epipolar_medians(cameras, x, parts, parts, MIN_PAIRS)
 
 
 def camera_px(m: np.ndarray, c: int) -> float:

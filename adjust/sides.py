@@ -12,23 +12,24 @@ camera was excluded as "detections or intrinsics inconsistent", its other parts 
 
 The left/right pairs are named by `deformnet.windows.mirror_permutation` (``left_*``, ``*_R``,
 ``L1A``, ...). For each camera pair, the median symmetric epipolar distance of the paired parts
-is measured as labelled and with one camera's pairs crossed (`medians`). A pair of cameras
-*crosses* where crossed is `BETTER` times closer and within `PLAUSIBLE_PX` (or twice the rig's
-least unpaired parts' median: a rig with noisier detections), and is *as labelled* the other way
-round; other camera pairs tell nothing. The cameras' labelling (which are swapped) is the one
-that explains every telling camera pair (`labelling`), with the fewest cameras swapped. This is
-done for every left/right pair at once (a whole camera the other way round), then for each pair
-on its own (some of its pairs). Where labellings tie (two cameras, or two of four), the geometry
-does not tell which camera is the other way round: the first camera of the calibration keeps its
-labels, unless the body model's own left and right tell where one is given (`reference`, a named
-body such as the default mouse): the ties are judged jointly, the labelling whose triangulated
-parts are turned the body's way (`handedness`: the tetrahedra of 4 parts whose sign the pairs'
-exchange changes) chosen, and each tie kept where its own pairs' tetrahedra are turned its way
-in `HANDED` of them over `MIN_FRAMES` frames or more (said in the warning either way). Runs in
-the camera check after the pixel and frame-rate checks, before the sync and move checks (a
-camera the other way round confuses them), and again after them (a camera out of step or turned
-has its pairs told only once it is put right) (`adjust.camera_check`; `combine`);
-``input.camera_check=error`` stops instead, ``input.side_check=false`` does not look.
+is measured as labelled and with one camera's pairs crossed (`adjust.sync.epipolar_medians`). A
+pair of cameras *crosses* where crossed is `BETTER` times closer and within `PLAUSIBLE_PX` (or
+twice the rig's least unpaired parts' median: a rig with noisier detections), and is *as
+labelled* the other way round; other camera pairs tell nothing. The cameras' labelling (which
+are swapped) is the one that explains every telling camera pair (`labelling`), with the fewest
+cameras swapped. This is done for every left/right pair at once (a whole camera the other way
+round), then for each pair on its own (some of its pairs). Where labellings tie (two cameras, or
+two of four), the geometry does not tell which camera is the other way round: the first camera
+of the calibration keeps its labels, unless the body model's own left and right tell where one
+is given (`reference`, a named body such as the default mouse): the ties are judged jointly, the
+labelling whose triangulated parts are turned the body's way (`handedness`: the tetrahedra of 4
+parts whose sign the pairs' exchange changes) chosen, and each tie kept where its own pairs'
+tetrahedra are turned its way in `HANDED` of them over `MIN_FRAMES` frames or more (said in the
+warning either way). Runs in the camera check after the pixel and frame-rate checks, before the
+sync and move checks (a camera the other way round confuses them), and again after them (a
+camera out of step or turned has its pairs told only once it is put right)
+(`adjust.camera_check`; `combine`); ``input.camera_check=error`` stops instead,
+``input.side_check=false`` does not look.
 Detections: ``Detections`` (T, K, C, 2) px."""
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ import torch
 
 from adjust.camera import Camera, CameraTensors
 from adjust.io import Detections, InputError
-from adjust.sync import epipolar_px, essential, normalised_points
+from adjust.sync import epipolar_medians, normalised_points, spread_rows
 from adjust.triangulate import triangulate
 from deformnet.windows import mirror_permutation
 
@@ -98,25 +99,6 @@ def _flipped(x: np.ndarray, flips: Mapping[int, set], pairs: Sequence[tuple[int,
         for p in its:
             i, j = pairs[p]
             out[:, [i, j], c] = x[:, [j, i], c]
-    return out
-
-
-def medians(
-    cameras: Sequence[Camera], x: np.ndarray, ia: Sequence[int], ib: Sequence[int]
-) -> np.ndarray:
-    """(C, C) median symmetric epipolar distance (px) between camera a's parts `ia` and camera
-    b's parts `ib` (a < b; NaN with fewer than `MIN_PAIRS` part-frames); x: (N, K, C, 2)
-    normalised points (`adjust.sync.normalised_points`)."""
-    C = len(cameras)
-    focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
-    out = np.full((C, C), np.nan)
-    for a, b in itertools.combinations(range(C), 2):
-        xa, xb = x[:, list(ia), a], x[:, list(ib), b]
-        ok = np.isfinite(xa).all(-1) & np.isfinite(xb).all(-1)
-        if ok.sum() < MIN_PAIRS:
-            continue
-        d = epipolar_px(essential(cameras[a], cameras[b]), xa[ok], xb[ok], focal[a], focal[b])
-        out[a, b] = out[b, a] = float(np.median(d))
     return out
 
 
@@ -209,9 +191,7 @@ def handedness(
     quads, sign = quads[keep], np.sign(vol[keep])
     if not quads.size:
         return float("nan"), 0
-    rows = np.arange(det.num_frames)
-    if rows.size > MAX_ROWS:
-        rows = np.linspace(0, det.num_frames - 1, MAX_ROWS).astype(np.int64)
+    rows = spread_rows(det.num_frames, MAX_ROWS)
     ct = CameraTensors.from_cameras(list(cameras), dtype=torch.float64)
     with torch.no_grad():
         X = triangulate(
@@ -268,13 +248,11 @@ def check_sides(
         return det, report
     C, names, parts = len(cameras), [cam.name for cam in cameras], list(det.parts)
     named = [(parts[i], parts[j]) for i, j in pairs]
-    rows = np.arange(det.num_frames)
-    if rows.size > MAX_ROWS:
-        rows = np.linspace(0, det.num_frames - 1, MAX_ROWS).astype(np.int64)
+    rows = spread_rows(det.num_frames, MAX_ROWS)
     x0 = normalised_points(det.xy[rows], cameras)
     paired = {i for p in pairs for i in p}
     unpaired = [i for i in range(len(parts)) if i not in paired]
-    alone = medians(cameras, x0, unpaired, unpaired)
+    alone = epipolar_medians(cameras, x0, unpaired, unpaired, MIN_PAIRS)
     flips: dict[int, set] = {c: set() for c in range(C)}
     by: dict[tuple[int, int], str] = {}  # (camera, pair): what decided it
     told: dict[int, dict] = {}  # camera: the medians of the crossing camera pairs it is in
@@ -283,7 +261,8 @@ def check_sides(
         x = _flipped(x0, flips, pairs)
         ia = [pairs[p][0] for p in group] + [pairs[p][1] for p in group]
         ib = [pairs[p][1] for p in group] + [pairs[p][0] for p in group]
-        same, crossed = medians(cameras, x, ia, ia), medians(cameras, x, ia, ib)
+        same = epipolar_medians(cameras, x, ia, ia, MIN_PAIRS)
+        crossed = epipolar_medians(cameras, x, ia, ib, MIN_PAIRS)
         tells = telling(same, crossed, alone)
         if not any(tells.values()):
             continue

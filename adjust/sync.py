@@ -66,6 +66,39 @@ def frame_numbers(det: Detections) -> np.ndarray | None:
     return frames.astype(np.int64)
 
 
+def spread_rows(T: int, most: int) -> np.ndarray:
+    """Rows 0..T-1, or, for T > `most`, `most` rows spread evenly over them."""
+    if T <= most:
+        return np.arange(T)
+    return np.linspace(0, T - 1, most).astype(np.int64)
+
+
+def epipolar_medians(
+    cameras: Sequence[Camera],
+    x: np.ndarray,
+    ia: Sequence[int],
+    ib: Sequence[int],
+    min_pairs: int,
+) -> np.ndarray:
+    """(C, C) median symmetric epipolar distance (px) between camera a's parts `ia` and camera
+    b's parts `ib` at the same rows, for each camera pair a < b (symmetric; NaN with fewer than
+    `min_pairs` part-frames seen by both); x: (N, K, C, 2) `normalised_points`."""
+    C = len(cameras)
+    focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
+    out = np.full((C, C), np.nan)
+    for a in range(C):
+        for b in range(a + 1, C):
+            xa, xb = x[:, list(ia), a], x[:, list(ib), b]
+            ok = np.isfinite(xa).all(-1) & np.isfinite(xb).all(-1)
+            if ok.sum() < min_pairs:
+                continue
+            E = essential(cameras[a], cameras[b])
+            out[a, b] = out[b, a] = float(
+                np.median(epipolar_px(E, xa[ok], xb[ok], focal[a], focal[b]))
+            )
+    return out
+
+
 def block_rows(T: int, most: int, block: int) -> np.ndarray:
     """Rows 0..T-1, or, for T > `most`, blocks of `block` consecutive rows spread evenly over
     them (`most` rows in all): consecutive rows keep each frame's neighbours at hand."""
