@@ -28,7 +28,9 @@ For a camera that is off, the likely cause is diagnosed from the others' points:
 Before that, detections made on scaled or cropped videos are mapped into the calibrated images
 (`adjust.pixels`, ``input.pixel_check``; the report's ``pixels``), a camera recorded at a whole
 multiple or fraction of the others' frame rate has its frames renumbered to theirs
-(`adjust.rates`, ``input.rate_check``; the report's ``rates``), a camera whose left/right parts
+(`adjust.rates`, ``input.rate_check``; the report's ``rates``), a camera whose clock runs at
+another rate than theirs (a non-whole ratio, a drift) is read at their times (`adjust.clocks`,
+``input.rate_check`` too; the report's ``clocks``), a camera whose left/right parts
 are named the other way round from the others' has them swapped back (`adjust.sides`,
 ``input.side_check``; the report's ``sides``), a camera out of step in time
 with the others (its video started a few frames early or late) is found from the epipolar
@@ -57,6 +59,7 @@ import numpy as np
 import torch
 
 from adjust.camera import Camera, CameraTensors, project_cameras
+from adjust.clocks import check_clocks
 from adjust.io import Detections, InputError
 from adjust.moves import check_moves, rig_px
 from adjust.pixels import check_pixels
@@ -297,7 +300,8 @@ def check_cameras(
     a kept camera out of step by a fraction of a frame (`adjust.subframe.check_subframe`);
     first, with `pixels`, map detections made on scaled or cropped videos into the calibrated
     images (`adjust.pixels.check_pixels`) and, with `rates`, renumber a camera at a whole
-    multiple or fraction of the others' frame rate (`adjust.rates.check_rates`), and with
+    multiple or fraction of the others' frame rate (`adjust.rates.check_rates`) and read one
+    whose clock runs at another rate at their times (`adjust.clocks.check_clocks`), and with
     `sides` swap back a camera whose left/right parts are named the other way round
     (`adjust.sides.check_sides`; `reference`, a named body model, decides a tie).
     Returns the kept cameras, their detections (T, K, C', 2) and the report for the summary."""
@@ -322,6 +326,7 @@ def check_cameras(
         det, report["pixels"] = check_pixels(cams, det, mode)
     if rates:
         det, report["rates"] = check_rates(cams, det, mode)
+        det, report["clocks"] = check_clocks(cams, det, mode, max(max_offset, 2))
     if sides:
         det, report["sides"] = check_sides(cams, det, mode, reference)
     det, report["sync"], report["moved"] = _in_step_and_in_place(

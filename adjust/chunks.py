@@ -225,13 +225,16 @@ class ChunkHooks:
         (`adjust.subframe`), and report it."""
         if self.model is None:
             cams, det, report = check_from_config(cameras, det, input_cfg, reference)
-            renumbered = (report.get("rates") or {}).get("renumbered") or {}
+            renumbered = {
+                **((report.get("rates") or {}).get("renumbered") or {}),
+                **((report.get("clocks") or {}).get("retimed") or {}),
+            }
             if renumbered:
                 raise InputError(
                     f"cameras {sorted(renumbered)} were recorded at another frame rate than "
                     f"the others ({renumbered}); a session tracked in chunks (chunk_frames) is "
-                    "cut by frame number and cannot renumber them: resample their files to the "
-                    "others' rate, or track the session whole (chunk_frames=0)"
+                    "cut by frame number and cannot renumber or retime them: resample their "
+                    "files to the others' frames, or track the session whole (chunk_frames=0)"
                 )
             return cams, det, report
         cams, det = drop_cameras(cameras, det, self.model.excluded)

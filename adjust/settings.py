@@ -217,7 +217,7 @@ class InputConfig:
     max_frame_offset: int = 30  # frames a camera may be out of step (adjust.sync; 0: no check)
     max_camera_moves: int = 3  # cameras moved mid-session undone (adjust.moves; 0: no check)
     subframe_sync: bool = True  # a fraction of a frame out of step: interpolated (adjust.subframe)
-    rate_check: bool = True  # a camera at k x (or 1/k of) the others' frame rate (adjust.rates)
+    rate_check: bool = True  # another frame rate or clock (adjust.rates, adjust.clocks)
     pixel_check: bool = True  # detections on scaled or cropped videos (adjust.pixels)
     side_check: bool = True  # a camera with left and right the other way round (adjust.sides)
 

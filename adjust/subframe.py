@@ -218,11 +218,43 @@ def _rows(src: np.ndarray, r: np.ndarray, fill) -> np.ndarray:
     return np.where((r >= 0).reshape(-1, *[1] * (got.ndim - 1)), got, fill)
 
 
+def read_at(
+    det: Detections, c: int, p: np.ndarray, frames: np.ndarray, order: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera c's detections (N, K, 2) px and likelihoods (N, K) read at fractional frame
+    numbers p (N,) of its own rows: the line between the two bracketing rows; where one of
+    them is a spike (`spikes`), the other row; where only one has a detection, that one if it
+    is the nearer, else none (module doc). The likelihood is the rows' lower one (or the
+    row's taken). frames: the rows' frame numbers; order: their argsort."""
+    src, srcl = det.xy[:, :, c], det.likelihood[:, :, c]
+    spike = spikes(
+        src,
+        _rows(src, rows_at(frames, frames - 1, order), np.nan),
+        _rows(src, rows_at(frames, frames + 1, order), np.nan),
+    )
+    p = np.asarray(p, dtype=np.float64)
+    i = np.floor(p).astype(np.int64)
+    s = (p - i)[:, None]
+    r1, r2 = rows_at(frames, i, order), rows_at(frames, i + 1, order)
+    p1, p2 = _rows(src, r1, np.nan), _rows(src, r2, np.nan)
+    l1, l2 = _rows(srcl, r1, 0.0), _rows(srcl, r2, 0.0)
+    s1, s2 = _rows(spike, r1, False), _rows(spike, r2, False)
+    h1, h2 = np.isfinite(p1).all(-1), np.isfinite(p2).all(-1)
+    first = np.broadcast_to(s < 0.5, h1.shape)
+    both = h1 & h2
+    line = both & (s1 == s2) & ~(s1 & s2)
+    take1 = (both & ((s2 & ~s1) | (s1 & s2 & first))) | (~both & h1 & first)
+    take2 = (both & ((s1 & ~s2) | (s1 & s2 & ~first))) | (~both & h2 & ~first)
+    val = (1 - s[..., None]) * p1 + s[..., None] * p2
+    val = np.where(take1[..., None], p1, np.where(take2[..., None], p2, val))
+    xy = np.where((line | take1 | take2)[..., None], val, np.nan)
+    lik = np.where(take1, l1, np.where(take2, l2, np.where(line, np.minimum(l1, l2), 0.0)))
+    return xy, lik
+
+
 def resample(det: Detections, offsets: dict[str, float]) -> Detections:
     """The detections with camera ``name`` read at frame f at its fractional row f +
-    ``offsets[name]``: the line between the two bracketing rows; where one of them is a spike
-    (`spikes`), the other row; where only one has a detection, that one if it is the nearer,
-    else none (module doc). The likelihood is the rows' lower one (or the row's taken)."""
+    ``offsets[name]`` (`read_at`)."""
     offsets = {n: float(o) for n, o in offsets.items() if o}
     if not offsets:
         return det
@@ -233,31 +265,7 @@ def resample(det: Detections, offsets: dict[str, float]) -> Detections:
     xy, lik = det.xy.copy(), det.likelihood.copy()
     for name, o in offsets.items():
         c = det.cameras.index(name)
-        src, srcl = det.xy[:, :, c], det.likelihood[:, :, c]
-        spike = spikes(
-            src,
-            _rows(src, rows_at(frames, frames - 1, order), np.nan),
-            _rows(src, rows_at(frames, frames + 1, order), np.nan),
-        )
-        p = frames + o
-        i = np.floor(p).astype(np.int64)
-        s = (p - i)[:, None]
-        r1, r2 = rows_at(frames, i, order), rows_at(frames, i + 1, order)
-        p1, p2 = _rows(src, r1, np.nan), _rows(src, r2, np.nan)
-        l1, l2 = _rows(srcl, r1, 0.0), _rows(srcl, r2, 0.0)
-        s1, s2 = _rows(spike, r1, False), _rows(spike, r2, False)
-        h1, h2 = np.isfinite(p1).all(-1), np.isfinite(p2).all(-1)
-        first = np.broadcast_to(s < 0.5, h1.shape)
-        both = h1 & h2
-        line = both & (s1 == s2) & ~(s1 & s2)
-        take1 = (both & ((s2 & ~s1) | (s1 & s2 & first))) | (~both & h1 & first)
-        take2 = (both & ((s1 & ~s2) | (s1 & s2 & ~first))) | (~both & h2 & ~first)
-        val = (1 - s[..., None]) * p1 + s[..., None] * p2
-        val = np.where(take1[..., None], p1, np.where(take2[..., None], p2, val))
-        xy[:, :, c] = np.where((line | take1 | take2)[..., None], val, np.nan)
-        lik[:, :, c] = np.where(
-            take1, l1, np.where(take2, l2, np.where(line, np.minimum(l1, l2), 0.0))
-        )
+        xy[:, :, c], lik[:, :, c] = read_at(det, c, frames + o, frames, order)
     return dataclasses.replace(det, xy=xy, likelihood=lik)
 
 

@@ -1,0 +1,243 @@
+"""A camera whose clock runs at another rate than the others': the real-motion scenes with one
+camera's frame g showing the others' frame (g - offset) / rate, its file numbered in its own
+frames: a clock that drifts (``--rates 0.995``: 0.5% slow, 5 frames over the 1000, as a
+free-running webcam at 29.85 against 30 fps) or a frame rate that is not a whole multiple of
+theirs (``0.8333``: 25 against 30 fps; ``1.2``: 30 against 25), the camera started
+``--offset`` frames after the others. Tracked with the clock not looked for
+(``input.rate_check=false``, what adjust-track did before stop 60) and with the default check
+(`adjust.clocks`: the camera's rate and offset found from the epipolar geometry, its
+detections read at the others' times), beside aniposelib (`triangulate_optim` with anipose's
+settings, `real_motion.py`'s peer; it pairs rows by index, as the files give them).
+
+Scenes: `real_motion.py`'s 8-part scenes of the test segment (frames 2400-3399; nothing was
+chosen on it; ``--split val`` for the validation one; ``--cameras``, ``--seeds``). The camera is
+filmed from the recording interpolated in time (a cubic spline) at its own times; the other
+cameras and the truth at the others' frames. Each camera in turn, except with two cameras: the
+first keeps the session's time, so the second runs otherwise. Rows: RMSE all and seen by >= 2
+cameras (mm) in step, unchecked, checked, aniposelib on the same files / in step; the rate and
+offset found.
+
+Checks: every map found is the camera's own, its lag within 0.5 frame of the truth over the
+session; no map on the scenes in step; checked no worse than unchecked in the geometric mean.
+
+    .venv/bin/python benchmarks/clocks.py [--split test] [--cameras 2,3,4] [--seeds 0] \\
+        [--rates 0.995,0.8333,1.2] [--offset 2.5] [--clock-cameras NAMES] [--no-peer] \\
+        [--work DIR] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import emit, print_table, start  # noqa: E402
+from real_motion import (  # noqa: E402
+    DATA,
+    SPLITS,
+    Motion,
+    align,
+    evaluate,
+    film_scene,
+    input_args,
+    input_run,
+    input_settings,
+    run_aniposelib,
+    scene_key,
+)
+from tracking import run_track  # noqa: E402
+
+from adjust.io import load_calibration  # noqa: E402
+from adjust.scene.motion import film_part_set  # noqa: E402
+
+log = logging.getLogger("benchmarks.clocks")
+
+LAG_WITHIN = 0.5  #: frames: a map found this close to the true lag everywhere counts as right
+PAD = 10  #: recording frames beyond the segment the spline is fitted on
+
+
+def clock_scene(
+    base: Path, out: Path, motion: Motion, start_frame: int, frames: int, ncams: int,
+    seed: int, camera: str, rate: float, offset: float,
+) -> Path:  # fmt: skip
+    """A copy of `base` (`film_scene`'s) whose `camera` has its own clock: its frame g (0, 1,
+    ... while the session lasts) shows the scene's frame (g - offset) / rate, filmed with the
+    whole rig from the recording through a cubic spline, that camera's file kept. Cached:
+    kept if truth.npz is there."""
+    if (out / "truth.npz").exists():
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    g = np.arange(int(np.floor((frames - 1) * rate + offset)) + 1, dtype=np.float64)
+    g = g[g >= offset]  # the camera started `offset` frames after the others
+    t = start_frame + (g - offset) / rate
+    lo = max(int(t.min()) - PAD, 0)
+    hi = min(int(t.max()) + PAD + 1, len(motion.points))
+    spline = CubicSpline(np.arange(lo, hi), motion.points[lo:hi], axis=0)
+    tmp = out.with_name(out.name + ".rig")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    film_part_set(tmp, spline(t), motion.parts, motion.floor, ncams, 8, seed=seed)
+    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
+    shutil.copy2(tmp / "detections" / f"{camera}.csv", out / "detections" / f"{camera}.csv")
+    shutil.rmtree(tmp)
+    shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
+    return out
+
+
+def lag_error(found: dict, rate: float, offset: float, frames: int) -> float:
+    """The largest difference (frames of the camera) over the session's frames between the
+    found map's frame and the true one (NaN without a map)."""
+    if not found:
+        return float("nan")
+    f = np.array([0.0, frames - 1.0])
+    got = found["rate"] * f + found["offset"]
+    # the camera's first row (g = ceil(offset)) is its file's frame 0: the truth in its numbers
+    true = rate * f + offset - np.ceil(offset)
+    return float(np.abs(got - true).max())
+
+
+def _geo(vals: list[float]) -> float:
+    v = [x for x in vals if x is not None and np.isfinite(x) and x > 0]
+    return float(np.exp(np.mean(np.log(v)))) if v else float("nan")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    input_args(ap, "clocks", "2,3,4")
+    ap.add_argument("--rates", default="0.995,0.8333,1.2", help="the camera's rate / theirs")
+    ap.add_argument("--offset", type=float, default=2.5, help="frames it started after them")
+    ap.add_argument("--split", default="test", choices=tuple(SPLITS), help="the segment")
+    ap.add_argument("--clock-cameras", default="", help="only these cameras (default: each)")
+    ap.add_argument("--no-peer", action="store_true", help="without aniposelib")
+    args = start(ap, argv)
+    only = [c for c in args.clock_cameras.split(",") if c.strip()]
+    cameras, seeds = input_settings(ap, args)
+    rates = [float(v) for v in args.rates.split(",") if v.strip()]
+    if not rates or any(not 0.5 <= r <= 2 or r == 1 for r in rates):
+        ap.error(f"--rates must lie within [0.5, 2], not 1: {args.rates}")
+    if not 0 <= args.offset <= 20:
+        ap.error(f"--offset must lie within [0, 20] frames, got {args.offset}")
+    motion, work, threads = input_run(args)
+    start_frame = SPLITS[args.split]
+    frames = args.frames
+    rows: list[dict] = []
+
+    def tracked(scene: Path, name: str, extra=()) -> tuple[dict, dict]:
+        """RMSE of adjust-track's points on the truth's frames (unchecked, a faster camera's
+        file makes the session longer: its frames beyond the truth's are not scored) and its
+        camera check."""
+        tr = np.load(scene / "truth.npz")
+        parts = [str(p) for p in tr["parts"]]
+        est, _, summ = run_track(scene, work / "runs" / scene.name / name, [threads, *extra])
+        est = align(est, summ["parts"], parts)
+        T = len(tr["points"])
+        return evaluate(est[:T], tr["points"], tr["nviews"]), summ.get("camera_check") or {}
+
+    def peer(scene: Path) -> dict:
+        """aniposelib on the scene (cached), on the truth's frames (it pairs rows by index)."""
+        if args.no_peer:
+            return {}
+        tr = np.load(scene / "truth.npz")
+        est, eparts, _ = run_aniposelib(scene, 8, DATA.parent / "skeleton.csv")
+        est = align(est, eparts, [str(p) for p in tr["parts"]])
+        T = len(tr["points"])
+        return evaluate(est[:T], tr["points"], tr["nviews"])
+
+    for ncams in cameras:
+        for seed in seeds:
+            key = scene_key(args.split, start_frame, frames, ncams, 8, seed)
+            base = film_scene(work / "scenes" / key, motion, start_frame, frames, ncams, 8, seed)
+            ref, ref_check = tracked(base, "checked")
+            ref_peer = peer(base)
+            names = [c.name for c in load_calibration(base / "calibration.toml")]
+            for camera in [c for c in (names[1:] if ncams == 2 else names)
+                           if not only or c in only]:  # fmt: skip
+                for rate in rates:
+                    tag = f"{key}_{camera}_rate{rate:g}_off{args.offset:g}"
+                    scene = clock_scene(base, work / "clocked" / tag, motion, start_frame,
+                                        frames, ncams, seed, camera, rate, args.offset)  # fmt: skip
+                    blind, _ = tracked(scene, "unchecked", ["input.rate_check=false"])
+                    fixed, check = tracked(scene, "checked")
+                    found = (check.get("clocks") or {}).get("retimed") or {}
+                    p = peer(scene)
+                    row = {
+                        "cameras": ncams, "seed": seed, "camera": camera, "rate": rate,
+                        "offset": args.offset,
+                        "instep_all": ref["rmse_all"], "instep_seen": ref["rmse_seen2"],
+                        "unchecked_all": blind["rmse_all"], "unchecked_seen": blind["rmse_seen2"],
+                        "checked_all": fixed["rmse_all"], "checked_seen": fixed["rmse_seen2"],
+                        "peer_all": p.get("rmse_all"), "peer_instep_all": ref_peer.get("rmse_all"),
+                        "found": {n: [v["rate"], v["offset"]] for n, v in found.items()},
+                        "lag_error": lag_error(found.get(camera) or {}, rate, args.offset, frames),
+                        "excluded_checked": sorted(check.get("excluded") or {}),
+                        "false_maps_instep": sorted(
+                            (ref_check.get("clocks") or {}).get("retimed") or {}
+                        ),
+                    }  # fmt: skip
+                    rows.append(row)
+                    log.info("%s: %s", tag, row)
+    table = {f"{r['cameras']} cams s{r['seed']} {r['camera']} x{r['rate']:g}": r for r in rows}
+    cols = [("instep_all", "in step"), ("unchecked_all", "unchecked"),
+            ("checked_all", "checked"), ("peer_all", "anipose"),
+            ("peer_instep_all", "anip. step"), ("instep_seen", "seen step"),
+            ("unchecked_seen", "seen unch."), ("checked_seen", "seen chk.")]  # fmt: skip
+    print(f"\nRMSE all / seen by >= 2 cameras (mm), {args.split} segment, a camera's own clock:")
+    print_table(table, cols, 11)
+    print("\nfound by the check (camera: rate, offset; the largest lag error in frames):")
+    for label, r in table.items():
+        print(f"  {label}: {r['found'] or 'none'}; {r['lag_error']:.2f}")
+    summary: dict = {}
+    for ncams in cameras:
+        for rate in rates:
+            rs = [r for r in rows if r["cameras"] == ncams and r["rate"] == rate]
+            if not rs:
+                continue
+            summary[f"{ncams} cameras x{rate:g}"] = {
+                **{
+                    k: _geo([r[a] / r[b] for r in rs if r[a] and r[b]])
+                    for k, (a, b) in {
+                        "unchecked/instep_all": ("unchecked_all", "instep_all"),
+                        "checked/instep_all": ("checked_all", "instep_all"),
+                        "unchecked/instep_seen": ("unchecked_seen", "instep_seen"),
+                        "checked/instep_seen": ("checked_seen", "instep_seen"),
+                        "checked/peer_all": ("checked_all", "peer_all"),
+                        "peer/peer_instep": ("peer_all", "peer_instep_all"),
+                    }.items()
+                },
+                "found": f"{sum(bool(r['found']) for r in rs)} of {len(rs)}",
+            }
+    print("\ngeometric means over the scenes:")
+    for k, v in summary.items():
+        print(f"  {k}: " + ", ".join(f"{a} {b:.3f}" if isinstance(b, float) else f"{a} {b}"
+                                     for a, b in v.items()))  # fmt: skip
+
+    def right(r: dict) -> bool:
+        return set(r["found"]) == {r["camera"]} and r["lag_error"] <= LAG_WITHIN
+
+    checks = {
+        "found_right_within_0.5_frame": f"{sum(right(r) for r in rows)} of {len(rows)}",
+        "every_found_right": all(right(r) for r in rows if r["found"]),
+        "no_map_in_step": all(not r["false_maps_instep"] for r in rows),
+        "checked_no_worse_than_unchecked": _geo(
+            [r["checked_all"] / r["unchecked_all"] for r in rows]
+        )
+        <= 1,
+    }
+    print(f"\nchecks: {checks}")
+    return emit(
+        {"split": args.split, "seeds": seeds, "rates": rates, "offset": args.offset,
+         "rows": rows, "summary": summary, "checks": checks},
+        args.out,
+    )  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
