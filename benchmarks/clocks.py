@@ -38,21 +38,28 @@ from scipy.interpolate import CubicSpline
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import emit, print_table, start  # noqa: E402
+from common import (  # noqa: E402
+    CHECK_COLUMNS,
+    CHECK_RATIOS,
+    emit,
+    geo_mean,
+    print_means,
+    print_table,
+    ratio_means,
+    start,
+)
 from real_motion import (  # noqa: E402
-    DATA,
+    DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
     Motion,
-    align,
-    evaluate,
     film_scene,
+    frames_row,
     input_args,
     input_run,
     input_settings,
-    run_aniposelib,
+    peer_row,
     scene_key,
 )
-from tracking import run_track  # noqa: E402
 
 from adjust.io import load_calibration  # noqa: E402
 from adjust.scene.motion import film_part_set  # noqa: E402
@@ -61,6 +68,8 @@ log = logging.getLogger("benchmarks.clocks")
 
 LAG_WITHIN = 0.5  #: frames: a map found this close to the true lag everywhere counts as right
 PAD = 10  #: recording frames beyond the segment the spline is fitted on
+PEER_RATIOS = {"checked/peer_all": ("checked_all", "peer_all"),
+               "peer/peer_instep": ("peer_all", "peer_instep_all")}  # fmt: skip
 
 
 def clock_scene(
@@ -104,11 +113,6 @@ def lag_error(found: dict, rate: float, offset: float, frames: int) -> float:
     return float(np.abs(got - true).max())
 
 
-def _geo(vals: list[float]) -> float:
-    v = [x for x in vals if x is not None and np.isfinite(x) and x > 0]
-    return float(np.exp(np.mean(np.log(v)))) if v else float("nan")
-
-
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     input_args(ap, "clocks", "2,3,4")
@@ -131,25 +135,10 @@ def main(argv: list[str] | None = None) -> dict:
     rows: list[dict] = []
 
     def tracked(scene: Path, name: str, extra=()) -> tuple[dict, dict]:
-        """RMSE of adjust-track's points on the truth's frames (unchecked, a faster camera's
-        file makes the session longer: its frames beyond the truth's are not scored) and its
-        camera check."""
-        tr = np.load(scene / "truth.npz")
-        parts = [str(p) for p in tr["parts"]]
-        est, _, summ = run_track(scene, work / "runs" / scene.name / name, [threads, *extra])
-        est = align(est, summ["parts"], parts)
-        T = len(tr["points"])
-        return evaluate(est[:T], tr["points"], tr["nviews"]), summ.get("camera_check") or {}
+        return frames_row(scene, work / "runs" / scene.name / name, [threads, *extra])
 
     def peer(scene: Path) -> dict:
-        """aniposelib on the scene (cached), on the truth's frames (it pairs rows by index)."""
-        if args.no_peer:
-            return {}
-        tr = np.load(scene / "truth.npz")
-        est, eparts, _ = run_aniposelib(scene, 8, DATA.parent / "skeleton.csv")
-        est = align(est, eparts, [str(p) for p in tr["parts"]])
-        T = len(tr["points"])
-        return evaluate(est[:T], tr["points"], tr["nviews"])
+        return {} if args.no_peer else peer_row(scene, truth_frames=True)
 
     for ncams in cameras:
         for seed in seeds:
@@ -185,12 +174,8 @@ def main(argv: list[str] | None = None) -> dict:
                     rows.append(row)
                     log.info("%s: %s", tag, row)
     table = {f"{r['cameras']} cams s{r['seed']} {r['camera']} x{r['rate']:g}": r for r in rows}
-    cols = [("instep_all", "in step"), ("unchecked_all", "unchecked"),
-            ("checked_all", "checked"), ("peer_all", "anipose"),
-            ("peer_instep_all", "anip. step"), ("instep_seen", "seen step"),
-            ("unchecked_seen", "seen unch."), ("checked_seen", "seen chk.")]  # fmt: skip
     print(f"\nRMSE all / seen by >= 2 cameras (mm), {args.split} segment, a camera's own clock:")
-    print_table(table, cols, 11)
+    print_table(table, CHECK_COLUMNS, 11)
     print("\nfound by the check (camera: rate, offset; the largest lag error in frames):")
     for label, r in table.items():
         print(f"  {label}: {r['found'] or 'none'}; {r['lag_error']:.2f}")
@@ -201,23 +186,10 @@ def main(argv: list[str] | None = None) -> dict:
             if not rs:
                 continue
             summary[f"{ncams} cameras x{rate:g}"] = {
-                **{
-                    k: _geo([r[a] / r[b] for r in rs if r[a] and r[b]])
-                    for k, (a, b) in {
-                        "unchecked/instep_all": ("unchecked_all", "instep_all"),
-                        "checked/instep_all": ("checked_all", "instep_all"),
-                        "unchecked/instep_seen": ("unchecked_seen", "instep_seen"),
-                        "checked/instep_seen": ("checked_seen", "instep_seen"),
-                        "checked/peer_all": ("checked_all", "peer_all"),
-                        "peer/peer_instep": ("peer_all", "peer_instep_all"),
-                    }.items()
-                },
+                **ratio_means(rs, {**CHECK_RATIOS, **PEER_RATIOS}),
                 "found": f"{sum(bool(r['found']) for r in rs)} of {len(rs)}",
             }
-    print("\ngeometric means over the scenes:")
-    for k, v in summary.items():
-        print(f"  {k}: " + ", ".join(f"{a} {b:.3f}" if isinstance(b, float) else f"{a} {b}"
-                                     for a, b in v.items()))  # fmt: skip
+    print_means(summary)
 
     def right(r: dict) -> bool:
         return set(r["found"]) == {r["camera"]} and r["lag_error"] <= LAG_WITHIN
@@ -226,7 +198,7 @@ def main(argv: list[str] | None = None) -> dict:
         "found_right_within_0.5_frame": f"{sum(right(r) for r in rows)} of {len(rows)}",
         "every_found_right": all(right(r) for r in rows if r["found"]),
         "no_map_in_step": all(not r["false_maps_instep"] for r in rows),
-        "checked_no_worse_than_unchecked": _geo(
+        "checked_no_worse_than_unchecked": geo_mean(
             [r["checked_all"] / r["unchecked_all"] for r in rows]
         )
         <= 1,

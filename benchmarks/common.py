@@ -47,6 +47,49 @@ def cell(v, digits: int = 3, large_digits: int | None = 2, missing: str = "n/a")
     return str(v)
 
 
+def geo_mean(vals) -> float:
+    """The geometric mean of the finite positive values of `vals` (NaN where none)."""
+    v = [x for x in vals if x is not None and math.isfinite(x) and x > 0]
+    return math.exp(sum(math.log(x) for x in v) / len(v)) if v else float("nan")
+
+
+#: the input-condition benchmarks' table columns (`subframe.py`, `clocks.py`): RMSE all / seen
+#: by >= 2 cameras in step, spoilt unchecked and checked; aniposelib spoilt and in step
+CHECK_COLUMNS = [
+    ("instep_all", "in step"),
+    ("unchecked_all", "unchecked"),
+    ("checked_all", "checked"),
+    ("peer_all", "anipose"),
+    ("peer_instep_all", "anip. step"),
+    ("instep_seen", "seen step"),
+    ("unchecked_seen", "seen unch."),
+    ("checked_seen", "seen chk."),
+]
+#: ... and their ratios to the scene in step: {name: (numerator key, denominator key)}
+CHECK_RATIOS = {
+    "unchecked/instep_all": ("unchecked_all", "instep_all"),
+    "checked/instep_all": ("checked_all", "instep_all"),
+    "unchecked/instep_seen": ("unchecked_seen", "instep_seen"),
+    "checked/instep_seen": ("checked_seen", "instep_seen"),
+}
+
+
+def ratio_means(rows: list[dict], ratios: dict) -> dict:
+    """{name: the geometric mean over `rows` of r[a] / r[b]} for each name: (a, b) of
+    `ratios` (rows where either is missing or 0 left out)."""
+    return {
+        k: geo_mean([r[a] / r[b] for r in rows if r[a] and r[b]]) for k, (a, b) in ratios.items()
+    }
+
+
+def print_means(summary: dict) -> None:
+    """`summary` ({group: {name: value}}) a line per group, floats to 3 decimals."""
+    print("\ngeometric means over the scenes:")
+    for k, v in summary.items():
+        print(f"  {k}: " + ", ".join(f"{a} {b:.3f}" if isinstance(b, float) else f"{a} {b}"
+                                     for a, b in v.items()))  # fmt: skip
+
+
 def print_table(rows: dict, cols, width: int, **cell_args) -> None:
     """`rows` (method -> {key: value}) as a table: one column per (key, heading) of `cols`,
     `width` characters each (the method's too), cells by `cell` (`cell_args`: its options)."""

@@ -37,16 +37,14 @@ from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
-    align,
-    evaluate,
     film_scene,
+    frames_row,
     input_args,
     input_run,
     input_settings,
     peer_row,
     scene_key,
 )
-from tracking import run_track  # noqa: E402
 
 from adjust.io import load_calibration, read_dlc, write_dlc_csv  # noqa: E402
 
@@ -127,17 +125,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows: list[dict] = []
 
     def tracked(scene: Path, name: str, extra=()) -> tuple[dict, dict]:
-        """RMSE of adjust-track's points on the truth's frames (unchecked, a faster camera's
-        file makes the session twice as long: its frames beyond the truth's are not scored),
-        the frames it wrote, and its camera check."""
-        tr = np.load(scene / "truth.npz")
-        parts = [str(p) for p in tr["parts"]]
-        out = work / "runs" / scene.name / name
-        est, _, summ = run_track(scene, out, [threads, *extra])
-        est = align(est, summ["parts"], parts)
-        T = len(tr["points"])
-        r = {**evaluate(est[:T], tr["points"], tr["nviews"]), "frames_out": len(est)}
-        return r, summ.get("camera_check") or {}
+        return frames_row(scene, work / "runs" / scene.name / name, [threads, *extra])
 
     def peer(scene: Path) -> float | None:
         return None if args.no_peer else peer_row(scene)["rmse_all"]

@@ -429,12 +429,26 @@ def checked_row(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dic
     return row, summary.get("camera_check") or {}
 
 
-def peer_row(scene: Path, nparts: int = 8) -> dict:
+def peer_row(scene: Path, nparts: int = 8, truth_frames: bool = False) -> dict:
     """aniposelib on a scene of `nparts` parts (`run_aniposelib`, cached), evaluated on its
-    truth.npz."""
+    truth.npz; `truth_frames`: on the truth's frames only (a camera's file longer than the
+    others' makes the session longer; its frames beyond the truth's are not scored)."""
     tr = np.load(scene / "truth.npz")
     est, eparts, _ = run_aniposelib(scene, nparts, DATA.parent / "skeleton.csv")
-    return evaluate(align(est, eparts, [str(p) for p in tr["parts"]]), tr["points"], tr["nviews"])
+    est = align(est, eparts, [str(p) for p in tr["parts"]])
+    return evaluate(est[: len(tr["points"])] if truth_frames else est, tr["points"], tr["nviews"])
+
+
+def frames_row(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dict]:
+    """adjust-track on an 8-part scene whose files may make the session longer than its
+    truth (a camera at another frame rate, unchecked): RMSE on the truth's frames, the frames
+    it wrote (``frames_out``), and its run's camera check."""
+    tr = np.load(scene / "truth.npz")
+    est, _, summ = run_track(scene, out, overrides)
+    est = align(est, summ["parts"], [str(p) for p in tr["parts"]])
+    T = len(tr["points"])
+    row = {**evaluate(est[:T], tr["points"], tr["nviews"]), "frames_out": len(est)}
+    return row, summ.get("camera_check") or {}
 
 
 def body_scale(body: dict):

@@ -37,7 +37,16 @@ from scipy.interpolate import CubicSpline
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import emit, print_table, start  # noqa: E402
+from common import (  # noqa: E402
+    CHECK_COLUMNS,
+    CHECK_RATIOS,
+    emit,
+    geo_mean,
+    print_means,
+    print_table,
+    ratio_means,
+    start,
+)
 from real_motion import (  # noqa: E402
     DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
@@ -85,11 +94,6 @@ def late_scene(
     shutil.rmtree(tmp)
     shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
     return out
-
-
-def _geo(vals: list[float]) -> float:
-    v = [x for x in vals if x is not None and np.isfinite(x) and x > 0]
-    return float(np.exp(np.mean(np.log(v)))) if v else float("nan")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -160,12 +164,8 @@ def main(argv: list[str] | None = None) -> dict:
         what = ", ".join(f"{c} {o:+.2f}" for c, o in r["found"].items()) or "none"
         label = f"x{r['stride']} {r['cameras']} cams s{r['seed']} {r['camera']} {r['late']:+g}"
         table[label] = {**r, "what": what}
-    cols = [("instep_all", "in step"), ("unchecked_all", "unchecked"),
-            ("checked_all", "checked"), ("peer_all", "anipose"),
-            ("peer_instep_all", "anip. step"), ("instep_seen", "seen step"),
-            ("unchecked_seen", "seen unch."), ("checked_seen", "seen chk.")]  # fmt: skip
     print(f"\nRMSE all / seen by >= 2 cameras (mm), {args.split} segment, a camera late:")
-    print_table(table, cols, 11)
+    print_table(table, CHECK_COLUMNS, 11)
     print("\nfound by the check (camera, offset: its frame f + offset is the others' f):")
     for label, line in table.items():
         print(f"  {label}: {line['what']}")
@@ -175,24 +175,18 @@ def main(argv: list[str] | None = None) -> dict:
             rs = [r for r in rows if r["stride"] == stride and r["cameras"] == ncams]
             if not rs:
                 continue
-            summary[f"x{stride} {ncams} cameras"] = {
-                k: _geo([r[a] / r[b] for r in rs if r[a] and r[b]])
-                for k, (a, b) in {
-                    "unchecked/instep_all": ("unchecked_all", "instep_all"),
-                    "checked/instep_all": ("checked_all", "instep_all"),
-                    "unchecked/instep_seen": ("unchecked_seen", "instep_seen"),
-                    "checked/instep_seen": ("checked_seen", "instep_seen"),
+            summary[f"x{stride} {ncams} cameras"] = ratio_means(
+                rs,
+                {
+                    **CHECK_RATIOS,
                     "peer_late/peer_instep": ("peer_all", "peer_instep_all"),
                     "checked/peer_late": ("checked_all", "peer_all"),
-                }.items()
-            }
+                },
+            )
             summary[f"x{stride} {ncams} cameras"]["found"] = (
                 f"{sum(bool(r['found']) for r in rs)} of {len(rs)}"
             )
-    print("\ngeometric means over the late-camera scenes:")
-    for k, v in summary.items():
-        print(f"  {k}: " + ", ".join(f"{a} {b:.3f}" if isinstance(b, float) else f"{a} {b}"
-                                     for a, b in v.items()))  # fmt: skip
+    print_means(summary)
 
     def right(r: dict) -> bool:
         """The late camera found, alone, at -late (two cameras: the second)."""
@@ -206,7 +200,7 @@ def main(argv: list[str] | None = None) -> dict:
         "found": f"{sum(bool(r['found']) for r in rows)} of {len(rows)}",
         "no_offset_in_step": all(not r["false_offsets_instep"] for r in rows),
         "checked_no_worse_than_unchecked": all(
-            _geo([r["checked_all"] / r["unchecked_all"] for r in rows if r["stride"] == s]) <= 1
+            geo_mean([r["checked_all"] / r["unchecked_all"] for r in rows if r["stride"] == s]) <= 1
             for s in strides
         ),
     }

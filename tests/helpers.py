@@ -88,6 +88,17 @@ def pinned(overrides) -> list[str]:
     return [o for o in OLD_RECIPE if o.split("=")[0] not in keys] + list(overrides)
 
 
+def wandering_path(t: np.ndarray, K: int = 8) -> np.ndarray:
+    """(len(t), K, 3) mm at times t (frames): K parts at fixed offsets about a centre that
+    wanders smoothly through the default rig's arena (period 300 frames)."""
+    rng = np.random.default_rng(0)
+    w = 2 * np.pi / 300
+    centre = np.stack(
+        [150 + 80 * np.cos(w * t), 150 + 70 * np.sin(2 * w * t), 30 + 15 * np.sin(3 * w * t)], -1
+    )
+    return centre[:, None] + rng.normal(0, 20, (K, 3))
+
+
 def projected_detections(cams, X, noise: float, rng: np.random.Generator):
     """`adjust.io.Detections` of points X (T, K, 3) mm seen by every camera of `cams`, with
     Gaussian pixel noise of sd `noise` drawn from `rng`: parts p0.., likelihood 1, files
@@ -105,3 +116,19 @@ def projected_detections(cams, X, noise: float, rng: np.random.Generator):
         0.5,
         np.arange(T),
     )
+
+
+def own_clock_detections(cams, T: int, c: int, times: np.ndarray, noise: float = 0.5):
+    """`projected_detections` of `wandering_path` at frames 0..T-1, camera c's rows g = 0,
+    1, ... showing the times `times` (frames) instead: a camera with its own clock or frame
+    rate, its file numbered in its own frames. Rows: the union of the files' frames."""
+    rng = np.random.default_rng(1)
+    base = projected_detections(cams, wandering_path(np.arange(T, dtype=np.float64)), noise, rng)
+    own = projected_detections(cams, wandering_path(np.asarray(times, float)), noise, rng)
+    n = max(T, len(times))
+    xy = np.full((n, base.num_parts, len(cams), 2), np.nan)
+    lik = np.zeros((n, base.num_parts, len(cams)))
+    xy[:T], lik[:T] = base.xy, base.likelihood
+    xy[:, :, c], lik[:, :, c] = np.nan, 0.0
+    xy[: len(times), :, c], lik[: len(times), :, c] = own.xy[:, :, c], 1.0
+    return Detections(base.cameras, base.parts, xy, lik, base.files, 0.5, np.arange(n))

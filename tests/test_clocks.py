@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from helpers import projected_detections
+from helpers import own_clock_detections, projected_detections, wandering_path
 
 from adjust.camera_check import check_from_config
 from adjust.chunks import ChunkHooks
@@ -21,33 +21,14 @@ torch.set_num_threads(1)
 T = 1000
 
 
-def _path(t: np.ndarray, K: int = 8) -> np.ndarray:
-    """(len(t), K, 3) mm at times t (frames): parts about a centre wandering smoothly."""
-    rng = np.random.default_rng(0)
-    w = 2 * np.pi / 300
-    centre = np.stack(
-        [150 + 80 * np.cos(w * t), 150 + 70 * np.sin(2 * w * t), 30 + 15 * np.sin(3 * w * t)], -1
-    )
-    return centre[:, None] + rng.normal(0, 20, (K, 3))
-
-
-def _clocked(cams, c: int, times: np.ndarray, noise: float = 0.5) -> Detections:
-    """Detections of `_path` at frames 0..T-1, camera c's rows g = 0..len(times)-1 showing
-    the times `times` instead (its own clock)."""
-    rng = np.random.default_rng(1)
-    base = projected_detections(cams, _path(np.arange(T, dtype=np.float64)), noise, rng)
-    own = projected_detections(cams, _path(np.asarray(times, dtype=np.float64)), noise, rng)
-    n = max(T, len(times))
-    xy = np.full((n, base.num_parts, len(cams), 2), np.nan)
-    lik = np.zeros((n, base.num_parts, len(cams)))
-    xy[:T], lik[:T] = base.xy, base.likelihood
-    xy[:, :, c], lik[:, :, c] = np.nan, 0.0
-    xy[: len(times), :, c], lik[: len(times), :, c] = own.xy[:, :, c], 1.0
-    return Detections(base.cameras, base.parts, xy, lik, base.files, 0.5, np.arange(n))
+def _clocked(cams, c: int, times: np.ndarray) -> Detections:
+    """Detections at frames 0..T-1, camera c's rows g = 0..len(times)-1 showing the times
+    `times` instead (its own clock)."""
+    return own_clock_detections(cams, T, c, times)
 
 
 def _truth(cams) -> np.ndarray:
-    X = _path(np.arange(T, dtype=np.float64))
+    X = wandering_path(np.arange(T, dtype=np.float64))
     return projected_detections(cams, X, 0.0, np.random.default_rng(0)).xy
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from helpers import projected_detections
+from helpers import own_clock_detections, projected_detections, wandering_path
 
 from adjust.camera_check import check_from_config
 from adjust.chunks import ChunkHooks
@@ -20,31 +20,12 @@ torch.set_num_threads(1)
 T = 600
 
 
-def _path(t: np.ndarray, K: int = 8) -> np.ndarray:
-    """(len(t), K, 3) mm at times t (frames): parts about a centre wandering smoothly."""
-    rng = np.random.default_rng(0)
-    w = 2 * np.pi / 300
-    centre = np.stack(
-        [150 + 80 * np.cos(w * t), 150 + 70 * np.sin(2 * w * t), 30 + 15 * np.sin(3 * w * t)], -1
-    )
-    return centre[:, None] + rng.normal(0, 20, (K, 3))
-
-
 def _mixed(cams, c: int, k: int, phase: int = 0, noise: float = 0.5) -> Detections:
-    """Detections of `_path` with camera c at k x the others' rate (k < 0: 1 / |k|), its rows
-    numbered in its own frames: k = 2, its frame g shows time g / 2; k = -2, its frame g shows
-    time 2 g + phase. Rows: the union of the files' frames."""
-    rng = np.random.default_rng(1)
-    base = projected_detections(cams, _path(np.arange(T, dtype=np.float64)), noise, rng)
+    """Detections (`helpers.own_clock_detections`) with camera c at k x the others' rate (k <
+    0: 1 / |k|), its rows numbered in its own frames: k = 2, its frame g shows time g / 2;
+    k = -2, its frame g shows time 2 g + phase."""
     times = (np.arange(k * T) / k) if k > 0 else (np.arange(T // -k) * -k + phase)
-    own = projected_detections(cams, _path(times.astype(np.float64)), noise, rng)
-    n = max(T, len(times))
-    xy = np.full((n, base.num_parts, len(cams), 2), np.nan)
-    lik = np.zeros((n, base.num_parts, len(cams)))
-    xy[:T], lik[:T] = base.xy, base.likelihood
-    xy[:, :, c], lik[:, :, c] = np.nan, 0.0
-    xy[: len(times), :, c], lik[: len(times), :, c] = own.xy[:, :, c], 1.0
-    return Detections(base.cameras, base.parts, xy, lik, base.files, 0.5, np.arange(n))
+    return own_clock_detections(cams, T, c, times, noise)
 
 
 def test_ratio_of_whole_multiples_only():
@@ -67,7 +48,7 @@ def test_a_camera_at_another_rate_is_renumbered(c, k, phase, caplog):
     assert got["epipolar_px"][1] < 2.0 < 10 * got["epipolar_px"][1] < got["epipolar_px"][0]
     assert out.num_frames == T and out.frames.tolist() == list(range(T))
     truth = projected_detections(
-        cams, _path(np.arange(T, dtype=np.float64)), 0.0, np.random.default_rng(0)
+        cams, wandering_path(np.arange(T, dtype=np.float64)), 0.0, np.random.default_rng(0)
     )
     seen = np.isfinite(out.xy[:, :, c]).all(-1)
     assert seen.sum() >= (T if k > 0 else T // 2) * det.num_parts - 1

@@ -207,3 +207,20 @@ def test_sides_benchmark_tiny_run(tmp_path, one_thread):
     assert n == 4 and res["checks"]["found_the_swapped_pairs"] == n, res
     assert res["checks"]["checked_within_2pct_of_labelled"] == n, res
     assert all(r["unchecked_all"] > 1.2 * r["checked_all"] for r in res["rows"].values()), res
+
+
+def test_clocks_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/clocks.py on 600 frames (3 cameras, the front one at 25 against the others'
+    30 fps): its clock found, its lag within half a frame, none in step (its checks), and it
+    tracks far better checked than unchecked."""
+    ck = _load("clocks")
+    res = ck.main(
+        ["--split", "val", "--frames", "600", "--cameras", "3", "--rates", "0.8333",
+         "--clock-cameras", "front", "--no-peer",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "c.json")]
+    )  # fmt: skip
+    checks = res["checks"]
+    assert checks["found_right_within_0.5_frame"] == "1 of 1", res
+    assert checks["every_found_right"] and checks["no_map_in_step"], res
+    (row,) = res["rows"]
+    assert row["unchecked_all"] > 1.5 * row["checked_all"], row
