@@ -66,24 +66,12 @@ import numpy as np
 from adjust.camera import Camera
 from adjust.io import Detections, InputError
 from adjust.rates import SPAN_TOL, camera_px, pair_medians, ratio_of, spans
-from adjust.subframe import (
-    BLOCK_ROWS,
-    CLUSTER,
-    FLOOR,
-    MAX_ROWS,
-    MIN_CLUSTERS,
-    MIN_TERMS,
-    pair_terms,
-    read_at,
-)
-from adjust.subframe import CUT as IV_CUT
+from adjust.subframe import MIN_CLUSTERS, pair_terms, read_at, regress, term_rows
 from adjust.sync import (
-    block_rows,
     epipolar_px,
     essential,
     frame_numbers,
     normalised_points,
-    rows_at,
 )
 
 log = logging.getLogger(__name__)
@@ -250,42 +238,9 @@ def velocity_terms(cams, det: Detections, c: int):
     """`adjust.subframe.pair_terms` of camera c against every other camera, pooled: (d, v, z,
     frame) with d = o v, o camera c's lag (its row f + o matches the others' f)."""
     frames = frame_numbers(det)
-    rows = block_rows(det.num_frames, MAX_ROWS, BLOCK_ROWS)
-    order = np.argsort(frames, kind="stable")
-    nb = [rows_at(frames, frames[rows] + s, order) for s in (-2, -1, 1, 2)]
-    need = np.unique(np.concatenate([rows, *[r[r >= 0] for r in nb]]))
-    x = np.full(det.xy.shape, np.nan)
-    x[need] = normalised_points(det.xy[need], cams)
+    x, rows, nb = term_rows(cams, det, frames)
     terms = [pair_terms(x, frames, rows, nb, c, d, cams) for d in range(len(cams)) if d != c]
     return tuple(np.concatenate([t[i] for t in terms]) for i in range(4))
-
-
-def regress(d, X, W, f, min_clusters: int):
-    """Instrumental-variables regression d = X beta (instruments W, (N, P) each), robust
-    (residuals beyond `adjust.subframe.CUT` MADs left out, refitted); beta (P,) and its
-    covariance, the sandwich over clusters of `adjust.subframe.CLUSTER` frames plus
-    `adjust.subframe.FLOOR` squared; None with too few terms or clusters, or no leverage."""
-    if d.size < MIN_TERMS:
-        return None
-    keep = np.ones(d.size, bool)
-    for _ in range(5):
-        A = W[keep].T @ X[keep]
-        if not np.isfinite(A).all() or np.linalg.cond(A) > 1e12:
-            return None
-        beta = np.linalg.solve(A, W[keep].T @ d[keep])
-        r = d - X @ beta
-        mad = 1.4826 * float(np.median(np.abs(r[keep])))
-        new = np.abs(r) <= IV_CUT * max(mad, 1e-9)
-        if (new == keep).all():
-            break
-        keep = new
-    clusters, g = np.unique((f[keep] // CLUSTER).astype(np.int64), return_inverse=True)
-    if keep.sum() < MIN_TERMS or clusters.size < min_clusters:
-        return None
-    Ai = np.linalg.inv(W[keep].T @ X[keep])
-    sums = np.stack([np.bincount(g, weights=W[keep][:, j] * r[keep]) for j in range(W.shape[1])])
-    cov = Ai @ (sums @ sums.T) @ Ai.T + FLOOR**2 * np.eye(W.shape[1])
-    return beta, cov
 
 
 def refine(cams, det: Detections, c: int, m: ClockMap, f0: float, span: float):

@@ -109,29 +109,42 @@ def pair_terms(x, frames, rows, nb, a: int, b: int, cameras: Sequence[Camera]):
     return tuple(np.concatenate([o[i] for o in out]) for i in range(4))
 
 
-def pair_fit(d, v, z, f) -> tuple[float, float] | None:
-    """(offset, variance) of o_a - o_b from `pair_terms`' (d, v, z, f); None with fewer than
-    `MIN_TERMS` terms or no leverage."""
+def regress(d, X, W, f, min_clusters: int = MIN_CLUSTERS):
+    """Instrumental-variables regression d = X beta (N,) on X (N, P), instruments W (N, P),
+    robust (residuals beyond `CUT` MADs left out, refitted): beta (P,) and its covariance, the
+    sandwich over clusters of `CLUSTER` frames (f: each term's frame) plus `FLOOR` squared;
+    None with fewer than `MIN_TERMS` terms or `min_clusters` clusters, or no leverage (the
+    least singular value of W^T X, each column scaled to unit norm, under 1e-9)."""
     if d.size < MIN_TERMS:
         return None
+    norms = np.sqrt(np.outer((W**2).sum(0), (X**2).sum(0)))
     keep = np.ones(d.size, bool)
     for _ in range(5):
-        den = float((z[keep] * v[keep]).sum())
-        if not np.isfinite(den) or abs(den) < 1e-9 * float(np.sqrt((z**2).sum() * (v**2).sum())):
+        A = W[keep].T @ X[keep]
+        with np.errstate(all="ignore"):
+            An = A / norms
+        if not np.isfinite(An).all() or np.linalg.svd(An, compute_uv=False).min() < 1e-9:
             return None
-        o = float((z[keep] * d[keep]).sum()) / den
-        r = d - o * v
+        beta = np.linalg.solve(A, W[keep].T @ d[keep])
+        r = d - X @ beta
         mad = 1.4826 * float(np.median(np.abs(r[keep])))
         new = np.abs(r) <= CUT * max(mad, 1e-9)
         if (new == keep).all():
             break
         keep = new
     clusters, g = np.unique((f[keep] // CLUSTER).astype(np.int64), return_inverse=True)
-    if keep.sum() < MIN_TERMS or clusters.size < MIN_CLUSTERS:
+    if keep.sum() < MIN_TERMS or clusters.size < min_clusters:
         return None
-    den = float((z[keep] * v[keep]).sum())
-    sums = np.bincount(g, weights=z[keep] * r[keep])
-    return o, float((sums**2).sum()) / den**2 + FLOOR**2
+    Ai = np.linalg.inv(W[keep].T @ X[keep])
+    sums = np.stack([np.bincount(g, weights=W[keep][:, j] * r[keep]) for j in range(W.shape[1])])
+    return beta, Ai @ (sums @ sums.T) @ Ai.T + FLOOR**2 * np.eye(W.shape[1])
+
+
+def pair_fit(d, v, z, f) -> tuple[float, float] | None:
+    """(offset, variance) of o_a - o_b from `pair_terms`' (d, v, z, f) (`regress` on v with
+    the instrument z); None with fewer than `MIN_TERMS` terms or no leverage."""
+    got = regress(d, v[:, None], z[:, None], f)
+    return None if got is None else (float(got[0][0]), float(got[1][0, 0]))
 
 
 def combine(fits: dict, C: int):
@@ -155,6 +168,19 @@ def combine(fits: dict, C: int):
     return theta, cov, (chi2 / dof if dof > 0 else float("nan"))
 
 
+def term_rows(cameras: Sequence[Camera], det: Detections, frames: np.ndarray):
+    """What `pair_terms` reads: the normalised points x (T, K, C, 2) (NaN but on the rows
+    needed), the rows measured (at most `MAX_ROWS`, in blocks of `BLOCK_ROWS`) and their
+    frames' -2, -1, +1, +2 rows (-1: none)."""
+    rows = block_rows(det.num_frames, MAX_ROWS, BLOCK_ROWS)
+    order = np.argsort(frames, kind="stable")
+    nb = [rows_at(frames, frames[rows] + s, order) for s in (-2, -1, 1, 2)]
+    need = np.unique(np.concatenate([rows, *[r[r >= 0] for r in nb]]))
+    x = np.full(det.xy.shape, np.nan)
+    x[need] = normalised_points(det.xy[need], cameras)
+    return x, rows, nb
+
+
 def measure(cameras: Sequence[Camera], det: Detections) -> dict | None:
     """Every camera's offset and its standard error, referred to the median camera (two
     cameras: the first): {"offset" (C,), "se" (C,), "disagreement"}; None where the pairs
@@ -163,12 +189,7 @@ def measure(cameras: Sequence[Camera], det: Detections) -> dict | None:
     C = len(cameras)
     if frames is None or C < 2:
         return None
-    rows = block_rows(det.num_frames, MAX_ROWS, BLOCK_ROWS)
-    order = np.argsort(frames, kind="stable")
-    nb = [rows_at(frames, frames[rows] + s, order) for s in (-2, -1, 1, 2)]
-    need = np.unique(np.concatenate([rows, *[r[r >= 0] for r in nb]]))
-    x = np.full(det.xy.shape, np.nan)
-    x[need] = normalised_points(det.xy[need], cameras)
+    x, rows, nb = term_rows(cameras, det, frames)
     fits = {}
     for a in range(C):
         for b in range(a + 1, C):
