@@ -12,7 +12,9 @@ of a frame):
   others at 30): its lag grows by a sixth of a frame every frame;
 - a clock that drifts: free-running cameras (webcams, no common trigger) whose rates differ a
   little (29.9 against 30 fps, a low-light exposure), so that one camera's lag grows through
-  the session (a file with a few frames fewer than the others' for the same session).
+  the session (a file with a few frames fewer than the others' for the same session). A
+  webcam that drops a frame now and then (one in 150) reads as one too: its lag is a
+  staircase of single frames, which the line follows to within a frame.
 
 Both are a time map: the camera's detections at the others' frame f are its own at its
 (fractional) frame g = rate f + offset. How it is found:
