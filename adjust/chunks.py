@@ -231,8 +231,9 @@ class ChunkHooks:
             }
             if renumbered:
                 raise InputError(
-                    f"cameras {sorted(renumbered)} were recorded at another frame rate than "
-                    f"the others ({renumbered}); a session tracked in chunks (chunk_frames) is "
+                    f"cameras {sorted(renumbered)} were recorded at another frame rate or by "
+                    f"a clock that drifts from the others' ({renumbered}); a session tracked in "
+                    "chunks (chunk_frames) is "
                     "cut by frame number and cannot renumber or retime them: resample their "
                     "files to the others' frames, or track the session whole (chunk_frames=0)"
                 )
