@@ -341,9 +341,10 @@ def check_clocks(
 ) -> tuple[Detections, dict]:
     """Find and undo a camera whose clock runs at another rate than the others' (module doc).
     ``mode`` as the camera check's: warn = retime its detections and say so, error = an
-    `InputError` naming it, off = nothing. Returns the (retimed) detections and the report
-    {"retimed": {name: {"rate", "offset", "rate_se", "drift_frames", "blocks": [kept,
-    counted], "epipolar_px": [as numbered, retimed]}}}."""
+    `InputError` naming it, off = nothing; ``max_offset``: the frames a block's lag is
+    searched within (``input.max_frame_offset``). Returns the (retimed) detections and the
+    report {"retimed": {name: {"rate", "offset", "rate_se", "drift_frames" (over the
+    session), "epipolar_px": [as numbered, retimed]}}}."""
     report: dict = {"retimed": {}}
     C = len(cameras)
     frames = frame_numbers(det)
