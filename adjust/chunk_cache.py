@@ -99,10 +99,19 @@ class SessionCache:
     def num_frames(self) -> int:
         return int(len(self.frames))
 
-    def tables(self, lo: int, hi: int, only: np.ndarray | None = None) -> list[DLCTable]:
-        """The cameras' tables of session rows [lo, hi) (`only`: and in these rows)."""
+    def tables(
+        self, lo: int, hi: int, only: np.ndarray | None = None, windows: dict | None = None
+    ) -> list[DLCTable]:
+        """The cameras' tables of session rows [lo, hi) (`only`: and in these rows); camera i
+        of `windows` ({i: (first frame, last frame)}) instead has its rows in that window of
+        its own frame numbers (a camera read at other times: `adjust.clocks`)."""
         want = None if only is None else self.frames[only]
-        return [c.table(int(self.frames[lo]), int(self.frames[hi - 1]), want) for c in self.cams]
+        first, last = int(self.frames[lo]), int(self.frames[hi - 1])
+        windows = windows or {}
+        return [
+            c.table(*windows[i]) if i in windows else c.table(first, last, want)
+            for i, c in enumerate(self.cams)
+        ]
 
 
 def _cache_camera(path: Path, individual, folder: Path) -> _CameraCache:

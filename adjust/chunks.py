@@ -15,7 +15,10 @@ is tracked in chunks, its peak memory independent of its length (in every deform
 3. Each chunk of ``chunk_frames`` frames runs the recipe with that model, read with
    `overlap_frames` more frames on either side, so the motion-track constraint and interp's
    kriging see across its borders; the chunk's interior is kept (`take`). Its offset
-   covariance (``deformation=interp``) is estimated within the chunk.
+   covariance (``deformation=interp``) is estimated within the chunk. A camera the sample
+   found on its own clock (`adjust.clocks`) is read at the others' times from its rows over
+   the frames its map reads, which may lie beyond the chunk's (`ChunkHooks.load_scene`); a
+   camera at a whole multiple of the others' rate (`adjust.rates`) stops the run.
 4. The interiors' outputs are streamed into the run's output set (`deformnet.outputs.OutputSet`:
    the folder gets every file at once at the end, or keeps the previous run's): points3d.csv
    and its sidecar (byte for byte what `write_points3d` writes), accepted.npz and tokens.npz
@@ -69,6 +72,8 @@ from adjust.chunk_summary import (
     untracked_summary,
 )
 from adjust.chunk_writer import ChunkWriter
+from adjust.clocks import read_clocked
+from adjust.clocks import window as clock_window
 from adjust.deformation_modes import CheckpointNet, NetMode, load_deformation, mode_from_config
 from adjust.export import write_nwb
 from adjust.io import InputError, load_calibration, load_detections, match_files
@@ -172,6 +177,12 @@ class SessionModel:
     def sigma_det_px(self) -> float:
         return float(self.solver_cfg.sigma_det_px)
 
+    def clocks(self) -> dict:
+        """{camera: (rate, offset)} of the cameras the sample's check retimed (`adjust.clocks`;
+        excluded ones left out)."""
+        got = (self.camera_report.get("clocks") or {}).get("retimed") or {}
+        return {n: (v["rate"], v["offset"]) for n, v in got.items() if n not in self.excluded}
+
 
 class ChunkHooks:
     """One pass of `adjust.pipeline.track` over part of a long session: rows [lo, hi) of the
@@ -208,34 +219,51 @@ class ChunkHooks:
     def load_scene(
         self, calibration, detections, body, likelihood_threshold=0.5, individual=None, **kw
     ):
-        """`adjust.io.load_scene` of this pass's rows."""
+        """`adjust.io.load_scene` of this pass's rows; in a chunk, a camera the sample found
+        on its own clock (`adjust.clocks`) read at the others' times from its rows over the
+        frames its map reads (`adjust.clocks.read_clocked`)."""
         cameras = load_calibration(calibration)
         tables = self.cache.tables(self.lo, self.hi, self.only)
         det = load_detections(
             detections, cameras, body, likelihood_threshold, individual, tables=tables, **kw
         )
+        retimed = {} if self.model is None else self.model.clocks()
+        if retimed:
+            names = [c.name for c in cameras]
+            first, last = int(self.cache.frames[self.lo]), int(self.cache.frames[self.hi - 1])
+            windows = {
+                names.index(n): clock_window(r, o, first, last) for n, (r, o) in retimed.items()
+            }
+            quiet = logging.getLogger("adjust.io.scene")
+            level = quiet.level
+            quiet.setLevel(logging.ERROR)  # the chunk's own load said it
+            try:
+                wide = load_detections(
+                    detections, cameras, body, likelihood_threshold, individual,
+                    tables=self.cache.tables(self.lo, self.hi, None, windows), **kw,
+                )  # fmt: skip
+            finally:
+                quiet.setLevel(level)
+            det = read_clocked(det, wide, retimed)
         return cameras, det
 
     def check_cameras(self, cameras, det, input_cfg, reference=None):
-        """`adjust.camera_check.check_from_config` on the sample; the chunks drop the cameras
-        it excluded, map those whose detections were on scaled or cropped videos
-        (`adjust.pixels`), swap the left and right parts of those labelled the other way
-        round (`adjust.sides`), shift those it found out of step (`adjust.sync`), map back those it
-        found moved (`adjust.moves`), interpolate those a fraction of a frame out of step
-        (`adjust.subframe`), and report it."""
+        """`adjust.camera_check.check_from_config` on the sample; the chunks (read at the
+        sample's clocks by `load_scene`) drop the cameras it excluded, map those whose
+        detections were on scaled or cropped videos (`adjust.pixels`), swap the left and
+        right parts of those labelled the other way round (`adjust.sides`), shift those it
+        found out of step (`adjust.sync`), map back those it found moved (`adjust.moves`),
+        interpolate those a fraction of a frame out of step (`adjust.subframe`), and report
+        it."""
         if self.model is None:
             cams, det, report = check_from_config(cameras, det, input_cfg, reference)
-            renumbered = {
-                **((report.get("rates") or {}).get("renumbered") or {}),
-                **((report.get("clocks") or {}).get("retimed") or {}),
-            }
+            renumbered = (report.get("rates") or {}).get("renumbered") or {}
             if renumbered:
                 raise InputError(
-                    f"cameras {sorted(renumbered)} were recorded at another frame rate or by "
-                    f"a clock that drifts from the others' ({renumbered}); a session tracked in "
-                    "chunks (chunk_frames) is "
-                    "cut by frame number and cannot renumber or retime them: resample their "
-                    "files to the others' frames, or track the session whole (chunk_frames=0)"
+                    f"cameras {sorted(renumbered)} were recorded at another frame rate than "
+                    f"the others ({renumbered}); a session tracked in chunks (chunk_frames) is "
+                    "cut by frame number and cannot renumber them: resample their files to the "
+                    "others' rate, or track the session whole (chunk_frames=0)"
                 )
             return cams, det, report
         cams, det = drop_cameras(cameras, det, self.model.excluded)

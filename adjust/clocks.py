@@ -52,7 +52,9 @@ closest is taken first, then the rest again (the majority keeps its time); with 
 keeps the session's time. Done (`retime`): the rows become the others' frames, the camera read
 at rate f + offset (`adjust.subframe.read_at`: on the line between its two rows, the other
 where one is a spike). Not looked for: sessions under `MIN_FRAMES` frames, labelled images; a
-clock whose rate wanders (not a line) is left to the sync check's steps. Runs after
+clock whose rate wanders (not a line) is left to the sync check's steps. A long session
+tracked in chunks finds the map on its sample and reads each chunk with it
+(`read_clocked`, `window`: `adjust.chunks`). Runs after
 `adjust.rates`, before the sync check (`adjust.camera_check`); ``input.rate_check`` (the one
 setting for both) false: not looked for. Detections: ``Detections`` (T, K, C, 2) px."""
 
@@ -317,6 +319,30 @@ def retime(det: Detections, c: int, rate: float, offset: float) -> Detections:
     xy[:, :, c], lik[:, :, c] = read_at(det, c, rate * frames[keep] + offset, frames, order)
     new = None if det.frames is None else np.asarray(det.frames)[keep]
     return dataclasses.replace(det, xy=xy, likelihood=lik, frames=new)
+
+
+def read_clocked(det: Detections, wide: Detections, maps: dict) -> Detections:
+    """`det` with each camera of `maps` ({name: (rate, offset)}) read from `wide` (the same
+    cameras and parts, that camera's rows over the frames the map reads) at its fractional
+    frame rate f + offset for each of det's frames f (`adjust.subframe.read_at`): a long
+    session's chunk read at the others' times, as `retime` read the sample."""
+    frames = frame_numbers(det)
+    wf = frame_numbers(wide)
+    if frames is None or wf is None:
+        raise ValueError("labelled images (frames by name) have no time order to retime")
+    order = np.argsort(wf, kind="stable")
+    xy, lik = det.xy.copy(), det.likelihood.copy()
+    for name, (rate, offset) in maps.items():
+        c = det.cameras.index(name)
+        xy[:, :, c], lik[:, :, c] = read_at(wide, c, rate * frames + offset, wf, order)
+    return dataclasses.replace(det, xy=xy, likelihood=lik)
+
+
+def window(rate: float, offset: float, first: int, last: int) -> tuple[int, int]:
+    """The camera frames a map (rate, offset) reads for the others' frames first..last (the
+    two rows about each, and one more for `adjust.subframe.spikes`)."""
+    lo, hi = sorted((rate * first + offset, rate * last + offset))
+    return int(np.floor(lo)) - 2, int(np.ceil(hi)) + 2
 
 
 def decide(m: ClockMap, span: float, scatter: float, stepped: bool, before: float,

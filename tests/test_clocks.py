@@ -95,7 +95,8 @@ def test_retime_and_line():
 
 def test_error_mode_config_and_long_sessions():
     """Error mode names the camera and its file; ``input.rate_check`` runs it in the camera
-    check (its report's ``clocks``), false does not; a long session's sample refuses it."""
+    check (its report's ``clocks``), false does not; a long session's sample reports it for
+    its chunks (tests/test_chunks.py tracks one)."""
     cams = default_rig()
     det = _clocked(cams, 1, np.arange(int(T * 0.99)) / 0.99)
     with pytest.raises(InputError, match=rf"camera '{cams[1].name}' \({cams[1].name}.csv\)"):
@@ -105,5 +106,5 @@ def test_error_mode_config_and_long_sessions():
     assert rep["excluded"] == {} and rep["sync"]["offsets"] == {}
     _, _, off = check_from_config(cams, det, {"rate_check": False})
     assert "clocks" not in off
-    with pytest.raises(InputError, match="chunk_frames=0"):
-        ChunkHooks(None, 0, det.num_frames).check_cameras(cams, det, {})
+    _, _, rep = ChunkHooks(None, 0, det.num_frames).check_cameras(cams, det, {})
+    assert set(rep["clocks"]["retimed"]) == {cams[1].name}  # the chunks read it so
