@@ -261,23 +261,36 @@ def test_a_chunk_without_two_cameras_is_left_empty_and_named(scene, tmp_path, ca
         assert z["accepted"].shape[0] == FRAMES and not z["accepted"][gap_rows].any()
 
 
-def test_a_camera_out_of_step_is_shifted_back_in_every_chunk(scene, runs, tmp_path):
-    """Camera 1's file starts 4 frames early: the sample finds the offset and every chunk reads
-    the camera shifted back (the chunks' frames beyond their own come from the overlap)."""
-    root, truth = scene
-    tmp, _, chunked = runs
-    late = tmp_path / "late"
-    (late / "detections").mkdir(parents=True)
-    (late / "calibration.toml").write_bytes((root / "calibration.toml").read_bytes())
+def _spoil_camera_1(root, out, edit) -> str:
+    """A copy of the scene at `out` with camera 1's (xy, likelihood) replaced by
+    ``edit(table)`` (its file's frames kept where the row count is); returns its file's
+    stem."""
+    (out / "detections").mkdir(parents=True)
+    (out / "calibration.toml").write_bytes((root / "calibration.toml").read_bytes())
     name = None
     for c, f in enumerate(sorted((root / "detections").iterdir())):
         t = read_dlc(f)
         xy, lik = t.xy, t.likelihood
         if c == 1:
             name = f.stem
-            xy = np.concatenate([np.full((4, *xy.shape[1:]), np.nan), xy[:-4]])
-            lik = np.concatenate([np.zeros((4, xy.shape[1])), lik[:-4]])
-        write_dlc_csv(late / "detections" / f.name, t.parts, xy, lik, frames=t.frames)
+            xy, lik = edit(t)
+        frames = t.frames if len(xy) == len(t.xy) else None
+        write_dlc_csv(out / "detections" / f.name, t.parts, xy, lik, frames=frames)
+    return name
+
+
+def test_a_camera_out_of_step_is_shifted_back_in_every_chunk(scene, runs, tmp_path):
+    """Camera 1's file starts 4 frames early: the sample finds the offset and every chunk reads
+    the camera shifted back (the chunks' frames beyond their own come from the overlap)."""
+    root, truth = scene
+    tmp, _, chunked = runs
+    late = tmp_path / "late"
+
+    def early(t):
+        xy = np.concatenate([np.full((4, *t.xy.shape[1:]), np.nan), t.xy[:-4]])
+        return xy, np.concatenate([np.zeros((4, t.xy.shape[1])), t.likelihood[:-4]])
+
+    name = _spoil_camera_1(root, late, early)
     s = run(_cfg(late, tmp_path / "out", f"chunk_frames={CHUNK}"))
     assert len(s["chunked"]["chunks"]) == 3
     assert s["camera_check"]["sync"]["offsets"] == {name: 4}
@@ -332,21 +345,15 @@ def test_a_camera_on_its_own_clock_is_read_at_the_others_times_in_every_chunk(
     root, truth = scene
     tmp, _, chunked = runs
     slow = tmp_path / "slow"
-    (slow / "detections").mkdir(parents=True)
-    (slow / "calibration.toml").write_bytes((root / "calibration.toml").read_bytes())
-    name = None
-    for c, f in enumerate(sorted((root / "detections").iterdir())):
-        t = read_dlc(f)
-        xy, lik = t.xy, t.likelihood
-        if c == 1:
-            name = f.stem
-            when = np.arange(int((FRAMES - 1) * 0.995) + 1) / 0.995
-            i = np.floor(when).astype(int)
-            w = (when - i)[:, None, None]
-            j = np.minimum(i + 1, FRAMES - 1)
-            xy = (1 - w) * t.xy[i] + w * t.xy[j]
-            lik = np.minimum(t.likelihood[i], t.likelihood[j])
-        write_dlc_csv(slow / "detections" / f.name, t.parts, xy, lik)
+
+    def slower(t):
+        when = np.arange(int((FRAMES - 1) * 0.995) + 1) / 0.995
+        i = np.floor(when).astype(int)
+        w = (when - i)[:, None, None]
+        j = np.minimum(i + 1, FRAMES - 1)
+        return (1 - w) * t.xy[i] + w * t.xy[j], np.minimum(t.likelihood[i], t.likelihood[j])
+
+    name = _spoil_camera_1(root, slow, slower)
     s = run(_cfg(slow, tmp_path / "out", f"chunk_frames={CHUNK}"))
     assert len(s["chunked"]["chunks"]) == 3
     got = s["camera_check"]["clocks"]["retimed"]
