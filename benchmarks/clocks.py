@@ -32,12 +32,10 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -61,18 +59,17 @@ from real_motion import (  # noqa: E402
     input_run,
     input_settings,
     peer_row,
+    refilmed_scene,
     scene_key,
     spoil_scene,
 )
 
 from adjust.io import load_calibration  # noqa: E402
-from adjust.scene.motion import film_part_set  # noqa: E402
 
 log = logging.getLogger("benchmarks.clocks")
 
 LAG_WITHIN = 0.5  #: frames: a map found this close to the true lag everywhere counts as right
 DROPS_WITHIN = 1.0  #: ... for a camera dropping frames (a line through a staircase)
-PAD = 10  #: recording frames beyond the segment the spline is fitted on
 PEER_RATIOS = {"checked/peer_all": ("checked_all", "peer_all"),
                "peer/peer_instep": ("peer_all", "peer_instep_all")}  # fmt: skip
 
@@ -82,28 +79,12 @@ def clock_scene(
     seed: int, camera: str, rate: float, offset: float,
 ) -> Path:  # fmt: skip
     """A copy of `base` (`film_scene`'s) whose `camera` has its own clock: its frame g (0, 1,
-    ... while the session lasts) shows the scene's frame (g - offset) / rate, filmed with the
-    whole rig from the recording through a cubic spline, that camera's file kept. Cached:
-    kept if truth.npz is there."""
-    if (out / "truth.npz").exists():
-        return out
-    if out.exists():
-        shutil.rmtree(out)
+    ... while the session lasts) shows the scene's frame (g - offset) / rate
+    (`real_motion.refilmed_scene`). Cached."""
     g = np.arange(int(np.floor((frames - 1) * rate + offset)) + 1, dtype=np.float64)
     g = g[g >= offset]  # the camera started `offset` frames after the others
     t = start_frame + (g - offset) / rate
-    lo = max(int(t.min()) - PAD, 0)
-    hi = min(int(t.max()) + PAD + 1, len(motion.points))
-    spline = CubicSpline(np.arange(lo, hi), motion.points[lo:hi], axis=0)
-    tmp = out.with_name(out.name + ".rig")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    film_part_set(tmp, spline(t), motion.parts, motion.floor, ncams, 8, seed=seed)
-    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
-    shutil.copy2(tmp / "detections" / f"{camera}.csv", out / "detections" / f"{camera}.csv")
-    shutil.rmtree(tmp)
-    shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
-    return out
+    return refilmed_scene(base, out, motion, camera, t, t, ncams, seed)
 
 
 def dropped_scene(base: Path, out: Path, camera: str, every: int) -> Path:

@@ -83,6 +83,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -215,6 +216,38 @@ def spoil_scene(base: Path, out: Path, edits: dict) -> Path:
         xy, likelihood = fn(t)
         write_dlc_csv(out / "detections" / f"{cam}.csv", t.parts, xy, likelihood)
     shutil.copy2(base / "truth.npz", out / "truth.npz")
+    return out
+
+
+#: recording frames beyond those filmed that `refilmed_scene`'s spline is fitted on
+PAD = 10
+
+
+def refilmed_scene(
+    base: Path, out: Path, motion: Motion, camera: str, times: np.ndarray, around: np.ndarray,
+    ncams: int, seed: int,
+) -> Path:  # fmt: skip
+    """A copy of scene `base` (`film_scene`'s, 8 parts) whose `camera`'s file is filmed at
+    the recording's (fractional) frames `times` instead: the whole rig filmed from the
+    recording through a cubic spline fitted on `around`'s frames and `PAD` beyond (times
+    clipped to them), that camera's file kept (a camera late, or on its own clock: the
+    subframe and clocks benchmarks). Cached: kept if truth.npz is there (copied last)."""
+    if (out / "truth.npz").exists():
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    lo = max(int(np.min(around)) - PAD, 0)
+    hi = min(int(np.max(around)) + PAD + 1, len(motion.points))
+    spline = CubicSpline(np.arange(lo, hi), motion.points[lo:hi], axis=0)
+    tmp = out.with_name(out.name + ".rig")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    X = spline(np.clip(times, lo, hi - 1))
+    film_part_set(tmp, X, motion.parts, motion.floor, ncams, 8, seed=seed)
+    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
+    shutil.copy2(tmp / "detections" / f"{camera}.csv", out / "detections" / f"{camera}.csv")
+    shutil.rmtree(tmp)
+    shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
     return out
 
 

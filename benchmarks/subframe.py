@@ -28,12 +28,10 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -57,16 +55,15 @@ from real_motion import (  # noqa: E402
     input_run,
     input_settings,
     peer_row,
+    refilmed_scene,
     scene_key,
 )
 
 from adjust.io import load_calibration  # noqa: E402
-from adjust.scene.motion import film_part_set  # noqa: E402
 
 log = logging.getLogger("benchmarks.subframe")
 
 FOUND_WITHIN = 0.1  #: frames: an offset found this close to the truth counts as right
-PAD = 10  #: recording frames beyond the segment the spline is fitted on
 
 
 def late_scene(
@@ -74,26 +71,9 @@ def late_scene(
     ncams: int, seed: int, camera: str, late: float,
 ) -> Path:  # fmt: skip
     """A copy of `base` (`film_scene`'s) whose `camera` is filmed `late` frames (the scene's)
-    after the others: the whole rig filmed from the recording at f + late (a cubic spline
-    through it), that camera's detections kept. Cached: kept if truth.npz is there."""
-    if (out / "truth.npz").exists():
-        return out
-    if out.exists():
-        shutil.rmtree(out)
+    after the others: at the recording's f + late (`real_motion.refilmed_scene`). Cached."""
     t = np.arange(start_frame, start_frame + frames * stride, stride, dtype=np.float64)
-    lo = max(int(t[0]) - PAD, 0)
-    hi = min(int(t[-1]) + PAD + 1, len(motion.points))
-    spline = CubicSpline(np.arange(lo, hi), motion.points[lo:hi], axis=0)
-    shifted = np.clip(t + late * stride, lo, hi - 1)
-    tmp = out.with_name(out.name + ".rig")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    film_part_set(tmp, spline(shifted), motion.parts, motion.floor, ncams, 8, seed=seed)
-    shutil.copytree(base, out, ignore=shutil.ignore_patterns("truth.npz", "aniposelib.npz"))
-    shutil.copy2(tmp / "detections" / f"{camera}.csv", out / "detections" / f"{camera}.csv")
-    shutil.rmtree(tmp)
-    shutil.copy2(base / "truth.npz", out / "truth.npz")  # last: the cache's mark
-    return out
+    return refilmed_scene(base, out, motion, camera, t + late * stride, t, ncams, seed)
 
 
 def main(argv: list[str] | None = None) -> dict:
