@@ -1,6 +1,6 @@
 """Pixel frames: find detections made on videos other than the calibrated ones, scaled (the
-videos downsampled for the pose estimator), shifted (cropped: DeepLabCut's ``cropping``) or
-flipped, and map them back into the calibrated images.
+videos downsampled for the pose estimator), shifted (cropped: DeepLabCut's ``cropping``),
+flipped or turned by a quarter turn, and map them back into the calibrated images.
 
     det, report = check_pixels(cameras, det)
 
@@ -21,12 +21,15 @@ looked for. Else:
   epipole: any scale about it fits) and is held at 1: a crop; an offset along nearly parallel
   lines is not told either, and is not fitted;
 - then, for a camera still far from the others' lines, its video flipped (`FLIPS`: left to
-  right, upside down, by a half turn; x = W - 1 - u along each flipped axis, `flip_map`): a view
-  from below mirrored to look like one from above before the pose estimator. The flip that
-  brings its camera closest to the others is kept if it does so by `BETTER` and to within
-  `PLAUSIBLE_PX` itself (two camera files swapped with each other came 3x closer flipped by a
-  half turn, to 60 px); with two cameras either camera may be the flipped one (a flip, unlike
-  a crop, is told by the geometry).
+  right, upside down, by a half turn; x = W - 1 - u along each flipped axis): a view from
+  below mirrored to look like one from above before the pose estimator; or turned (`TURNS`: a
+  quarter turn either way, a camera mounted on its side and its video turned upright; or its
+  x and y swapped, a transpose, as a converter that writes the columns the other way round
+  gives; x = A u + d, A a signed permutation, `edit_map`). The edit that brings its camera
+  closest to the others is kept if it does so by `BETTER` and to within `PLAUSIBLE_PX` itself
+  (two camera files swapped with each other came 3x closer flipped by a half turn, to 60 px);
+  with two cameras either camera may be the edited one (a flip or a turn, unlike a crop, is
+  told by the geometry).
 
 A scale-and-offset map must be a video edit: its scale within `SNAP` of 1 or of a `SCALES` ratio
 (then refitted with that scale; a scale of 1 needs an offset of `MIN_CROP_PX` or more): a
@@ -61,28 +64,47 @@ MAX_ROWS = 3_000  #: rows a fit uses (spread over the session)
 MAX_SE_PX = 1.0  #: an offset fitted to one camera's lines must be this well fixed (px)
 SNAP = 0.005  #: a fitted scale within this fraction of 1 or of a `SCALES` ratio is that ratio
 MIN_CROP_PX = 10.0  #: a crop (scale 1) moves the image by at least this many px
+#: a video mirrored (how: the per-axis scale s of x = s u + d)
 FLIPS = {"left to right": (-1.0, 1.0), "upside down": (1.0, -1.0), "by a half turn": (-1.0, -1.0)}
+#: a video turned or transposed (how: A of x = A u + d; ffmpeg's ``transpose`` 1, 2, 0, 3)
+TURNS = {
+    "a quarter turn clockwise": ((0.0, 1.0), (-1.0, 0.0)),
+    "a quarter turn counter-clockwise": ((0.0, -1.0), (1.0, 0.0)),
+    "transposed (its x and y swapped)": ((0.0, 1.0), (1.0, 0.0)),
+    "transposed about the other diagonal": ((0.0, -1.0), (-1.0, 0.0)),
+}
 
 
-def flip_map(how: str, size) -> tuple:
-    """The map (s, d) of a video flipped `how` (`FLIPS`), its image `size` (W, H) px: x = W - 1
-    - u (pixel centres) along each flipped axis."""
-    sx, sy = FLIPS[how]
+def edit_map(how: str, size) -> tuple:
+    """The map (s, d) back into the calibrated image, its `size` (W, H) px, of a video flipped
+    (`FLIPS`: x = W - 1 - u along each flipped axis) or turned (`TURNS`: x = A u + d, the turned
+    video H px wide) `how`; pixel centres."""
+    s = FLIPS[how] if how in FLIPS else TURNS[how]
+    rows = np.diag(s) if how in FLIPS else np.array(s)
     W, H = size
-    return (sx, sy), (W - 1.0 if sx < 0 else 0.0, H - 1.0 if sy < 0 else 0.0)
+    return s, tuple(float(n - 1) if r.sum() < 0 else 0.0 for n, r in zip((W, H), rows))
+
+
+def _edit_words(how: str) -> tuple[str, str]:
+    """How a flip or turn `how` reads in a warning: the edit, and its likely cause."""
+    if how in FLIPS:
+        return f"flipped {how}", "video flipped before the pose estimator?"
+    if "turn" in how:
+        return f"turned {how}", "video turned upright before the pose estimator?"
+    return how, "its x and y columns swapped, or its video transposed before the pose estimator?"
 
 
 def apply(det: Detections, maps: dict) -> Detections:
     """The detections with camera ``name``'s pixels u mapped to s u + d, ``maps[name]`` = (s,
-    (dx, dy)); s a number, or (sx, sy) per axis (a flip)."""
+    (dx, dy)); s a number, (sx, sy) per axis (a flip), or a 2 x 2 matrix (a turn)."""
     if not maps:
         return det
     xy = det.xy.copy()
     for name, (s, d) in maps.items():
         c = det.cameras.index(name)
-        xy[:, :, c] = np.asarray(s, dtype=np.float64) * det.xy[:, :, c] + np.asarray(
-            d, dtype=np.float64
-        )
+        s = np.asarray(s, dtype=np.float64)
+        u = det.xy[:, :, c]
+        xy[:, :, c] = (u @ s.T if s.ndim == 2 else s * u) + np.asarray(d, dtype=np.float64)
     return dataclasses.replace(det, xy=xy)
 
 
@@ -236,10 +258,10 @@ def check_pixels(
             maps[names[c]] = identity
         else:
             maps[names[c]] = fit
-    flipped: dict[str, str] = {}
-    for _ in range(C):  # a flipped video: the flip that best brings a camera to the others
+    edited: dict[str, str] = {}  # camera -> how its video was flipped or turned
+    for _ in range(C):  # a flipped or turned video: the edit that best brings a camera back
         px_now = score(maps)
-        trials = [(name, how) for c, name in enumerate(names) for how in FLIPS
+        trials = [(name, how) for c, name in enumerate(names) for how in (*FLIPS, *TURNS)
                   if maps[name] == identity and px_now[c] > PLAUSIBLE_PX
                   and min(cameras[c].size) > 0]  # fmt: skip
         if not trials:
@@ -247,18 +269,18 @@ def check_pixels(
         got = []
         for name, how in trials:
             trial = dict(maps)
-            trial[name] = flip_map(how, cameras[names.index(name)].size)
+            trial[name] = edit_map(how, cameras[names.index(name)].size)
             got.append((float(score(trial)[names.index(name)]), name, how, trial))
         px, name, how, trial = min(got, key=lambda g: g[0])
         if not (px * BETTER <= px_now[names.index(name)] and px <= PLAUSIBLE_PX):
             break
-        maps, flipped[name] = trial, how
+        maps, edited[name] = trial, how
     after = score(maps)
     for c in range(C):
         rest = np.delete(np.delete(base, c, 0), c, 1)
         rest_px = float(np.nanmedian(rest)) if np.isfinite(rest).any() else float("nan")
         plausible = max(PLAUSIBLE_PX, 2 * rest_px) if np.isfinite(rest_px) else PLAUSIBLE_PX
-        if names[c] in flipped:  # a flip brings its camera to the rig itself, not near it
+        if names[c] in edited:  # a flip or turn brings its camera to the rig, not near it
             plausible = PLAUSIBLE_PX
         m = maps[names[c]]
         if m == identity or not (after[c] <= plausible and after[c] * BETTER <= before[c]):
@@ -266,11 +288,12 @@ def check_pixels(
             continue
         s, (dx, dy) = m
         far = f"they lie {before[c]:.1f} px from the other cameras' epipolar lines as read"
-        if names[c] in flipped:
+        how = edited.get(names[c])
+        if how is not None:
+            edit, why = _edit_words(how)
             msg = (
                 f"camera '{names[c]}' ({det.files[c]}): its detections fit the calibration's "
-                f"image flipped {flipped[names[c]]} ({far}, {after[c]:.1f} px flipped back; "
-                "video flipped before the pose estimator?)"
+                f"image {edit} ({far}, {after[c]:.1f} px mapped back; {why})"
             )
         else:
             what = "downsampled" if s > 1.01 else "upsampled" if s < 0.99 else "cropped"
@@ -288,10 +311,10 @@ def check_pixels(
             )
         log.warning("%s; its detections MAPPED into the calibrated image", msg)
         report["mapped"][names[c]] = {
-            "scale": [float(v) for v in s] if names[c] in flipped else round(s, 6),
+            "scale": np.asarray(s, dtype=float).tolist() if how is not None else round(s, 6),
             "offset": [round(dx, 3), round(dy, 3)],
             "epipolar_px": [round(float(before[c]), 3), round(float(after[c]), 3)],
-            **({"flip": flipped[names[c]]} if names[c] in flipped else {}),
+            **({"flip" if how in FLIPS else "turn": how} if how is not None else {}),
         }
     kept = {n: maps[n] for n in report["mapped"]}
     return apply(det, kept), report

@@ -2,23 +2,29 @@
 video downsampled (``--factor``, 2: the pose estimator ran on half-size videos) or one camera's
 video cropped (``--crop``, at (200, 150) px: DeepLabCut's ``cropping``), or one camera's video
 mirrored left to right (``--cases flip``: a view from below flipped to look like one from
-above), the calibration as it was; tracked with the pixel frames not looked for
-(``input.pixel_check=false``, what adjust-track did before stop 58) and with the default check
-(`adjust.pixels`: the map fitted to the epipolar geometry, the detections mapped back).
+above), or one camera's video turned a quarter turn clockwise (``--cases turn``: a camera
+mounted on its side, its video turned upright) or its x and y swapped (``--cases transpose``:
+a converter that writes the columns the other way round), the calibration as it was; tracked
+with the pixel frames not looked for (``input.pixel_check=false``, what adjust-track did before
+stop 58) and with the default check (`adjust.pixels`: the map fitted to the epipolar geometry,
+the detections mapped back).
 
 Scenes: `real_motion.py`'s 8-part scenes of the test segment (frames 2400-3399; nothing was
 chosen on it; ``--split val`` for the validation one; ``--cameras``, ``--seeds``); downsampled
 as a resize does (pixel centres: u = (x + 0.5) / f - 0.5); each camera cropped in turn (two
-cameras: the second; the first keeps its frame). Rows: RMSE all and seen by >= 2 cameras (mm)
-as calibrated, unchecked, checked; the map found; the cameras excluded. aniposelib has no such
-check; its RMSE as calibrated is given for scale.
+cameras: the second; the first keeps its frame); each camera flipped, turned or transposed in
+turn. Rows: RMSE all and seen by >= 2 cameras (mm) as calibrated, unchecked, checked; the map
+found; the cameras excluded. aniposelib has no such check; its RMSE as calibrated is given for
+scale, and on the spoilt files (``anip. spoilt``) for the flipped, turned and transposed
+cameras.
 
 Checks: every spoilt camera mapped, none other; checked within 5% of the scene as calibrated. A
 run adjust-track refuses (its health check: the tracks cannot be trusted, a non-zero exit) is
 recorded as refused, its scores NaN.
 
     .venv/bin/python benchmarks/pixels.py [--split test] [--cameras 2,3,4] [--seeds 0] \\
-        [--factor 2] [--crop 200,150] [--cases resize,crop,flip] [--no-peer] [--work DIR] \\
+        [--factor 2] [--crop 200,150] [--cases resize,crop,flip,turn,transpose] [--no-peer] \\
+        [--work DIR]
         [--out FILE]
 """
 
@@ -48,6 +54,7 @@ from real_motion import (  # noqa: E402
 )
 
 from adjust.io import load_calibration  # noqa: E402
+from adjust.pixels import edit_map  # noqa: E402
 
 log = logging.getLogger("benchmarks.pixels")
 
@@ -56,7 +63,10 @@ KINDS = {
     "resize": "every video downsampled by --factor",
     "crop": "each camera's video cropped at --crop in turn (two cameras: the second)",
     "flip": "each camera's video mirrored left to right in turn",
+    "turn": "each camera's video turned a quarter turn clockwise in turn",
+    "transpose": "each camera's x and y swapped in turn",
 }
+EDITS = {"turn": "a quarter turn clockwise", "transpose": "transposed (its x and y swapped)"}
 
 
 def flipped(width: int):
@@ -66,6 +76,17 @@ def flipped(width: int):
         out = xy.copy()
         out[..., 0] = width - 1 - xy[..., 0]
         return out
+
+    return edit
+
+
+def turned(how: str, size):
+    """The pixels u = A^T (x - d) of a video turned or transposed `how` (`adjust.pixels.TURNS`),
+    the calibrated image's `size` (W, H): the inverse of the check's map x = A u + d."""
+    A, d = (np.array(v) for v in edit_map(how, size))
+
+    def edit(xy: np.ndarray) -> np.ndarray:
+        return (xy - d) @ A
 
     return edit
 
@@ -124,6 +145,10 @@ def main(argv: list[str] | None = None) -> dict:
                 cases[f"{cam} cropped"] = {cam: (lambda xy: xy - crop)}
             for cam in names if "flip" in kinds else ():  # either of two: a flip is told
                 cases[f"{cam} flipped"] = {cam: flipped(rig[names.index(cam)].size[0])}
+            for kind in (k for k in EDITS if k in kinds):  # either of two, as a flip
+                for cam in names:
+                    edit = turned(EDITS[kind], rig[names.index(cam)].size)
+                    cases[f"{cam} {'turned' if kind == 'turn' else 'transposed'}"] = {cam: edit}
             for case, edits in cases.items():
                 tag = f"{key}_{case.replace(' ', '_')}"
                 scene = spoilt(base, work / "spoilt" / tag, edits)
@@ -131,6 +156,8 @@ def main(argv: list[str] | None = None) -> dict:
                                              [threads, "input.pixel_check=false"])  # fmt: skip
                 fixed, check = attempt(scene, work / "runs" / tag / "checked", [threads])
                 mapped = (check.get("pixels") or {}).get("mapped") or {}
+                edited = any(k in case for k in ("flipped", "turned", "transposed"))
+                peer_spoilt = peer_row(scene)["rmse_all"] if edited and not args.no_peer else None
                 rows[f"{ncams} cams s{seed} {case}"] = {
                     "cameras": ncams, "seed": seed, "case": case, "spoilt": sorted(edits),
                     "calibrated_all": ref["rmse_all"], "calibrated_seen": ref["rmse_seen2"],
@@ -139,13 +166,14 @@ def main(argv: list[str] | None = None) -> dict:
                     "mapped": {n: [m["scale"], m["offset"]] for n, m in mapped.items()},
                     "excluded_unchecked": sorted(blind_check.get("excluded") or {}),
                     "excluded_checked": sorted(check.get("excluded") or {}),
-                    "peer_calibrated_all": peer,
+                    "peer_calibrated_all": peer, "peer_spoilt_all": peer_spoilt,
                     "refused_unchecked": blind.get("refused"),
                     "refused_checked": fixed.get("refused"),
                 }  # fmt: skip
                 log.info("%s: %s", tag, rows[f"{ncams} cams s{seed} {case}"])
     cols = [("calibrated_all", "calibrated"), ("unchecked_all", "unchecked"),
             ("checked_all", "checked"), ("peer_calibrated_all", "anip. calib."),
+            ("peer_spoilt_all", "anip. spoilt"),
             ("calibrated_seen", "seen calib."), ("unchecked_seen", "seen unch."),
             ("checked_seen", "seen chk.")]  # fmt: skip
     print(f"\nRMSE all / seen by >= 2 cameras (mm), {args.split} segment, pixel frames spoilt:")

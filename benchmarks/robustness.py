@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 from common import emit
 
+from adjust.pixels import edit_map
 from adjust.scene.defective import defective_tracks, tracks_file
 from deformnet.paths import CONF_DIR, shared_dir
 
@@ -277,20 +278,28 @@ def _sides_swapped(rows: list[list[str]]) -> list[list[str]]:
     return [rows[0], head, *rows[2:]]
 
 
-def _flipped_x(width: int) -> Callable[[list[list[str]]], list[list[str]]]:
-    """A rows edit: the x of every detection as in the video mirrored left to right (W - 1 - x,
-    pixel centres)."""
+def _pixels(fn: Callable[[np.ndarray], np.ndarray]) -> Callable[[list[list[str]]], list[list[str]]]:
+    """A rows edit: every detection's (x, y) px as ``fn`` maps it (a detection with an empty
+    cell left as it is)."""
 
     def edit(rows: list[list[str]]) -> list[list[str]]:
         xs = [j for j, c in enumerate(rows[2]) if c == "x"]
         out = [list(r) for r in rows]
         for r in out[3:]:
             for j in xs:
-                if j < len(r) and r[j].strip():
-                    r[j] = repr(width - 1 - float(r[j]))
+                if j + 1 < len(r) and r[j].strip() and r[j + 1].strip():
+                    xy = fn(np.array([float(r[j]), float(r[j + 1])]))
+                    r[j], r[j + 1] = repr(float(xy[0])), repr(float(xy[1]))
         return out
 
     return edit
+
+
+def _edited_video(f: Path, cam: str, how: str) -> None:
+    """Camera `cam`'s detections as made on its video flipped or turned `how` (`adjust.pixels`:
+    the inverse of the check's map x = A u + d, u = A^T (x - d))."""
+    A, d = (np.array(v) for v in edit_map(how, next(c for c in _cams(f) if c.name == cam).size))
+    _rewrite(f, cam, _pixels(lambda xy: (xy - d) @ (A if A.ndim == 2 else np.diag(A))))
 
 
 def _renumber(folder: Path, cam: str, fn: Callable[[int], int]) -> None:
@@ -414,7 +423,13 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
 
     @case("one camera's video flipped left to right")
     def _(f):
-        _rewrite(f, "front", _flipped_x(next(c for c in _cams(f) if c.name == "front").size[0]))
+        _edited_video(f, "front", "left to right")
+
+    @case("one camera's video turned a quarter turn clockwise")
+    def _(f):
+        _edited_video(f, "front", "a quarter turn clockwise")
+
+    rewrite("one camera's x and y columns swapped", ("side",), _pixels(lambda xy: xy[::-1]))
 
     @case("one camera turned 1 deg mid-session (bumped)")
     def _(f):

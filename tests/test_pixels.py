@@ -17,7 +17,7 @@ from helpers import projected_detections
 from adjust.camera_check import check_from_config, drop_cameras
 from adjust.chunks import ChunkHooks, SessionModel
 from adjust.io import InputError, load_scene
-from adjust.pixels import apply, check_pixels
+from adjust.pixels import TURNS, apply, check_pixels, edit_map
 from adjust.scene import default_rig
 from deformnet.paths import shared_dir
 
@@ -96,6 +96,31 @@ def test_a_flipped_camera_is_mapped_back(ncams, c, axes, caplog):
     assert m["scale"] == flip.tolist() and np.allclose(m["offset"], offset), m
     np.testing.assert_allclose(out.xy, det.xy, atol=1e-9)
     assert "flipped" in caplog.text and "MAPPED" in caplog.text
+
+
+@pytest.mark.parametrize(("ncams", "c", "how"), [(3, 1, 0), (3, 2, 1), (4, 0, 2), (3, 0, 3),
+                                                (2, 0, 0), (2, 1, 2)])  # fmt: skip
+def test_a_turned_or_transposed_camera_is_mapped_back(ncams, c, how, caplog):
+    """Camera c's video turned a quarter turn (a camera on its side, its video turned upright)
+    or its x and y swapped: that camera alone is mapped back, by the turn, to the bit (either
+    of two cameras); its pixels before lie in the turned video (H px wide), as a file has them."""
+    how = list(TURNS)[how]
+    cams = default_rig()[:ncams]
+    det, _ = _det(cams)
+    W, H = cams[c].size
+    A, d = (np.array(v) for v in edit_map(how, (W, H)))
+    bad = _edit(det, c, lambda xy: (xy - d) @ A)  # u = A^T (x - d): A is orthogonal
+    u = bad.xy[:, :, c][np.isfinite(bad.xy[:, :, c]).all(-1)]
+    assert (u.min(0) >= -0.5).all() and (u.max(0) <= np.array([H, W]) - 0.5).all()
+    with caplog.at_level(logging.WARNING, logger="adjust.pixels"):
+        out, rep = check_pixels(cams, bad)
+    name = cams[c].name
+    assert set(rep["mapped"]) == {name}, rep
+    m = rep["mapped"][name]
+    assert m["turn"] == how and m["scale"] == A.tolist() and np.allclose(m["offset"], d), m
+    assert m["epipolar_px"][1] < 2.0 < 20 < m["epipolar_px"][0]
+    np.testing.assert_allclose(out.xy, det.xy, atol=1e-9)
+    assert how in caplog.text and "MAPPED" in caplog.text
 
 
 def test_cameras_as_calibrated_and_real_recordings_are_left_alone():
