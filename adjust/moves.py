@@ -98,6 +98,8 @@ JUMP_FRAMES = (8, 12, 16, 20, 24)  #: windows (frames each side of a move) whose
 JUMP_MIN = 4  #: ... points a part needs on each side
 JUMP_RATIO = 1.5  #: the other camera's turn must make the parts jump this many times farther
 JUMP_MM = 0.5  #: ... and by this much more (mm)
+TELL_PX = 0.25  #: since calibration: turns within this of the best's excess (px) are alike
+MAX_BUMP_DEG = 5.0  #: a camera turned since its calibration by more is a wrong pose, no bump
 
 
 def _focal(cam: Camera) -> float:
@@ -487,6 +489,87 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
     return moved, None
 
 
+def _since_calibration(x, cams) -> tuple[dict | None, str | None]:
+    """A camera turned before the session, after its calibration (bumped between the two), in
+    the sampled rows (normalised points x (N, K, C, 2)): (move, None) with the move's camera,
+    rotvec and distances (its frames: the whole session); (None, why) where a camera lies off
+    and no turn, or more than one camera's, explains it; (None, None) where none lies off.
+    Three cameras or more: a camera is off where the median over the frames of the mean over
+    its pairs of `pair_series` is `STEP_RATIO` times and `STEP_PX` above that of the pairs
+    without it, and that series has no such step in time (a camera moved during the session,
+    off over most of it, is `_find`'s); every camera's turn is fitted over the session
+    (`fit_rotation`), and the best must cut the rig's excess over those pairs by half, by a
+    turn of at most `MAX_BUMP_DEG` (the real SLEAP mouse's `side` camera, given `top`'s pose,
+    fits to 2.8 px turned by 44 degrees: a wrong pose, the camera check's), no other camera's
+    excess coming within `TELL_RATIO` times and `TELL_PX` of its own (with no step in time,
+    the parts' continuity cannot tell; excesses, not levels: the right camera's turn leaves
+    about none, a wrong one 0.1-0.2 px at three cameras, 0.4 px at four, over 1.6 px)."""
+    C = len(cams)
+    if C < 3:
+        return None, None
+    rows = np.arange(x.shape[0])
+    off = []
+    for c in range(C):
+        rest = [d for d in range(C) if d != c]
+        own = _mean_series(x, cams, c, rest)
+        pairs = [pair_series(x, cams, a, b) for a in rest for b in rest if a < b]
+        without = nan_reduce(np.nanmean, np.stack(pairs), 0)
+        if not (np.isfinite(own).any() and np.isfinite(without).any()):
+            continue
+        m_own, m_rest = float(np.nanmedian(own)), float(np.nanmedian(without))
+        sp = split(own)
+        lo, hi = (min(sp[1:]), max(sp[1:])) if sp is not None else (0.0, 0.0)
+        if hi >= STEP_RATIO * lo and hi - lo >= STEP_PX:
+            continue  # a step in time: a move during the session (`_find`'s)
+        if m_own >= STEP_RATIO * m_rest and m_own - m_rest >= STEP_PX:
+            off.append((m_own / max(m_rest, 1e-9), c, m_rest))
+    if not off:
+        return None, None
+    _, c, at_good = max(off)
+    at_bad = _rig_level(x, cams, rows)
+    fits = []
+    for k in range(C):
+        Q = fit_rotation(x, cams, k, [d for d in range(C) if d != k], rows)
+        xq = x.copy()
+        xq[:, :, k] = _rotate(x[:, :, k], Q)
+        fits.append((_rig_level(xq, cams, rows), k, Q))
+    fits.sort(key=lambda f: f[0])
+    level, k, Q = fits[0]
+    log.debug("camera turn fits: %s", [(cams[f[1]].name, round(f[0], 3)) for f in fits])
+    name = cams[c].name
+    if np.degrees(np.linalg.norm(_rotvec(Q))) > MAX_BUMP_DEG:
+        return None, (
+            f"the detections of camera '{name}' lie off the other cameras' epipolar lines "
+            f"over the whole session (the rig's {at_bad:.1f} px, {at_good:.1f} px without it); "
+            f"camera '{cams[k].name}' turned by "
+            f"{np.degrees(np.linalg.norm(_rotvec(Q))):.0f} deg would fit: no bump, a wrong "
+            "pose (the camera check judges it)"
+        )
+    if not level - at_good <= 0.5 * (at_bad - at_good):
+        return None, (
+            f"the detections of camera '{name}' lie off the other cameras' epipolar lines "
+            f"over the whole session (the rig's {at_bad:.1f} px, {at_good:.1f} px without it) "
+            f"and no turn of a camera explains it (turned back at best {level:.1f} px): its "
+            "calibration is off in another way (intrinsics, lens model)?"
+        )
+    excess = max(level - at_good, 0.0)
+    alike = [cams[f[1]].name for f in fits if f[0] - at_good <= TELL_RATIO * excess + TELL_PX]
+    moved = {
+        "camera": cams[k].name,
+        "first_frame": None,  # the whole session (set by the caller)
+        "end_frame": None,
+        "rotvec": [float(v) for v in _rotvec(Q)],
+        "degrees": float(np.degrees(np.linalg.norm(_rotvec(Q)))),
+        "others_px": round(at_good, 3),
+        "before_px": round(at_bad, 3),
+        "after_px": round(level, 3),
+        "since_calibration": True,
+    }
+    if len(alike) > 1:
+        moved["ambiguous"] = alike
+    return moved, None
+
+
 def _refine(det, cameras, c: int, Q: np.ndarray, lo: int, hi: int, entering: bool) -> int:
     """Where in (lo, hi] (frame numbers) camera c's detections start (`entering`) or stop
     fitting its turn Q better than its calibration: every frame of `det` there weighs in for
@@ -526,7 +609,48 @@ def check_moves(
     x = normalised_points(det.xy[rows], cameras)
     now = det  # the moves found so far undone
     names = [cam.name for cam in cameras]
-    for _ in range(int(max_moves)):
+    bump, why = _since_calibration(x, cameras)
+    if why is not None:
+        report.setdefault("unexplained", []).append(why)
+        log.info("camera move check: %s", why)
+    if bump is not None:
+        bump["first_frame"] = int(frames.min())
+        c = names.index(bump["camera"])
+        if "ambiguous" in bump:
+            which = bump.pop("ambiguous")
+            files = ", ".join(f"'{n}' ({det.files[names.index(n)]})" for n in which)
+            msg = (
+                f"the cameras do not fit their calibration from the session's start: the "
+                f"detections lie {bump['before_px']:.1f} px from each other's epipolar lines "
+                f"({bump['others_px']:.1f} px without camera '{bump['camera']}'); a turn since "
+                f"the calibration of any of cameras {files} explains it (to "
+                f"{bump['after_px']:.1f} px), and nothing tells which, so the tracks rest on "
+                "a calibration that does not hold"
+            )
+            if mode == "error":
+                raise InputError(msg + "; recalibrate (input.camera_check=warn: tracked as "
+                                 "calibrated, with a warning)")  # fmt: skip
+            log.warning("%s; NOT mapped back (input.camera_check=warn)", msg)
+            report["unresolved"] = {**bump, "cameras": which}
+        else:
+            msg = (
+                f"camera '{bump['camera']}' ({det.files[c]}) does not fit its calibration from "
+                f"the session's start: turned by {bump['degrees']:.2f} deg about its centre "
+                f"since it was calibrated (the detections lie {bump['before_px']:.1f} px from "
+                f"each other's epipolar lines, {bump['others_px']:.1f} px without it; turned "
+                f"back, {bump['after_px']:.1f} px; a camera bumped between its calibration "
+                "and the recording?)"
+            )
+            if mode == "error":
+                raise InputError(msg + "; recalibrate it, or set input.camera_check=warn to "
+                                 "map its detections back (input.max_camera_moves=0: no "
+                                 "check)")  # fmt: skip
+            log.warning("%s; its detections MAPPED back (input.camera_check=warn)", msg)
+            report["moves"].append(bump)
+            Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(bump["rotvec"]))).numpy()
+            x[:, :, c] = _rotate(x[:, :, c], Q)
+            now = apply_moves(now, cameras, [bump])
+    for _ in range(int(max_moves) - len(report["moves"])):
         move, why = _find(x, cameras, frames[rows], now)
         if move is None:
             if why is not None:

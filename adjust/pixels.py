@@ -64,6 +64,7 @@ MAX_ROWS = 3_000  #: rows a fit uses (spread over the session)
 MAX_SE_PX = 1.0  #: an offset fitted to one camera's lines must be this well fixed (px)
 SNAP = 0.005  #: a fitted scale within this fraction of 1 or of a `SCALES` ratio is that ratio
 MIN_CROP_PX = 10.0  #: a crop (scale 1) moves the image by at least this many px
+TELL_RATIO = 1.05  #: another camera's map fitting the rig to within this factor: not told
 #: a video mirrored (how: the per-axis scale s of x = s u + d)
 FLIPS = {"left to right": (-1.0, 1.0), "upside down": (1.0, -1.0), "by a half turn": (-1.0, -1.0)}
 #: a video turned or transposed (how: A of x = A u + d; ffmpeg's ``transpose`` 1, 2, 0, 3)
@@ -166,6 +167,10 @@ def fit_camera(cameras: Sequence[Camera], det: Detections, c: int, refs: Sequenc
     return s, (dx, dy)
 
 
+def _focal_px(cam: Camera) -> float:
+    return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+
+
 def _resized(s: float):
     """The map of a video resized by 1 / s (pixel centres: x = s u + (s - 1) / 2)."""
     return s, ((s - 1) / 2, (s - 1) / 2)
@@ -217,6 +222,22 @@ def check_pixels(
         if np.nanmedian(px) * BETTER <= np.nanmedian(best_px):
             best, best_px = trial, px
     maps = dict(best)
+
+    def fitted(c: int, cur: Detections, med: np.ndarray, maps: dict, px_now: np.ndarray):
+        """Camera c's map fitted to the cameras that agree without it (`fit_camera`; the
+        detections `cur` as mapped by `maps`, their pair medians `med`): (the maps with it,
+        the cameras' distances then, or None where it does not bring c closer by `BETTER`);
+        None where no map is fitted."""
+        refs = [o for o in range(C) if o != c and (C < 3 or _without(med, o, c) <= PLAUSIBLE_PX)]
+        refs = refs or [o for o in range(C) if o != c]
+        fit = fit_camera(cameras, cur, c, refs, scale=1.0 if len(refs) == 1 else None)
+        if fit is None:
+            return None
+        trial = dict(maps)
+        trial[names[c]] = _compose(fit, maps[names[c]])
+        px = score(trial)
+        return trial, px if px[c] * BETTER <= px_now[c] else None
+
     tried: set[int] = set()
     for _ in range(C):  # the worst camera first, fitted to the cameras that agree without it
         px_now = score(maps)
@@ -228,15 +249,31 @@ def check_pixels(
         tried.add(c)
         cur = apply(sub, {n: v for n, v in maps.items() if v != identity})
         med = pair_medians(cameras, cur)
-        refs = [o for o in range(C) if o != c and (C < 3 or _without(med, o, c) <= PLAUSIBLE_PX)]
-        refs = refs or [o for o in range(C) if o != c]
-        fit = fit_camera(cameras, cur, c, refs, scale=1.0 if len(refs) == 1 else None)
-        if fit is None:
+
+        got = fitted(c, cur, med, maps, px_now)
+        if got is None or got[1] is None:
             continue
-        trial = dict(maps)
-        trial[names[c]] = _compose(fit, maps[names[c]])
-        if score(trial)[c] * BETTER <= px_now[c]:
-            maps = trial
+        fits = {c: got}  # the other cameras far off too: does one of their maps fit better?
+        for o in (o for o in bad if o != c) if C >= 3 else ():
+            other = fitted(o, cur, med, maps, px_now)
+            if other is not None and other[1] is not None:
+                fits[o] = other
+        level = {o: float(np.nanmax(f[1])) for o, f in fits.items()}
+        best = min(level, key=level.get)
+        alike = [o for o in level if o != best and level[o] <= TELL_RATIO * level[best]]
+        if alike:
+            tried.update(fits)
+            log.warning(
+                "cameras %s lie off each other's epipolar lines (%s px) and a shift of any "
+                "of them fits (to %s px): which one is off (its video cropped, or the "
+                "camera moved since its calibration) is not told, and none is mapped",
+                [names[o] for o in (best, *alike)],
+                ", ".join(f"{px_now[o]:.1f}" for o in (best, *alike)),
+                ", ".join(f"{level[o]:.1f}" for o in (best, *alike)),
+            )
+            continue
+        tried.add(best)
+        maps = fits[best][0]
     for c in range(C):  # a video edit: a resize by a plain ratio, or a crop (snapped, refitted)
         m = maps[names[c]]
         if m == identity or m == _resized(m[0]):  # the rig's resize: a plain ratio already
@@ -297,12 +334,15 @@ def check_pixels(
             )
         else:
             what = "downsampled" if s > 1.01 else "upsampled" if s < 0.99 else "cropped"
+            turn = float(np.degrees(np.arctan(np.hypot(dx, dy) / _focal_px(cameras[c]))))
+            bump = f" or the camera turned {turn:.1f} deg since its calibration?"
+            bump = bump if what == "cropped" else ""
             if abs(s - 1) > 0.01 and max(abs(dx), abs(dy)) > abs(s - 1):
                 what += " or cropped"
             msg = (
                 f"camera '{names[c]}' ({det.files[c]}): its detections fit the calibration's "
                 f"image as x = {s:.4g} u + ({dx:.1f}, {dy:.1f}) px ({far}, {after[c]:.1f} px "
-                f"mapped; videos {what} before the pose estimator?)"
+                f"mapped; videos {what} before the pose estimator?{bump})"
             )
         if mode == "error":
             raise InputError(

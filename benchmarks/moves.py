@@ -10,7 +10,10 @@ the check's settings were chosen on the validation segment; ``--split val`` for 
 ``--cameras``, ``--seeds``). Each camera in turn is turned about its own x axis (a tilt: the
 image moves up or down) or y axis (a pan: it moves sideways) by each angle of ``--degrees``,
 about its centre: its detections from frame AT (each of ``--at``) on are the turned camera's
-view of the same points. Rows: RMSE
+view of the same points. ``--at 0``: the camera was bumped before the session, after its
+calibration (every frame turned); unchecked is then also without the pixel check
+(``input.pixel_check=false``), whose crop map takes up such a camera (a small turn moves the
+image almost as a crop does). Rows: RMSE
 all and seen by >= 2 cameras (mm) unmoved, moved unchecked, moved checked, aniposelib moved /
 unmoved; what the check found (the camera, the frame, the turn), or "unresolved" (more than one
 camera's turn fits and the parts' continuity does not tell: warned about, not mapped) or
@@ -40,7 +43,7 @@ from common import emit, print_table, start, subset  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
-    checked_row,
+    checked_or_refused,
     film_scene,
     input_args,
     input_run,
@@ -85,15 +88,15 @@ def main(argv: list[str] | None = None) -> dict:
     args = start(ap, argv)
     cameras, seeds = input_settings(ap, args)
     ats = [int(a) for a in args.at.split(",") if a.strip()]
-    if not ats or not all(0 < a < args.frames for a in ats):
-        ap.error(f"--at must be frames within 1..{args.frames - 1}, got {args.at}")
+    if not ats or not all(0 <= a < args.frames for a in ats):
+        ap.error(f"--at must be frames within 0..{args.frames - 1}, got {args.at}")
     axes = subset(ap, args.axes, tuple(AXES), "--axes")
     degrees = [float(d) for d in args.degrees.split(",") if d.strip()]
     motion, work, threads = input_run(args)
     rows: list[dict] = []
 
     def tracked(scene: Path, name: str, extra=()) -> tuple[dict, dict]:
-        return checked_row(scene, work / "runs" / scene.name / name, [threads, *extra])
+        return checked_or_refused(scene, work / "runs" / scene.name / name, [threads, *extra])
 
     def peer(scene: Path) -> dict:
         return {} if args.no_peer else peer_row(scene)
@@ -110,10 +113,14 @@ def main(argv: list[str] | None = None) -> dict:
             for at, camera, deg, axis in itertools.product(ats, names, degrees, axes):
                 tag = f"{key}_{camera}_{deg:g}deg_{axis}_at{at}"
                 scene = turn(base, work / "moved" / tag, camera, at, deg, axis)
-                blind, _ = tracked(scene, "unchecked", ["input.max_camera_moves=0"])
+                off = ["input.max_camera_moves=0"] + (
+                    ["input.pixel_check=false"] if at == 0 else []
+                )
+                blind, _ = tracked(scene, "unchecked", off)
                 fixed, check = tracked(scene, "checked")
                 moved = check.get("moved") or {}
                 found = moved.get("moves") or []
+                pixels = (check.get("pixels") or {}).get("mapped") or {}
                 p = peer(scene)
                 row = {
                     "cameras": ncams, "seed": seed, "at": at, "camera": camera, "degrees": deg,
@@ -124,9 +131,12 @@ def main(argv: list[str] | None = None) -> dict:
                     "peer_unmoved_all": ref_peer.get("rmse_all"),
                     "found": [[m["camera"], m["first_frame"], round(m["degrees"], 3)]
                               for m in found],
+                    "pixel_maps": {n: [m["scale"], m["offset"]] for n, m in pixels.items()},
                     "unresolved": (moved.get("unresolved") or {}).get("cameras"),
                     "excluded": sorted(check.get("excluded") or {}),
                     "false_moves_unmoved": false_moves,
+                    "refused_unchecked": blind.get("refused"),
+                    "refused_checked": fixed.get("refused"),
                 }  # fmt: skip
                 rows.append(row)
                 log.info("%s: %s", tag, row)
@@ -134,6 +144,8 @@ def main(argv: list[str] | None = None) -> dict:
     for r in rows:
         if r["found"]:
             what = ", ".join(f"{c} @{f} {d:.2f} deg" for c, f, d in r["found"])
+        elif r["pixel_maps"]:
+            what = "pixel map: " + ", ".join(f"{c} {m}" for c, m in r["pixel_maps"].items())
         elif r["unresolved"]:
             what = "unresolved: " + "/".join(r["unresolved"])
         else:
@@ -147,13 +159,15 @@ def main(argv: list[str] | None = None) -> dict:
             ("checked_seen", "seen chk."), ("unmoved_seen", "seen unm.")]  # fmt: skip
     print(f"\nRMSE all / seen by >= 2 cameras (mm), {args.split} segment, a camera turned:")
     print_table(table, cols, 11)
-    print("\nfound by the check (camera @ frame, turn):")
+    print("\nfound by the check (camera @ frame, turn; or mapped by the pixel check):")
     for label, line in table.items():
         print(f"  {label}: {line['what']}")
-    mapped = [r for r in rows if r["found"]]
+    mapped = [r for r in rows if r["found"] or r["pixel_maps"]]
     checks = {
         "mapped_moves_right_camera": all(
-            all(c == r["camera"] for c, _, _ in r["found"]) for r in mapped
+            all(c == r["camera"] for c, _, _ in r["found"])
+            and all(c == r["camera"] for c in r["pixel_maps"])
+            for r in mapped
         ),
         "mapped_within_5pct_of_unmoved": all(
             r["checked_all"] <= SAME * r["unmoved_all"] for r in mapped
@@ -161,6 +175,8 @@ def main(argv: list[str] | None = None) -> dict:
         "no_move_on_unmoved": all(r["false_moves_unmoved"] == 0 for r in rows),
         "mapped": f"{len(mapped)} of {len(rows)}",
         "unresolved": sum(bool(r["unresolved"]) for r in rows),
+        "refused_unchecked": sum(bool(r["refused_unchecked"]) for r in rows),
+        "refused_checked": sum(bool(r["refused_checked"]) for r in rows),
     }
     print(f"\nchecks: {checks}")
     return emit({"split": args.split, "seeds": seeds, "at": ats, "rows": rows, "checks": checks},

@@ -43,6 +43,7 @@ from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
     SPLITS,
+    checked_or_refused,
     checked_row,
     film_scene,
     input_args,
@@ -98,17 +99,6 @@ def spoilt(base: Path, out: Path, edits: dict) -> Path:
     )
 
 
-def attempt(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dict]:
-    """`checked_row`, or NaN scores and the reason where adjust-track refuses the scene (its
-    tracks cannot be trusted: a non-zero exit, not a wrong result)."""
-    try:
-        return checked_row(scene, out, overrides)
-    except Exception as exc:  # noqa: BLE001 - recorded in the row
-        why = f"{type(exc).__name__}: {str(exc).splitlines()[0][:300]}"
-        log.warning("%s refused: %s", scene.name, why)
-        return {"rmse_all": float("nan"), "rmse_seen2": float("nan"), "refused": why}, {}
-
-
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     input_args(ap, "pixels", "2,3,4")
@@ -152,9 +142,9 @@ def main(argv: list[str] | None = None) -> dict:
             for case, edits in cases.items():
                 tag = f"{key}_{case.replace(' ', '_')}"
                 scene = spoilt(base, work / "spoilt" / tag, edits)
-                blind, blind_check = attempt(scene, work / "runs" / tag / "unchecked",
+                blind, blind_check = checked_or_refused(scene, work / "runs" / tag / "unchecked",
                                              [threads, "input.pixel_check=false"])  # fmt: skip
-                fixed, check = attempt(scene, work / "runs" / tag / "checked", [threads])
+                fixed, check = checked_or_refused(scene, work / "runs" / tag / "checked", [threads])
                 mapped = (check.get("pixels") or {}).get("mapped") or {}
                 edited = any(k in case for k in ("flipped", "turned", "transposed"))
                 peer_spoilt = peer_row(scene)["rmse_all"] if edited and not args.no_peer else None

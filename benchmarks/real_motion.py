@@ -462,6 +462,17 @@ def checked_row(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dic
     return row, summary.get("camera_check") or {}
 
 
+def checked_or_refused(scene: Path, out: Path, overrides: list[str]) -> tuple[dict, dict]:
+    """`checked_row`, or NaN scores and the reason where adjust-track refuses the scene (its
+    tracks cannot be trusted: a non-zero exit, not a wrong result)."""
+    try:
+        return checked_row(scene, out, overrides)
+    except Exception as exc:  # noqa: BLE001 - recorded in the row
+        why = f"{type(exc).__name__}: {str(exc).splitlines()[0][:300]}"
+        log.warning("%s refused: %s", scene.name, why)
+        return {"rmse_all": float("nan"), "rmse_seen2": float("nan"), "refused": why}, {}
+
+
 def peer_row(scene: Path, nparts: int = 8, truth_frames: bool = False) -> dict:
     """aniposelib on a scene of `nparts` parts (`run_aniposelib`, cached), evaluated on its
     truth.npz; `truth_frames`: on the truth's frames only (a camera's file longer than the

@@ -14,12 +14,22 @@ import pytest
 import torch
 from helpers import projected_detections
 
+from adjust.camera import Camera
 from adjust.camera_check import check_from_config, drop_cameras
 from adjust.chunks import ChunkHooks, SessionModel
 from adjust.io import InputError, load_scene
+from adjust.moves import check_moves
 from adjust.pixels import TURNS, apply, check_pixels, edit_map
 from adjust.scene import default_rig
-from deformnet.paths import shared_dir
+from adjust.scene.motion import (
+    MOTION_FEET,
+    MOTION_PAPER8,
+    floor_frame,
+    load_motion,
+    motion_rig,
+    write_motion_scene,
+)
+from deformnet.paths import real_mouse_motion_dir, shared_dir
 
 torch.set_num_threads(1)
 DATA = shared_dir() / "data"
@@ -121,6 +131,38 @@ def test_a_turned_or_transposed_camera_is_mapped_back(ncams, c, how, caplog):
     assert m["epipolar_px"][1] < 2.0 < 20 < m["epipolar_px"][0]
     np.testing.assert_allclose(out.xy, det.xy, atol=1e-9)
     assert how in caplog.text and "MAPPED" in caplog.text
+
+
+def test_a_shift_that_more_than_one_camera_explains_is_not_mapped(tmp_path, caplog):
+    """The real motion filmed by the 3-camera rig (the scene detector: occlusion, outliers):
+    the front camera's principal point 15 px off is told (its shift mapped back); the top
+    camera's is not: a shift of top or of front fits the rig alike (1.6 px), so neither is
+    mapped, with a warning naming both (before, the front camera's detections were shifted and
+    the tracks came out 2.2x the calibrated scene's); the move check leaves it unresolved too."""
+    X, parts = load_motion(real_mouse_motion_dir() / "poses3d.csv")
+    rig = motion_rig(floor_frame(X, parts, MOTION_FEET), 3)
+    rename = {v: k for k, v in MOTION_PAPER8.items()}
+    write_motion_scene(tmp_path, X[2400:2800], parts, rig, list(MOTION_PAPER8.values()), rename)
+    cams, det = load_scene(tmp_path / "calibration.toml", tmp_path / "detections", None)
+
+    def off(c: int) -> list:
+        K = cams[c].K.copy()
+        K[0, 2] += 15.0
+        out = list(cams)
+        out[c] = Camera.from_matrices(cams[c].name, K, cams[c].R, cams[c].tvec, cams[c].dist,
+                                      cams[c].size)  # fmt: skip
+        return out
+
+    names = [c.name for c in cams]
+    front, top = names.index("front"), names.index("top")
+    _, rep = check_pixels(off(front), det)
+    assert list(rep["mapped"]) == ["front"], rep
+    assert np.allclose(rep["mapped"]["front"]["offset"], [15.0, 0.0], atol=0.5), rep
+    with caplog.at_level(logging.WARNING, logger="adjust.pixels"):
+        _, rep = check_pixels(off(top), det)
+    assert rep["mapped"] == {}, rep
+    assert "not told" in caplog.text and "'top'" in caplog.text and "'front'" in caplog.text
+    assert sorted(check_moves(off(top), det, 3)[1]["unresolved"]["cameras"]) == ["front", "top"]
 
 
 def test_cameras_as_calibrated_and_real_recordings_are_left_alone():
