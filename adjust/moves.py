@@ -1,5 +1,7 @@
 """Cameras that moved during the session: find a camera bumped mid-session (its mount knocked,
-slipped or turned) and map its detections after the move back into its calibrated view.
+slipped or turned) and map its detections after the move back into its calibrated view; and,
+first, a camera turned since its calibration (bumped between it and the recording: off over
+the whole session, no step in time; three cameras or more, `_since_calibration`).
 
     det, report = check_moves(cameras, det, max_moves=3, mode="warn")
 
