@@ -594,6 +594,14 @@ def _rotvec(Q: np.ndarray) -> np.ndarray:
     return matrix_to_rodrigues(torch.as_tensor(Q)).numpy()
 
 
+def _say(mode: str, msg: str, fix: str, done: str) -> None:
+    """A finding `msg`: an `InputError` with the way out `fix` (mode error), else a warning
+    with what was `done` about it."""
+    if mode == "error":
+        raise InputError(msg + fix)
+    log.warning("%s; %s (input.camera_check=warn)", msg, done)
+
+
 def check_moves(
     cameras: Sequence[Camera], det: Detections, max_moves: int = 3, mode: str = "warn"
 ) -> tuple[Detections, dict]:
@@ -629,10 +637,8 @@ def check_moves(
                 f"{bump['after_px']:.1f} px), and nothing tells which, so the tracks rest on "
                 "a calibration that does not hold"
             )
-            if mode == "error":
-                raise InputError(msg + "; recalibrate (input.camera_check=warn: tracked as "
-                                 "calibrated, with a warning)")  # fmt: skip
-            log.warning("%s; NOT mapped back (input.camera_check=warn)", msg)
+            _say(mode, msg, "; recalibrate (input.camera_check=warn: tracked as calibrated, "
+                 "with a warning)", "NOT mapped back")  # fmt: skip
             report["unresolved"] = {**bump, "cameras": which}
         else:
             msg = (
@@ -643,11 +649,9 @@ def check_moves(
                 f"back, {bump['after_px']:.1f} px; a camera bumped between its calibration "
                 "and the recording?)"
             )
-            if mode == "error":
-                raise InputError(msg + "; recalibrate it, or set input.camera_check=warn to "
-                                 "map its detections back (input.max_camera_moves=0: no "
-                                 "check)")  # fmt: skip
-            log.warning("%s; its detections MAPPED back (input.camera_check=warn)", msg)
+            _say(mode, msg, "; recalibrate it, or set input.camera_check=warn to map its "
+                 "detections back (input.max_camera_moves=0: no check)",
+                 "its detections MAPPED back")  # fmt: skip
             report["moves"].append(bump)
             Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(bump["rotvec"]))).numpy()
             x[:, :, c] = _rotate(x[:, :, c], Q)
@@ -675,12 +679,9 @@ def check_moves(
                 f"continuity at the move does not tell which (they jump by {move['jump_mm']} "
                 "mm), so the tracks there rest on a calibration that no longer holds"
             )
-            if mode == "error":
-                raise InputError(
-                    msg + "; recalibrate for the frames after the move, or track the frames "
-                    "before it (input.camera_check=warn: tracked as calibrated, with a warning)"
-                )
-            log.warning("%s; NOT mapped back (input.camera_check=warn)", msg)
+            _say(mode, msg, "; recalibrate for the frames after the move, or track the frames "
+                 "before it (input.camera_check=warn: tracked as calibrated, with a warning)",
+                 "NOT mapped back")  # fmt: skip
             report["unresolved"] = {**move, "cameras": which}
             break
         msg = (
@@ -690,12 +691,9 @@ def check_moves(
             f"{move['others_px']:.1f} px elsewhere; turned back, {move['after_px']:.1f} px; a "
             "camera bumped or its mount slipped?)"
         )
-        if mode == "error":
-            raise InputError(
-                msg + "; recalibrate it for those frames, or set input.camera_check=warn to "
-                "map its detections back (input.max_camera_moves=0: no check)"
-            )
-        log.warning("%s; its detections there MAPPED back (input.camera_check=warn)", msg)
+        _say(mode, msg, "; recalibrate it for those frames, or set input.camera_check=warn to "
+             "map its detections back (input.max_camera_moves=0: no check)",
+             "its detections there MAPPED back")  # fmt: skip
         report["moves"].append(move)
         sel = np.flatnonzero(frames[rows] >= move["first_frame"])
         if move["end_frame"] is not None:
