@@ -594,6 +594,16 @@ def _rotvec(Q: np.ndarray) -> np.ndarray:
     return matrix_to_rodrigues(torch.as_tensor(Q)).numpy()
 
 
+def _undo(x: np.ndarray, frames: np.ndarray, c: int, move: dict) -> None:
+    """Turn camera c's normalised points x (N, K, C, 2) of the rows whose frame numbers
+    `frames` (N,) the `move` spans back into its calibrated view, in place."""
+    sel = np.flatnonzero(frames >= move["first_frame"])
+    if move["end_frame"] is not None:
+        sel = sel[frames[sel] < move["end_frame"]]
+    Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(move["rotvec"]))).numpy()
+    x[sel, :, c] = _rotate(x[sel, :, c], Q)
+
+
 def _say(mode: str, msg: str, fix: str, done: str) -> None:
     """A finding `msg`: an `InputError` with the way out `fix` (mode error), else a warning
     with what was `done` about it."""
@@ -628,7 +638,7 @@ def check_moves(
         c = names.index(bump["camera"])
         if "ambiguous" in bump:
             which = bump.pop("ambiguous")
-            files = ", ".join(f"'{n}' ({det.files[names.index(n)]})" for n in which)
+            files = ", ".join(f"'{n}' ({det.files[det.cameras.index(n)]})" for n in which)
             msg = (
                 f"the cameras do not fit their calibration from the session's start: the "
                 f"detections lie {bump['before_px']:.1f} px from each other's epipolar lines "
@@ -653,8 +663,7 @@ def check_moves(
                  "detections back (input.max_camera_moves=0: no check)",
                  "its detections MAPPED back")  # fmt: skip
             report["moves"].append(bump)
-            Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(bump["rotvec"]))).numpy()
-            x[:, :, c] = _rotate(x[:, :, c], Q)
+            _undo(x, frames[rows], c, bump)
             now = apply_moves(now, cameras, [bump])
     for _ in range(int(max_moves) - len(report["moves"])):
         move, why = _find(x, cameras, frames[rows], now)
@@ -671,7 +680,7 @@ def check_moves(
         )
         if "ambiguous" in move:
             which = move.pop("ambiguous")
-            files = ", ".join(f"'{n}' ({det.files[names.index(n)]})" for n in which)
+            files = ", ".join(f"'{n}' ({det.files[det.cameras.index(n)]})" for n in which)
             msg = (
                 f"a camera moved {span}: the detections lie {move['before_px']:.1f} px from "
                 f"the other cameras' epipolar lines there against {move['others_px']:.1f} px "
@@ -695,10 +704,6 @@ def check_moves(
              "map its detections back (input.max_camera_moves=0: no check)",
              "its detections there MAPPED back")  # fmt: skip
         report["moves"].append(move)
-        sel = np.flatnonzero(frames[rows] >= move["first_frame"])
-        if move["end_frame"] is not None:
-            sel = sel[frames[rows][sel] < move["end_frame"]]
-        Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(move["rotvec"]))).numpy()
-        x[sel, :, c] = _rotate(x[sel, :, c], Q)
+        _undo(x, frames[rows], c, move)
         now = apply_moves(now, cameras, [move])
     return now, report
