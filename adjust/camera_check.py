@@ -61,6 +61,7 @@ import torch
 from adjust.camera import Camera, CameraTensors, project_cameras
 from adjust.clocks import check_clocks
 from adjust.io import Detections, InputError
+from adjust.lens import check_lens
 from adjust.moves import check_moves, rig_px
 from adjust.pixels import check_pixels
 from adjust.rates import check_rates, pair_medians
@@ -329,6 +330,8 @@ def check_cameras(
         det, report["clocks"] = check_clocks(cams, det, mode, max(max_offset, 2))
     if sides:
         det, report["sides"] = check_sides(cams, det, mode, reference)
+    if pixels:  # undistorted videos (before the move check, which takes them for a turn)
+        det, report["lens"] = check_lens(cams, det, mode)
     det, report["sync"], report["moved"] = _in_step_and_in_place(
         cams, det, max_offset, max_moves, mode
     )

@@ -78,6 +78,7 @@ from adjust.deformation_modes import CheckpointNet, NetMode, load_deformation, m
 from adjust.export import write_nwb
 from adjust.io import InputError, load_calibration, load_detections, match_files
 from adjust.io.scene import MIN_CAMERAS
+from adjust.lens import apply_lens
 from adjust.lsq.solver import RESULT_ARRAYS
 from adjust.moves import apply_moves
 from adjust.pixels import apply as apply_pixel_maps
@@ -278,6 +279,8 @@ class ChunkHooks:
         shifts.update({n: row_offsets(det, st) for n, st in (sync.get("steps") or {}).items()})
         det = shift_cameras(det, {n: o for n, o in shifts.items() if n in det.cameras})
         det = apply_moves(det, cams, (self.model.camera_report.get("moved") or {}).get("moves"))
+        lens = (self.model.camera_report.get("lens") or {}).get("undistorted") or {}
+        det = apply_lens(det, cams, lens)
         sub = (self.model.camera_report.get("subframe") or {}).get("offsets") or {}
         det = resample(det, {n: o for n, o in sub.items() if n in det.cameras})
         a, b = self.keep

@@ -108,7 +108,7 @@ def _focal(cam: Camera) -> float:
     return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
 
 
-def _rotate(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
+def rotate(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Normalised points x (..., 2) turned by rotation Q (3, 3): the rays Q [x, 1], divided by
     their depth (NaN where it is not positive)."""
     r = homog(x) @ Q.T
@@ -198,7 +198,7 @@ def fit_rotation(
         Q = rodrigues_to_matrix(torch.as_tensor(w)).numpy()
         out = []
         for E, xc, xd, fc, fd in data:
-            xq = _rotate(xc, Q)
+            xq = rotate(xc, Q)
             hc, hd = homog(np.nan_to_num(xq)), homog(xd)
             ld, inv_d = epipolar_lines(hc, E.T)
             _, inv_c = epipolar_lines(hd, E)
@@ -427,7 +427,7 @@ def _find(x, cams, frames, det) -> tuple[dict | None, str | None]:
     for k in range(C):  # every camera's turn: which one explains the step
         Q = fit_rotation(x, cams, k, [d for d in range(C) if d != k], bad)
         xq = x.copy()
-        xq[bad, :, k] = _rotate(x[bad, :, k], Q)
+        xq[bad, :, k] = rotate(x[bad, :, k], Q)
         fits.append((_rig_level(xq, cams, bad), k, Q))
     fits.sort(key=lambda f: f[0])
     level, k, Q = fits[0]
@@ -533,7 +533,7 @@ def _since_calibration(x, cams) -> tuple[dict | None, str | None]:
     for k in range(C):
         Q = fit_rotation(x, cams, k, [d for d in range(C) if d != k], rows)
         xq = x.copy()
-        xq[:, :, k] = _rotate(x[:, :, k], Q)
+        xq[:, :, k] = rotate(x[:, :, k], Q)
         fits.append((_rig_level(xq, cams, rows), k, Q))
     fits.sort(key=lambda f: f[0])
     level, k, Q = fits[0]
@@ -583,7 +583,7 @@ def _refine(det, cameras, c: int, Q: np.ndarray, lo: int, hi: int, entering: boo
     others = [d for d in range(len(cameras)) if d != c]
     x = normalised_points(det.xy[rows], cameras)
     raw = _mean_series(x, cameras, c, others, 1)  # every part seen by a pair has a say
-    x[:, :, c] = _rotate(x[:, :, c], Q)
+    x[:, :, c] = rotate(x[:, :, c], Q)
     score = np.nan_to_num(np.clip(raw - _mean_series(x, cameras, c, others, 1), -1.0, 1.0))
     prefix = np.r_[0.0, np.cumsum(score if entering else -score)]
     i = int(np.argmin(prefix))  # before i the old state fits better, from i the new one
@@ -601,7 +601,7 @@ def _undo(x: np.ndarray, frames: np.ndarray, c: int, move: dict) -> None:
     if move["end_frame"] is not None:
         sel = sel[frames[sel] < move["end_frame"]]
     Q = rodrigues_to_matrix(torch.as_tensor(np.asarray(move["rotvec"]))).numpy()
-    x[sel, :, c] = _rotate(x[sel, :, c], Q)
+    x[sel, :, c] = rotate(x[sel, :, c], Q)
 
 
 def _say(mode: str, msg: str, fix: str, done: str) -> None:

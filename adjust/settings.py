@@ -218,7 +218,7 @@ class InputConfig:
     max_camera_moves: int = 3  # cameras moved mid-session undone (adjust.moves; 0: no check)
     subframe_sync: bool = True  # a fraction of a frame out of step: interpolated (adjust.subframe)
     rate_check: bool = True  # another frame rate or clock (adjust.rates, adjust.clocks)
-    pixel_check: bool = True  # detections on scaled or cropped videos (adjust.pixels)
+    pixel_check: bool = True  # detections on edited videos (adjust.pixels, adjust.lens)
     side_check: bool = True  # a camera with left and right the other way round (adjust.sides)
 
     @classmethod

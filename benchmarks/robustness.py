@@ -302,6 +302,26 @@ def _edited_video(f: Path, cam: str, how: str) -> None:
     _rewrite(f, cam, _pixels(lambda xy: (xy - d) @ (A if A.ndim == 2 else np.diag(A))))
 
 
+def _undistorted_video(f: Path, cam: str, k1: float = -1.0) -> None:
+    """Every camera given a lens of barrel distortion `k1` (the calibration's, and the detections
+    distorted as it shows them), except camera `cam`'s detections: as on its video undistorted
+    before the pose estimator (cv2.undistort), the calibration keeping the lens
+    (`adjust.lens`)."""
+    import dataclasses
+
+    import torch
+
+    from adjust.distortion import distort_points
+
+    cams = [dataclasses.replace(c, dist=np.array([k1, 0.0, 0.0, 0.0, 0.0])) for c in _cams(f)]
+    _save(f, cams)
+    for c in cams:
+        if c.name != cam:
+            K, d = torch.as_tensor(c.K), torch.as_tensor(c.dist)
+            lens = _pixels(lambda xy, K=K, d=d: distort_points(torch.as_tensor(xy), K, d).numpy())
+            _rewrite(f, c.name, lens)
+
+
 def _renumber(folder: Path, cam: str, fn: Callable[[int], int]) -> None:
     p = folder / "detections" / f"{cam}.csv"
     rows = _read(p)
@@ -430,6 +450,10 @@ def cases(base: Path) -> list[tuple[str, Callable[[Path], list[str]], tuple[str,
         _edited_video(f, "front", "a quarter turn clockwise")
 
     rewrite("one camera's x and y columns swapped", ("side",), _pixels(lambda xy: xy[::-1]))
+
+    @case("one camera's video undistorted, the calibration keeping its lens")
+    def _(f):
+        _undistorted_video(f, "front")
 
     @case("one camera turned 1 deg mid-session (bumped)")
     def _(f):

@@ -224,3 +224,20 @@ def test_clocks_benchmark_tiny_run(tmp_path, one_thread):
     assert checks["every_found_right"] and checks["no_map_in_step"], res
     (row,) = res["rows"]
     assert row["unchecked_all"] > 1.5 * row["checked_all"], row
+
+
+def test_lens_benchmark_tiny_run(tmp_path, one_thread):
+    """benchmarks/lens.py on 300 frames (3 cameras through wide lenses, every camera's video
+    undistorted): no camera mapped but those (two of the three: the side camera's detections
+    stay near its image's centre, where the readings differ little), none as filmed; tracked
+    within 10% of the scene as filmed, unchecked 8x worse."""
+    ln = _load("lens")
+    res = ln.main(
+        ["--split", "val", "--frames", "300", "--cameras", "3", "--cases", "every", "--no-peer",
+         "--work", str(tmp_path / "work"), "--out", str(tmp_path / "l.json")]
+    )  # fmt: skip
+    assert res["checks"]["no_other_camera_mapped"], res
+    assert res["checks"]["none_mapped_as_filmed"], res
+    (row,) = res["rows"].values()
+    assert len(row["mapped"]) >= 2 and row["checked_all"] <= 1.1 * row["filmed_all"], row
+    assert row["unchecked_all"] > 5 * row["checked_all"], row
