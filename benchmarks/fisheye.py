@@ -42,30 +42,18 @@ from real_motion import (  # noqa: E402
     input_args,
     input_run,
     input_settings,
+    lens_scene,
     peer_row,
 )
 
 from adjust.camera import Camera  # noqa: E402
 from adjust.distortion import distort_normalized, undistort_points  # noqa: E402
 from adjust.io import read_dlc, save_calibration  # noqa: E402
-from adjust.scene.motion import motion_rig, part_set, write_motion_scene  # noqa: E402
 
 log = logging.getLogger("benchmarks.fisheye")
 
 GRID = 60  #: pixels per side of the grid the pinhole model is fitted on
 FIT_DEG = 50.0  #: ... those whose rays are within this angle of the axis (a board's reach)
-
-
-def fisheye_rig(floor, ncams: int, distance: float, focal: float, k) -> list[Camera]:
-    """`motion_rig` at `distance` mm with fisheye lenses (focal px, k1-k4 `k`)."""
-    out = []
-    for cam in motion_rig(floor, ncams, distance_mm=distance):
-        K = cam.K.copy()
-        K[0, 0] = K[1, 1] = focal
-        d = np.zeros(5)
-        d[:4] = k
-        out.append(dataclasses.replace(cam, K=K, dist=d, fisheye=True))
-    return out
 
 
 def pinhole_refit(cam: Camera, seen: np.ndarray) -> tuple[Camera, float]:
@@ -117,22 +105,11 @@ def main(argv: list[str] | None = None) -> dict:
     if len(k) != 4:
         ap.error(f"--k must be 4 numbers k1,k2,k3,k4, got {args.k}")
     motion, work, threads = input_run(args)
-    start_frame = SPLITS[args.split]
-    X = motion.points[start_frame : start_frame + args.frames]
-    src, names = part_set(8, motion.parts)
-    ktag = "_".join(f"{v:g}" for v in k)
     rows: dict[str, dict] = {}
     for ncams in cameras:
         for seed in seeds:
-            key = (f"{args.split}_{start_frame}-{start_frame + args.frames}_c{ncams}_s{seed}_"
-                   f"d{args.distance:g}_f{args.focal:g}_k{ktag}")  # fmt: skip
-            scene = work / "scenes" / key
-            rig = fisheye_rig(motion.floor, ncams, args.distance, args.focal, k)
-            if not (scene / "truth.npz").exists():
-                if scene.exists():
-                    shutil.rmtree(scene)
-                write_motion_scene(scene, X, motion.parts, rig, src, dict(zip(src, names)),
-                                   seed=seed)  # fmt: skip
+            key, scene, rig = lens_scene(work, motion, args.split, args.frames, ncams, seed,
+                                         args.distance, args.focal, k, fisheye=True)  # fmt: skip
             det = read_dlc_folder(scene, rig)
             refits = [pinhole_refit(c, det[c.name]) for c in rig]
             pin = work / "pinhole" / key

@@ -28,9 +28,7 @@ scene as filmed. A run adjust-track refuses is recorded as refused, its scores N
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
-import shutil
 import sys
 from pathlib import Path
 
@@ -47,27 +45,17 @@ from real_motion import (  # noqa: E402
     input_args,
     input_run,
     input_settings,
+    lens_scene,
     peer_row,
     spoil_scene,
 )
 
 from adjust.camera import Camera  # noqa: E402
 from adjust.distortion import undistort_points  # noqa: E402
-from adjust.scene.motion import motion_rig, part_set, write_motion_scene  # noqa: E402
 
 log = logging.getLogger("benchmarks.lens")
 
 SAME = 1.05  #: checked must track within this factor of the scene as filmed
-
-
-def lens_rig(floor, ncams: int, distance: float, focal: float, dist) -> list[Camera]:
-    """`motion_rig` at `distance` mm with pinhole lenses of `focal` px and coefficients `dist`."""
-    out = []
-    for cam in motion_rig(floor, ncams, distance_mm=distance):
-        K = cam.K.copy()
-        K[0, 0] = K[1, 1] = focal
-        out.append(dataclasses.replace(cam, K=K, dist=np.asarray(dist, dtype=np.float64)))
-    return out
 
 
 def undistorted(cam: Camera):
@@ -104,22 +92,11 @@ def main(argv: list[str] | None = None) -> dict:
     if len(dist) != 5 or not any(dist):
         ap.error(f"--dist must be 5 numbers k1,k2,p1,p2,k3, not all 0, got {args.dist}")
     motion, work, threads = input_run(args)
-    start_frame = SPLITS[args.split]
-    X = motion.points[start_frame : start_frame + args.frames]
-    src, names = part_set(8, motion.parts)
-    dtag = "_".join(f"{v:g}" for v in dist)
     rows: dict[str, dict] = {}
     for ncams in cameras:
         for seed in seeds:
-            key = (f"{args.split}_{start_frame}-{start_frame + args.frames}_c{ncams}_s{seed}_"
-                   f"d{args.distance:g}_f{args.focal:g}_k{dtag}")  # fmt: skip
-            base = work / "scenes" / key
-            rig = lens_rig(motion.floor, ncams, args.distance, args.focal, dist)
-            if not (base / "truth.npz").exists():
-                if base.exists():
-                    shutil.rmtree(base)
-                write_motion_scene(base, X, motion.parts, rig, src, dict(zip(src, names)),
-                                   seed=seed)  # fmt: skip
+            key, base, rig = lens_scene(work, motion, args.split, args.frames, ncams, seed,
+                                        args.distance, args.focal, dist)  # fmt: skip
             ref, ref_check = checked_or_refused(base, work / "runs" / key / "as_filmed", [threads])
             peer = None if args.no_peer else peer_row(base)["rmse_all"]
             cases = {f"{cam.name} undistorted": [cam] for cam in rig} if "each" in kinds else {}

@@ -71,6 +71,7 @@ Prints the tables; the last line is JSON, also written to runs/benchmarks/real_m
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import logging
@@ -99,12 +100,16 @@ from peers.anipose import (  # noqa: E402
 from peers.anipose import wanted as anipose_wanted  # noqa: E402
 from tracking import run_track, scene_inputs, view_fractions  # noqa: E402
 
+from adjust.camera import Camera  # noqa: E402
 from adjust.io import load_scene, read_dlc, read_points3d, write_dlc_csv  # noqa: E402
 from adjust.scene.motion import (  # noqa: E402
     MOTION_FEET,
     film_part_set,
     floor_frame,
     load_motion,
+    motion_rig,
+    part_set,
+    write_motion_scene,
 )
 from deformnet.atomic import atomic_path  # noqa: E402
 from deformnet.body import default_mouse  # noqa: E402
@@ -279,6 +284,41 @@ def film_scene(
         time.perf_counter() - t0,
     )
     return out
+
+
+def lens_rig(
+    floor, ncams: int, distance: float, focal: float, dist, fisheye: bool = False
+) -> list[Camera]:
+    """`motion_rig` moved to `distance` mm with lenses of `focal` px and coefficients `dist`
+    (OpenCV's five, or a fisheye's k1-k4 with `fisheye`): the lens benchmarks' rigs."""
+    d = np.zeros(5)
+    d[: len(dist)] = dist
+    out = []
+    for cam in motion_rig(floor, ncams, distance_mm=distance):
+        K = cam.K.copy()
+        K[0, 0] = K[1, 1] = focal
+        out.append(dataclasses.replace(cam, K=K, dist=d.copy(), fisheye=fisheye))
+    return out
+
+
+def lens_scene(
+    work: Path, motion: Motion, split: str, frames: int, ncams: int, seed: int,
+    distance: float, focal: float, dist, fisheye: bool = False,
+) -> tuple[str, Path, list[Camera]]:  # fmt: skip
+    """The 8-part scene of `split`'s first `frames` frames filmed through `lens_rig` (cached
+    under ``work/scenes``: kept if its truth.npz is there): (its key, its folder, the rig)."""
+    start = SPLITS[split]
+    tag = "_".join(f"{v:g}" for v in dist)
+    key = f"{split}_{start}-{start + frames}_c{ncams}_s{seed}_d{distance:g}_f{focal:g}_k{tag}"
+    scene = work / "scenes" / key
+    rig = lens_rig(motion.floor, ncams, distance, focal, dist, fisheye)
+    if not (scene / "truth.npz").exists():
+        if scene.exists():
+            shutil.rmtree(scene)
+        src, names = part_set(8, motion.parts)
+        X = motion.points[start : start + frames]
+        write_motion_scene(scene, X, motion.parts, rig, src, dict(zip(src, names)), seed=seed)
+    return key, scene, rig
 
 
 def drop_detections(src: Path, out: Path, fraction: float, seed: int) -> Path:
