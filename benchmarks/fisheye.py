@@ -37,11 +37,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
-    SPLITS,
     checked_row,
-    input_args,
     input_run,
     input_settings,
+    lens_args,
     lens_scene,
     peer_row,
 )
@@ -93,12 +92,8 @@ def read_dlc_folder(scene: Path, rig: list[Camera]) -> dict[str, np.ndarray]:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    input_args(ap, "fisheye", "2,3,4")
-    ap.add_argument("--split", default="test", choices=tuple(SPLITS), help="the segment")
-    ap.add_argument("--distance", type=float, default=400.0, help="cameras' distance (mm)")
-    ap.add_argument("--focal", type=float, default=500.0, help="focal length (px)")
+    lens_args(ap, "fisheye", distance=400.0, focal=500.0)
     ap.add_argument("--k", default="0.05,-0.02,0.004,0", help="fisheye k1,k2,k3,k4")
-    ap.add_argument("--no-peer", action="store_true", help="without aniposelib")
     args = start(ap, argv)
     cameras, seeds = input_settings(ap, args)
     k = [float(v) for v in args.k.split(",")]

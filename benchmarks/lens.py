@@ -40,11 +40,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import emit, print_table, start  # noqa: E402
 from real_motion import (  # noqa: E402
     DATA,  # noqa: F401 - the recording read (the tests skip where it is absent)
-    SPLITS,
     checked_or_refused,
-    input_args,
     input_run,
     input_settings,
+    lens_args,
     lens_scene,
     peer_row,
     spoil_scene,
@@ -76,13 +75,9 @@ def undistorted(cam: Camera):
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    input_args(ap, "lens", "2,3,4")
-    ap.add_argument("--split", default="test", choices=tuple(SPLITS), help="the segment")
-    ap.add_argument("--distance", type=float, default=250.0, help="cameras' distance (mm)")
-    ap.add_argument("--focal", type=float, default=770.0, help="focal length (px)")
+    lens_args(ap, "lens", distance=250.0, focal=770.0)
     ap.add_argument("--dist", default="-0.29,0,0,0,0", help="OpenCV k1,k2,p1,p2,k3")
     ap.add_argument("--cases", default="each,every", help="each camera in turn, every camera")
-    ap.add_argument("--no-peer", action="store_true", help="without aniposelib")
     args = start(ap, argv)
     kinds = [k for k in args.cases.split(",") if k.strip()]
     if not kinds or set(kinds) - {"each", "every"}:

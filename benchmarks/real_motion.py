@@ -301,6 +301,16 @@ def lens_rig(
     return out
 
 
+def lens_args(ap: argparse.ArgumentParser, name: str, distance: float, focal: float) -> None:
+    """`input_args` and the lens benchmarks' ``--split``, ``--distance`` (mm), ``--focal`` (px)
+    and ``--no-peer``."""
+    input_args(ap, name, "2,3,4")
+    ap.add_argument("--split", default="test", choices=tuple(SPLITS), help="the segment")
+    ap.add_argument("--distance", type=float, default=distance, help="cameras' distance (mm)")
+    ap.add_argument("--focal", type=float, default=focal, help="focal length (px)")
+    ap.add_argument("--no-peer", action="store_true", help="without aniposelib")
+
+
 def lens_scene(
     work: Path, motion: Motion, split: str, frames: int, ncams: int, seed: int,
     distance: float, focal: float, dist, fisheye: bool = False,
