@@ -74,6 +74,7 @@ from adjust.subframe import MIN_CLUSTERS, pair_terms, read_at, regress, term_row
 from adjust.sync import (
     epipolar_px,
     essential,
+    focal_px,
     frame_numbers,
     normalised_points,
 )
@@ -141,12 +142,12 @@ def block_curve(cams, x, c, others, rows, frames, first, arr, rate, offsets) -> 
     no pair has `MIN_PAIRS` part-frames. x: (T, K, C, 2) normalised points."""
     p = rate * frames[rows][None, :] + np.asarray(offsets)[:, None]  # (G, N)
     xc = _read(first, arr, p)  # (G, N, K, 2)
-    fc = float(np.sqrt(cams[c].K[0, 0] * cams[c].K[1, 1]))
+    fc = focal_px(cams[c])
     meds = []
     for d in others:
         xd = np.broadcast_to(x[rows][:, :, d], xc.shape)
         ok = np.isfinite(xc).all(-1) & np.isfinite(xd).all(-1)  # (G, N, K)
-        fd = float(np.sqrt(cams[d].K[0, 0] * cams[d].K[1, 1]))
+        fd = focal_px(cams[d])
         e = np.full(ok.shape, np.nan)
         if ok.any():
             e[ok] = epipolar_px(essential(cams[c], cams[d]), xc[ok], xd[ok], fc, fd)

@@ -67,6 +67,7 @@ from adjust.io import Detections, InputError
 from adjust.sync import (
     epipolar_lines,
     essential,
+    focal_px,
     frame_numbers,
     homog,
     nan_reduce,
@@ -104,10 +105,6 @@ TELL_PX = 0.25  #: since calibration: turns within this of the best's excess (px
 MAX_BUMP_DEG = 5.0  #: a camera turned since its calibration by more is a wrong pose, no bump
 
 
-def _focal(cam: Camera) -> float:
-    return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
-
-
 def rotate(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Normalised points x (..., 2) turned by rotation Q (3, 3): the rays Q [x, 1], divided by
     their depth (NaN where it is not positive)."""
@@ -125,7 +122,7 @@ def pair_distances(x: np.ndarray, cams: Sequence[Camera], a: int, b: int) -> np.
     E = essential(cams[a], cams[b])
     lb, inv_b = epipolar_lines(ha, E.T)
     _, inv_a = epipolar_lines(hb, E)
-    d = symmetric_px(hb, lb, inv_b, inv_a, _focal(cams[a]), _focal(cams[b]))
+    d = symmetric_px(hb, lb, inv_b, inv_a, focal_px(cams[a]), focal_px(cams[b]))
     return np.where(both, d, np.nan)
 
 
@@ -192,7 +189,7 @@ def fit_rotation(
             ok = ok[np.linspace(0, ok.size - 1, FIT_POINTS).astype(int)]
         if ok.size:
             E = essential(cams[c], cams[d])
-            data.append((E, xc[ok], xd[ok], _focal(cams[c]), _focal(cams[d])))
+            data.append((E, xc[ok], xd[ok], focal_px(cams[c]), focal_px(cams[d])))
 
     def residuals(w: np.ndarray) -> np.ndarray:
         Q = rodrigues_to_matrix(torch.as_tensor(w)).numpy()
@@ -350,7 +347,7 @@ def same_place(x, cams, c: int, good, bad) -> tuple[float, float] | None:
             continue
         dist = pair_distances(x, cams, c, d)  # (N, K)
         cell = np.concatenate(
-            [np.floor(x[:, :, k] * _focal(cams[k]) / CELL_PX) for k in (c, d)], axis=-1
+            [np.floor(x[:, :, k] * focal_px(cams[k]) / CELL_PX) for k in (c, d)], axis=-1
         )  # (N, K, 4): the place in both images (a 3D place, its depth too)
         keys: tuple[dict, dict] = ({}, {})
         for side, rows in enumerate((good, bad)):

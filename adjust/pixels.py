@@ -52,7 +52,7 @@ import numpy as np
 from adjust.camera import Camera
 from adjust.io import Detections, InputError
 from adjust.rates import camera_px, pair_medians
-from adjust.sync import essential, normalised_points, spread_rows
+from adjust.sync import essential, focal_px, normalised_points, spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -165,10 +165,6 @@ def fit_camera(cameras: Sequence[Camera], det: Detections, c: int, refs: Sequenc
     if not np.isfinite([s, dx, dy]).all() or s <= 0:
         return None
     return s, (dx, dy)
-
-
-def _focal_px(cam: Camera) -> float:
-    return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
 
 
 def _resized(s: float):
@@ -334,7 +330,7 @@ def check_pixels(
             )
         else:
             what = "downsampled" if s > 1.01 else "upsampled" if s < 0.99 else "cropped"
-            turn = float(np.degrees(np.arctan(np.hypot(dx, dy) / _focal_px(cameras[c]))))
+            turn = float(np.degrees(np.arctan(np.hypot(dx, dy) / focal_px(cameras[c]))))
             bump = f" or the camera turned {turn:.1f} deg since its calibration?"
             bump = bump if what == "cropped" else ""
             if abs(s - 1) > 0.01 and max(abs(dx), abs(dy)) > abs(s - 1):

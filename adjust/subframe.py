@@ -49,6 +49,7 @@ from adjust.sync import (
     block_rows,
     epipolar_lines,
     essential,
+    focal_px,
     frame_numbers,
     homog,
     normalised_points,
@@ -94,7 +95,7 @@ def pair_terms(x, frames, rows, nb, a: int, b: int, cameras: Sequence[Camera]):
         (a, b, E.T, 1.0),
         (b, a, E, -1.0),
     ):  # lines in q from p's points
-        fq = float(np.sqrt(cameras[q].K[0, 0] * cameras[q].K[1, 1]))
+        fq = focal_px(cameras[q])
         line, inv = epipolar_lines(homog(x[rows, :, p]), M)
         n = line[..., :2] * inv[..., None]  # (N, K, 2) unit normals
         d = (homog(x[rows, :, q]) * line).sum(-1) * inv * fq

@@ -73,6 +73,11 @@ def spread_rows(T: int, most: int) -> np.ndarray:
     return np.linspace(0, T - 1, most).astype(np.int64)
 
 
+def focal_px(cam: Camera) -> float:
+    """A camera's focal length in pixels, sqrt(fx fy): the scale of its epipolar distances."""
+    return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+
+
 def epipolar_medians(
     cameras: Sequence[Camera],
     x: np.ndarray,
@@ -84,7 +89,7 @@ def epipolar_medians(
     b's parts `ib` at the same rows, for each camera pair a < b (symmetric; NaN with fewer than
     `min_pairs` part-frames seen by both); x: (N, K, C, 2) `normalised_points`."""
     C = len(cameras)
-    focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
+    focal = [focal_px(cam) for cam in cameras]
     out = np.full((C, C), np.nan)
     for a in range(C):
         for b in range(a + 1, C):
@@ -187,7 +192,7 @@ def lag_curves(
     T = len(frames)
     if rows is None:  # blocks of consecutive rows: few rows beyond them to undistort
         rows = block_rows(T, MAX_FRAMES, BLOCK)
-    focal = [float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) for cam in cameras]
+    focal = [focal_px(cam) for cam in cameras]
     order = np.argsort(frames, kind="stable")
     at = [rows_at(frames, frames[rows] + L, order) for L in lags]  # rows of f + L
     # every lag on the same frames f (those with a row at every f + L): medians over other
@@ -282,7 +287,7 @@ def _frame_costs(cameras, det, x_of, c: int, lag: int, offsets, rows) -> np.ndar
     frames = frame_numbers(det)
     order = np.argsort(frames, kind="stable")
     rc = rows_at(frames, frames[rows] + lag, order)
-    fc = float(np.sqrt(cameras[c].K[0, 0] * cameras[c].K[1, 1]))
+    fc = focal_px(cameras[c])
     per = []
     for d in range(len(cameras)):
         if d == c:
@@ -293,7 +298,7 @@ def _frame_costs(cameras, det, x_of, c: int, lag: int, offsets, rows) -> np.ndar
         if ok.any():
             xc, xd = x_of(rc[ok])[:, :, c], x_of(rd[ok])[:, :, d]
             both = np.isfinite(xc).all(-1) & np.isfinite(xd).all(-1)
-            fd = float(np.sqrt(cameras[d].K[0, 0] * cameras[d].K[1, 1]))
+            fd = focal_px(cameras[d])
             hc, hd = homog(np.nan_to_num(xc)), homog(np.nan_to_num(xd))
             E = essential(cameras[c], cameras[d])
             ld, inv_d = epipolar_lines(hc, E.T)
