@@ -32,7 +32,9 @@ multiple or fraction of the others' frame rate has its frames renumbered to thei
 another rate than theirs (a non-whole ratio, a drift) is read at their times (`adjust.clocks`,
 ``input.rate_check`` too; the report's ``clocks``), a camera whose left/right parts
 are named the other way round from the others' has them swapped back (`adjust.sides`,
-``input.side_check``; the report's ``sides``), a camera out of step in time
+``input.side_check``; the report's ``sides``), detections made on a video undistorted while
+the calibration keeps the lens's distortion are mapped into the calibrated image
+(`adjust.lens`, ``input.pixel_check`` too; the report's ``lens``), a camera out of step in time
 with the others (its video started a few frames early or late) is found from the epipolar
 geometry and shifted back (`adjust.sync`, up to ``input.max_frame_offset`` frames; the report's
 ``sync``), and a camera turned during the session (bumped) has its detections after the move
@@ -302,9 +304,10 @@ def check_cameras(
     first, with `pixels`, map detections made on scaled or cropped videos into the calibrated
     images (`adjust.pixels.check_pixels`) and, with `rates`, renumber a camera at a whole
     multiple or fraction of the others' frame rate (`adjust.rates.check_rates`) and read one
-    whose clock runs at another rate at their times (`adjust.clocks.check_clocks`), and with
+    whose clock runs at another rate at their times (`adjust.clocks.check_clocks`), with
     `sides` swap back a camera whose left/right parts are named the other way round
-    (`adjust.sides.check_sides`; `reference`, a named body model, decides a tie).
+    (`adjust.sides.check_sides`; `reference`, a named body model, decides a tie), and with
+    `pixels` map detections made on undistorted videos (`adjust.lens.check_lens`).
     Returns the kept cameras, their detections (T, K, C', 2) and the report for the summary."""
     if mode not in MODES:
         raise InputError(f"input.camera_check must be one of {list(MODES)}, got {mode!r}")
