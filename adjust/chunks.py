@@ -252,7 +252,8 @@ class ChunkHooks:
         """`adjust.camera_check.check_from_config` on the sample; the chunks (read at the
         sample's clocks by `load_scene`) drop the cameras it excluded, map those whose
         detections were on scaled or cropped videos (`adjust.pixels`), swap the left and
-        right parts of those labelled the other way round (`adjust.sides`), shift those it
+        right parts of those labelled the other way round (`adjust.sides`), map those on
+        undistorted videos (`adjust.lens`), shift those it
         found out of step (`adjust.sync`), map back those it found moved (`adjust.moves`),
         interpolate those a fraction of a frame out of step (`adjust.subframe`), and report
         it."""
@@ -274,13 +275,13 @@ class ChunkHooks:
         )
         swapped = (self.model.camera_report.get("sides") or {}).get("swapped") or {}
         det = swap_sides(det, {n: v["pairs"] for n, v in swapped.items() if n in det.cameras})
+        lens = (self.model.camera_report.get("lens") or {}).get("undistorted") or {}
+        det = apply_lens(det, cams, lens)  # in the check's order: before the shifts and moves
         sync = self.model.camera_report.get("sync") or {}
         shifts: dict = {n: o for n, o in (sync.get("offsets") or {}).items()}
         shifts.update({n: row_offsets(det, st) for n, st in (sync.get("steps") or {}).items()})
         det = shift_cameras(det, {n: o for n, o in shifts.items() if n in det.cameras})
         det = apply_moves(det, cams, (self.model.camera_report.get("moved") or {}).get("moves"))
-        lens = (self.model.camera_report.get("lens") or {}).get("undistorted") or {}
-        det = apply_lens(det, cams, lens)
         sub = (self.model.camera_report.get("subframe") or {}).get("offsets") or {}
         det = resample(det, {n: o for n, o in sub.items() if n in det.cameras})
         a, b = self.keep
