@@ -50,11 +50,18 @@ import numpy as np
 import torch
 
 from adjust.camera import Camera
-from adjust.distortion import distort_points
+from adjust.distortion import distort_points, pixels_to_normalized
 from adjust.io import Detections, InputError
 from adjust.moves import fit_rotation, rotate
-from adjust.rates import pair_medians
-from adjust.sync import epipolar_px, essential, focal_px, normalised_points, spread_rows
+from adjust.rates import MIN_PAIRS as MIN_MEDIAN_PAIRS
+from adjust.sync import (
+    epipolar_medians,
+    epipolar_px,
+    essential,
+    focal_px,
+    normalised_points,
+    spread_rows,
+)
 
 log = logging.getLogger(__name__)
 
@@ -70,12 +77,10 @@ MIN_PAIRS = 30  #: part-frames a camera pair needs where the readings differ
 MAX_ROWS = 3_000  #: rows the check uses (spread over the session)
 
 
-def as_undistorted(xy: np.ndarray, Kn: np.ndarray) -> np.ndarray:
-    """Normalised coordinates (..., 2) of pixels xy (..., 2) of an undistorted video whose camera
-    matrix is Kn (NaN stays NaN)."""
-    h = np.concatenate([xy, np.ones((*xy.shape[:-1], 1))], -1)
-    n = h @ np.linalg.inv(Kn).T
-    return n[..., :2] / n[..., 2:]
+def as_undistorted(xy: np.ndarray, cam: Camera) -> np.ndarray:
+    """Normalised coordinates (..., 2) of pixels xy (..., 2) of camera `cam`'s video undistorted
+    with its camera matrix kept: K^-1 xy (NaN stays NaN)."""
+    return pixels_to_normalized(torch.as_tensor(xy), torch.as_tensor(cam.K)).numpy()
 
 
 def undistorted_map(det: Detections, cam: Camera) -> Detections:
@@ -204,9 +209,9 @@ def check_lens(
     rows = spread_rows(det.num_frames, MAX_ROWS)
     xy = det.xy[rows]
     read = normalised_points(xy, cameras)
-    alt = {c: as_undistorted(xy[:, :, c], cameras[c].K) for c in cand}
-    sub = dataclasses.replace(det, xy=xy, likelihood=det.likelihood[rows], frames=None)
-    med = pair_medians(cameras, sub)
+    alt = {c: as_undistorted(xy[:, :, c], cameras[c]) for c in cand}
+    parts = range(det.num_parts)
+    med = epipolar_medians(cameras, read, parts, parts, MIN_MEDIAN_PAIRS)
     broken = {(a, b) for a, b in zip(*np.triu_indices(len(cameras), 1)) if med[a, b] > BROKEN_PX}
     scores = {k: v for k, v in pair_scores(cameras, read, alt).items() if k not in broken}
     none = rig_score(scores, frozenset())

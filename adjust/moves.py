@@ -601,6 +601,11 @@ def _undo(x: np.ndarray, frames: np.ndarray, c: int, move: dict) -> None:
     x[sel, :, c] = rotate(x[sel, :, c], Q)
 
 
+def _named(det: Detections, which) -> str:
+    """Cameras `which` as a warning names them: 'name' (file), ..."""
+    return ", ".join(f"'{n}' ({det.files[det.cameras.index(n)]})" for n in which)
+
+
 def _say(mode: str, msg: str, fix: str, done: str) -> None:
     """A finding `msg`: an `InputError` with the way out `fix` (mode error), else a warning
     with what was `done` about it."""
@@ -635,7 +640,7 @@ def check_moves(
         c = names.index(bump["camera"])
         if "ambiguous" in bump:
             which = bump.pop("ambiguous")
-            files = ", ".join(f"'{n}' ({det.files[det.cameras.index(n)]})" for n in which)
+            files = _named(det, which)
             msg = (
                 f"the cameras do not fit their calibration from the session's start: the "
                 f"detections lie {bump['before_px']:.1f} px from each other's epipolar lines "
@@ -677,7 +682,7 @@ def check_moves(
         )
         if "ambiguous" in move:
             which = move.pop("ambiguous")
-            files = ", ".join(f"'{n}' ({det.files[det.cameras.index(n)]})" for n in which)
+            files = _named(det, which)
             msg = (
                 f"a camera moved {span}: the detections lie {move['before_px']:.1f} px from "
                 f"the other cameras' epipolar lines there against {move['others_px']:.1f} px "

@@ -64,10 +64,8 @@ def undistorted(cam: Camera):
     def edit(t):
         xy = t.xy.copy()
         ok = np.isfinite(xy).all(-1)
-        n = undistort_points(
-            torch.as_tensor(xy[ok]), torch.as_tensor(cam.K), torch.as_tensor(cam.dist)
-        ).numpy()
-        xy[ok] = n @ cam.K[:2, :2].T + cam.K[:2, 2]
+        K, d = torch.as_tensor(cam.K), torch.as_tensor(cam.dist)
+        xy[ok] = undistort_points(torch.as_tensor(xy[ok]), K, d, pixels=True).numpy()
         return xy, t.likelihood
 
     return edit

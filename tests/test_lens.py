@@ -61,8 +61,7 @@ def _undistorted(det, cams, which):
     xy = det.xy.copy()
     for c in which:
         K, d = torch.as_tensor(cams[c].K), torch.as_tensor(cams[c].dist)
-        n = undistort_points(torch.as_tensor(xy[:, :, c]), K, d).numpy()
-        xy[:, :, c] = n @ cams[c].K[:2, :2].T + cams[c].K[:2, 2]
+        xy[:, :, c] = undistort_points(torch.as_tensor(xy[:, :, c]), K, d, pixels=True).numpy()
     return dataclasses.replace(det, xy=xy)
 
 
@@ -159,7 +158,7 @@ def test_a_turned_camera_is_no_lens(monkeypatch, caplog):
         cams[1].name, cams[1].K, R @ cams[1].R, R @ cams[1].tvec, cams[1].dist, cams[1].size
     )
     read = normalised_points(det.xy, turned)
-    alt = {c: as_undistorted(det.xy[:, :, c], cams[c].K) for c in range(2)}
+    alt = {c: as_undistorted(det.xy[:, :, c], cams[c]) for c in range(2)}
     scores = pair_scores(turned, read, alt)
     c, px, deg = turned_score(turned, read, scores, set())
     assert px < 0.5 * rig_score(scores, frozenset()) and 0.7 < deg < 1.3, (c, px, deg)
